@@ -1,0 +1,357 @@
+"""Online 2-RC identifiers: continuous-time LIF (the paper's method) and the DT ARX baseline.
+
+Both share the same machinery (:class:`~bms_estimator.core.rls.WeightedRls`,
+vectorised over N cells) and the same *admissibility guard*: after each update
+theta is mapped to (R0, R1, C1, R2, C2, c0); a cell whose new theta is not
+physical (negative R or C, complex or repeated poles, a time constant outside
+``[tau_min_s, tau_max_s]``) has its estimate itself reset to its last admissible
+theta - not just its output - and the rejection is counted.  Resetting the
+estimate is what stops the slow pole from running away to 1e3..1e6 s and c0 to
+volts during weakly exciting stretches: a bound on the output alone would let
+the hidden estimate drift on.  Until a cell's block-LS initialisation is done
+(or if it gives a non-physical theta) the cell reports a prior.
+
+Currents are regressed in C-rate (``i / I_ref``, ``I_ref`` = capacity in A for
+1C) and the LIF columns are time-scaled by the window, so the same tuning
+serves a 2 Ah cell and a 200 Ah cell, and any window length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from .lif import LifHistory
+from .params import (
+    PhysicalParams,
+    ct_physical_from_theta,
+    ct_theta_from_physical,
+    dt_physical_from_theta,
+    dt_theta_from_physical,
+)
+from .rls import RlsConfig, WeightedRls
+
+__all__ = ["IdentifierConfig", "Identifier", "LifEstimator", "ArxEstimator", "make_identifier"]
+
+
+@dataclass(frozen=True)
+class IdentifierConfig:
+    """Tuning of the online identifiers; the defaults serve both cells in ../shared/data.
+
+    Resistances of the prior are given times the capacity (ohm * Ah), i.e. per
+    C-rate, so that they fit any cell size.
+    """
+
+    method: str = "lif"  # "lif" (continuous time) or "arx" (discrete-time baseline)
+    window: int = 20  # LIF window L in samples
+    forgetting: float = 0.9995  # RLS forgetting factor per sample (memory ~ 1/(1-lambda) samples)
+    error_on_v: float = 0.0  # turn adaptation on above this windowed RMS error (0 = always on)
+    error_off_v: float = 0.0  # turn it off below this one
+    error_window: int = 30  # samples in the windowed error
+    trace_max: float = 1e3  # covariance trace limit (scaled regressors)
+    init_samples: int = 600  # block-LS initialisation window in samples
+    tau_min_s: float = 1.0  # admissible fast time constant, lower bound
+    tau_max_s: float = 1500.0  # admissible slow time constant, upper bound (the runaway guard)
+    prior_r0_ohm_ah: float = 0.06
+    prior_r1_ohm_ah: float = 0.03
+    prior_tau1_s: float = 10.0
+    prior_r2_ohm_ah: float = 0.03
+    prior_tau2_s: float = 200.0
+
+    def rls(self) -> RlsConfig:
+        return RlsConfig(
+            forgetting=self.forgetting,
+            error_on=self.error_on_v,
+            error_off=self.error_off_v,
+            error_window=self.error_window,
+            trace_max=self.trace_max,
+            init_samples=self.init_samples,
+        )
+
+    def with_(self, **changes) -> "IdentifierConfig":
+        return replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class Identifier:
+    """Common part of the CT and DT identifiers (N cells, one sample per call)."""
+
+    n_params = 6
+
+    def __init__(self, n_cells: int, dt_s: float, capacity_ah: float | np.ndarray, config: IdentifierConfig):
+        if n_cells < 1:
+            raise ValueError(f"n_cells must be >= 1, got {n_cells}")
+        if dt_s <= 0:
+            raise ValueError(f"dt_s must be positive, got {dt_s}")
+        self.n_cells = int(n_cells)
+        self.dt_s = float(dt_s)
+        self.config = config
+        self.i_ref_a = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
+        if np.any(self.i_ref_a <= 0):
+            raise ValueError("capacity_ah must be positive")
+        self.rls = WeightedRls(self.n_cells, self.n_params, config.rls())
+        self._init_scales()
+        q = self.i_ref_a
+        self._prior_theta_s = self._theta_s_from_physical(
+            config.prior_r0_ohm_ah / q,
+            config.prior_r1_ohm_ah / q,
+            np.full(self.n_cells, config.prior_tau1_s),
+            config.prior_r2_ohm_ah / q,
+            np.full(self.n_cells, config.prior_tau2_s),
+            np.zeros(self.n_cells),
+        )
+        self.theta_good = self._prior_theta_s.copy()  # last admissible scaled theta
+        self.identified = np.zeros(self.n_cells, dtype=bool)
+        self.rejections = np.zeros(self.n_cells, dtype=np.int64)
+        self.updates = 0
+        self.error = np.full(self.n_cells, np.nan)
+        self.params: PhysicalParams = self._physical(self.theta_good)
+
+    # -- to be provided by subclasses -------------------------------------------
+    def _init_scales(self) -> None:
+        raise NotImplementedError
+
+    def _theta_s_from_physical(self, r0, r1, tau1, r2, tau2, c0) -> np.ndarray:
+        raise NotImplementedError
+
+    def _physical(self, theta_s: np.ndarray) -> PhysicalParams:
+        raise NotImplementedError
+
+    def _regress(self, current_a: np.ndarray, v_o: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Push a sample; return (y, phi_s, ready mask)."""
+        raise NotImplementedError
+
+    def _shift_theta(self, theta_s: np.ndarray, dv: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def _shift_history(self, dv: np.ndarray) -> None:
+        raise NotImplementedError
+
+    # -- public ---------------------------------------------------------------
+    def update(self, current_a: np.ndarray, v_o: np.ndarray, valid: np.ndarray | None = None) -> None:
+        """One sample for all cells.
+
+        Args:
+            current_a: cell current (N,) or scalar, positive = charge.
+            v_o: overpotential v - OCV(soc) per cell (N,).
+            valid: cells whose sample is good; the others are held (their
+                regressor window is marked contaminated and they do not learn
+                until it has been flushed).
+        """
+        i = np.broadcast_to(np.asarray(current_a, dtype=float), (self.n_cells,))
+        v = np.asarray(v_o, dtype=float)
+        ok = np.isfinite(v) & np.isfinite(i)
+        if valid is not None:
+            ok &= np.asarray(valid, dtype=bool)
+        y, phi, ready = self._regress(i, v, ok)
+        learn = ready & np.isfinite(y) & np.all(np.isfinite(phi), axis=1)
+        was_init = self.rls.initialised.copy()
+        self.error = self.rls.update(phi, np.where(learn, y, 0.0), learn)
+        theta = self.rls.theta
+        new = self.rls.initialised & ~was_init
+        params = self._physical(theta)
+        good = params.admissible & self.rls.initialised
+        # a fresh block-LS start that is not physical starts from the prior instead
+        bad_start = new & ~good
+        if bad_start.any():
+            theta[bad_start] = self._prior_theta_s[bad_start]
+        rejected = self.rls.initialised & ~params.admissible & ~new
+        self.rejections += rejected
+        if rejected.any():
+            self.rls.reset_theta(rejected, self.theta_good)
+        self.theta_good = np.where(good[:, None], theta, self.theta_good)
+        self.identified |= good
+        self.params = params.select(good, self.params) if good.any() else self.params
+        self.updates += 1
+
+    def shift_bias(self, dv: np.ndarray, cells: np.ndarray | None = None) -> None:
+        """Move an OCV bias ``dv`` (V, per cell) out of the model: v_o history and c0 both shift.
+
+        Called when the SOC estimator re-reads SOC from OCV + dv; afterwards
+        v_o = v - OCV(new soc) = old v_o - dv, so the stored history and c0 must
+        drop by dv too, or the correction would be applied twice.
+        """
+        d = np.broadcast_to(np.asarray(dv, dtype=float), (self.n_cells,))
+        if cells is not None:
+            d = np.where(np.asarray(cells, dtype=bool), d, 0.0)
+        d = np.where(np.isfinite(d), d, 0.0)
+        self._shift_history(d)
+        self._shift_theta(self.rls.theta, d)
+        self._shift_theta(self.theta_good, d)
+        self.params = self._physical(self.theta_good)
+
+    @property
+    def c0_v(self) -> np.ndarray:
+        return self.params.c0_v
+
+    def predict_static(self, current_a: np.ndarray) -> np.ndarray:
+        """Steady-state overpotential for a constant current (R0+R1+R2) i + c0."""
+        p = self.params
+        return (p.r0_ohm + p.r1_ohm + p.r2_ohm) * current_a + p.c0_v
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        out = {f"rls.{k}": v for k, v in self.rls.state_dict().items()}
+        out.update(
+            theta_good=self.theta_good.copy(),
+            identified=self.identified.copy(),
+            rejections=self.rejections.copy(),
+            updates=np.array(self.updates),
+        )
+        return out
+
+    def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
+        self.rls.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("rls.")})
+        tg = np.asarray(s["theta_good"], dtype=float)
+        if tg.shape != self.theta_good.shape:
+            raise ValueError(f"theta_good has shape {tg.shape}, expected {self.theta_good.shape}")
+        self.theta_good = tg.copy()
+        self.identified = np.asarray(s["identified"], dtype=bool).copy()
+        self.rejections = np.asarray(s["rejections"], dtype=np.int64).copy()
+        self.updates = int(s["updates"])
+        self.params = self._physical(self.theta_good)
+
+
+class LifEstimator(Identifier):
+    """Continuous-time 2-RC identification with the linear integral filter (LIF) and WRLS.
+
+    Model and filter (see :mod:`bms_estimator.core.lif`)::
+
+        f1^2 v_o = th1 f1f2 v_o + th2 f2^2 v_o + th3 f1^2 i + th4 f1f2 i + th5 f2^2 i + th6 (L Ts)^2
+
+    regressed on time- and current-scaled columns; theta maps to the physical
+    parameters by :func:`bms_estimator.core.params.ct_physical_from_theta`.
+    A cell learns only when its whole 2L+1 window holds valid samples.
+    """
+
+    def __init__(self, n_cells, dt_s, capacity_ah, config: IdentifierConfig = IdentifierConfig()):
+        super().__init__(n_cells, dt_s, capacity_ah, config)
+        self._taint = np.full(self.n_cells, self.history.length, dtype=np.int64)
+        self._v_hold = np.zeros(self.n_cells)
+
+    def _init_scales(self) -> None:
+        # the history scales by the window only; currents enter in C-rate, so the
+        # current columns of theta carry the cell's own 1C current
+        self.history = LifHistory(self.n_cells, self.config.window, self.dt_s, 1.0)
+        self._scale = self.history.scale[None, :] * np.ones((self.n_cells, 1))
+        self._scale[:, 2:5] *= self.i_ref_a[:, None]
+
+    def _theta_s_from_physical(self, r0, r1, tau1, r2, tau2, c0):
+        return ct_theta_from_physical(r0, r1, tau1, r2, tau2, c0) * self._scale
+
+    def _physical(self, theta_s):
+        return ct_physical_from_theta(
+            theta_s / self._scale, tau_min_s=self.config.tau_min_s, tau_max_s=self.config.tau_max_s
+        )
+
+    def _regress(self, i, v, ok):
+        # hold the last valid overpotential for a bad sample; the window stays tainted for 2L+1 samples
+        v_in = np.where(ok, v, self._v_hold)
+        self._v_hold = v_in
+        i_c = i / self.i_ref_a
+        self._taint = np.where(ok, np.maximum(self._taint - 1, 0), self.history.length)
+        y, phi = self.history.push(v_in, np.where(np.isfinite(i_c), i_c, 0.0))
+        # history.push scaled the current columns by 1/T, 1/T^2 only (i_ref = 1); currents came in C-rate
+        return y, phi, (self._taint == 0) & self.history.ready
+
+    def _shift_theta(self, theta_s, dv):
+        # th6 = -th2 c0  ->  c0 - dv  gives  th6 + th2 dv ; both scaled by T^2
+        theta_s[:, 5] += theta_s[:, 1] * dv
+
+    def _shift_history(self, dv):
+        self.history.shift_v_o(dv)
+        self._v_hold = self._v_hold - dv
+
+    def state_dict(self):
+        s = super().state_dict()
+        s.update({f"lif.{k}": v for k, v in self.history.state_dict().items()})
+        s["taint"] = self._taint.copy()
+        s["v_hold"] = self._v_hold.copy()
+        return s
+
+    def load_state_dict(self, s):
+        self.history.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("lif.")})
+        self._taint = np.asarray(s["taint"], dtype=np.int64).copy()
+        self._v_hold = np.asarray(s["v_hold"], dtype=float).copy()
+        super().load_state_dict(s)
+
+
+class ArxEstimator(Identifier):
+    """Discrete-time ARX baseline (the paper's comparison), same WRLS machinery::
+
+        v_o[k] = A1 v_o[k-1] + A2 v_o[k-2] + B0 i[k] + B1 i[k-1] + B2 i[k-2] + K
+
+    mapped back to the 2-RC parameters through the ZOH relations in
+    :func:`bms_estimator.core.params.dt_physical_from_theta`.
+    """
+
+    def __init__(self, n_cells, dt_s, capacity_ah, config: IdentifierConfig = IdentifierConfig()):
+        super().__init__(n_cells, dt_s, capacity_ah, config)
+        self._hist = np.zeros((n_cells, 4))  # v_o[k-1], v_o[k-2], i[k-1], i[k-2] (C-rate)
+        self._count = 0
+        self._taint = np.full(self.n_cells, 3, dtype=np.int64)
+        self._v_hold = np.zeros(self.n_cells)
+
+    def _init_scales(self) -> None:
+        self._scale = np.ones((self.n_cells, 6))
+        self._scale[:, 2:5] = self.i_ref_a[:, None]
+
+    def _theta_s_from_physical(self, r0, r1, tau1, r2, tau2, c0):
+        return dt_theta_from_physical(r0, r1, tau1, r2, tau2, c0, dt_s=self.dt_s) * self._scale
+
+    def _physical(self, theta_s):
+        return dt_physical_from_theta(
+            theta_s / self._scale, dt_s=self.dt_s,
+            tau_min_s=self.config.tau_min_s, tau_max_s=self.config.tau_max_s,
+        )
+
+    def _regress(self, i, v, ok):
+        v_in = np.where(ok, v, self._v_hold)
+        self._v_hold = v_in
+        i_c = np.where(np.isfinite(i), i / self.i_ref_a, 0.0)
+        phi = np.empty((self.n_cells, 6))
+        phi[:, 0] = self._hist[:, 0]
+        phi[:, 1] = self._hist[:, 1]
+        phi[:, 2] = i_c
+        phi[:, 3] = self._hist[:, 2]
+        phi[:, 4] = self._hist[:, 3]
+        phi[:, 5] = 1.0
+        self._hist[:, 1] = self._hist[:, 0]
+        self._hist[:, 0] = v_in
+        self._hist[:, 3] = self._hist[:, 2]
+        self._hist[:, 2] = i_c
+        self._count += 1
+        self._taint = np.where(ok, np.maximum(self._taint - 1, 0), 3)
+        return v_in, phi, (self._taint == 0) & (self._count >= 3)
+
+    def _shift_theta(self, theta_s, dv):
+        # K = c0 (1 - A1 - A2): c0 -> c0 - dv
+        theta_s[:, 5] -= dv * (1.0 - theta_s[:, 0] - theta_s[:, 1])
+
+    def _shift_history(self, dv):
+        self._hist[:, 0] -= dv
+        self._hist[:, 1] -= dv
+        self._v_hold = self._v_hold - dv
+
+    def state_dict(self):
+        s = super().state_dict()
+        s.update(arx_hist=self._hist.copy(), arx_count=np.array(self._count), taint=self._taint.copy(),
+                 v_hold=self._v_hold.copy())
+        return s
+
+    def load_state_dict(self, s):
+        self._hist = np.asarray(s["arx_hist"], dtype=float).copy()
+        self._count = int(s["arx_count"])
+        self._taint = np.asarray(s["taint"], dtype=np.int64).copy()
+        self._v_hold = np.asarray(s["v_hold"], dtype=float).copy()
+        super().load_state_dict(s)
+
+
+def make_identifier(n_cells: int, dt_s: float, capacity_ah, config: IdentifierConfig = IdentifierConfig()) -> Identifier:
+    if config.method == "lif":
+        return LifEstimator(n_cells, dt_s, capacity_ah, config)
+    if config.method == "arx":
+        return ArxEstimator(n_cells, dt_s, capacity_ah, config)
+    raise ValueError(f"unknown identification method {config.method!r}: use 'lif' or 'arx'")

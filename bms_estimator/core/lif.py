@@ -1,0 +1,144 @@
+"""Linear integral filter (LIF) regressors, batch and streaming.
+
+The LIF turns the 2-RC ODE::
+
+    v_o'' = th1 v_o' + th2 v_o + th3 i'' + th4 i' + th5 i + th6
+
+into an algebraic regression without differentiating noisy signals.  Over a
+window of L samples (step Ts, T = L Ts)::
+
+    f1 = 1 - q^-L                                  (difference over the window)
+    f2 = Ts (0.5 + q^-1 + ... + q^-(L-1) + 0.5 q^-L)   (trapezoidal integral)
+
+Applying f2^2 to the ODE (f2 d/dt = f1 for sampled signals, exact for piecewise
+linear signals)::
+
+    f1^2 v_o = th1 f1 f2 v_o + th2 f2^2 v_o + th3 f1^2 i + th4 f1 f2 i + th5 f2^2 i + th6 T^2
+
+i.e. ``y = phi' theta + e`` with ``y = f1^2 v_o`` and
+``phi = [f1f2 v_o, f2^2 v_o, f1^2 i, f1f2 i, f2^2 i, T^2]``.
+
+Scaling.  The raw regressors span many decades (``f2^2`` grows as T^2, current
+as the cell size), so a fixed RLS tuning would depend on L and on the cell.
+We regress on ``phi_s = phi / scale`` and ``theta_s = theta * scale`` with::
+
+    scale = [T, T^2, I_ref, T I_ref, T^2 I_ref, T^2]
+
+(``I_ref`` = 1C in ampere), which makes every column O(volt) for every window
+and every cell size; ``phi_s' theta_s == phi' theta`` exactly.
+
+Each of f1^2, f1 f2, f2^2 is an FIR filter of length 2L+1; the streaming
+version keeps a ring buffer of the last 2L+1 samples per cell and evaluates the
+three filters as one matrix product, so it is exact (no running-sum drift) and
+bit-for-bit reproducible against the batch version up to summation order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import lfilter
+
+__all__ = ["lif_kernels", "lif_scale", "lif_regressors", "LifHistory"]
+
+
+def lif_kernels(window: int, dt_s: float) -> np.ndarray:
+    """FIR kernels, shape (2L+1, 3): columns f1^2, f1 f2, f2^2; row j = coefficient of q^-j."""
+    if window < 1:
+        raise ValueError(f"LIF window must be >= 1 sample, got {window}")
+    f1 = np.zeros(window + 1)
+    f1[0], f1[-1] = 1.0, -1.0
+    f2 = np.full(window + 1, dt_s)
+    f2[0] = f2[-1] = 0.5 * dt_s
+    return np.stack([np.convolve(f1, f1), np.convolve(f1, f2), np.convolve(f2, f2)], axis=1)
+
+
+def lif_scale(window: int, dt_s: float, i_ref_a: float) -> np.ndarray:
+    """Column scale of the regressor (see module docstring): theta_s = theta * scale."""
+    t = window * dt_s
+    return np.array([t, t * t, i_ref_a, t * i_ref_a, t * t * i_ref_a, t * t])
+
+
+def lif_regressors(
+    v_o: np.ndarray, current_a: np.ndarray, window: int, dt_s: float, i_ref_a: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Batch LIF regression data.
+
+    Args:
+        v_o: overpotential v - OCV(soc), shape (n,) or (n, N).
+        current_a: current, same shape.
+    Returns:
+        ``(y, phi_s)`` with shapes ``v_o.shape`` and ``v_o.shape + (6,)``, scaled as
+        described in the module docstring.  The first 2L samples see the filter's
+        zero initial state and should be discarded.
+    """
+    k = lif_kernels(window, dt_s)
+    v = np.asarray(v_o, dtype=float)
+    i = np.asarray(current_a, dtype=float)
+    fv = [lfilter(k[:, c], [1.0], v, axis=0) for c in range(3)]
+    fi = [lfilter(k[:, c], [1.0], i, axis=0) for c in range(3)]
+    t2 = (window * dt_s) ** 2
+    phi = np.stack([fv[1], fv[2], fi[0], fi[1], fi[2], np.full_like(v, t2)], axis=-1)
+    return fv[0], phi / lif_scale(window, dt_s, i_ref_a)
+
+
+class LifHistory:
+    """Streaming LIF regressors for N cells sampled together.
+
+    ``push(v_o, i)`` appends one sample per cell and returns ``(y, phi_s)`` of
+    shapes (N,) and (N, 6).  ``shift_v_o(dv)`` subtracts a per-cell constant from
+    the stored overpotential history (used when an OCV bias is moved into the SOC).
+    """
+
+    def __init__(self, n_cells: int, window: int, dt_s: float, i_ref_a: float = 1.0):
+        self.n_cells = int(n_cells)
+        self.window = int(window)
+        self.dt_s = float(dt_s)
+        self.length = 2 * self.window + 1
+        k = lif_kernels(self.window, self.dt_s)
+        # rolled[h, pos, c]: kernel coefficient for buffer slot pos when the newest sample is at h
+        lags = (np.arange(self.length)[:, None] - np.arange(self.length)[None, :]) % self.length
+        self._rolled = np.ascontiguousarray(k[lags])  # (h, pos, 3)
+        self._scale = lif_scale(self.window, self.dt_s, i_ref_a)
+        self._inv_scale = 1.0 / self._scale
+        self._t2_s = (self.window * self.dt_s) ** 2 * self._inv_scale[5]
+        self.buffer = np.zeros((2, self.n_cells, self.length))  # [v_o, i] x cells x slots
+        self.head = -1
+        self.count = 0
+
+    @property
+    def scale(self) -> np.ndarray:
+        return self._scale
+
+    @property
+    def ready(self) -> bool:
+        """True once the window holds 2L+1 real samples."""
+        return self.count >= self.length
+
+    def push(self, v_o: np.ndarray, current_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self.head = (self.head + 1) % self.length
+        self.buffer[0, :, self.head] = v_o
+        self.buffer[1, :, self.head] = current_a
+        self.count += 1
+        f = self.buffer @ self._rolled[self.head]  # (2, N, 3)
+        fv, fi = f[0], f[1]
+        phi = np.empty((self.n_cells, 6))
+        phi[:, 0] = fv[:, 1]
+        phi[:, 1] = fv[:, 2]
+        phi[:, 2:5] = fi
+        phi[:, :5] *= self._inv_scale[:5]
+        phi[:, 5] = self._t2_s
+        return fv[:, 0], phi
+
+    def shift_v_o(self, dv: np.ndarray) -> None:
+        self.buffer[0] -= np.asarray(dv, dtype=float)[:, None]
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {"buffer": self.buffer.copy(), "head": np.array(self.head), "count": np.array(self.count)}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        buf = np.asarray(state["buffer"], dtype=float)
+        if buf.shape != self.buffer.shape:
+            raise ValueError(f"LIF history shape {buf.shape} does not match {self.buffer.shape}")
+        self.buffer = buf.copy()
+        self.head = int(state["head"])
+        self.count = int(state["count"])

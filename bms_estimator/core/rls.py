@@ -1,0 +1,190 @@
+"""Weighted recursive least squares for N independent regressions at once.
+
+For each cell, with regressor phi_t (p,), measurement y_t, forgetting factor
+lambda and weight w_t in {0, 1} (turn-on/turn-off adaptation)::
+
+    e_t     = y_t - phi_t' theta_{t-1}                        (a-priori error)
+    k_t     = P_{t-1} phi_t / (lambda + phi_t' P_{t-1} phi_t)
+    theta_t = theta_{t-1} + w_t k_t e_t
+    P_t     = (P_{t-1} - w_t k_t phi_t' P_{t-1}) / lambda^{w_t}
+
+Adaptation is switched by the RMS of e over the last ``error_window`` samples:
+on when it exceeds ``error_on``, off when it falls below ``error_off``
+(hysteresis between the two).  While off, neither theta nor P moves, so P
+cannot wind up during weakly exciting stretches (rest, constant current).
+
+Covariance limit: when trace(P) exceeds ``trace_max`` P is scaled down to it,
+which bounds the gain after long poorly exciting periods.
+
+Initialisation (block least squares): the first ``init_samples`` regressors of
+each cell are accumulated with forgetting, ``R = sum lambda^(n-k) phi phi'``
+and ``r = sum lambda^(n-k) phi y``; then ``P0 = (R + delta I)^-1`` and
+``theta0 = P0 r``.  This is exactly the RLS solution from a diffuse start, but
+without its transient.
+
+Every array carries the cell axis first; one call updates every cell.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["RlsConfig", "WeightedRls"]
+
+
+@dataclass(frozen=True)
+class RlsConfig:
+    forgetting: float = 0.9995
+    error_on: float = 0.0
+    error_off: float = 0.0
+    error_window: int = 30
+    trace_max: float = 1e4
+    init_samples: int = 300
+    init_delta: float = 1e-6
+
+    def __post_init__(self) -> None:
+        if not 0.9 <= self.forgetting <= 1.0:
+            raise ValueError(f"forgetting must be in [0.9, 1], got {self.forgetting}")
+        if self.error_off > self.error_on:
+            raise ValueError("error_off must not exceed error_on")
+        if self.error_window < 1 or self.init_samples < 1:
+            raise ValueError("error_window and init_samples must be >= 1")
+        if self.trace_max <= 0:
+            raise ValueError("trace_max must be positive")
+
+
+class WeightedRls:
+    """Vectorised weighted RLS with turn-on/turn-off adaptation and a trace limit."""
+
+    def __init__(self, n_cells: int, n_params: int, config: RlsConfig = RlsConfig()):
+        self.config = config
+        self.n_cells = int(n_cells)
+        self.n_params = int(n_params)
+        n, p = self.n_cells, self.n_params
+        self.theta = np.zeros((n, p))
+        self.P = np.zeros((n, p, p))
+        self.initialised = np.zeros(n, dtype=bool)
+        self.adapting = np.ones(n, dtype=bool)
+        self._R = np.zeros((n, p, p))
+        self._r = np.zeros((n, p))
+        self._init_count = np.zeros(n, dtype=np.int64)
+        self._err2 = np.zeros((n, config.error_window))
+        self._err_head = 0
+        self._err_count = np.zeros(n, dtype=np.int64)
+        self._eye = np.eye(p)
+
+    # ------------------------------------------------------------------ update
+    def update(self, phi: np.ndarray, y: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        """One sample for every cell; ``mask`` (bool, N) selects the cells that may learn.
+
+        Returns the a-priori error e (N,); NaN for cells still initialising.
+        Cells whose init window completes in this call get theta0 and P0.
+        """
+        cfg = self.config
+        lam = cfg.forgetting
+        if mask is None:
+            mask = np.ones(self.n_cells, dtype=bool)
+        e = y - np.einsum("np,np->n", phi, self.theta)
+
+        init_now = mask & ~self.initialised
+        if init_now.any():
+            self._accumulate(phi, y, init_now)
+        run = mask & self.initialised
+        if run.any():
+            # windowed error RMS drives turn-on/turn-off (only from learning samples)
+            h = self._err_head
+            self._err2[:, h] = np.where(run, e * e, self._err2[:, h])
+            self._err_head = (h + 1) % cfg.error_window
+            self._err_count += run
+            filled = np.minimum(self._err_count, cfg.error_window)
+            rms = np.sqrt(self._err2.sum(axis=1) / np.maximum(filled, 1))
+            if cfg.error_on > 0:
+                self.adapting = np.where(
+                    rms > cfg.error_on, True, np.where(rms < cfg.error_off, False, self.adapting)
+                )
+            w = run & self.adapting
+            if w.any():
+                self._rls_step(phi, e, w, lam)
+        e = np.where(self.initialised | init_now, e, np.nan)
+        return e
+
+    def _rls_step(self, phi: np.ndarray, e: np.ndarray, w: np.ndarray, lam: float) -> None:
+        P = self.P
+        pphi = np.einsum("nij,nj->ni", P, phi)
+        denom = lam + np.einsum("ni,ni->n", phi, pphi)
+        gain = np.where(w[:, None], pphi / denom[:, None], 0.0)
+        self.theta += gain * e[:, None]
+        lam_eff = np.where(w, lam, 1.0)
+        P -= gain[:, :, None] * pphi[:, None, :]
+        P /= lam_eff[:, None, None]
+        # keep P symmetric and bounded
+        tr = np.einsum("nii->n", P)
+        over = tr > self.config.trace_max
+        if over.any():
+            P *= np.where(over, self.config.trace_max / np.where(tr > 0, tr, 1.0), 1.0)[:, None, None]
+        self.P = P
+
+    def _accumulate(self, phi: np.ndarray, y: np.ndarray, sel: np.ndarray) -> None:
+        lam = self.config.forgetting
+        s = sel[:, None]
+        self._R = np.where(s[:, :, None], lam * self._R + phi[:, :, None] * phi[:, None, :], self._R)
+        self._r = np.where(s, lam * self._r + phi * y[:, None], self._r)
+        self._init_count += sel
+        done = sel & (self._init_count >= self.config.init_samples)
+        if done.any():
+            self.initialise_from_block(done)
+
+    def initialise_from_block(self, cells: np.ndarray) -> None:
+        """theta0, P0 by block least squares over the accumulated window (selected cells)."""
+        idx = np.flatnonzero(cells)
+        R = self._R[idx]
+        # relative regularisation keeps P0 finite for a window with no excitation in some column
+        scale = np.maximum(np.einsum("nii->n", R) / self.n_params, 1e-12)
+        A = R + (self.config.init_delta * scale)[:, None, None] * self._eye
+        P0 = np.linalg.inv(A)
+        theta0 = np.einsum("nij,nj->ni", P0, self._r[idx])
+        tr = np.einsum("nii->n", P0)
+        P0 *= np.minimum(1.0, self.config.trace_max / np.maximum(tr, 1e-300))[:, None, None]
+        self.theta[idx] = theta0
+        self.P[idx] = P0
+        self.initialised[idx] = True
+
+    # --------------------------------------------------------------- utilities
+    def reset_theta(self, cells: np.ndarray, theta: np.ndarray) -> None:
+        """Put theta of the selected cells back (e.g. to the last admissible estimate)."""
+        self.theta[cells] = theta[cells]
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {
+            "theta": self.theta.copy(),
+            "P": self.P.copy(),
+            "initialised": self.initialised.copy(),
+            "adapting": self.adapting.copy(),
+            "R": self._R.copy(),
+            "r": self._r.copy(),
+            "init_count": self._init_count.copy(),
+            "err2": self._err2.copy(),
+            "err_head": np.array(self._err_head),
+            "err_count": self._err_count.copy(),
+        }
+
+    def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
+        n, p = self.n_cells, self.n_params
+        expect = {"theta": (n, p), "P": (n, p, p), "R": (n, p, p), "r": (n, p)}
+        for key, shape in expect.items():
+            if np.shape(s[key]) != shape:
+                raise ValueError(f"RLS state {key!r} has shape {np.shape(s[key])}, expected {shape}")
+        if np.shape(s["err2"]) != self._err2.shape:
+            raise ValueError("RLS error window does not match the configuration")
+        self.theta = np.array(s["theta"], dtype=float)
+        self.P = np.array(s["P"], dtype=float)
+        self.initialised = np.array(s["initialised"], dtype=bool)
+        self.adapting = np.array(s["adapting"], dtype=bool)
+        self._R = np.array(s["R"], dtype=float)
+        self._r = np.array(s["r"], dtype=float)
+        self._init_count = np.array(s["init_count"], dtype=np.int64)
+        self._err2 = np.array(s["err2"], dtype=float)
+        self._err_head = int(s["err_head"])
+        self._err_count = np.array(s["err_count"], dtype=np.int64)

@@ -1,0 +1,254 @@
+"""SOC estimation with online ECM identification and OCV-bias compensation (N cells).
+
+The paper's steps, per sample k and per cell::
+
+    1. coulomb counting      soc_k = soc_{k-1} + i_{k-1} Ts / (3600 Q)
+    2. overpotential         v_o = v - OCV(soc_k)
+    3. identification        theta, c0 from the online identifier (LIF or ARX)
+    4. bias averaging        c0_avg, c0_std over the last ``c0_window_s``
+    5. compensation          if c0_std < ``c0_stable_v`` and |c0_avg| > OCV'(soc) * ``soc_error_threshold``:
+                                 soc <- OCV^-1(OCV(soc) + c0_avg)
+    6. bookkeeping           v_o history -= c0_avg and c0 -= c0_avg (the bias moves out of the
+                             model into the SOC, or it would be corrected twice); restart the average
+
+A c0 > 0 means the cell's voltage sits above what OCV(soc) explains with the
+identified impedance, i.e. the true OCV is higher: the SOC estimate was low.
+
+Capacity.  The capacity a user states (nominal) is not the one coulomb counting
+needs (aged cell, rate and temperature effects).  Every time the bias average is
+stable, the OCV-implied SOC ``s_ocv = OCV^-1(OCV(soc) + c0_avg)`` is an anchor
+at the counted charge ``q_ah``; the effective capacity is the inverse slope of
+the least-squares line ``s_ocv = s_0 + q_ah / Q`` over all anchors, used once
+the anchors span ``capacity_min_span`` of the stated capacity and the fit is
+good, within ``capacity_bounds`` of it.  It re-scales the coulomb count from
+then on and is reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from .identifier import Identifier, IdentifierConfig, make_identifier
+from .ocv import OcvCurve
+
+__all__ = ["SocConfig", "SocEstimator"]
+
+
+@dataclass(frozen=True)
+class SocConfig:
+    """SOC-side tuning; the defaults serve both cells in ../shared/data."""
+
+    identifier: IdentifierConfig = field(default_factory=IdentifierConfig)
+    soc_error_threshold: float = 0.02  # compensate when c0 means more than this SOC error
+    c0_window_s: float = 300.0  # averaging window of c0
+    c0_stable_v: float = 0.005  # c0 is stable when its std over the window is below this
+    estimate_capacity: bool = True
+    capacity_min_span: float = 0.25  # anchors must span this fraction of the stated capacity
+    capacity_bounds: tuple[float, float] = (0.6, 1.4)  # relative to the stated capacity
+    capacity_max_rmse: float = 0.03  # max RMS residual (SOC) of the anchor line fit
+
+    def with_(self, **changes) -> "SocConfig":
+        return replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class SocEstimator:
+    """SOC, 2-RC parameters, OCV bias and capacity of N cells, one sample per call.
+
+    Args:
+        n_cells: number of cells (1..2000 and more), all updated in one call.
+        ocv: the cell's OCV curve.
+        capacity_ah: the stated (nominal) capacity, scalar or per cell.
+        dt_s: sample period.
+        initial_soc: per-cell start SOC; ``None`` reads it from the OCV at the first sample
+            (valid when the pack starts from rest).
+    """
+
+    def __init__(
+        self,
+        n_cells: int,
+        ocv: OcvCurve,
+        capacity_ah: float | np.ndarray,
+        dt_s: float = 1.0,
+        *,
+        initial_soc: float | np.ndarray | None = None,
+        config: SocConfig = SocConfig(),
+    ):
+        self.n_cells = int(n_cells)
+        self.ocv = ocv
+        self.dt_s = float(dt_s)
+        self.config = config
+        self.capacity_stated_ah = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
+        if np.any(~np.isfinite(self.capacity_stated_ah)) or np.any(self.capacity_stated_ah <= 0):
+            raise ValueError("capacity_ah must be positive and finite")
+        self.capacity_ah = self.capacity_stated_ah.copy()
+        self.capacity_estimated = np.zeros(self.n_cells, dtype=bool)
+        self.identifier: Identifier = make_identifier(self.n_cells, self.dt_s, self.capacity_stated_ah, config.identifier)
+        self.soc = np.full(self.n_cells, np.nan)
+        if initial_soc is not None:
+            self.soc = np.broadcast_to(np.asarray(initial_soc, dtype=float), (self.n_cells,)).copy()
+        self._w = max(2, int(round(config.c0_window_s / self.dt_s)))
+        self._c0_buf = np.zeros((self.n_cells, self._w))
+        self._c0_head = 0
+        self._c0_count = np.zeros(self.n_cells, dtype=np.int64)
+        self._i_prev = np.zeros(self.n_cells)
+        self.charge_ah = np.zeros(self.n_cells)  # counted charge since start (positive = charged)
+        self.corrections = np.zeros(self.n_cells, dtype=np.int64)
+        self.v_o = np.zeros(self.n_cells)
+        # capacity anchors: weighted sums of (q, s) for the line s = s0 + q / Q
+        self._cap = np.zeros((self.n_cells, 6))  # n, sq, ss, sqq, sqs, sss
+        self._q_min = np.full(self.n_cells, np.inf)
+        self._q_max = np.full(self.n_cells, -np.inf)
+        self.samples = 0
+
+    # ------------------------------------------------------------------
+    def update(
+        self,
+        current_a: float | np.ndarray,
+        voltage_v: np.ndarray,
+        valid: np.ndarray | None = None,
+    ) -> None:
+        """One sample period: mean current over the period and the cell voltages."""
+        n = self.n_cells
+        i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
+        v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
+        ok = np.isfinite(v)
+        if valid is not None:
+            ok &= np.asarray(valid, dtype=bool)
+        i_ok = np.isfinite(i)
+        i_use = np.where(i_ok, i, 0.0)
+        unset = ~np.isfinite(self.soc)
+        if unset.any():
+            start = unset & ok
+            self.soc = np.where(start, np.clip(self.ocv.soc_from_ocv(np.where(start, v, 3.7)), 0.0, 1.0), self.soc)
+        # 1. coulomb counting (the previous sample's current moved the SOC to now)
+        dq = self._i_prev * (self.dt_s / 3600.0)
+        have_soc = np.isfinite(self.soc)
+        self.soc = np.where(have_soc, self.soc + dq / self.capacity_ah, self.soc)
+        self.charge_ah += dq
+        self._i_prev = i_use
+        # 2. overpotential at the middle of the period (the voltage is a period mean)
+        soc_mid = self.soc + i_use * (0.5 * self.dt_s / 3600.0) / self.capacity_ah
+        ocv_v = self.ocv.ocv(np.where(have_soc, soc_mid, 0.5))
+        self.v_o = v - ocv_v
+        use = ok & i_ok & have_soc
+        # 3. identification
+        self.identifier.update(i_use, np.where(use, self.v_o, np.nan), use)
+        # 4.-6. bias averaging and compensation
+        self._compensate(use)
+        self.samples += 1
+
+    def _compensate(self, use: np.ndarray) -> None:
+        cfg = self.config
+        ident = self.identifier
+        learn = use & ident.identified
+        h = self._c0_head
+        self._c0_buf[:, h] = np.where(learn, ident.c0_v, self._c0_buf[:, h])
+        self._c0_head = (h + 1) % self._w
+        self._c0_count = np.where(learn, self._c0_count + 1, self._c0_count)
+        full = self._c0_count >= self._w
+        if not full.any():
+            return
+        c0_avg = self._c0_buf.mean(axis=1)
+        c0_std = self._c0_buf.std(axis=1)
+        stable = full & (c0_std < cfg.c0_stable_v) & np.isfinite(c0_avg)
+        if not stable.any():
+            return
+        ocv_now = self.ocv.ocv(self.soc)
+        soc_ocv = self.ocv.soc_from_ocv(ocv_now + c0_avg)
+        if cfg.estimate_capacity:
+            self._capacity_anchor(stable, soc_ocv)
+        slope = self.ocv.docv_dsoc(self.soc)
+        fire = stable & (np.abs(c0_avg) > slope * cfg.soc_error_threshold)
+        if fire.any():
+            self.soc = np.where(fire, soc_ocv, self.soc)
+            ident.shift_bias(c0_avg, fire)
+            self._c0_count = np.where(fire, 0, self._c0_count)
+            self._c0_buf[fire] -= c0_avg[fire, None]
+            self.corrections += fire
+
+    def _capacity_anchor(self, sel: np.ndarray, soc_ocv: np.ndarray) -> None:
+        cfg = self.config
+        q = self.charge_ah
+        s = soc_ocv
+        add = np.stack([np.ones_like(q), q, s, q * q, q * s, s * s], axis=1)
+        self._cap += np.where(sel[:, None], add, 0.0)
+        self._q_min = np.where(sel, np.minimum(self._q_min, q), self._q_min)
+        self._q_max = np.where(sel, np.maximum(self._q_max, q), self._q_max)
+        span = self._q_max - self._q_min
+        cand = sel & (span >= cfg.capacity_min_span * self.capacity_stated_ah)
+        if not cand.any():
+            return
+        n, sq, ss, sqq, sqs, sss = self._cap.T
+        var_q = sqq / n - (sq / n) ** 2
+        cov = sqs / n - (sq / n) * (ss / n)
+        var_s = sss / n - (ss / n) ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope = cov / var_q
+            resid_var = np.maximum(var_s - slope * cov, 0.0)
+            q_est = 1.0 / slope
+        lo, hi = cfg.capacity_bounds
+        good = (
+            cand
+            & np.isfinite(q_est)
+            & (q_est > lo * self.capacity_stated_ah)
+            & (q_est < hi * self.capacity_stated_ah)
+            & (np.sqrt(resid_var) < cfg.capacity_max_rmse)
+        )
+        self.capacity_ah = np.where(good, q_est, self.capacity_ah)
+        self.capacity_estimated |= good
+
+    # ------------------------------------------------------------------
+    @property
+    def params(self) -> dict[str, np.ndarray]:
+        return self.identifier.params.as_dict()
+
+    @property
+    def c0_avg_v(self) -> np.ndarray:
+        return np.where(self._c0_count > 0, self._c0_buf.mean(axis=1), np.nan)
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        s = {f"id.{k}": v for k, v in self.identifier.state_dict().items()}
+        s.update(
+            soc=self.soc.copy(),
+            capacity_ah=self.capacity_ah.copy(),
+            capacity_estimated=self.capacity_estimated.copy(),
+            c0_buf=self._c0_buf.copy(),
+            c0_head=np.array(self._c0_head),
+            c0_count=self._c0_count.copy(),
+            i_prev=self._i_prev.copy(),
+            charge_ah=self.charge_ah.copy(),
+            corrections=self.corrections.copy(),
+            cap=self._cap.copy(),
+            q_min=self._q_min.copy(),
+            q_max=self._q_max.copy(),
+            samples=np.array(self.samples),
+        )
+        return s
+
+    def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
+        """Restore a saved state; raises ValueError (naming the field) when it does not fit."""
+        n = self.n_cells
+        for key in ("soc", "capacity_ah", "charge_ah", "i_prev"):
+            if np.shape(s[key]) != (n,):
+                raise ValueError(f"state field {key!r} has shape {np.shape(s[key])}, expected ({n},)")
+        if np.shape(s["c0_buf"]) != self._c0_buf.shape:
+            raise ValueError("state field 'c0_buf' does not match the c0 window of this configuration")
+        self.identifier.load_state_dict({k[3:]: v for k, v in s.items() if k.startswith("id.")})
+        self.soc = np.asarray(s["soc"], dtype=float).copy()
+        self.capacity_ah = np.asarray(s["capacity_ah"], dtype=float).copy()
+        self.capacity_estimated = np.asarray(s["capacity_estimated"], dtype=bool).copy()
+        self._c0_buf = np.asarray(s["c0_buf"], dtype=float).copy()
+        self._c0_head = int(s["c0_head"])
+        self._c0_count = np.asarray(s["c0_count"], dtype=np.int64).copy()
+        self._i_prev = np.asarray(s["i_prev"], dtype=float).copy()
+        self.charge_ah = np.asarray(s["charge_ah"], dtype=float).copy()
+        self.corrections = np.asarray(s["corrections"], dtype=np.int64).copy()
+        self._cap = np.asarray(s["cap"], dtype=float).copy()
+        self._q_min = np.asarray(s["q_min"], dtype=float).copy()
+        self._q_max = np.asarray(s["q_max"], dtype=float).copy()
+        self.samples = int(s["samples"])
