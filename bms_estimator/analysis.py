@@ -287,3 +287,49 @@ def compare_methods(
     metrics["capacity_ah_estimated"] = q_eff
     metrics["soc_window"] = list(soc_window)
     return Comparison(q_eff, metrics, res_tr, res_va, runs)
+
+
+def reference_capacity(
+    current_a: np.ndarray,
+    voltage_v: np.ndarray,
+    dt_s: float,
+    ocv: OcvCurve,
+    stated_ah: float,
+    soc0: float = 1.0,
+    *,
+    rest_s: float = 300.0,
+) -> tuple[float, str]:
+    """Capacity for the reference SOC of a recording that starts at a known SOC.
+
+    When the file ends at rest (the last ``rest_s`` below C/50, like the LG
+    files' final 600 s rest) the end SOC is read from the OCV and the capacity
+    is the net charge over the SOC travelled: that is measured, not stated.
+    Otherwise the stated capacity is all there is.
+    """
+    i = np.asarray(current_a, dtype=float)
+    n_rest = int(round(rest_s / dt_s))
+    net_ah = float(np.sum(i) * dt_s / 3600.0)
+    if len(i) > n_rest and np.all(np.abs(i[-n_rest:]) < stated_ah / 50.0):
+        soc_end = float(ocv.soc_from_ocv(float(voltage_v[-1])))
+        travelled = soc_end - soc0
+        if abs(net_ah) > 0.2 * stated_ah and travelled * net_ah > 0:
+            q = net_ah / travelled
+            if 0.5 * stated_ah < q < 1.5 * stated_ah:
+                return q, "end-of-test rest (OCV)"
+    return float(stated_ah), "stated"
+
+
+def soc_errors(
+    soc: np.ndarray, soc_ref: np.ndarray, time_s: np.ndarray, after_s: float = 3600.0
+) -> dict[str, float]:
+    """SOC error figures in percent (the paper's Fig. 10 numbers)."""
+    err = 100.0 * (np.asarray(soc) - np.asarray(soc_ref))
+    late = np.asarray(time_s) >= after_s
+    out = {"soc_rmse_pct": float(np.sqrt(np.mean(err**2)))}
+    if late.any():
+        out["soc_rmse_pct_after_3600s"] = float(np.sqrt(np.mean(err[late] ** 2)))
+        out["soc_max_abs_error_pct_after_3600s"] = float(np.max(np.abs(err[late])))
+    else:
+        out["soc_rmse_pct_after_3600s"] = float("nan")
+        out["soc_max_abs_error_pct_after_3600s"] = float("nan")
+    return out

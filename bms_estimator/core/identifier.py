@@ -53,6 +53,7 @@ class IdentifierConfig:
     init_samples: int = 600  # block-LS initialisation window in samples
     tau_min_s: float = 1.0  # admissible fast time constant, lower bound
     tau_max_s: float = 1500.0  # admissible slow time constant, upper bound (the runaway guard)
+    c0_max_v: float = 0.5  # admissible |c0|: an OCV bias beyond this is not an SOC error but a broken fit
     prior_r0_ohm_ah: float = 0.06
     prior_r1_ohm_ah: float = 0.03
     prior_tau1_s: float = 10.0
@@ -95,12 +96,15 @@ class Identifier:
         self.rls = WeightedRls(self.n_cells, self.n_params, config.rls())
         self._init_scales()
         q = self.i_ref_a
+        # the prior must itself pass the guard, whatever bounds the user set
+        tau2 = min(config.prior_tau2_s, 0.9 * config.tau_max_s)
+        tau1 = min(max(config.prior_tau1_s, 1.1 * config.tau_min_s, 1.5 * self.dt_s), 0.5 * tau2)
         self._prior_theta_s = self._theta_s_from_physical(
             config.prior_r0_ohm_ah / q,
             config.prior_r1_ohm_ah / q,
-            np.full(self.n_cells, config.prior_tau1_s),
+            np.full(self.n_cells, tau1),
             config.prior_r2_ohm_ah / q,
-            np.full(self.n_cells, config.prior_tau2_s),
+            np.full(self.n_cells, tau2),
             np.zeros(self.n_cells),
         )
         self.theta_good = self._prior_theta_s.copy()  # last admissible scaled theta
@@ -108,6 +112,7 @@ class Identifier:
         self.rejections = np.zeros(self.n_cells, dtype=np.int64)
         self.updates = 0
         self.error = np.full(self.n_cells, np.nan)
+        self.accepted = np.zeros(self.n_cells, dtype=bool)  # learnt an admissible theta this sample
         self.params: PhysicalParams = self._physical(self.theta_good)
 
     # -- to be provided by subclasses -------------------------------------------
@@ -153,7 +158,9 @@ class Identifier:
         theta = self.rls.theta
         new = self.rls.initialised & ~was_init
         params = self._physical(theta)
-        good = params.admissible & self.rls.initialised
+        admissible = params.admissible & (np.abs(params.c0_v) <= self.config.c0_max_v)
+        params = PhysicalParams(*params._arrays(), admissible=admissible)
+        good = admissible & self.rls.initialised
         # a fresh block-LS start that is not physical starts from the prior instead
         bad_start = new & ~good
         if bad_start.any():
@@ -162,6 +169,7 @@ class Identifier:
         self.rejections += rejected
         if rejected.any():
             self.rls.reset_theta(rejected, self.theta_good)
+        self.accepted = good & learn
         self.theta_good = np.where(good[:, None], theta, self.theta_good)
         self.identified |= good
         self.params = params.select(good, self.params) if good.any() else self.params

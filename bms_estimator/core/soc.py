@@ -21,7 +21,10 @@ at the counted charge ``q_ah``; the effective capacity is the inverse slope of
 the least-squares line ``s_ocv = s_0 + q_ah / Q`` over all anchors, used once
 the anchors span ``capacity_min_span`` of the stated capacity and the fit is
 good, within ``capacity_bounds`` of it.  It re-scales the coulomb count from
-then on and is reported.
+then on and is reported.  The same line also says where the SOC is now
+(``s_0 + q_ah / Q``, a least-squares estimate from every anchor so far): the
+count is re-anchored to it, with the OCV difference moved out of the model as
+in step 6.
 """
 
 from __future__ import annotations
@@ -42,12 +45,13 @@ class SocConfig:
 
     identifier: IdentifierConfig = field(default_factory=IdentifierConfig)
     soc_error_threshold: float = 0.02  # compensate when c0 means more than this SOC error
-    c0_window_s: float = 300.0  # averaging window of c0
-    c0_stable_v: float = 0.005  # c0 is stable when its std over the window is below this
+    c0_window_s: float = 120.0  # averaging window of c0
+    c0_stable_v: float = 0.010  # c0 is stable when its std over the window is below this
     estimate_capacity: bool = True
-    capacity_min_span: float = 0.25  # anchors must span this fraction of the stated capacity
+    capacity_min_span: float = 0.5  # anchors must span this fraction of the stated capacity (short spans amplify OCV-model error)
     capacity_bounds: tuple[float, float] = (0.6, 1.4)  # relative to the stated capacity
     capacity_max_rmse: float = 0.03  # max RMS residual (SOC) of the anchor line fit
+    reanchor_min_soc: float = 0.005  # re-anchor SOC to the capacity line when they differ by more
 
     def with_(self, **changes) -> "SocConfig":
         return replace(self, **changes)
@@ -128,7 +132,8 @@ class SocEstimator:
         # 1. coulomb counting (the previous sample's current moved the SOC to now)
         dq = self._i_prev * (self.dt_s / 3600.0)
         have_soc = np.isfinite(self.soc)
-        self.soc = np.where(have_soc, self.soc + dq / self.capacity_ah, self.soc)
+        # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
+        self.soc = np.where(have_soc, np.clip(self.soc + dq / self.capacity_ah, 0.0, 1.0), self.soc)
         self.charge_ah += dq
         self._i_prev = i_use
         # 2. overpotential at the middle of the period (the voltage is a period mean)
@@ -145,7 +150,9 @@ class SocEstimator:
     def _compensate(self, use: np.ndarray) -> None:
         cfg = self.config
         ident = self.identifier
-        learn = use & ident.identified
+        # only fresh, accepted estimates count: a theta frozen by the admissibility
+        # guard has a constant c0 that would look perfectly 'stable'
+        learn = use & ident.accepted
         h = self._c0_head
         self._c0_buf[:, h] = np.where(learn, ident.c0_v, self._c0_buf[:, h])
         self._c0_head = (h + 1) % self._w
@@ -165,7 +172,7 @@ class SocEstimator:
         slope = self.ocv.docv_dsoc(self.soc)
         fire = stable & (np.abs(c0_avg) > slope * cfg.soc_error_threshold)
         if fire.any():
-            self.soc = np.where(fire, soc_ocv, self.soc)
+            self.soc = np.where(fire, np.clip(soc_ocv, 0.0, 1.0), self.soc)
             ident.shift_bias(c0_avg, fire)
             self._c0_count = np.where(fire, 0, self._c0_count)
             self._c0_buf[fire] -= c0_avg[fire, None]
@@ -201,6 +208,17 @@ class SocEstimator:
         )
         self.capacity_ah = np.where(good, q_est, self.capacity_ah)
         self.capacity_estimated |= good
+        # the same line gives the SOC now from all anchors: re-anchor the count to it,
+        # moving the OCV difference out of the model exactly like a c0 compensation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_line = ss / n + slope * (q - sq / n)
+        move = good & np.isfinite(s_line) & (np.abs(s_line - self.soc) > cfg.reanchor_min_soc)
+        if move.any():
+            target = np.clip(s_line, 0.0, 1.0)
+            dv = np.where(move, self.ocv.ocv(target) - self.ocv.ocv(self.soc), 0.0)
+            self.soc = np.where(move, target, self.soc)
+            self.identifier.shift_bias(dv, move)
+            self._c0_buf -= dv[:, None]
 
     # ------------------------------------------------------------------
     @property

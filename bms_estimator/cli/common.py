@@ -1,0 +1,109 @@
+"""Options shared by the offline subcommands and their translation to the core's configs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.identifier import IdentifierConfig
+from ..core.ocv import OcvCurve
+from ..core.soc import SocConfig
+from ..data import CellRecording, load_recording
+
+_ID = IdentifierConfig()
+_SOC = SocConfig()
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+    return value
+
+
+def add_cell_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--ocv", required=True, type=Path, help="OCV CSV (soc,ocv_v[,hysteresis_v]), e.g. from 'bms-estimator ocv'")
+    p.add_argument("--capacity-ah", required=True, type=positive_float,
+                   help="the capacity you state (nominal); the effective one is estimated from the data and reported")
+    p.add_argument("--initial-soc", type=float, default=1.0,
+                   help="SOC at the file's start (default 1.0: the drive cycles of ../shared/data start full)")
+
+
+def add_tuning_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("estimator tuning (defaults serve both cells of ../shared/data)")
+    g.add_argument("--window", type=int, default=_ID.window, help=f"LIF window L in samples (default {_ID.window})")
+    g.add_argument("--forgetting", type=float, default=_ID.forgetting,
+                   help=f"RLS forgetting factor per sample (default {_ID.forgetting})")
+    g.add_argument("--error-on-mv", type=float, default=_ID.error_on_v * 1e3,
+                   help="turn adaptation on above this windowed RMS equation error, mV (default: always on)")
+    g.add_argument("--error-off-mv", type=float, default=_ID.error_off_v * 1e3,
+                   help="turn adaptation off below this windowed RMS equation error, mV")
+    g.add_argument("--tau-max-s", type=float, default=_ID.tau_max_s,
+                   help=f"admissible slow time constant bound, s (default {_ID.tau_max_s:g})")
+    g.add_argument("--soc-error-threshold", type=float, default=_SOC.soc_error_threshold,
+                   help=f"c0 compensation threshold as an SOC error (default {_SOC.soc_error_threshold})")
+    g.add_argument("--no-capacity-estimation", action="store_true", help="trust the stated capacity")
+    g.add_argument("--resample-s", type=positive_float, default=1.0, help="sample period; finer data is averaged (default 1 s)")
+
+
+def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig:
+    ident = IdentifierConfig(
+        method=method or getattr(args, "method", "lif"),
+        window=args.window,
+        forgetting=args.forgetting,
+        error_on_v=args.error_on_mv / 1e3,
+        error_off_v=min(args.error_off_mv, args.error_on_mv) / 1e3,
+        tau_max_s=args.tau_max_s,
+    )
+    if ident.window < 1:
+        raise ValueError(f"--window must be at least 1 sample, got {ident.window}")
+    return SocConfig(
+        identifier=ident,
+        soc_error_threshold=args.soc_error_threshold,
+        estimate_capacity=not args.no_capacity_estimation,
+    )
+
+
+def load(path: Path, args: argparse.Namespace) -> CellRecording:
+    rec = load_recording(path, resample_s=args.resample_s)
+    if len(rec) < 10:
+        raise ValueError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
+    return rec
+
+
+def load_ocv(path: Path) -> OcvCurve:
+    return OcvCurve.from_csv(path)
+
+
+def to_jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def write_json(data: dict, path: Path | None) -> None:
+    text = json.dumps(to_jsonable(data), indent=2)
+    if path is None or str(path) == "-":
+        print(text)
+    else:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(text + "\n")

@@ -1,0 +1,70 @@
+"""``bms-estimator compare``: CT (LIF) against DT (ARX) on a training and a validation file (paper IV-A)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..analysis import compare_methods
+from .common import add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("compare", help="the paper's Section IV-A: CT vs DT identification on any two files",
+                       description="Both methods run online over the training file; their parameters simulate the "
+                                   "training file (online trajectory) and the validation file (training parameters "
+                                   "looked up by SOC). RMSEs cover the 20-90 %% SOC part unless --full-range.")
+    p.add_argument("--train", type=Path, required=True)
+    p.add_argument("--validate", type=Path, required=True)
+    add_cell_options(p)
+    p.add_argument("--soc-min", type=float, default=0.2, help="lower end of the scored SOC window (default 0.2)")
+    p.add_argument("--soc-max", type=float, default=0.9, help="upper end of the scored SOC window (default 0.9)")
+    p.add_argument("--full-range", action="store_true", help="score the whole file (both are reported anyway)")
+    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--plots", type=Path, default=None, help="folder for the figures (paper Figs 5-9)")
+    add_tuning_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    tr, va = load(args.train, args), load(args.validate, args)
+    if abs(tr.dt_s - va.dt_s) > 1e-9:
+        raise ValueError(f"training and validation files have different sample periods ({tr.dt_s} vs {va.dt_s} s)")
+    ocv = load_ocv(args.ocv)
+    window = (0.0, 1.0) if args.full_range else (args.soc_min, args.soc_max)
+    if not 0.0 <= window[0] < window[1] <= 1.0:
+        raise ValueError(f"SOC window {window} must satisfy 0 <= min < max <= 1")
+    res = compare_methods(
+        (tr.current_a, tr.voltage_v), (va.current_a, va.voltage_v), ocv, args.capacity_ah,
+        dt_s=tr.dt_s, initial_soc=args.initial_soc, soc_window=window, config=soc_config(args),
+        names=(args.train.name, args.validate.name),
+    )
+    m = res.metrics
+    m["files"] = {"train": str(args.train), "validate": str(args.validate)}
+    if args.plots:
+        _plots(res, tr, va, args.plots, window)
+        m["plots"] = str(args.plots)
+    if args.json is not None:
+        write_json(m, args.json)
+    if args.json is None or str(args.json) != "-":
+        print(f"effective capacity {res.capacity_ah:.3f} Ah (stated {args.capacity_ah:g}); "
+              f"RMSE in SOC {window[0]:.0%}-{window[1]:.0%}, simulation / one-step-ahead [mV]:")
+        for part in ("train", "validate"):
+            row = "  ".join(f"{meth.upper()} {m[part][meth]['sim_rmse_mv']:6.1f} / {m[part][meth]['osa_rmse_mv']:5.1f}"
+                            for meth in ("lif", "arx"))
+            print(f"  {part:9s} {row}")
+    return 0
+
+
+def _plots(res, tr, va, folder: Path, window) -> None:
+    from ..plots import plot_errors, plot_parameters
+
+    folder.mkdir(parents=True, exist_ok=True)
+    plot_parameters(tr.time_s, res.train.params, folder / "parameters_train.png", f"{res.train.name}: online parameters")
+    for part, rec in (("train", res.train), ("validate", res.validate)):
+        t = (tr if part == "train" else va).time_s
+        inside = (rec.soc >= window[0]) & (rec.soc <= window[1])
+        plot_errors(t, rec.voltage_v, rec.osa_v, folder / f"osa_{part}.png", f"{rec.name}: one-step-ahead error",
+                    "OSA error [mV]", inside)
+        plot_errors(t, rec.voltage_v, rec.simulated_v, folder / f"simulation_{part}.png",
+                    f"{rec.name}: simulation error", "simulation error [mV]", inside)

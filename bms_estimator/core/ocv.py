@@ -1,0 +1,794 @@
+"""Open-circuit voltage as a function of state of charge: OCV(SOC), its inverse and slope.
+
+Conventions: ``soc`` is a fraction (0 = empty, 1 = full), voltages in V, current
+positive = charge, charge ``Q`` in Ah (``Q = integral I dt / 3600``).
+
+1. Interpolation.  The knots ``(soc_k, ocv_v_k)`` (both strictly increasing) are
+   joined by a monotone cubic Hermite curve whose interior knot slopes are the
+   PCHIP slopes (``scipy.interpolate.PchipInterpolator``, Fritsch-Carlson
+   harmonic means) and whose two end slopes are the end secants
+   ``m_lo = (ocv_1 - ocv_0)/(soc_1 - soc_0)`` and
+   ``m_hi = (ocv_n - ocv_{n-1})/(soc_n - soc_{n-1})``.  (PCHIP's own end rule
+   can give a zero end slope; the secant keeps the curve strictly increasing and,
+   with interior slopes <= 3 x secant, inside the Fritsch-Carlson monotone
+   region.)
+2. Extrapolation.  Beyond the knot range (``[0, 1]`` for a full curve) the curve
+   continues linearly with the end slopes, so it is C1 and never NaN::
+
+       ocv(s) = ocv_0 + m_lo (s - soc_0)   for s < soc_0
+       ocv(s) = ocv_n + m_hi (s - soc_n)   for s > soc_n
+
+3. Fast evaluation.  The curve is sampled once on a uniform grid of 2001 SOCs
+   and evaluated by direct indexing, ``k = floor((s - soc_0)/h)``, plus linear
+   interpolation inside the cell (O(1) per query).  ``soc_from_ocv`` is the
+   exact inverse of that piecewise-linear table (a uniform-OCV seed table picks
+   the segment, the linear piece is solved), so ``soc_from_ocv(ocv(s)) == s``
+   to rounding and both directions are exactly monotone.  The table differs
+   from the cubic by ``<= h^2 max|ocv''| / 8``: median 0.2 uV, at most 0.35 mV in
+   the steep first 0.5 % SOC of the Panasonic C/20 curve.  Measured on 2000
+   unsorted cells: ``ocv`` 38 us, ``soc_from_ocv`` 80 us, ``docv_dsoc`` 28 us,
+   against ~100 us for one ``PchipInterpolator`` call and ~140 us for
+   ``np.interp`` on the same table (binary search per query); a scalar call
+   takes 1-3 us.
+4. Slope.  ``docv_dsoc`` is the spline derivative (sampled on the same grid),
+   the end slope beyond the knots, floored at ``MIN_SLOPE_V`` so that it is
+   strictly positive (an estimator's Jacobian never vanishes).
+5. Hysteresis.  ``hysteresis(soc)`` is half the charge-minus-discharge gap
+   (>= 0), PCHIP-interpolated, held constant beyond the knots, 0 if none.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
+
+__all__ = ["OcvCurve", "MIN_SLOPE_V"]
+
+#: Floor of ``docv_dsoc`` [V per unit SOC].
+MIN_SLOPE_V = 1e-3
+#: Dense uniform SOC grid used for fast evaluation.
+GRID_POINTS = 2001
+#: Uniform OCV grid of the inverse's seed table.
+INVERSE_GRID_POINTS = 8001
+#: A user OCV table may dip by up to this much [V] and be repaired with a warning.
+MAX_OCV_DIP_V = 5e-3
+#: Step of the strictly-increasing repair [V].
+_EPS_V = 1e-6
+
+
+def _strictly_increasing(y: np.ndarray, eps: float) -> np.ndarray:
+    """Smallest-change repair making ``y`` strictly increasing by at least ``eps``.
+
+    ``z_k = max_{j<=k}(y_j - eps j) + eps k``, so ``z_k - z_{k-1} >= eps`` and
+    ``z_k >= y_k`` (flat spots and dips are lifted to a ramp of slope ``eps``).
+    """
+    ramp = eps * np.arange(y.size)
+    return np.maximum.accumulate(y - ramp) + ramp
+
+
+def _as_float_array(x: Any) -> tuple[np.ndarray, bool]:
+    arr = np.asarray(x, dtype=np.float64)
+    return arr, arr.ndim == 0
+
+
+def _out(arr: np.ndarray, scalar: bool) -> np.ndarray | float:
+    return float(arr) if scalar else arr
+
+
+class OcvCurve:
+    """Monotone OCV(SOC) curve with inverse, slope and optional hysteresis.
+
+    Args:
+        soc: knot SOCs, strictly increasing, inside ``[0, 1]``.
+        ocv_v: knot OCVs [V], strictly increasing, same length (>= 2).
+        hysteresis_v: optional half charge-minus-discharge gap [V], >= 0.
+        capacity_discharge_ah, capacity_charge_ah: branch throughputs measured
+            by :meth:`from_c20` (``None`` otherwise; :meth:`from_hppc` sets the
+            discharge one to the coulomb-counted capacity it used).
+
+    Raises:
+        ValueError: shapes, NaN, non-monotone knots, negative hysteresis.
+    """
+
+    def __init__(
+        self,
+        soc: Sequence[float] | np.ndarray,
+        ocv_v: Sequence[float] | np.ndarray,
+        hysteresis_v: Sequence[float] | np.ndarray | None = None,
+        *,
+        capacity_discharge_ah: float | None = None,
+        capacity_charge_ah: float | None = None,
+    ) -> None:
+        s = np.array(soc, dtype=np.float64)
+        v = np.array(ocv_v, dtype=np.float64)
+        if s.ndim != 1 or v.ndim != 1 or s.size != v.size:
+            raise ValueError(f"soc and ocv_v must be 1-D of equal length, got {s.shape} and {v.shape}")
+        if s.size < 2:
+            raise ValueError("an OCV curve needs at least 2 points")
+        if not (np.all(np.isfinite(s)) and np.all(np.isfinite(v))):
+            raise ValueError("soc and ocv_v must be finite (no NaN/inf)")
+        if s[0] < -1e-9 or s[-1] > 1 + 1e-9:
+            raise ValueError(f"soc must lie in [0, 1], got {s[0]:.6g}..{s[-1]:.6g}")
+        if np.any(np.diff(s) <= 0):
+            k = int(np.flatnonzero(np.diff(s) <= 0)[0]) + 1
+            raise ValueError(f"soc must be strictly increasing (index {k}: {s[k - 1]!r} -> {s[k]!r})")
+        if np.any(np.diff(v) <= 0):
+            k = int(np.flatnonzero(np.diff(v) <= 0)[0]) + 1
+            raise ValueError(
+                f"ocv_v must be strictly increasing (index {k}, soc {s[k]:.4f}: "
+                f"{v[k - 1]!r} -> {v[k]!r} V)"
+            )
+        h = None
+        if hysteresis_v is not None:
+            h = np.array(hysteresis_v, dtype=np.float64)
+            if h.shape != s.shape:
+                raise ValueError(f"hysteresis_v has shape {h.shape}, soc has {s.shape}")
+            if not np.all(np.isfinite(h)):
+                raise ValueError("hysteresis_v must be finite")
+            if np.any(h < 0):
+                raise ValueError(f"hysteresis_v must be >= 0 (min {h.min():.6g} V)")
+        s = np.clip(s, 0.0, 1.0)
+        for arr in (s, v) + ((h,) if h is not None else ()):
+            arr.setflags(write=False)
+        self.soc: np.ndarray = s
+        self.ocv_v: np.ndarray = v
+        self.hysteresis_v: np.ndarray | None = h
+        self.capacity_discharge_ah = None if capacity_discharge_ah is None else float(capacity_discharge_ah)
+        self.capacity_charge_ah = None if capacity_charge_ah is None else float(capacity_charge_ah)
+        self._build()
+
+    # ------------------------------------------------------------------ set-up
+    def _build(self) -> None:
+        s, v = self.soc, self.ocv_v
+        secants = np.diff(v) / np.diff(s)
+        self._s0, self._s1 = float(s[0]), float(s[-1])
+        self._v0, self._v1 = float(v[0]), float(v[-1])
+        self._slope_lo = float(secants[0])
+        self._slope_hi = float(secants[-1])
+        if s.size > 2:
+            d = PchipInterpolator(s, v).derivative()(s)
+        else:
+            d = np.full(2, secants[0])
+        d[0], d[-1] = secants[0], secants[-1]
+        spline = CubicHermiteSpline(s, v, d)
+        grid = np.linspace(self._s0, self._s1, GRID_POINTS)
+        gv = spline(grid)
+        gv[0], gv[-1] = self._v0, self._v1
+        if np.any(np.diff(gv) <= 0):  # rounding guard: the table must be strictly increasing
+            gv = _strictly_increasing(gv, 1e-12 * max(1.0, abs(self._v1)))
+            gv[-1] = max(gv[-1], self._v1)
+            self._v1 = float(gv[-1])
+        self._fwd = _UniformTable(self._s0, self._s1, gv)
+        self._slope = _UniformTable(self._s0, self._s1, np.maximum(spline.derivative()(grid), MIN_SLOPE_V))
+        # inverse seed table: exact inverse of the forward table sampled at uniform OCVs
+        vgrid = np.linspace(self._v0, self._v1, INVERSE_GRID_POINTS)
+        self._inv = _UniformTable(self._v0, self._v1, np.interp(vgrid, gv, grid))
+        if self.hysteresis_v is not None:
+            hp = PchipInterpolator(s, self.hysteresis_v)
+            self._hyst = _UniformTable(self._s0, self._s1, np.maximum(hp(grid), 0.0))
+        else:
+            self._hyst = None
+
+    # --------------------------------------------------------------- hot paths
+    def ocv(self, soc: Any) -> np.ndarray | float:
+        """OCV [V] at ``soc`` (any shape; scalar in, float out); linear beyond the knots."""
+        s, scalar = _as_float_array(soc)
+        if scalar:
+            x = float(s)
+            if x < self._s0:
+                return self._v0 + self._slope_lo * (x - self._s0)
+            if x > self._s1:
+                return self._v1 + self._slope_hi * (x - self._s1)
+            return self._fwd.scalar(x)
+        v = self._fwd(s)
+        v += self._slope_lo * np.minimum(s - self._s0, 0.0) + self._slope_hi * np.maximum(s - self._s1, 0.0)
+        return _out(v, scalar)
+
+    __call__ = ocv
+
+    def soc_from_ocv(self, ocv_v: Any) -> np.ndarray | float:
+        """Inverse of :meth:`ocv`: SOC at ``ocv_v`` [V]; linear beyond the knots (may leave [0, 1]).
+
+        A uniform-OCV seed table gives the forward-table segment; the segment is
+        corrected to the one bracketing ``v`` and the linear piece solved exactly,
+        so this is the exact inverse of :meth:`ocv` (to rounding).
+        """
+        v, scalar = _as_float_array(ocv_v)
+        if scalar:
+            x = float(v)
+            if x < self._v0:
+                return self._s0 + (x - self._v0) / self._slope_lo
+            if x > self._v1:
+                return self._s1 + (x - self._v1) / self._slope_hi
+            return self._fwd.inverse_scalar(x, self._inv.scalar(x))
+        vc = np.clip(v, self._v0, self._v1)
+        s = self._fwd.inverse(vc, self._inv(vc))
+        s += np.minimum(v - self._v0, 0.0) / self._slope_lo + np.maximum(v - self._v1, 0.0) / self._slope_hi
+        return s
+
+    def docv_dsoc(self, soc: Any) -> np.ndarray | float:
+        """Slope dOCV/dSOC [V per unit SOC], strictly positive (>= ``MIN_SLOPE_V``)."""
+        s, scalar = _as_float_array(soc)
+        if scalar:
+            x = float(s)
+            if x < self._s0:
+                return max(self._slope_lo, MIN_SLOPE_V)
+            if x > self._s1:
+                return max(self._slope_hi, MIN_SLOPE_V)
+            return self._slope.scalar(x)
+        d = self._slope(s)
+        below, above = s < self._s0, s > self._s1
+        if below.any() or above.any():
+            d = np.where(below, max(self._slope_lo, MIN_SLOPE_V), d)
+            d = np.where(above, max(self._slope_hi, MIN_SLOPE_V), d)
+        return _out(d, scalar)
+
+    def hysteresis(self, soc: Any) -> np.ndarray | float:
+        """Half charge-minus-discharge gap [V] at ``soc`` (>= 0; 0 when the curve has none)."""
+        s, scalar = _as_float_array(soc)
+        if self._hyst is None:
+            return _out(np.zeros(s.shape), scalar)
+        if scalar:
+            return self._hyst.scalar(float(s))
+        return self._hyst(s)
+
+    @property
+    def has_hysteresis(self) -> bool:
+        return self.hysteresis_v is not None
+
+    def __repr__(self) -> str:
+        return (
+            f"OcvCurve({self.soc.size} points, soc {self.soc[0]:.3f}..{self.soc[-1]:.3f}, "
+            f"ocv {self.ocv_v[0]:.4f}..{self.ocv_v[-1]:.4f} V, "
+            f"hysteresis={'yes' if self.has_hysteresis else 'no'})"
+        )
+
+    # ------------------------------------------------------------ from C/20
+    @classmethod
+    def from_c20(
+        cls,
+        time_s: np.ndarray,
+        current_a: np.ndarray,
+        voltage_v: np.ndarray,
+        *,
+        capacity_ah: float | None = None,
+        n_points: int = 201,
+        current_threshold_a: float | None = None,
+    ) -> "OcvCurve":
+        """Pseudo-OCV from a C/20 test: discharge from full, rest, charge to full.
+
+        1. Segments.  Samples with ``I < -I_th`` form discharge runs, ``I > I_th``
+           charge runs (``I_th`` = 20 % of the 90th percentile of ``|I|``, i.e. of
+           the C/20 current, unless given).  The discharge branch is the run with
+           the largest charge; the charge branch the largest charge run after it.
+        2. Coulomb counting: trapezoid over the branch's records plus the lead
+           ``I_first Delta`` before its first record (logger model of
+           :meth:`from_hppc`; ``Delta`` = spacing of the branch's records, at most
+           the gap to the previous record, 0 if the branch opens the file)::
+
+               Q_d(t) = -integral_{t_d0}^{t} I dt,   Q_c(t) = integral_{t_c0}^{t} I dt
+
+           ``capacity_discharge_ah = Q_d(end)``, ``capacity_charge_ah = Q_c(end)``.
+        3. SOC.  With ``capacity_ah=None`` each branch is normalised by its own
+           throughput, so each spans exactly 0..1 (the discharge starts at 1.0 from
+           full and ends at 0 at cut-off; the charge branch starts at 0 - the cell
+           is empty after a discharge to cut-off - and ends at 1)::
+
+               soc_d = 1 - Q_d / Q_d(end),     soc_c = Q_c / Q_c(end)
+
+           The throughputs differ (Panasonic 18650PF at 25 degC: 3.00 Ah discharge,
+           2.62 Ah charge; LG HG2: 2.78 / 2.97 Ah), so a single Ah scale would leave
+           one branch short of an end.  With ``capacity_ah=C`` both are counted
+           against C instead (``soc_d = 1 - Q_d/C``, ``soc_c = 1 - Q_d(end)/C +
+           Q_c/C``) and the curve covers only the SOC range both branches reach.
+        4. Both branches are interpolated on a common grid of ``n_points`` SOCs::
+
+               ocv_v        = (v_c + v_d) / 2
+               hysteresis_v = max((v_c - v_d) / 2, 0)
+
+           The half gap includes the C/20 ohmic/polarisation drop ``|I| R`` as well
+           as the true hysteresis.
+        5. Flat spots and noise are removed by the minimal strictly-increasing
+           repair ``z_k = max_{j<=k}(y_j - eps j) + eps k`` (``eps`` = 1 uV).
+
+        Raises:
+            ValueError: no discharge or no charge branch after it, bad arrays.
+        """
+        t, i, v = _check_arrays(time_s, current_a, voltage_v)
+        if n_points < 3:
+            raise ValueError("n_points must be >= 3")
+        if current_threshold_a is None:
+            ref = float(np.percentile(np.abs(i), 90))
+            if ref <= 0:
+                raise ValueError("current is zero everywhere: not a C/20 test")
+            current_threshold_a = 0.2 * ref
+        runs_d = _runs(i < -current_threshold_a)
+        runs_c = _runs(i > current_threshold_a)
+        if not runs_d:
+            raise ValueError("no discharge segment (I < -threshold) found in the C/20 data")
+        qd = [_branch_charge(t, i, a, b) for a, b in runs_d]
+        kd = int(np.argmax([-q[-1] for q in qd]))
+        d0, d1 = runs_d[kd]
+        later = [(a, b) for a, b in runs_c if a >= d1]
+        if not later:
+            raise ValueError("no charge segment (I > threshold) after the discharge in the C/20 data")
+        qc = [_branch_charge(t, i, a, b) for a, b in later]
+        kc = int(np.argmax([q[-1] for q in qc]))
+        c0, c1 = later[kc]
+        q_d = -qd[kd]  # discharged Ah, increasing
+        q_c = qc[kc]
+        cap_d, cap_c = float(q_d[-1]), float(q_c[-1])
+        if cap_d <= 0 or cap_c <= 0:
+            raise ValueError("C/20 branch throughput is zero")
+
+        if capacity_ah is None:
+            soc_d = 1.0 - q_d / cap_d
+            soc_c = q_c / cap_c
+        else:
+            if not capacity_ah > 0:
+                raise ValueError(f"capacity_ah must be positive, got {capacity_ah!r}")
+            soc_d = 1.0 - q_d / capacity_ah
+            soc_c = 1.0 - cap_d / capacity_ah + q_c / capacity_ah
+        lo = max(0.0, soc_d.min(), soc_c.min())
+        hi = min(1.0, soc_d.max(), soc_c.max())
+        if capacity_ah is None:
+            lo, hi = 0.0, 1.0
+        if hi - lo < 0.5:
+            raise ValueError(
+                f"the C/20 branches overlap only over soc {lo:.3f}..{hi:.3f} with "
+                f"capacity_ah={capacity_ah}"
+            )
+        grid = np.linspace(lo, hi, n_points)
+        v_d = _branch_on_grid(soc_d[::-1], v[d0:d1][::-1], grid)
+        v_c = _branch_on_grid(soc_c, v[c0:c1], grid)
+        ocv_v = _strictly_increasing(0.5 * (v_c + v_d), _EPS_V)
+        hyst = np.maximum(0.5 * (v_c - v_d), 0.0)
+        return cls(grid, ocv_v, hyst, capacity_discharge_ah=cap_d, capacity_charge_ah=cap_c)
+
+    # ------------------------------------------------------------- from HPPC
+    @classmethod
+    def from_hppc(
+        cls,
+        hppc: Any,
+        steps: Any | None = None,
+        *,
+        capacity_ah: float | None = None,
+        current_threshold_a: float = 0.01,
+        ocv_window_s: float = 10.0,
+    ) -> "OcvCurve":
+        """OCV from the rests of an HPPC test (no hysteresis).
+
+        ``hppc`` and ``steps`` are ``(time_s, current_a, voltage_v)`` tuples (or
+        objects with those attributes), as logged - do not resample them: the
+        logging gaps carry the timing information used below.
+
+        Structure of the test (Panasonic 18650PF files): pulse sets (five 10 s
+        discharge pulses with 1200 s rests) at SOCs from full to empty, logged
+        densely in ``hppc``; between the sets a slow discharge and a long rest,
+        which ``hppc`` skips (a logging gap of ~2000-3800 s) and ``steps`` logs
+        sparsely (every 60 s while discharging, 300 s at rest, on its own
+        zero-based time axis, sometimes followed by unrelated later tests).
+
+        Logger model (consistent with every Panasonic file): a test step's first
+        record comes one logging interval ``Delta`` after the step starts, and
+        its last record is at the step's end.  (The rest after a discharge step
+        is first logged at end + 300 s; a 10 s pulse is 100 records 0.1 s apart
+        spanning 9.9 s; each step start found by the alignment of step 4 is
+        ``Delta`` = 60 s before its first record, to 0.01 s.)  So a run of
+        same-sign current records (``|I| >= current_threshold_a``) carries::
+
+            Q_run = I_first Delta + trapezoid over the run's own records      (Ah after / 3600)
+
+        A plain ``sum I dt`` is wrong both ways: across the hours-long gaps of
+        ``steps`` it gives 8.8 Ah for a 2.9 Ah cell, and in ``hppc`` it holds the
+        6 C pulse current over the 1 s gap to the next (rest) record.
+
+        1. Blocks.  ``hppc`` is split at gaps ``dt > max(30 s, 20 median dt)``.
+           The OCV point of block ``k`` is the mean voltage of its rest samples
+           (``|I| < current_threshold_a``) in the last ``ocv_window_s`` before its
+           first pulse: the end of the long rest that preceded the pulse set.
+        2. Pulse charge: the runs inside each ``hppc`` block, ``Delta`` = median
+           spacing of consecutive current records (0.1 s).
+        3. Discharge steps: the runs in ``steps`` whose records are ``<= 3 Delta``
+           apart, ``Delta`` = median spacing of consecutive current records (60 s).
+        4. Alignment.  The offset ``o`` between the two time axes is the one that
+           places the most step starts ``t_first - Delta + o`` on an ``hppc`` gap
+           start (``hppc`` stops logging when the step begins) or on the end of
+           ``hppc`` (the final discharge to cut-off), within 2 s.  Runs inside gap
+           ``j`` are charged to gap ``j``, a run starting at the end of ``hppc`` to
+           the total; runs elsewhere (later tests in the same file) are ignored.
+           A gap without a step gives a ``UserWarning``.
+        5. SOC by coulomb counting from full (``soc = 1`` at the first block)::
+
+               soc_k = 1 + Q_k / C,    Q_k = sum of pulse and step charges before block k
+
+           with ``C = capacity_ah`` or, when ``None``, the total charge removed by
+           the end of the test (the test runs to the discharge cut-off), reported
+           as ``capacity_discharge_ah``.  Points outside ``[0, 1]`` are dropped.
+        6. OCV values are made strictly increasing with the repair of
+           :meth:`from_c20`.
+
+        Without ``steps`` every ampere-second must be in ``hppc``; a warning is
+        given when ``hppc`` has logging gaps longer than 600 s that could hide
+        discharge steps.
+
+        Raises:
+            ValueError: fewer than 2 usable rest points, steps that cannot be
+                aligned with the ``hppc`` gaps.
+        """
+        t, i, v = _check_arrays(*_unpack(hppc, "hppc"))
+        dt = np.diff(t)
+        gap_s = max(30.0, 20.0 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 30.0)
+        gaps = np.flatnonzero(dt > gap_s)  # gap between sample g and g+1
+        block_starts = np.r_[0, gaps + 1]
+        block_ends = np.r_[gaps + 1, t.size]
+        # pulse charge per block (step 2)
+        p_start, _, p_trap, p_delta = _current_runs(t, i, current_threshold_a, gap_s)
+        p_q = (p_trap + i[p_start] * p_delta) / 3600.0
+        block_q = np.bincount(np.searchsorted(block_starts, p_start, side="right") - 1,
+                              weights=p_q, minlength=block_starts.size)
+
+        # charge removed in each gap (and after the end) by the discharge steps
+        gap_q = np.zeros(gaps.size)
+        tail_q = 0.0
+        if steps is not None:
+            gap_q, tail_q = _steps_charge(
+                _check_arrays(*_unpack(steps, "steps")),
+                gap_start=t[gaps], gap_end=t[gaps + 1], t_end=float(t[-1]),
+                threshold=current_threshold_a,
+            )
+        elif gaps.size and np.max(dt[gaps]) > 600.0:
+            warnings.warn(
+                f"from_hppc: hppc has {gaps.size} logging gaps (longest {np.max(dt[gaps]):.0f} s) "
+                "but no steps were given; discharge during the gaps is not counted",
+                UserWarning,
+                stacklevel=2,
+            )
+
+        q_points, v_points = [], []
+        for k, (a, b) in enumerate(zip(block_starts, block_ends)):
+            active = np.flatnonzero(np.abs(i[a:b]) >= current_threshold_a)
+            stop = a + (active[0] if active.size else b - a)  # first pulse (exclusive)
+            if stop == a:
+                continue  # block starts with a pulse: no rest voltage
+            sel = np.arange(a, stop)
+            sel = sel[t[sel] >= t[stop - 1] - ocv_window_s]
+            q_before = block_q[:k].sum() + gap_q[:k].sum()
+            q_points.append(q_before)
+            v_points.append(float(np.mean(v[sel])))
+        q_total = block_q.sum() + gap_q.sum() + tail_q
+        if capacity_ah is None:
+            capacity = -q_total
+            if capacity <= 0:
+                raise ValueError("from_hppc: the test removed no charge; cannot normalise SOC")
+        else:
+            if not capacity_ah > 0:
+                raise ValueError(f"capacity_ah must be positive, got {capacity_ah!r}")
+            capacity = float(capacity_ah)
+        soc = 1.0 + np.asarray(q_points) / capacity
+        ocv = np.asarray(v_points)
+        keep = (soc >= -1e-9) & (soc <= 1 + 1e-9)
+        soc, ocv = np.clip(soc[keep], 0.0, 1.0), ocv[keep]
+        order = np.argsort(soc, kind="stable")
+        soc, ocv = soc[order], ocv[order]
+        uniq = np.r_[True, np.diff(soc) > 1e-9]
+        soc, ocv = soc[uniq], ocv[uniq]
+        if soc.size < 2:
+            raise ValueError(
+                f"from_hppc: only {soc.size} usable rest point(s) found in {block_starts.size} "
+                "logging block(s); pass hppc as logged (load_recording(..., resample_s=None)), "
+                "resampling fills the gaps that separate the pulse sets"
+            )
+        ocv = _strictly_increasing(ocv, _EPS_V)
+        return cls(soc, ocv, None, capacity_discharge_ah=capacity)
+
+    # ------------------------------------------------------------------- CSV
+    def to_csv(self, path: str | Path) -> Path:
+        """Write ``soc,ocv_v[,hysteresis_v]`` (header row, 8 decimals: round trips to 5e-9).
+
+        The capacity attributes are not stored.
+        """
+        path = Path(path)
+        cols = [self.soc, self.ocv_v]
+        header = "soc,ocv_v"
+        if self.hysteresis_v is not None:
+            cols.append(self.hysteresis_v)
+            header += ",hysteresis_v"
+        lines = [header]
+        for row in zip(*cols):
+            lines.append(",".join(f"{x:.8f}" for x in row))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        return path
+
+    @classmethod
+    def from_csv(cls, path: str | Path) -> "OcvCurve":
+        """Read a table written by :meth:`to_csv` (extra columns ignored).
+
+        ``soc`` must be a strictly increasing fraction in [0, 1].  An ``ocv_v``
+        column that is flat or dips by at most ``MAX_OCV_DIP_V`` (5 mV) is
+        repaired to strictly increasing with a ``UserWarning``; a larger dip is an
+        error.
+
+        Raises:
+            ValueError: naming the file and the problem (missing column, empty or
+                non-numeric value with its line, NaN, non-monotone soc, ...).
+        """
+        path = Path(path)
+        text = path.read_text(encoding="utf-8-sig")
+        lines = [(n, ln) for n, ln in enumerate(text.splitlines(), start=1)
+                 if ln.strip() and not ln.lstrip().startswith("#")]
+        if not lines:
+            raise ValueError(f"{path}: empty file (no header row)")
+        hdr = lines[0][1]
+        names = [c.strip().strip('"').strip() for c in hdr.split(",")]
+        missing = [c for c in ("soc", "ocv_v") if c not in names]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (header: {hdr.strip()})")
+        wanted = ["soc", "ocv_v"] + (["hysteresis_v"] if "hysteresis_v" in names else [])
+        idx = [names.index(c) for c in wanted]
+        rows = []
+        for n, ln in lines[1:]:
+            fields = ln.split(",")
+            if len(fields) < len(names):
+                raise ValueError(f"{path}: line {n} has {len(fields)} fields, header has {len(names)}")
+            row = []
+            for c, j in zip(wanted, idx):
+                txt = fields[j].strip()
+                try:
+                    x = float(txt)
+                except ValueError:
+                    raise ValueError(f"{path}: line {n}: non-numeric value {txt!r} in column '{c}'") from None
+                if not math.isfinite(x):
+                    raise ValueError(f"{path}: line {n}: value {txt!r} in column '{c}' is not finite")
+                row.append(x)
+            rows.append(row)
+        if len(rows) < 2:
+            raise ValueError(f"{path}: needs at least 2 data rows, found {len(rows)}")
+        data = np.asarray(rows)
+        s, v = data[:, 0], data[:, 1]
+        h = data[:, 2] if data.shape[1] > 2 else None
+        if s.min() < -1e-9 or s.max() > 1 + 1e-9:
+            hint = " (percent? soc must be a fraction)" if s.max() > 1.5 else ""
+            raise ValueError(f"{path}: soc must lie in [0, 1], got {s.min():.6g}..{s.max():.6g}{hint}")
+        ds = np.diff(s)
+        if np.any(ds <= 0):
+            k = int(np.flatnonzero(ds <= 0)[0]) + 1
+            raise ValueError(
+                f"{path}: soc is not strictly increasing at line {lines[k + 1][0]} "
+                f"({s[k - 1]!r} -> {s[k]!r})"
+            )
+        if h is not None and np.any(h < 0):
+            k = int(np.flatnonzero(h < 0)[0])
+            raise ValueError(f"{path}: line {lines[k + 1][0]}: hysteresis_v {h[k]!r} is negative")
+        if np.any(np.diff(v) <= 0):
+            dip = np.maximum.accumulate(v) - v
+            k = int(np.argmax(dip))
+            if dip[k] > MAX_OCV_DIP_V:
+                raise ValueError(
+                    f"{path}: ocv_v decreases by {dip[k] * 1e3:.1f} mV at line {lines[k + 1][0]} "
+                    f"(soc {s[k]:.4f}); OCV must increase with SOC"
+                )
+            warnings.warn(
+                f"{path}: ocv_v is not strictly increasing (largest dip {dip[k] * 1e3:.2f} mV "
+                f"at soc {s[k]:.4f}); repaired to a strictly increasing curve",
+                UserWarning,
+                stacklevel=2,
+            )
+            v = _strictly_increasing(v, _EPS_V)
+        return cls(np.clip(s, 0.0, 1.0), v, h)
+
+
+# ---------------------------------------------------------------------------
+# helpers
+
+
+class _UniformTable:
+    """Piecewise-linear interpolation on a uniform grid by direct indexing (O(1) per query).
+
+    ``np.interp`` binary-searches each query; for 2000 unsorted queries on a
+    2001-point table that is ~140 us, direct indexing ~20 us.  Queries outside
+    ``[x0, x1]`` get the end values (callers add their own extrapolation); NaN
+    propagates.
+    """
+
+    def __init__(self, x0: float, x1: float, y: np.ndarray) -> None:
+        self.x0 = float(x0)
+        self.n = int(y.size)
+        self.inv_h = (self.n - 1) / (float(x1) - self.x0)
+        self.y = np.ascontiguousarray(y, dtype=np.float64)
+        self.dy = np.diff(self.y)
+
+    def _locate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = (x - self.x0) * self.inv_h
+        k = np.floor(u)
+        np.clip(k, 0, self.n - 2, out=k)
+        nan = np.isnan(k)
+        if nan.any():
+            k[nan] = 0
+        f = u - k
+        np.clip(f, 0.0, 1.0, out=f)  # NaN stays NaN
+        return k.astype(np.intp), f
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        x1 = np.atleast_1d(x)
+        k, f = self._locate(x1)
+        return (self.y[k] + self.dy[k] * f).reshape(np.shape(x))
+
+    def scalar(self, x: float) -> float:
+        u = (x - self.x0) * self.inv_h
+        if u != u:  # NaN
+            return math.nan
+        k = min(max(int(math.floor(u)), 0), self.n - 2) if math.isfinite(u) else (0 if u < 0 else self.n - 2)
+        f = min(max(u - k, 0.0), 1.0)
+        return float(self.y[k] + self.dy[k] * f)
+
+    def inverse(self, y: np.ndarray, x_seed: np.ndarray) -> np.ndarray:
+        """Exact inverse of this (strictly increasing) table for ``y`` inside its range.
+
+        ``x_seed`` is an approximate answer; when its segment does not bracket
+        ``y`` (``table[k] <= y <= table[k+1]``; rare) the segment is found by
+        ``searchsorted``; then the linear piece is solved.
+        """
+        y1 = np.atleast_1d(y)
+        k, _ = self._locate(np.atleast_1d(x_seed))
+        r = y1 - self.y[k]
+        dy = self.dy[k]
+        off = (r < 0) | (r > dy)
+        if off.any():
+            k[off] = np.clip(np.searchsorted(self.y, y1[off], side="right") - 1, 0, self.n - 2)
+            r[off] = y1[off] - self.y[k[off]]
+            dy[off] = self.dy[k[off]]
+        x = self.x0 + (k + r / dy) / self.inv_h
+        return x.reshape(np.shape(y))
+
+    def inverse_scalar(self, y: float, x_seed: float) -> float:
+        if y != y:
+            return math.nan
+        u = (x_seed - self.x0) * self.inv_h
+        k = min(max(int(math.floor(u)), 0), self.n - 2)
+        tab = self.y
+        while k > 0 and y < tab[k]:
+            k -= 1
+        while k < self.n - 2 and y > tab[k + 1]:
+            k += 1
+        return float(self.x0 + (k + (y - tab[k]) / self.dy[k]) / self.inv_h)
+
+
+def _unpack(rec: Any, name: str) -> tuple[Any, Any, Any]:
+    if hasattr(rec, "time_s") and hasattr(rec, "current_a") and hasattr(rec, "voltage_v"):
+        return rec.time_s, rec.current_a, rec.voltage_v
+    try:
+        t, i, v = rec[:3]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be (time_s, current_a, voltage_v) arrays") from None
+    return t, i, v
+
+
+def _check_arrays(time_s: Any, current_a: Any, voltage_v: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    t = np.asarray(time_s, dtype=np.float64)
+    i = np.asarray(current_a, dtype=np.float64)
+    v = np.asarray(voltage_v, dtype=np.float64)
+    if t.ndim != 1 or t.shape != i.shape or t.shape != v.shape:
+        raise ValueError(f"time_s, current_a, voltage_v must be 1-D of equal length, got "
+                         f"{t.shape}, {i.shape}, {v.shape}")
+    if t.size < 2:
+        raise ValueError("need at least 2 samples")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(i)) and np.all(np.isfinite(v))):
+        raise ValueError("time_s, current_a, voltage_v must be finite")
+    if np.any(np.diff(t) < 0):
+        raise ValueError("time_s must be non-decreasing")
+    return t, i, v
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Maximal runs of True as half-open index ranges [a, b)."""
+    m = np.r_[False, mask, False].astype(np.int8)
+    edges = np.flatnonzero(np.diff(m))
+    return list(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+
+
+def _branch_charge(t: np.ndarray, i: np.ndarray, a: int, b: int) -> np.ndarray:
+    """Signed Ah counted from the start of run [a, b) at each of its samples.
+
+    Logger model of :meth:`OcvCurve.from_hppc`: the step started one logging
+    interval ``Delta`` (median spacing inside the run) before its first record,
+    at most at the previous record, and ends at its last record; trapezoid rule
+    in between.  A run that opens the file gets no lead.
+    """
+    dt = np.diff(t[a:b])
+    q = np.empty(b - a)
+    if a > 0:
+        delta = float(np.median(dt)) if dt.size else float(t[a] - t[a - 1])
+        q[0] = i[a] * min(float(t[a] - t[a - 1]), delta)
+    else:
+        q[0] = 0.0
+    if b - a > 1:
+        q[1:] = q[0] + np.cumsum(0.5 * (i[a + 1:b] + i[a:b - 1]) * dt)
+    return q / 3600.0
+
+
+def _branch_on_grid(soc: np.ndarray, v: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Voltage of one branch on the SOC grid (soc increasing; repeats averaged out)."""
+    s, inv = np.unique(soc, return_inverse=True)
+    vv = np.bincount(inv, weights=v) / np.bincount(inv)
+    if s.size < 2:
+        raise ValueError("a C/20 branch has fewer than 2 distinct SOC values")
+    return np.interp(grid, s, vv)
+
+
+def _current_runs(
+    t: np.ndarray, i: np.ndarray, threshold: float, link_max_dt: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Runs of same-sign current ``|I| >= threshold``.
+
+    Consecutive such samples are linked when ``dt <= link_max_dt`` (default
+    ``3 delta``), ``delta`` being the median spacing of same-sign current
+    sample pairs.  Returns (first index, last index, trapezoid integral over the
+    run's own samples [A s], delta).
+    """
+    nz = np.abs(i) >= threshold
+    sign = np.sign(i) * nz
+    dt = np.diff(t)
+    pair = nz[1:] & nz[:-1] & (sign[1:] == sign[:-1]) & (dt > 0)
+    if link_max_dt is not None:
+        pair &= dt <= link_max_dt
+    delta = float(np.median(dt[pair])) if np.any(pair) else 0.0
+    link = pair if link_max_dt is not None else pair & (dt <= 3.0 * delta)
+    starts = np.flatnonzero(nz & ~np.r_[False, link])
+    ends = np.flatnonzero(nz & ~np.r_[link, False])
+    seg = np.r_[0.0, np.cumsum(np.where(link, 0.5 * (i[1:] + i[:-1]) * dt, 0.0))]
+    return starts, ends, seg[ends] - seg[starts], delta
+
+
+def _steps_charge(
+    steps: tuple[np.ndarray, np.ndarray, np.ndarray],
+    *,
+    gap_start: np.ndarray,
+    gap_end: np.ndarray,
+    t_end: float,
+    threshold: float,
+    tol_s: float = 2.0,
+) -> tuple[np.ndarray, float]:
+    """Charge [Ah, signed] of the sparse discharge steps falling in each hppc gap and after the end.
+
+    See :meth:`OcvCurve.from_hppc`, steps 3-4.
+    """
+    ts, is_, _ = steps
+    starts, ends, trap, delta = _current_runs(ts, is_, threshold, None)
+    if starts.size == 0:
+        return np.zeros(gap_start.size), 0.0
+    if delta <= 0:
+        raise ValueError("from_hppc: steps hold no two consecutive non-zero current samples")
+    q = (trap + is_[starts] * delta) / 3600.0
+    run_a = ts[starts] - delta  # step start on the steps' axis
+    run_b = ts[ends]
+    anchors = np.r_[gap_start, t_end]
+    offsets = (anchors[:, None] - run_a[None, :]).ravel()
+    best_o, best_score = 0.0, -1
+    for o in np.unique(np.round(offsets, 3)):
+        score = int(np.sum(np.min(np.abs(run_a[:, None] + o - anchors[None, :]), axis=1) <= tol_s))
+        if score > best_score:
+            best_o, best_score = float(o), score
+    if best_score < 1:
+        raise ValueError("from_hppc: cannot align the steps with the hppc logging gaps")
+    a_m, b_m = run_a + best_o, run_b + best_o
+    gap_q = np.zeros(gap_start.size)
+    for j in range(gap_start.size):
+        inside = (a_m >= gap_start[j] - tol_s) & (b_m <= gap_end[j] + tol_s)
+        gap_q[j] = q[inside].sum()
+    tail = np.abs(a_m - t_end) <= tol_s
+    empty = np.flatnonzero(gap_q == 0)
+    if empty.size:
+        warnings.warn(
+            f"from_hppc: {empty.size} of {gap_start.size} hppc gaps have no discharge step "
+            f"in the steps data (first at t = {gap_start[empty[0]]:.1f} s); their charge is not counted",
+            UserWarning,
+            stacklevel=3,
+        )
+    return gap_q, float(q[tail].sum())

@@ -1,0 +1,418 @@
+"""Measured cell recordings: the I/O edge (the only module that reads recording CSVs).
+
+File layout (``<cell>/<ambient>/<test>.csv[.gz]`` in the shared data set)::
+
+    time_s,current_a,voltage_v,temperature_c[,chamber_temperature_c]
+    0.000,0.00000,4.18398,25.866,25.00
+    ...
+
+A header row is required; ``time_s``, ``current_a`` and ``voltage_v`` must be
+present, ``temperature_c`` is optional, any other column is ignored.  Current is
+positive for charge.
+
+Loading (:func:`load_recording`)
+--------------------------------
+1. Parse with ``np.loadtxt`` (vectorised C parser).  Only when that fails is the
+   file scanned line by line, so that the :class:`DataError` can name the line
+   and the column that is wrong.
+2. Validate: every used value finite, at least 2 rows, time never decreasing
+   (``t[k] < t[k-1]`` is an error naming line ``k``).
+3. Drop repeated timestamps (``t[k] == t[k-1]``), keeping the first sample.
+4. Resample when the native step ``median(diff(t))`` is below ``resample_s``
+   (see below).  Logs already at or above the requested step (e.g. the 60 s
+   C/20 logs) and any call with ``resample_s=None`` are returned unresampled.
+
+Resampling (charge-preserving bin means)
+----------------------------------------
+The logged signal ``y`` (current, voltage, temperature) is read as held between
+samples (zero-order hold: ``y(t) = y[k]`` on ``[t_k, t_{k+1})``), the convention
+under which the coulomb count is ``Q = sum_k I[k] (t_{k+1} - t_k)``.  With bins
+``B_j = [j Ts, (j+1) Ts)`` on the file's own time axis:
+
+1. ``Y(t) = integral_{t_0}^{t} y dt`` is piecewise linear, known exactly at the
+   sample times (``np.cumsum``) and evaluated at the bin edges by ``np.interp``.
+2. The bin value is the time average over the covered part of the bin,
+   ``a_j = max(j Ts, t_0)``, ``b_j = min((j+1) Ts, t_last)``::
+
+       y_j = (Y(b_j) - Y(a_j)) / (b_j - a_j)
+
+   so for the current ``sum_j y_j (b_j - a_j) = Q`` exactly: every ampere-second
+   of the file is kept.  A bin of zero covered length (only the final sample,
+   sitting exactly on a bin start) takes that sample's value.
+3. The resampled sample ``j`` is stamped at the bin *start* ``j Ts``, so holding
+   it over ``[j Ts, (j+1) Ts)`` - the ZOH convention of the ECM - reproduces
+   the bin's charge.  Current and voltage are averaged over the same bins, so
+   their relative timing is unchanged.
+4. Bins that contain no sample (logging gaps) are counted in
+   :attr:`CellRecording.gaps_filled`.  Voltage and temperature there are filled
+   by linear interpolation between the neighbouring non-empty bins.  The
+   current keeps its step-1 value (the held current of the last sample before
+   the gap), because that is what the native coulomb count ``sum I dt``
+   integrates: with linear interpolation a gap just before a pulse (the HPPC
+   files have 1.2 s gaps at pulse edges) would invent charge that was never
+   logged.  Hence ``sum_j I_j (b_j - a_j) == sum_k I[k] (t_{k+1} - t_k)``
+   holds exactly for every file, gaps included.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "CellRecording",
+    "DataError",
+    "load_recording",
+    "save_recording",
+    "shared_data_dir",
+]
+
+REQUIRED_COLUMNS = ("time_s", "current_a", "voltage_v")
+OPTIONAL_COLUMNS = ("temperature_c",)
+
+
+class DataError(ValueError):
+    """A recording file is malformed; the message names the file and the problem."""
+
+
+@dataclass(frozen=True, eq=False)
+class CellRecording:
+    """One measured (or simulated) recording of a single cell.
+
+    Attributes:
+        time_s: sample times [s], strictly increasing, float64.
+        current_a: cell current [A], positive = charge.
+        voltage_v: terminal voltage [V].
+        temperature_c: cell temperature [degC] or ``None`` when not logged.
+        source: file path or a name.
+        gaps_filled: number of resampling bins that held no sample and were
+            filled by linear interpolation (0 when not resampled).
+
+    The arrays are converted to read-only float64 arrays; copy before editing.
+    """
+
+    time_s: np.ndarray
+    current_a: np.ndarray
+    voltage_v: np.ndarray
+    temperature_c: np.ndarray | None = None
+    source: str = ""
+    gaps_filled: int = field(default=0)
+
+    def __post_init__(self) -> None:
+        n = None
+        for name in ("time_s", "current_a", "voltage_v", "temperature_c"):
+            value = getattr(self, name)
+            if value is None:
+                if name != "temperature_c":
+                    raise ValueError(f"CellRecording.{name} is required")
+                continue
+            arr = np.array(value, dtype=np.float64, copy=True)
+            if arr.ndim != 1:
+                raise ValueError(f"CellRecording.{name} must be 1-D, got shape {arr.shape}")
+            if n is None:
+                n = arr.size
+            elif arr.size != n:
+                raise ValueError(
+                    f"CellRecording.{name} has {arr.size} samples, time_s has {n}"
+                )
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+        object.__setattr__(self, "source", str(self.source))
+        object.__setattr__(self, "gaps_filled", int(self.gaps_filled))
+
+    def __len__(self) -> int:
+        return int(self.time_s.size)
+
+    @property
+    def dt_s(self) -> float:
+        """Median sample step [s] (``nan`` for fewer than 2 samples)."""
+        if self.time_s.size < 2:
+            return math.nan
+        return float(np.median(np.diff(self.time_s)))
+
+    @property
+    def duration_s(self) -> float:
+        """``time_s[-1] - time_s[0]`` [s]."""
+        if self.time_s.size == 0:
+            return 0.0
+        return float(self.time_s[-1] - self.time_s[0])
+
+
+# ---------------------------------------------------------------------------
+# loading
+
+
+def _read_text(path: Path) -> str:
+    try:
+        if path.name.endswith(".gz"):
+            with gzip.open(path, "rb") as fh:
+                raw = fh.read()
+        else:
+            raw = path.read_bytes()
+    except FileNotFoundError:
+        raise
+    except (OSError, EOFError) as exc:  # corrupt gzip, unreadable file
+        raise DataError(f"{path}: cannot read file ({exc})") from exc
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{path}: not UTF-8 text ({exc})") from exc
+    return text
+
+
+def _parse_header(path: Path, text: str) -> tuple[list[str], int]:
+    """Return (column names, 1-based line number of the header)."""
+    pos, lineno = 0, 0
+    while pos < len(text):
+        end = text.find("\n", pos)
+        end = len(text) if end < 0 else end
+        line, pos, lineno = text[pos:end], end + 1, lineno + 1
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        names = [c.strip().strip('"').strip() for c in stripped.split(",")]
+        try:
+            float(names[0])
+        except ValueError:
+            return names, lineno
+        raise DataError(
+            f"{path}: no header row (line {lineno} starts with a number); "
+            f"expected a header with columns {','.join(REQUIRED_COLUMNS)}"
+        )
+    raise DataError(f"{path}: file is empty (no header row)")
+
+
+def _locate_bad_value(path: Path, text: str, header_line: int, names: list[str],
+                      usecols: list[int]) -> DataError:
+    """Slow path: find the first line that np.loadtxt could not parse."""
+    lines = text.splitlines()
+    for lineno in range(header_line + 1, len(lines) + 1):
+        line = lines[lineno - 1]
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        fields = line.split(",")
+        if len(fields) != len(names):
+            return DataError(
+                f"{path}: line {lineno} has {len(fields)} fields, the header has {len(names)}"
+            )
+        for col in usecols:
+            value = fields[col].strip()
+            if value == "":
+                return DataError(f"{path}: line {lineno}: empty value in column '{names[col]}'")
+            try:
+                float(value)
+            except ValueError:
+                return DataError(
+                    f"{path}: line {lineno}: non-numeric value {value!r} in column '{names[col]}'"
+                )
+    return DataError(f"{path}: could not parse the numeric rows")
+
+
+def _data_line_numbers(text: str, header_line: int) -> np.ndarray:
+    """1-based file line numbers of the data rows (rows np.loadtxt returns)."""
+    lines = text.splitlines()
+    nums = [
+        k
+        for k in range(header_line + 1, len(lines) + 1)
+        if lines[k - 1].strip() and not lines[k - 1].lstrip().startswith("#")
+    ]
+    return np.asarray(nums, dtype=np.int64)
+
+
+def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -> CellRecording:
+    """Load a recording CSV (``.csv`` or ``.csv.gz``), validate it, optionally resample.
+
+    Args:
+        path: file in the shared-data layout (header row required).
+        resample_s: target step ``Ts`` [s].  When the native median step is below
+            it, the data is averaged into bins ``[k Ts, (k+1) Ts)`` (module
+            docstring).  ``None`` never resamples.
+
+    Returns:
+        :class:`CellRecording` with ``source = str(path)``.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        DataError: missing column, non-numeric / empty / NaN value (with its line
+            number), fewer than 2 rows, time going backwards (with its line).
+    """
+    path = Path(path)
+    if resample_s is not None and not (math.isfinite(resample_s) and resample_s > 0):
+        raise ValueError(f"resample_s must be a positive number or None, got {resample_s!r}")
+    text = _read_text(path)
+    names, header_line = _parse_header(path, text)
+
+    missing = [c for c in REQUIRED_COLUMNS if c not in names]
+    if missing:
+        raise DataError(
+            f"{path}: missing column(s) {', '.join(missing)} "
+            f"(header has: {', '.join(names)})"
+        )
+    wanted = list(REQUIRED_COLUMNS) + [c for c in OPTIONAL_COLUMNS if c in names]
+    usecols = [names.index(c) for c in wanted]
+
+    try:
+        data = np.loadtxt(
+            io.StringIO(text),
+            delimiter=",",
+            skiprows=header_line,
+            usecols=usecols,
+            dtype=np.float64,
+            ndmin=2,
+            comments="#",
+        )
+    except ValueError:
+        raise _locate_bad_value(path, text, header_line, names, usecols) from None
+
+    if data.shape[0] < 2:
+        raise DataError(f"{path}: needs at least 2 data rows, found {data.shape[0]}")
+
+    bad = ~np.isfinite(data)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        lineno = int(_data_line_numbers(text, header_line)[row])
+        raise DataError(
+            f"{path}: line {lineno}: value {data[row, col]!r} in column '{wanted[col]}' "
+            "is not a finite number"
+        )
+
+    t = data[:, 0]
+    dt = np.diff(t)
+    back = np.flatnonzero(dt < 0)
+    if back.size:
+        row = int(back[0]) + 1
+        lineno = int(_data_line_numbers(text, header_line)[row])
+        raise DataError(
+            f"{path}: time goes backwards at data row {row} (line {lineno}): "
+            f"{t[row - 1]!r} -> {t[row]!r} s"
+        )
+    keep = np.r_[True, dt > 0]  # drop repeated timestamps, keep the first
+    data = data[keep]
+    if data.shape[0] < 2:
+        raise DataError(f"{path}: needs at least 2 distinct timestamps, found {data.shape[0]}")
+
+    time_s, current_a, voltage_v = data[:, 0], data[:, 1], data[:, 2]
+    temperature_c = data[:, 3] if data.shape[1] > 3 else None
+
+    native_dt = float(np.median(np.diff(time_s)))
+    if resample_s is not None and native_dt < resample_s:
+        cols = [current_a, voltage_v] + ([temperature_c] if temperature_c is not None else [])
+        t_new, values, gaps = _resample_bins(
+            time_s, np.column_stack(cols), float(resample_s), (False,) + (True,) * (len(cols) - 1)
+        )
+        return CellRecording(
+            time_s=t_new,
+            current_a=values[:, 0],
+            voltage_v=values[:, 1],
+            temperature_c=values[:, 2] if temperature_c is not None else None,
+            source=str(path),
+            gaps_filled=gaps,
+        )
+    return CellRecording(time_s, current_a, voltage_v, temperature_c, str(path), 0)
+
+
+def _resample_bins(
+    t: np.ndarray, y: np.ndarray, ts: float, interp_gaps: tuple[bool, ...]
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Time-average ``y`` (n, m) over bins ``[j ts, (j+1) ts)``; see the module docstring.
+
+    ``t`` must be strictly increasing.  Columns with ``interp_gaps[c]`` true get
+    their empty bins linearly interpolated; the others keep the zero-order-hold
+    average.  Returns (bin start times, bin values, number of empty bins).
+    """
+    j0 = int(math.floor(t[0] / ts))
+    j1 = int(math.floor(t[-1] / ts))
+    nb = j1 - j0 + 1
+    starts = (j0 + np.arange(nb)) * ts
+    # Y(t): exact integral of the zero-order-hold signal at the sample times
+    cum = np.zeros_like(y)
+    np.cumsum(y[:-1] * np.diff(t)[:, None], axis=0, out=cum[1:])
+    a = np.clip(starts, t[0], t[-1])
+    b = np.clip(starts + ts, t[0], t[-1])
+    width = b - a
+    out = np.empty((nb, y.shape[1]))
+    for c in range(y.shape[1]):
+        ya = np.interp(a, t, cum[:, c])
+        yb = np.interp(b, t, cum[:, c])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[:, c] = (yb - ya) / width
+    # a bin with zero covered width holds only the final sample (on its start)
+    zero = width <= 0
+    if zero.any():
+        out[zero] = y[-1]
+    # bins without any sample inside: fill by linear interpolation between occupied bins
+    idx = np.floor(t / ts).astype(np.int64) - j0
+    np.clip(idx, 0, nb - 1, out=idx)
+    occupied = np.bincount(idx, minlength=nb) > 0
+    n_empty = int(nb - np.count_nonzero(occupied))
+    if n_empty:
+        occ = np.flatnonzero(occupied)
+        emp = np.flatnonzero(~occupied)
+        for c in range(y.shape[1]):
+            if interp_gaps[c]:
+                out[emp, c] = np.interp(emp, occ, out[occ, c])
+    return starts, out, n_empty
+
+
+# ---------------------------------------------------------------------------
+# saving
+
+
+def save_recording(rec: CellRecording, path: str | os.PathLike) -> Path:
+    """Write ``rec`` in the shared-data CSV layout (gzip when ``path`` ends in ``.gz``).
+
+    Precision: time 1e-6 s, current 1e-5 A, voltage 1e-5 V, temperature 1e-3 degC.
+    The gzip header carries no timestamp, so equal recordings give equal bytes.
+    Returns the path written.
+    """
+    path = Path(path)
+    cols = [rec.time_s, rec.current_a, rec.voltage_v]
+    fmt = ["%.6f", "%.5f", "%.5f"]
+    header = list(REQUIRED_COLUMNS)
+    if rec.temperature_c is not None:
+        cols.append(rec.temperature_c)
+        fmt.append("%.3f")
+        header.append("temperature_c")
+    buf = io.StringIO()
+    np.savetxt(buf, np.column_stack(cols), fmt=fmt, delimiter=",",
+               header=",".join(header), comments="")
+    payload = buf.getvalue().encode("utf-8")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.name.endswith(".gz"):
+        with open(path, "wb") as raw, gzip.GzipFile(
+            filename="", mode="wb", fileobj=raw, mtime=0
+        ) as fh:
+            fh.write(payload)
+    else:
+        path.write_bytes(payload)
+    return path
+
+
+# ---------------------------------------------------------------------------
+# locating the shared data set
+
+
+def shared_data_dir() -> Path | None:
+    """Directory of the full measured data set, or ``None`` when it is not available.
+
+    1. ``$BMS_SHARED_DATA`` when set: that directory if it exists, else ``None``
+       (set it to an empty string to disable the data set explicitly).
+    2. Otherwise ``<project root>/../shared/data`` if it exists, where the
+       project root is the parent of the ``bms_estimator`` package directory.
+    """
+    env = os.environ.get("BMS_SHARED_DATA")
+    if env is not None:
+        if not env.strip():
+            return None
+        p = Path(env).expanduser()
+        return p if p.is_dir() else None
+    project_root = Path(__file__).resolve().parent.parent
+    p = project_root.parent / "shared" / "data"
+    return p if p.is_dir() else None

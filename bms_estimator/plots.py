@@ -1,0 +1,87 @@
+"""Figures (matplotlib, Agg: no display needed). Each function writes one PNG and returns its path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+ATTRIBUTION = "Data: P. Kollmeyer et al., Mendeley Data (CC BY 4.0)"
+COLORS = {"lif": "tab:blue", "arx": "tab:orange", "measured": "black"}
+LABELS = {"lif": "CT (LIF)", "arx": "DT (ARX)"}
+
+
+def _save(fig, path: Path, note: str | None = None) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if note:
+        fig.text(0.99, 0.005, note, ha="right", va="bottom", fontsize=7, color="0.4")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_parameters(time_s: np.ndarray, params: dict[str, dict[str, np.ndarray]], path: Path, title: str = "") -> Path:
+    """Parameter trajectories (the paper's Figs 5-7): R0, R1, R2, tau1, tau2, c0 per method."""
+    t = np.asarray(time_s) / 3600.0
+    fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True)
+    spec = [("r0_ohm", "R0 [mOhm]", 1e3), ("c0_v", "c0 [mV]", 1e3), ("r1_ohm", "R1 [mOhm]", 1e3),
+            ("tau1_s", "tau1 [s]", 1.0), ("r2_ohm", "R2 [mOhm]", 1e3), ("tau2_s", "tau2 [s]", 1.0)]
+    for ax, (key, label, k) in zip(axes.flat, spec):
+        for method, p in params.items():
+            ax.plot(t, p[key] * k, color=COLORS.get(method), label=LABELS.get(method, method), lw=0.9)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend()
+    for ax in axes[-1]:
+        ax.set_xlabel("time [h]")
+    fig.suptitle(title)
+    return _save(fig, path, ATTRIBUTION)
+
+
+def plot_errors(time_s, voltage_v, predicted: dict[str, np.ndarray], path: Path, title: str, ylabel: str,
+                mask: np.ndarray | None = None) -> Path:
+    """Voltage error against time (the paper's Figs 8-9: OSA or simulation error)."""
+    t = np.asarray(time_s) / 3600.0
+    fig, axes = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
+    axes[0].plot(t, voltage_v, color="black", lw=0.8, label="measured")
+    for method, v in predicted.items():
+        axes[0].plot(t, v, color=COLORS.get(method), lw=0.7, label=LABELS.get(method, method))
+        err = (np.asarray(v) - np.asarray(voltage_v)) * 1e3
+        if mask is not None:
+            err = np.where(mask, err, np.nan)
+        axes[1].plot(t, err, color=COLORS.get(method), lw=0.7, label=LABELS.get(method, method))
+    axes[0].set_ylabel("voltage [V]")
+    axes[0].legend(loc="lower left")
+    axes[1].set_ylabel(ylabel)
+    axes[1].set_xlabel("time [h]")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    return _save(fig, path, ATTRIBUTION)
+
+
+def plot_soc(time_s, soc, soc_ref, capacity_ah, path: Path, title: str = "") -> Path:
+    """Estimated vs reference SOC and the error (the paper's Fig. 10)."""
+    t = np.asarray(time_s) / 3600.0
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    axes[0].plot(t, np.asarray(soc_ref) * 100, color="black", label="reference (coulomb counting from full)")
+    axes[0].plot(t, np.asarray(soc) * 100, color="tab:blue", label="estimated")
+    axes[0].set_ylabel("SOC [%]")
+    axes[0].legend()
+    axes[1].plot(t, (np.asarray(soc) - np.asarray(soc_ref)) * 100, color="tab:red")
+    axes[1].axhline(2, color="0.5", ls="--", lw=0.8)
+    axes[1].axhline(-2, color="0.5", ls="--", lw=0.8)
+    axes[1].set_ylabel("SOC error [%]")
+    axes[2].plot(t, capacity_ah, color="tab:green")
+    axes[2].set_ylabel("capacity [Ah]")
+    axes[2].set_xlabel("time [h]")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    return _save(fig, path, ATTRIBUTION)

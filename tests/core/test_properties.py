@@ -1,0 +1,40 @@
+"""Property tests: random currents, noise, dropouts and steps never break the estimators."""
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from bms_estimator.core.identifier import IdentifierConfig
+from bms_estimator.core.ocv import OcvCurve
+from bms_estimator.core.soc import SocConfig, SocEstimator
+
+CURVE = OcvCurve(np.linspace(0, 1, 51), 3.0 + 1.2 * np.linspace(0, 1, 51))
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    method=st.sampled_from(["lif", "arx"]),
+    amp=st.floats(0.0, 50.0),
+    noise_v=st.floats(0.0, 0.05),
+    dropout=st.floats(0.0, 0.5),
+    step_v=st.floats(-1.0, 1.0),
+    window=st.integers(1, 40),
+)
+def test_random_inputs_never_produce_nan_or_non_physical_output(seed, method, amp, noise_v, dropout, step_v, window):
+    rng = np.random.default_rng(seed)
+    n, cells = 900, 3
+    cfg = SocConfig(identifier=IdentifierConfig(method=method, window=window, init_samples=100), c0_window_s=30)
+    est = SocEstimator(cells, CURVE, 2.5, 1.0, initial_soc=rng.uniform(0, 1, cells), config=cfg)
+    current = np.repeat(rng.uniform(-amp, amp, n // 10 + 1), 10)[:n]
+    for k in range(n):
+        v = 3.6 + 0.02 * current[k] + noise_v * rng.standard_normal(cells) + (step_v if k > n // 2 else 0.0)
+        valid = rng.random(cells) >= dropout
+        v = np.where(rng.random(cells) < dropout / 4, np.nan, v)  # NaN samples too
+        i = current[k] if rng.random() > dropout / 10 else np.nan  # a lost current sample
+        est.update(i, v, valid)
+        p = est.params
+        for key in ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f"):
+            assert np.all(np.isfinite(p[key])) and np.all(p[key] > 0), key
+        assert np.all(np.isfinite(p["c0_v"]))
+        assert np.all((est.soc >= 0) & (est.soc <= 1))

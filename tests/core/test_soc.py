@@ -1,0 +1,70 @@
+"""SOC: c0 compensation from a wrong start and capacity estimation, on a synthetic cell."""
+
+import numpy as np
+
+from bms_estimator.analysis import reference_soc, run_soc, soc_errors
+from bms_estimator.core.ecm import EcmParams, simulate_ecm
+from bms_estimator.core.soc import SocConfig, SocEstimator
+from tests.conftest import pulse_current
+
+
+def _drive_cycle(n: int, seed: int) -> np.ndarray:
+    """Discharge-heavy pulses with regen, about 0.9 of a 3 Ah cell in n seconds."""
+    i = pulse_current(n, seed, amp_a=4.0)
+    return i - (i.mean() + 0.9 * 3.0 * 3600 / n)
+
+
+def _cell(n, seed, nmc_like_ocv, q_true=3.0):
+    i = _drive_cycle(n, seed)
+    p = EcmParams.from_rc(0.02, [0.01, 0.015], [10.0, 200.0])
+    sim = simulate_ecm(i, 1.0, p, nmc_like_ocv.ocv, soc0=1.0, capacity_ah=q_true, output="mean")
+    rng = np.random.default_rng(seed)
+    return i, sim.voltage_v + 5e-4 * rng.standard_normal(n)
+
+
+def test_compensation_removes_a_20pct_initial_error(nmc_like_ocv):
+    n = 3 * 3600
+    i, v = _cell(n, 1, nmc_like_ocv)
+    run = run_soc(i, v, nmc_like_ocv, 3.0, initial_soc=0.8, config=SocConfig(estimate_capacity=False))
+    ref = reference_soc(i, 1.0, 3.0, 1.0)
+    err = soc_errors(run.soc, ref, np.arange(n))
+    assert run.corrections >= 1
+    assert err["soc_rmse_pct_after_3600s"] < 1.5, err
+    # without compensation the 20 % error would simply stay
+    assert err["soc_rmse_pct"] < 10
+
+
+def test_capacity_is_estimated_from_the_data(nmc_like_ocv):
+    n = 3 * 3600
+    i, v = _cell(n, 2, nmc_like_ocv, q_true=2.7)  # the cell has 2.7 Ah, the user states 3.0
+    run = run_soc(i, v, nmc_like_ocv, 3.0, initial_soc=1.0)
+    assert abs(run.capacity_ah[-1] - 2.7) < 0.1, run.capacity_ah[-1]
+    trusting = run_soc(i, v, nmc_like_ocv, 3.0, initial_soc=1.0, config=SocConfig(estimate_capacity=False))
+    ref = reference_soc(i, 1.0, 2.7, 1.0)
+    last_hour = np.arange(n) >= n - 3600
+    err = soc_errors(run.soc[last_hour], ref[last_hour], np.arange(3600), after_s=0)["soc_rmse_pct"]
+    err_trusting = soc_errors(trusting.soc[last_hour], ref[last_hour], np.arange(3600), after_s=0)["soc_rmse_pct"]
+    assert err < 2.5 and err < err_trusting, (err, err_trusting)
+
+
+def test_state_round_trip_and_shape_errors_are_named(nmc_like_ocv):
+    import pytest
+
+    i, v = _cell(2000, 3, nmc_like_ocv)
+    a = SocEstimator(1, nmc_like_ocv, 3.0, initial_soc=0.9)
+    for k in range(1000):
+        a.update(i[k], v[k : k + 1])
+    b = SocEstimator(1, nmc_like_ocv, 3.0)
+    b.load_state_dict(a.state_dict())
+    for k in range(1000, 2000):
+        a.update(i[k], v[k : k + 1])
+        b.update(i[k], v[k : k + 1])
+    np.testing.assert_array_equal(a.soc, b.soc)
+    with pytest.raises(ValueError, match="soc"):
+        SocEstimator(2, nmc_like_ocv, 3.0).load_state_dict(a.state_dict())
+
+
+def test_initial_soc_from_ocv_when_not_given(nmc_like_ocv):
+    est = SocEstimator(2, nmc_like_ocv, 3.0)
+    est.update(0.0, nmc_like_ocv.ocv(np.array([0.3, 0.7])))
+    np.testing.assert_allclose(est.soc, [0.3, 0.7], atol=1e-3)

@@ -1,0 +1,279 @@
+"""Tests of bms_estimator.data: CSV loading, validation, resampling, saving."""
+
+from __future__ import annotations
+
+import gzip
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bms_estimator.data import (
+    CellRecording,
+    DataError,
+    load_recording,
+    save_recording,
+    shared_data_dir,
+)
+
+
+def _write(path: Path, text: str) -> Path:
+    if path.name.endswith(".gz"):
+        with gzip.open(path, "wt", encoding="utf-8") as fh:
+            fh.write(text)
+    else:
+        path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _zoh_charge(t: np.ndarray, i: np.ndarray) -> float:
+    """Native coulomb count sum I[k] (t[k+1] - t[k]) [A s]."""
+    return float(np.sum(i[:-1] * np.diff(t)))
+
+
+def _jittered_recording(n: int = 1001, step: float = 0.1, seed: int = 0) -> CellRecording:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * step + rng.uniform(-0.02, 0.02, n) * step
+    t[0] = 0.0
+    t[-1] = (n - 1) * step  # ends exactly on a 1 s bin start
+    i = rng.normal(0.0, 5.0, n)
+    v = 3.7 + 0.01 * i + rng.normal(0.0, 1e-3, n)
+    temp = 25.0 + 0.001 * np.arange(n)
+    return CellRecording(t, i, v, temp, "synthetic")
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("name", ["rec.csv", "rec.csv.gz"])
+def test_save_load_round_trip(tmp_path: Path, name: str) -> None:
+    rec = _jittered_recording()
+    path = save_recording(rec, tmp_path / name)
+    back = load_recording(path, resample_s=None)
+    np.testing.assert_allclose(back.time_s, rec.time_s, atol=5e-7)
+    np.testing.assert_allclose(back.current_a, rec.current_a, atol=5e-6)
+    np.testing.assert_allclose(back.voltage_v, rec.voltage_v, atol=5e-6)
+    np.testing.assert_allclose(back.temperature_c, rec.temperature_c, atol=5e-4)
+    assert back.source == str(path)
+    assert back.gaps_filled == 0
+
+
+def test_round_trip_without_temperature_and_gzip_is_deterministic(tmp_path: Path) -> None:
+    rec = _jittered_recording(n=50)
+    rec = CellRecording(rec.time_s, rec.current_a, rec.voltage_v, None, "x")
+    p1 = save_recording(rec, tmp_path / "a.csv.gz")
+    p2 = save_recording(rec, tmp_path / "b.csv.gz")
+    assert p1.read_bytes() == p2.read_bytes()
+    text = gzip.decompress(p1.read_bytes()).decode()
+    assert text.splitlines()[0] == "time_s,current_a,voltage_v"
+    back = load_recording(p1, resample_s=None)
+    assert back.temperature_c is None
+    assert len(back) == 50
+
+
+def test_extra_and_reordered_columns(tmp_path: Path) -> None:
+    path = _write(
+        tmp_path / "r.csv",
+        "voltage_v,chamber_temperature_c,time_s,current_a\n"
+        "4.1,25,0,1.5\n4.0,25,1,-2.0\n3.9,25,2,0.0\n",
+    )
+    rec = load_recording(path, resample_s=None)
+    np.testing.assert_array_equal(rec.time_s, [0, 1, 2])
+    np.testing.assert_array_equal(rec.current_a, [1.5, -2.0, 0.0])
+    np.testing.assert_array_equal(rec.voltage_v, [4.1, 4.0, 3.9])
+    assert rec.temperature_c is None
+    assert rec.dt_s == 1.0 and rec.duration_s == 2.0
+
+
+def test_duplicate_timestamps_dropped_keep_first(tmp_path: Path) -> None:
+    path = _write(
+        tmp_path / "r.csv",
+        "time_s,current_a,voltage_v\n0,1,4.0\n60,2,4.1\n60,9,9.9\n120,3,4.2\n120,8,8.8\n",
+    )
+    rec = load_recording(path, resample_s=None)
+    np.testing.assert_array_equal(rec.time_s, [0, 60, 120])
+    np.testing.assert_array_equal(rec.current_a, [1, 2, 3])
+    np.testing.assert_array_equal(rec.voltage_v, [4.0, 4.1, 4.2])
+
+
+# --------------------------------------------------------------------------- resampling
+
+
+def test_resampling_preserves_charge_exactly(tmp_path: Path) -> None:
+    rec = _jittered_recording(n=1001)
+    path = save_recording(rec, tmp_path / "r.csv")
+    native = load_recording(path, resample_s=None)
+    res = load_recording(path, resample_s=1.0)
+    assert res.dt_s == 1.0
+    np.testing.assert_allclose(res.time_s, np.arange(101.0))
+    # every bin but the last (which only holds the final sample) covers 1 s
+    q_native = _zoh_charge(native.time_s, native.current_a)
+    q_res = _zoh_charge(res.time_s, res.current_a)
+    assert q_res == pytest.approx(q_native, rel=1e-12, abs=1e-9)
+    # bin values are the time averages of the held signal
+    t, v = native.time_s, native.voltage_v
+    for k in (0, 17, 99):
+        edges = np.array([k, k + 1.0])
+        cum = np.r_[0.0, np.cumsum(v[:-1] * np.diff(t))]
+        mean = np.diff(np.interp(edges, t, cum))[0]
+        assert res.voltage_v[k] == pytest.approx(mean, abs=1e-12)
+    assert res.gaps_filled == 0
+
+
+def test_resampling_fills_gaps_and_counts_them(tmp_path: Path) -> None:
+    t = np.round(np.arange(0.0, 20.0001, 0.1), 6)
+    keep = (t < 5.0) | (t >= 8.0)  # no sample in [5, 8): bins 5, 6, 7 are empty
+    t = t[keep]
+    i = np.where(t < 5.0, -2.0, -4.0)
+    v = np.where(t < 5.0, 3.6, 3.9)
+    rec = CellRecording(t, i, v, None, "gap")
+    path = save_recording(rec, tmp_path / "gap.csv")
+    res = load_recording(path, resample_s=1.0)
+    assert res.gaps_filled == 3
+    # voltage in the gap: linear between the neighbouring bins (3.6 at bin 4, 3.9 at bin 8)
+    np.testing.assert_allclose(res.voltage_v[5:8], [3.675, 3.75, 3.825], atol=1e-9)
+    # current in the gap keeps the held value, so the coulomb count is unchanged
+    assert _zoh_charge(res.time_s, res.current_a) == pytest.approx(_zoh_charge(t, i), abs=1e-9)
+
+
+def test_no_resampling_when_native_step_is_coarser_or_disabled(tmp_path: Path) -> None:
+    t = np.arange(0.0, 600.0, 60.0)
+    rec = CellRecording(t, np.full(t.size, -0.145), np.linspace(4.1, 4.0, t.size), None, "c20")
+    path = save_recording(rec, tmp_path / "c20.csv")
+    a = load_recording(path)  # default resample_s=1.0 < 60 s native step
+    np.testing.assert_array_equal(a.time_s, t)
+    fine = _jittered_recording(n=200)
+    p2 = save_recording(fine, tmp_path / "fine.csv")
+    b = load_recording(p2, resample_s=None)
+    assert len(b) == 200
+
+
+def test_resampled_bins_start_on_file_time_axis(tmp_path: Path) -> None:
+    t = 12.35 + np.arange(0, 50) * 0.1
+    rec = CellRecording(t, np.ones(t.size), np.full(t.size, 4.0), None, "offset")
+    res = load_recording(save_recording(rec, tmp_path / "o.csv"), resample_s=1.0)
+    np.testing.assert_allclose(res.time_s, np.arange(12.0, 17.0 + 0.5, 1.0))
+    np.testing.assert_allclose(res.current_a, 1.0)  # averages over the covered part only
+    np.testing.assert_allclose(res.voltage_v, 4.0)
+
+
+def test_load_is_fast_for_160k_rows(tmp_path: Path) -> None:
+    n = 160_000
+    rng = np.random.default_rng(1)
+    t = np.arange(n) * 0.1
+    data = np.column_stack([t, rng.normal(0, 3, n), 3.7 + rng.normal(0, 0.01, n), np.full(n, 25.0)])
+    path = tmp_path / "big.csv.gz"
+    body = "time_s,current_a,voltage_v,temperature_c\n" + "\n".join(
+        f"{a:.3f},{b:.5f},{c:.5f},{d:.3f}" for a, b, c, d in data
+    )
+    with gzip.open(path, "wt", compresslevel=1) as fh:
+        fh.write(body + "\n")
+    start = time.perf_counter()
+    rec = load_recording(path, resample_s=1.0)
+    elapsed = time.perf_counter() - start
+    assert len(rec) == 16_000
+    assert elapsed < 1.0, f"load + resample took {elapsed:.2f} s"
+
+
+# --------------------------------------------------------------------------- errors
+
+
+@pytest.mark.parametrize(
+    "text, pattern",
+    [
+        ("time_s,voltage_v\n0,4\n1,4\n", r"missing column\(s\) current_a"),
+        ("time_s,current_a,voltage_v\n0,1,4\n1,abc,4\n", r"line 3: non-numeric value 'abc' in column 'current_a'"),
+        ("time_s,current_a,voltage_v\n0,1,4\n1,,4\n", r"line 3: empty value in column 'current_a'"),
+        ("time_s,current_a,voltage_v\n0,1,4\n1,1,nan\n2,1,4\n", r"line 3: .*'voltage_v' is not a finite"),
+        ("time_s,current_a,voltage_v\n0,1,4\n", r"at least 2 data rows, found 1"),
+        ("time_s,current_a,voltage_v\n0,1,4\n5,1,4\n3,1,4\n", r"time goes backwards at data row 2 \(line 4\)"),
+        ("0,1,4\n1,1,4\n", r"no header row"),
+        ("time_s,current_a,voltage_v\n0,1,4\n1,1\n", r"line 3 has 2 fields, the header has 3"),
+        ("", r"empty"),
+        ("time_s,current_a,voltage_v\n5,1,4\n5,2,4\n", r"2 distinct timestamps"),
+    ],
+)
+def test_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: str) -> None:
+    path = _write(tmp_path / "bad.csv", text)
+    with pytest.raises(DataError, match=pattern) as exc:
+        load_recording(path)
+    assert str(path) in str(exc.value)
+    assert isinstance(exc.value, ValueError)
+
+
+def test_error_line_numbers_in_gzip_with_blank_lines(tmp_path: Path) -> None:
+    path = _write(
+        tmp_path / "bad.csv.gz",
+        "time_s,current_a,voltage_v,temperature_c\n0,1,4,25\n\n1,1,4,inf\n",
+    )
+    with pytest.raises(DataError, match=r"line 4: .*'temperature_c'"):
+        load_recording(path)
+
+
+def test_missing_file_raises_file_not_found(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError):
+        load_recording(tmp_path / "nope.csv")
+
+
+def test_bad_resample_step(tmp_path: Path) -> None:
+    path = _write(tmp_path / "r.csv", "time_s,current_a,voltage_v\n0,1,4\n1,1,4\n")
+    with pytest.raises(ValueError, match="resample_s"):
+        load_recording(path, resample_s=0.0)
+
+
+def test_recording_validation_and_read_only() -> None:
+    with pytest.raises(ValueError, match="current_a has 2 samples"):
+        CellRecording(np.arange(3.0), np.zeros(2), np.zeros(3))
+    rec = CellRecording([0, 1, 2], [0, 0, 0], [4, 4, 4])
+    assert rec.time_s.dtype == np.float64
+    with pytest.raises(ValueError):
+        rec.current_a[0] = 1.0
+
+
+# --------------------------------------------------------------------------- shared data
+
+
+def test_shared_data_dir_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("BMS_SHARED_DATA", str(tmp_path))
+    assert shared_data_dir() == tmp_path
+    monkeypatch.setenv("BMS_SHARED_DATA", str(tmp_path / "missing"))
+    assert shared_data_dir() is None
+    monkeypatch.setenv("BMS_SHARED_DATA", "")
+    assert shared_data_dir() is None
+    monkeypatch.delenv("BMS_SHARED_DATA")
+    default = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    assert shared_data_dir() == (default if default.is_dir() else None)
+
+
+def _shared_file(rel: str) -> Path:
+    d = shared_data_dir()
+    if d is None:
+        pytest.skip("shared data set not available (set BMS_SHARED_DATA or provide ../shared/data)")
+    path = d / rel
+    if not path.exists():
+        pytest.skip(f"{rel} not in the shared data set")
+    return path
+
+
+@pytest.mark.shared_data
+def test_real_drive_cycle_resampled_keeps_charge() -> None:
+    path = _shared_file("panasonic-18650pf/25degC/us06.csv.gz")
+    native = load_recording(path, resample_s=None)
+    res = load_recording(path)
+    assert native.dt_s == pytest.approx(0.1, abs=0.01)
+    assert res.dt_s == 1.0
+    assert res.temperature_c is not None
+    q_native = _zoh_charge(native.time_s, native.current_a)
+    q_res = _zoh_charge(res.time_s, res.current_a)
+    assert abs(q_res - q_native) < 1e-6 * abs(q_native)
+    assert q_native / 3600 < -2.0  # a full drive cycle from full to cut-off
+
+
+@pytest.mark.shared_data
+def test_real_c20_log_is_not_resampled() -> None:
+    path = _shared_file("panasonic-18650pf/25degC/c20_ocv.csv.gz")
+    rec = load_recording(path)
+    assert rec.dt_s == pytest.approx(60.0, abs=0.1)
+    assert rec.gaps_filled == 0
+    assert np.all(np.diff(rec.time_s) > 0)  # the repeated end timestamps were dropped

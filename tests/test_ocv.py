@@ -1,0 +1,409 @@
+"""Tests of bms_estimator.core.ocv.OcvCurve: interpolation, inverse, C/20, HPPC, CSV."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bms_estimator.core.ocv import MIN_SLOPE_V, OcvCurve
+from bms_estimator.data import load_recording, shared_data_dir
+
+
+def true_ocv(soc):
+    """A smooth, strictly increasing test OCV [V] (slope >= 0.4 V per unit SOC)."""
+    s = np.asarray(soc, dtype=float)
+    return 3.2 + 0.9 * s + 0.08 * np.sin(2 * np.pi * s) - 0.3 * np.exp(-15 * s)
+
+
+def true_hyst(soc):
+    return 0.015 + 0.01 * np.asarray(soc, dtype=float)
+
+
+def knot_curve(n: int = 21, hysteresis: bool = True) -> OcvCurve:
+    s = np.linspace(0, 1, n)
+    return OcvCurve(s, true_ocv(s), true_hyst(s) if hysteresis else None)
+
+
+# --------------------------------------------------------------------------- construction
+
+
+@pytest.mark.parametrize(
+    "soc, ocv, hyst, pattern",
+    [
+        ([0, 0.5, 0.5, 1], [3, 3.5, 3.6, 4], None, "soc must be strictly increasing"),
+        ([0, 0.5, 1], [3, 3.6, 3.5], None, "ocv_v must be strictly increasing"),
+        ([0, 0.5, 1], [3, np.nan, 4], None, "finite"),
+        ([0, 50, 100], [3, 3.5, 4], None, r"soc must lie in \[0, 1\]"),
+        ([0, 0.5, 1], [3, 3.5, 4], [0.01, -0.01, 0.01], "hysteresis_v must be >= 0"),
+        ([0, 0.5, 1], [3, 3.5], None, "equal length"),
+        ([0.5], [3.5], None, "at least 2 points"),
+    ],
+)
+def test_constructor_rejects_bad_tables(soc, ocv, hyst, pattern) -> None:
+    with pytest.raises(ValueError, match=pattern):
+        OcvCurve(soc, ocv, hyst)
+
+
+def test_knots_are_reproduced_and_curve_is_close_to_truth() -> None:
+    c = knot_curve(41)
+    np.testing.assert_allclose(c.ocv(c.soc), c.ocv_v, atol=1e-12)
+    s = np.linspace(0.05, 0.95, 500)
+    np.testing.assert_allclose(c.ocv(s), true_ocv(s), atol=2e-3)
+
+
+def test_scalar_in_float_out_and_shapes_kept() -> None:
+    c = knot_curve()
+    assert isinstance(c.ocv(0.5), float)
+    assert isinstance(c.soc_from_ocv(3.7), float)
+    assert isinstance(c.docv_dsoc(0.5), float)
+    assert isinstance(c.hysteresis(0.5), float)
+    x = np.random.default_rng(0).uniform(0, 1, (7, 3))
+    for f in (c.ocv, c.docv_dsoc, c.hysteresis):
+        out = f(x)
+        assert out.shape == (7, 3)
+        np.testing.assert_allclose(out.ravel(), [f(float(v)) for v in x.ravel()], atol=1e-12)
+    np.testing.assert_allclose(c.soc_from_ocv(c.ocv(x)), x, atol=1e-12)
+
+
+def test_extrapolation_is_linear_with_end_slopes_and_finite() -> None:
+    c = knot_curve(21)
+    lo = (c.ocv_v[1] - c.ocv_v[0]) / (c.soc[1] - c.soc[0])
+    hi = (c.ocv_v[-1] - c.ocv_v[-2]) / (c.soc[-1] - c.soc[-2])
+    assert c.ocv(-0.2) == pytest.approx(c.ocv_v[0] - 0.2 * lo, abs=1e-12)
+    assert c.ocv(1.3) == pytest.approx(c.ocv_v[-1] + 0.3 * hi, abs=1e-12)
+    assert c.docv_dsoc(-0.2) == pytest.approx(lo)
+    assert c.docv_dsoc(1.3) == pytest.approx(hi)
+    far = np.array([-1e3, -5.0, 5.0, 1e3])
+    assert np.all(np.isfinite(c.ocv(far)))
+    assert np.all(np.isfinite(c.soc_from_ocv(np.array([-10.0, 0.0, 10.0, 100.0]))))
+    assert c.soc_from_ocv(0.0) < 0.0 and c.soc_from_ocv(10.0) > 1.0
+    # hysteresis is held constant beyond the ends
+    assert c.hysteresis(-0.5) == pytest.approx(c.hysteresis_v[0])
+    assert c.hysteresis(1.5) == pytest.approx(c.hysteresis_v[-1])
+
+
+def test_slope_matches_finite_difference_and_is_floored() -> None:
+    c = knot_curve(41)
+    s = np.linspace(0.05, 0.95, 91)
+    fd = (c.ocv(s + 1e-4) - c.ocv(s - 1e-4)) / 2e-4
+    np.testing.assert_allclose(c.docv_dsoc(s), fd, rtol=2e-2, atol=2e-3)
+    # a nearly flat table: slope is floored, still strictly positive
+    flat = OcvCurve([0, 0.5, 1], [3.7, 3.7 + 1e-7, 3.7 + 2e-7])
+    assert np.all(flat.docv_dsoc(np.linspace(-1, 2, 31)) >= MIN_SLOPE_V)
+
+
+def test_hysteresis_zero_without_table() -> None:
+    c = knot_curve(hysteresis=False)
+    assert not c.has_hysteresis
+    np.testing.assert_array_equal(c.hysteresis(np.linspace(0, 1, 5)), 0.0)
+    h = knot_curve()
+    np.testing.assert_allclose(h.hysteresis(np.linspace(0, 1, 11)), true_hyst(np.linspace(0, 1, 11)), atol=1e-6)
+
+
+@st.composite
+def increasing_tables(draw):
+    n = draw(st.integers(min_value=2, max_value=25))
+    ds = np.array(draw(st.lists(st.floats(1e-3, 1.0), min_size=n - 1, max_size=n - 1)))
+    dv = np.array(draw(st.lists(st.floats(1e-5, 1.0), min_size=n - 1, max_size=n - 1)))
+    soc = np.r_[0.0, np.cumsum(ds)]
+    soc /= soc[-1]
+    ocv = 2.5 + np.r_[0.0, np.cumsum(dv)]
+    return soc, ocv
+
+
+@settings(max_examples=60, deadline=None)
+@given(increasing_tables(), st.floats(-0.5, 1.5))
+def test_monotone_and_inverse_consistent(table, s_probe) -> None:
+    soc, ocv = table
+    c = OcvCurve(soc, ocv)
+    s = np.linspace(-0.3, 1.3, 4001)
+    v = c.ocv(s)
+    assert np.all(np.isfinite(v))
+    assert np.all(np.diff(v) > 0)  # strictly increasing
+    assert np.all(c.docv_dsoc(s) > 0)
+    # non-decreasing even at rounding resolution around an arbitrary probe
+    near = np.sort(np.r_[s_probe, np.nextafter(s_probe, 2.0), s_probe + 1e-12, s_probe - 1e-12])
+    assert np.all(np.diff(c.ocv(near)) >= 0)
+    np.testing.assert_allclose(c.soc_from_ocv(v), s, atol=1e-9)
+    assert c.soc_from_ocv(c.ocv(s_probe)) == pytest.approx(s_probe, abs=1e-9)
+    vv = np.linspace(ocv[0] - 0.5, ocv[-1] + 0.5, 2001)
+    assert np.all(np.diff(c.soc_from_ocv(vv)) > 0)
+
+
+def test_nan_propagates_without_runtime_warnings() -> None:
+    c = knot_curve()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(c.ocv(np.nan))
+        assert np.isnan(c.soc_from_ocv(np.nan))
+        out = c.ocv(np.array([np.nan, 0.5]))
+        assert np.isnan(out[0]) and np.isfinite(out[1])
+        out = c.soc_from_ocv(np.array([np.nan, 3.7]))
+        assert np.isnan(out[0]) and np.isfinite(out[1])
+
+
+# --------------------------------------------------------------------------- C/20
+
+
+def make_c20(cap_d=3.0, cap_c=2.7, i_a=0.15, r_ohm=0.05, dt=60.0):
+    """Synthetic C/20 test: rest, discharge 1 -> 0 over cap_d, rest, charge 0 -> 1 over cap_c, rest.
+
+    Records follow the logger model: a step's first record one interval after its start.
+    """
+    t, i, v = [], [], []
+    now = 0.0
+
+    def rest(n, soc):
+        nonlocal now
+        for _ in range(n):
+            now += dt
+            t.append(now), i.append(0.0), v.append(float(true_ocv(soc)))
+
+    rest(5, 1.0)
+    n_d = int(round(cap_d * 3600 / (i_a * dt)))
+    for k in range(1, n_d + 1):
+        soc = 1.0 - k * i_a * dt / 3600 / cap_d
+        now += dt
+        t.append(now), i.append(-i_a), v.append(float(true_ocv(soc) - i_a * r_ohm - true_hyst(soc)))
+    rest(60, 0.0)
+    n_c = int(round(cap_c * 3600 / (i_a * dt)))
+    for k in range(1, n_c + 1):
+        soc = k * i_a * dt / 3600 / cap_c
+        now += dt
+        t.append(now), i.append(i_a), v.append(float(true_ocv(soc) + i_a * r_ohm + true_hyst(soc)))
+    rest(60, 1.0)
+    return np.array(t), np.array(i), np.array(v)
+
+
+def test_from_c20_recovers_ocv_hysteresis_and_branch_capacities() -> None:
+    t, i, v = make_c20()
+    c = OcvCurve.from_c20(t, i, v)
+    assert c.capacity_discharge_ah == pytest.approx(3.0, abs=1e-9)
+    assert c.capacity_charge_ah == pytest.approx(2.7, abs=1e-9)
+    assert c.soc[0] == 0.0 and c.soc[-1] == 1.0 and c.soc.size == 201
+    s = np.linspace(0.02, 0.98, 97)
+    np.testing.assert_allclose(c.ocv(s), true_ocv(s), atol=3e-3)
+    # half gap = hysteresis + |I| R
+    np.testing.assert_allclose(c.hysteresis(s), true_hyst(s) + 0.15 * 0.05, atol=2e-3)
+    assert np.all(np.diff(c.ocv_v) > 0)
+
+
+def test_from_c20_with_noise_is_still_monotone() -> None:
+    t, i, v = make_c20()
+    v = v + np.random.default_rng(3).normal(0, 2e-3, v.size)
+    c = OcvCurve.from_c20(t, i, v)
+    assert np.all(np.diff(c.ocv_v) > 0)
+    s = np.linspace(0.05, 0.95, 19)
+    np.testing.assert_allclose(c.ocv(s), true_ocv(s), atol=6e-3)
+
+
+def test_from_c20_with_capacity_uses_common_ah_scale() -> None:
+    t, i, v = make_c20(cap_d=3.0, cap_c=3.0)
+    c = OcvCurve.from_c20(t, i, v, capacity_ah=3.0)
+    s = np.linspace(0.05, 0.95, 19)
+    np.testing.assert_allclose(c.ocv(s), true_ocv(s), atol=3e-3)
+    with pytest.raises(ValueError, match="overlap"):
+        OcvCurve.from_c20(t, i, v, capacity_ah=9.0)
+
+
+def test_from_c20_needs_both_branches() -> None:
+    t, i, v = make_c20()
+    n_dis = np.flatnonzero(i < 0)[-1] + 1
+    with pytest.raises(ValueError, match="no charge segment"):
+        OcvCurve.from_c20(t[:n_dis + 5], i[:n_dis + 5], v[:n_dis + 5])
+    with pytest.raises(ValueError, match="no discharge segment"):
+        OcvCurve.from_c20(t, np.abs(i), v)
+
+
+# --------------------------------------------------------------------------- HPPC
+
+
+def make_hppc(cap=3.0, r_ohm=0.05, n_sets=10, tail_test=True):
+    """Synthetic HPPC in the Panasonic two-file layout (see OcvCurve.from_hppc).
+
+    Pulse sets at soc 1.0, 0.9, ... logged densely in ``hppc``; the slow discharge
+    between sets (to the next 10 % SOC) and the final discharge to empty logged
+    sparsely in ``steps`` on its own time axis, followed by an unrelated test.
+    Returns (hppc, steps, true soc of the sets).
+    """
+    hppc, steps = ([], [], []), ([], [], [])
+    state = {"t": 0.0, "soc": 1.0}
+
+    def step(duration, current, log, delta):
+        t0, s0 = state["t"], state["soc"]
+        times = list(np.arange(t0 + delta, t0 + duration - 1e-9, delta)) + [t0 + duration]
+        for tt in times:
+            soc = s0 + current * (tt - t0) / 3600 / cap
+            log[0].append(tt), log[1].append(current), log[2].append(float(true_ocv(soc) + r_ohm * current))
+        state["t"] = t0 + duration
+        state["soc"] = s0 + current * duration / 3600 / cap
+
+    set_socs = []
+    for k in range(n_sets):
+        target = 1.0 - 0.1 * k
+        assert abs(state["soc"] - target) < 1e-12
+        set_socs.append(state["soc"])
+        step(10.0, 0.0, hppc, 0.1)  # end of the long rest, logged densely
+        for pulse in (-1.5, -3.0, -6.0):
+            step(10.0, pulse, hppc, 0.1)
+            step(100.0, 0.0, hppc, 1.0)
+        step(60.0, 0.0, hppc, 1.0)
+        next_soc = max(target - 0.1, 0.0) if k < n_sets - 1 else 0.0
+        duration = (state["soc"] - next_soc) * cap * 3600 / 0.9
+        step(duration, -0.9, steps, 60.0)
+        if k < n_sets - 1:
+            step(1500.0, 0.0, steps, 300.0)
+    if tail_test:  # an unrelated later test in the steps file
+        state["t"] += 20000.0
+        state["soc"] = 1.0
+        for _ in range(3):
+            step(700.0, -0.9, steps, 60.0)
+            step(1500.0, 0.0, steps, 300.0)
+    h = tuple(np.array(x) for x in hppc)
+    s0 = steps[0][0]
+    s = (np.array(steps[0]) - s0, np.array(steps[1]), np.array(steps[2]))
+    return h, s, np.array(set_socs)
+
+
+def test_from_hppc_recovers_soc_and_ocv_of_each_rest() -> None:
+    h, s, socs = make_hppc()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        c = OcvCurve.from_hppc(h, s)
+    assert c.hysteresis_v is None
+    assert c.capacity_discharge_ah == pytest.approx(3.0, abs=1e-9)
+    np.testing.assert_allclose(c.soc, np.sort(socs), atol=1e-9)
+    np.testing.assert_allclose(c.ocv_v, true_ocv(np.sort(socs)), atol=1e-6)
+
+
+def test_from_hppc_capacity_argument_rescales_soc() -> None:
+    h, s, socs = make_hppc()
+    c = OcvCurve.from_hppc(h, s, capacity_ah=3.3)
+    np.testing.assert_allclose(c.soc, np.sort(1 - (1 - socs) * 3.0 / 3.3), atol=1e-9)
+
+
+def test_from_hppc_without_steps_warns_about_gaps() -> None:
+    h, _, _ = make_hppc()
+    with pytest.warns(UserWarning, match="no steps were given"):
+        c = OcvCurve.from_hppc(h, None)
+    assert c.soc.size == 10
+
+
+def test_from_hppc_naive_integration_would_be_wrong() -> None:
+    """The sparse steps file cannot be integrated naively (the reason for the alignment)."""
+    _, s, _ = make_hppc()
+    naive_ah = -np.sum(s[1][:-1] * np.diff(s[0])) / 3600
+    assert naive_ah > 2 * 3.0
+
+
+# --------------------------------------------------------------------------- CSV
+
+
+def test_csv_round_trip(tmp_path: Path) -> None:
+    for hyst in (True, False):
+        c = knot_curve(31, hysteresis=hyst)
+        path = c.to_csv(tmp_path / f"ocv_{hyst}.csv")
+        header = path.read_text().splitlines()[0]
+        assert header == ("soc,ocv_v,hysteresis_v" if hyst else "soc,ocv_v")
+        back = OcvCurve.from_csv(path)
+        np.testing.assert_allclose(back.soc, c.soc, atol=1e-8)
+        np.testing.assert_allclose(back.ocv_v, c.ocv_v, atol=1e-8)
+        s = np.linspace(-0.1, 1.1, 121)
+        np.testing.assert_allclose(back.ocv(s), c.ocv(s), atol=1e-6)
+        assert (back.hysteresis_v is not None) == hyst
+
+
+def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
+    p = tmp_path / "x.csv"
+    p.write_text("note,soc,ocv_v\na,0,3.0\nb,0.5,3.6\nc,1,4.2\n")
+    c = OcvCurve.from_csv(p)
+    assert c.ocv(0.5) == pytest.approx(3.6)
+
+
+@pytest.mark.parametrize(
+    "text, pattern",
+    [
+        ("soc,voltage\n0,3\n1,4\n", r"missing column\(s\) ocv_v"),
+        ("soc,ocv_v\n0,3\n0.6,3.5\n0.5,3.6\n1,4\n", r"soc is not strictly increasing at line 4"),
+        ("soc,ocv_v\n0,3\n0.5,nan\n1,4\n", r"line 3: value 'nan' in column 'ocv_v' is not finite"),
+        ("soc,ocv_v\n0,3\n0.5,x\n1,4\n", r"line 3: non-numeric value 'x'"),
+        ("soc,ocv_v\n0,3\n50,3.5\n100,4\n", r"percent\?"),
+        ("soc,ocv_v\n0,3\n0.5,3.8\n0.6,3.7\n1,4\n", r"ocv_v decreases by 100.0 mV"),
+        ("soc,ocv_v\n0,3\n", r"at least 2 data rows"),
+        ("", r"empty file"),
+    ],
+)
+def test_csv_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: str) -> None:
+    p = tmp_path / "bad.csv"
+    p.write_text(text)
+    with pytest.raises(ValueError, match=pattern) as exc:
+        OcvCurve.from_csv(p)
+    assert str(p) in str(exc.value)
+
+
+def test_csv_small_dip_is_repaired_with_warning(tmp_path: Path) -> None:
+    p = tmp_path / "dip.csv"
+    p.write_text("soc,ocv_v\n0,3.0\n0.4,3.6\n0.5,3.599\n0.6,3.6\n1,4.2\n")
+    with pytest.warns(UserWarning, match="not strictly increasing"):
+        c = OcvCurve.from_csv(p)
+    assert np.all(np.diff(c.ocv_v) > 0)
+    assert c.ocv_v[2] == pytest.approx(3.6, abs=1e-5)
+
+
+# --------------------------------------------------------------------------- real data
+
+
+def _shared_file(rel: str) -> Path:
+    d = shared_data_dir()
+    if d is None:
+        pytest.skip("shared data set not available (set BMS_SHARED_DATA or provide ../shared/data)")
+    path = d / rel
+    if not path.exists():
+        pytest.skip(f"{rel} not in the shared data set")
+    return path
+
+
+def _c20(rel: str) -> OcvCurve:
+    rec = load_recording(_shared_file(rel), resample_s=None)
+    return OcvCurve.from_c20(rec.time_s, rec.current_a, rec.voltage_v)
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize(
+    "rel, cap_d, cap_c, gap50_mv",
+    [
+        ("panasonic-18650pf/25degC/c20_ocv.csv.gz", 3.00, 2.62, 40.0),
+        ("lg-hg2/25degC/c20_ocv.csv.gz", 2.78, 2.97, 38.0),
+        ("lg-hg2/0degC/c20_ocv.csv.gz", 2.60, 2.69, 60.0),
+    ],
+)
+def test_real_c20_capacities_and_gap(rel: str, cap_d: float, cap_c: float, gap50_mv: float) -> None:
+    c = _c20(rel)
+    assert c.capacity_discharge_ah == pytest.approx(cap_d, abs=0.02)
+    assert c.capacity_charge_ah == pytest.approx(cap_c, abs=0.02)
+    assert 2e3 * c.hysteresis(0.5) == pytest.approx(gap50_mv, abs=3.0)
+    assert np.all(np.diff(c.ocv_v) > 0)
+    assert 3.5 < c.ocv(0.5) < 3.85
+    assert 4.1 < c.ocv(1.0) < 4.25
+
+
+@pytest.mark.shared_data
+def test_real_hppc_agrees_with_c20_at_25degC() -> None:
+    c20 = _c20("panasonic-18650pf/25degC/c20_ocv.csv.gz")
+    h = load_recording(_shared_file("panasonic-18650pf/25degC/hppc.csv.gz"), resample_s=None)
+    s = load_recording(_shared_file("panasonic-18650pf/25degC/hppc_steps.csv.gz"), resample_s=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # every gap gets its step
+        hc = OcvCurve.from_hppc(h, s)
+    assert hc.soc.size == 14
+    assert hc.soc[0] < 0.05 and hc.soc[-1] == 1.0
+    # total charge to cut-off: below the C/20 capacity, nowhere near the naive 8.8 Ah
+    assert 2.7 < hc.capacity_discharge_ah < 2.95
+    grid = np.linspace(0.1, 0.9, 81)
+    diff_mv = 1e3 * (hc.ocv(grid) - c20.ocv(grid))
+    assert np.max(np.abs(diff_mv)) < 25.0, np.round(diff_mv, 1)
