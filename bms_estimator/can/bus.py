@@ -1,0 +1,449 @@
+"""python-can bus for the asyncio service: open, receive, send, survive.
+
+:func:`open_bus` opens a python-can bus from a :class:`BusConfig`
+(``interface``/``channel``/``bitrate``/...; on ``socketcan`` the bitrate is
+the kernel's business - ``ip link set can0 type can bitrate 500000`` or
+systemd-networkd - and is not passed).
+
+:class:`ResilientBus` owns one bus at a time and keeps it alive:
+
+* receive: a ``can.Notifier(bus, [reader], loop=loop)`` feeds a
+  :class:`can.AsyncBufferedReader` (bounded; overflow is dropped and counted).
+  Buses with a file descriptor (socketcan, udp_multicast) are read from the
+  event loop's selector, the others from python-can's reader thread; either
+  way ``await rx.recv()`` / ``async for msg in rx`` never blocks the loop.
+* send: :meth:`ResilientBus.send` / :meth:`send_many` only enqueue; a daemon
+  thread does the (possibly blocking) ``bus.send(msg, timeout)``. A full queue
+  or a down bus drops frames (counted) rather than blocking the estimator.
+* failures: a ``can.CanError``/``OSError`` from receiving (or a fatal
+  ``OSError`` from sending: ENODEV, ENETDOWN, ENXIO, EBADF) closes the bus and
+  reopens it with exponential back-off (``reopen_initial_s`` doubling up to
+  ``reopen_max_s``; back-off resets once the new bus delivered a frame). An
+  interface that disappears and comes back (USB adapter, ``ip link set can0
+  down/up``) is survived without restarting the service. Everything is
+  counted in :class:`BusCounters` and logged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import queue
+import threading
+import time
+from collections.abc import AsyncIterator, Callable, Iterable
+from dataclasses import dataclass, fields
+from typing import Any
+
+import can
+import structlog
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["BusConfig", "BusCounters", "ResilientBus", "open_bus"]
+
+log = structlog.get_logger(__name__)
+
+_FATAL_TX_ERRNOS = {errno.ENODEV, errno.ENETDOWN, errno.ENXIO, errno.EBADF}
+#: interfaces whose bitrate is configured by the OS, not by python-can
+_OS_BITRATE_INTERFACES = {"socketcan", "virtual", "udp_multicast"}
+
+
+class BusConfig(BaseModel):
+    """How to open the CAN bus (passed to ``can.Bus``) and how hard to retry."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    interface: str = "socketcan"
+    channel: str | int = "can0"
+    bitrate: int | None = Field(None, gt=0, description="None = keep the interface's setting")
+    data_bitrate: int | None = Field(None, gt=0)
+    fd: bool = False
+    receive_own_messages: bool = False
+    can_filters: list[dict[str, Any]] | None = None
+    options: dict[str, Any] = Field(default_factory=dict, description="extra keyword arguments for can.Bus")
+    reopen_initial_s: float = Field(0.5, gt=0)
+    reopen_max_s: float = Field(30.0, gt=0)
+    rx_queue_size: int = Field(100_000, ge=1)
+    tx_queue_size: int = Field(20_000, ge=1)
+    tx_timeout_s: float = Field(0.05, ge=0)
+    notifier_timeout_s: float = Field(0.1, gt=0, description="python-can reader-thread poll period")
+
+
+@dataclass
+class BusCounters:
+    opens: int = 0  # successful opens
+    open_failures: int = 0
+    bus_errors: int = 0  # receive-side failures that caused a reopen
+    rx_frames: int = 0
+    rx_error_frames: int = 0
+    rx_dropped: int = 0  # receive queue overflow
+    tx_frames: int = 0
+    tx_errors: int = 0
+    tx_dropped: int = 0  # queue full or no bus
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def open_bus(cfg: BusConfig) -> can.BusABC:
+    """Open a python-can bus as configured. Raises ``can.CanError``/``OSError``/``ValueError``."""
+    kwargs: dict[str, Any] = {
+        "interface": cfg.interface,
+        "channel": cfg.channel,
+        "receive_own_messages": cfg.receive_own_messages,
+    }
+    if cfg.fd:
+        kwargs["fd"] = True
+    if cfg.bitrate is not None and cfg.interface not in _OS_BITRATE_INTERFACES:
+        kwargs["bitrate"] = cfg.bitrate
+    elif cfg.bitrate is not None and cfg.interface == "socketcan":
+        log.debug("can.bus.bitrate_by_os", channel=cfg.channel, bitrate=cfg.bitrate,
+                  hint=f"ip link set {cfg.channel} type can bitrate {cfg.bitrate}")
+    if cfg.data_bitrate is not None and cfg.interface not in _OS_BITRATE_INTERFACES:
+        kwargs["data_bitrate"] = cfg.data_bitrate
+    if cfg.can_filters is not None:
+        kwargs["can_filters"] = cfg.can_filters
+    kwargs.update(cfg.options)
+    return can.Bus(**kwargs)
+
+
+class _Failure:
+    """Put into the receive queue when the notifier reports a bus error."""
+
+    __slots__ = ("exc",)
+
+    def __init__(self, exc: BaseException) -> None:
+        self.exc = exc
+
+
+_CLOSED = object()  # put into the receive queue by close(): wakes a pending recv()
+
+
+class _Reader(can.AsyncBufferedReader):
+    """AsyncBufferedReader with a bounded queue that also carries bus failures."""
+
+    def __init__(self, maxsize: int, counters: BusCounters) -> None:
+        super().__init__()
+        self.buffer = asyncio.Queue(maxsize=maxsize)
+        self._counters = counters
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self._is_stopped:
+            return
+        try:
+            self.buffer.put_nowait(msg)
+        except asyncio.QueueFull:
+            self._counters.rx_dropped += 1
+
+    def on_error(self, exc: Exception) -> None:
+        if self._is_stopped:
+            return
+        try:
+            self.buffer.put_nowait(_Failure(exc))  # type: ignore[arg-type]
+        except asyncio.QueueFull:  # make room: the failure must be seen
+            with contextlib.suppress(asyncio.QueueEmpty):
+                self.buffer.get_nowait()
+                self._counters.rx_dropped += 1
+            self.buffer.put_nowait(_Failure(exc))  # type: ignore[arg-type]
+
+
+class _Notifier(can.Notifier):
+    """Notifier whose selector path reports recv() errors like the thread path does.
+
+    ``can.Notifier`` reads fd-capable buses (socketcan) from the event loop; an
+    exception there would only reach the loop's exception handler and the
+    reader would spin on a dead socket. Here it is routed to the listeners'
+    ``on_error`` and the fd is unregistered.
+    """
+
+    def _rx_thread(self, bus: can.BusABC) -> None:
+        try:
+            super()._rx_thread(bus)
+        except Exception:  # noqa: S110 - already handed to the listeners' on_error via the loop
+            pass
+
+    def _on_message_available(self, bus: can.BusABC) -> None:
+        try:
+            super()._on_message_available(bus)
+        except Exception as exc:
+            self.exception = exc
+            loop = self._loop
+            if loop is not None:
+                with contextlib.suppress(Exception):
+                    fd = bus.fileno()
+                    loop.remove_reader(fd)
+                    if fd in self._readers:
+                        self._readers.remove(fd)
+            self._on_error(exc)
+
+
+class ResilientBus:
+    """A CAN bus that reopens itself; see the module docstring.
+
+    Use inside a running event loop::
+
+        async with ResilientBus(cfg) as rx:
+            async for msg in rx:
+                ...
+            rx.send_many(frames)
+    """
+
+    def __init__(self, cfg: BusConfig, *, bus_factory: Callable[[BusConfig], can.BusABC] = open_bus) -> None:
+        self.cfg = cfg
+        self.counters = BusCounters()
+        self._factory = bus_factory
+        self._bus: can.BusABC | None = None
+        self._bus_lock = threading.Lock()
+        self._notifier: can.Notifier | None = None
+        self._reader: _Reader | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._closed = False
+        self._backoff = cfg.reopen_initial_s
+        self._got_frame_since_open = False
+        self._tx_queue: queue.Queue[can.Message | None] = queue.Queue(maxsize=cfg.tx_queue_size)
+        self._tx_thread: threading.Thread | None = None
+        self._fail_request: BaseException | None = None
+        self._opened = asyncio.Event()
+        self._open_task: asyncio.Task[None] | None = None
+
+    # ------------------------------------------------------------- lifecycle
+    async def __aenter__(self) -> ResilientBus:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def start(self) -> None:
+        """Bind to the running loop, start the sender thread and begin opening the bus in the background.
+
+        Returns at once; :meth:`wait_open` waits for the first successful open.
+        """
+        self._loop = asyncio.get_running_loop()
+        if self._tx_thread is None:
+            self._tx_thread = threading.Thread(target=self._tx_worker, name="bms-can-tx", daemon=True)
+            self._tx_thread.start()
+        self._ensure_open_task()
+
+    def _ensure_open_task(self) -> asyncio.Task[None]:
+        task = self._open_task
+        if task is None or task.done():
+            task = self._open_task = asyncio.get_running_loop().create_task(self._open(), name="bms-can-open")
+        return task
+
+    async def close(self) -> None:
+        """Stop receiving and sending; a pending :meth:`recv` raises ``RuntimeError``, ``async for`` ends."""
+        self._closed = True
+        reader = self._reader
+        if reader is not None:
+            with contextlib.suppress(asyncio.QueueEmpty, asyncio.QueueFull):
+                if reader.buffer.full():
+                    reader.buffer.get_nowait()
+                reader.buffer.put_nowait(_CLOSED)  # type: ignore[arg-type]
+        task, self._open_task = self._open_task, None
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        self._teardown()
+        if self._tx_thread is not None:
+            with contextlib.suppress(queue.Full):
+                self._tx_queue.put_nowait(None)
+            await asyncio.get_running_loop().run_in_executor(None, self._tx_thread.join, 2.0)
+            self._tx_thread = None
+
+    @property
+    def is_open(self) -> bool:
+        return self._bus is not None
+
+    async def wait_open(self, timeout: float | None = None) -> bool:
+        """Wait until a bus is open (e.g. before sending the first frames)."""
+        try:
+            await asyncio.wait_for(self._opened.wait(), timeout)
+            return True
+        except asyncio.TimeoutError:
+            return False
+
+    def _teardown(self) -> None:
+        notifier, reader = self._notifier, self._reader
+        with self._bus_lock:
+            bus, self._bus = self._bus, None
+        self._notifier = self._reader = None
+        self._opened.clear()
+        if reader is not None:
+            reader.stop()
+        if notifier is not None:
+            with contextlib.suppress(Exception):
+                notifier.stop(timeout=self.cfg.notifier_timeout_s * 5)
+        if bus is not None:
+            with contextlib.suppress(Exception):
+                bus.shutdown()
+
+    async def _open(self) -> None:
+        """Open the bus, retrying with back-off until it works or we are closed."""
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        while not self._closed:
+            try:
+                bus = self._factory(self.cfg)
+            except Exception as exc:  # can.CanError, OSError, ValueError, ImportError of a driver...
+                self.counters.open_failures += 1
+                log.warning(
+                    "can.bus.open_failed",
+                    interface=self.cfg.interface,
+                    channel=self.cfg.channel,
+                    error=repr(exc),
+                    retry_in_s=self._backoff,
+                )
+                await asyncio.sleep(self._backoff)
+                self._backoff = min(self._backoff * 2.0, self.cfg.reopen_max_s)
+                continue
+            reader = _Reader(self.cfg.rx_queue_size, self.counters)
+            try:
+                notifier = _Notifier(bus, [reader], timeout=self.cfg.notifier_timeout_s, loop=loop)
+            except Exception as exc:
+                self.counters.open_failures += 1
+                log.warning("can.bus.notifier_failed", error=repr(exc))
+                with contextlib.suppress(Exception):
+                    bus.shutdown()
+                await asyncio.sleep(self._backoff)
+                self._backoff = min(self._backoff * 2.0, self.cfg.reopen_max_s)
+                continue
+            with self._bus_lock:
+                self._bus = bus
+            self._reader, self._notifier = reader, notifier
+            self._got_frame_since_open = False
+            self.counters.opens += 1
+            self._opened.set()
+            log.info("can.bus.open", interface=self.cfg.interface, channel=self.cfg.channel, opens=self.counters.opens)
+            return
+
+    async def _fail(self, exc: BaseException) -> None:
+        self.counters.bus_errors += 1
+        log.warning("can.bus.error", error=repr(exc), reopen_in_s=self._backoff)
+        self._teardown()
+        if not self._closed:
+            await asyncio.sleep(self._backoff)
+            self._backoff = min(self._backoff * 2.0, self.cfg.reopen_max_s)
+            self._ensure_open_task()
+
+    # --------------------------------------------------------------- receive
+    async def recv(self) -> can.Message:
+        """The next received frame; reopens the bus as often as needed.
+
+        Opening runs in the event loop (``can.Bus(...)`` is fast for socketcan,
+        virtual and udp_multicast; a slow USB/serial adapter would stall the
+        loop for its handshake).
+
+        Raises ``asyncio.CancelledError`` when cancelled and ``RuntimeError`` after :meth:`close`.
+        """
+        while True:
+            if self._closed:
+                raise RuntimeError("bus closed")
+            if self._fail_request is not None:
+                exc, self._fail_request = self._fail_request, None
+                await self._fail(exc)
+                continue
+            if self._reader is None:
+                try:
+                    await asyncio.shield(self._ensure_open_task())
+                except asyncio.CancelledError:
+                    me = asyncio.current_task()
+                    cancelling = me.cancelling() if me is not None and hasattr(me, "cancelling") else 1
+                    if self._closed and not cancelling:  # the open task was cancelled by close()
+                        raise RuntimeError("bus closed") from None
+                    raise
+                continue
+            item = await self._reader.get_message()
+            if item is _CLOSED or self._closed:
+                raise RuntimeError("bus closed")
+            if isinstance(item, _Failure):
+                await self._fail(item.exc)
+                continue
+            if not self._got_frame_since_open:
+                self._got_frame_since_open = True
+                self._backoff = self.cfg.reopen_initial_s
+            self.counters.rx_frames += 1
+            if item.is_error_frame:
+                self.counters.rx_error_frames += 1
+            return item
+
+    def __aiter__(self) -> AsyncIterator[can.Message]:
+        return self._iterate()
+
+    async def _iterate(self) -> AsyncIterator[can.Message]:
+        while not self._closed:
+            try:
+                yield await self.recv()
+            except RuntimeError:
+                return
+
+    # ------------------------------------------------------------------ send
+    def send(self, msg: can.Message) -> bool:
+        """Queue one frame for sending; False if it was dropped (queue full or bus down)."""
+        if self._bus is None:
+            self.counters.tx_dropped += 1
+            return False
+        try:
+            self._tx_queue.put_nowait(msg)
+            return True
+        except queue.Full:
+            self.counters.tx_dropped += 1
+            return False
+
+    def send_many(self, msgs: Iterable[can.Message]) -> int:
+        """Queue frames; returns how many were queued."""
+        return sum(1 for m in msgs if self.send(m))
+
+    async def drain(self, timeout: float = 5.0) -> bool:
+        """Wait until the send queue is empty (True) or ``timeout`` passed (False)."""
+        deadline = time.monotonic() + timeout
+        while self._tx_queue.unfinished_tasks:
+            if time.monotonic() > deadline:
+                return False
+            await asyncio.sleep(0.005)
+        return True
+
+    def _tx_worker(self) -> None:
+        q = self._tx_queue
+        fails_logged = 0
+        while True:
+            msg = q.get()
+            try:
+                if msg is None:
+                    return
+                with self._bus_lock:
+                    bus = self._bus
+                if bus is None:
+                    self.counters.tx_dropped += 1
+                    continue
+                try:
+                    bus.send(msg, timeout=self.cfg.tx_timeout_s)
+                    self.counters.tx_frames += 1
+                    fails_logged = 0
+                except (can.CanError, OSError, ValueError) as exc:
+                    self.counters.tx_errors += 1
+                    if fails_logged < 3:  # do not flood the log while a bus is down
+                        fails_logged += 1
+                        log.warning("can.bus.send_failed", error=repr(exc), tx_errors=self.counters.tx_errors)
+                    err = getattr(exc, "errno", None) or getattr(exc, "error_code", None)
+                    if err in _FATAL_TX_ERRNOS:
+                        self._request_reopen(exc)
+            finally:
+                q.task_done()
+
+    def _request_reopen(self, exc: BaseException) -> None:
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+
+        def _set() -> None:
+            reader = self._reader
+            if reader is not None:
+                reader.on_error(exc)  # wakes a pending recv()
+            else:
+                self._fail_request = exc
+
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(_set)

@@ -1,0 +1,372 @@
+"""CAN frame -> input events, driven by a DBC and an input mapping.
+
+:class:`FrameDecoder` turns one received :class:`can.Message` into a list of
+:class:`Event` (pack current, pack voltage, cell voltage, cell temperature),
+all in SI units (A with positive = charge, V, degC). It never raises: every
+frame that cannot be used is counted in :class:`DecodeCounters` and yields
+``[]``.
+
+Speed: the mapping is expanded against the DBC once, at construction, into a
+per-frame-id plan ``{mux value: [(signal, cell, a, b, limits, ...)]}`` with
+the whole unit conversion folded into ``si = a * raw + b``. Per frame there is
+one dict lookup, one cantools ``Message.decode(..., decode_choices=False,
+scaling=False)`` (which decodes only the signals of the frame's multiplexer
+value) and a short loop over the mapped signals.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, fields
+from enum import IntEnum
+from typing import NamedTuple
+
+import can
+import structlog
+from cantools.database.can import Database, Message
+
+from .mapping import CanMapping, CellSignals, MappingError, ScalarSignal, load_mapping
+
+__all__ = ["DecodeCounters", "Event", "EventKind", "FrameDecoder", "MappedSignal"]
+
+log = structlog.get_logger(__name__)
+
+
+class EventKind(IntEnum):
+    CURRENT = 0  # A, positive = charge; cell = -1
+    PACK_VOLTAGE = 1  # V; cell = -1
+    CELL_VOLTAGE = 2  # V
+    CELL_TEMPERATURE = 3  # degC
+
+
+class Event(NamedTuple):
+    kind: EventKind
+    cell: int  # 0-based cell index; -1 for pack-level values
+    value: float  # SI units
+
+
+class MappedSignal(NamedTuple):
+    """One DBC signal the decoder uses (see :meth:`FrameDecoder.layout`)."""
+
+    message: str
+    mux: int | None  # multiplexer value the signal is sent with (None = any / not multiplexed)
+    kind: EventKind
+    cell: int  # -1 for pack-level values
+    signal: str
+    a: float  # si = a * raw + b
+    b: float
+
+
+@dataclass
+class DecodeCounters:
+    """What :meth:`FrameDecoder.decode` saw. All counts since construction."""
+
+    frames: int = 0  # frames passed to decode()
+    decoded: int = 0  # frames of a mapped message that decoded
+    events: int = 0  # events returned
+    unknown_id: int = 0  # identifier not in the DBC (ignored)
+    unmapped: int = 0  # in the DBC but nothing mapped (other messages, unmapped mux values)
+    ignored: int = 0  # error frames and remote frames
+    short_frame: int = 0  # fewer data bytes than the DBC length
+    bad_mux: int = 0  # multiplexer value the DBC does not define
+    decode_error: int = 0  # any other cantools decode failure
+    non_finite: int = 0  # NaN/inf value (float signals)
+    out_of_range: int = 0  # outside the mapping's [valid_min, valid_max]
+    not_available: int = 0  # raw value named NotAvailable (or similar) in the DBC
+    flagged_invalid: int = 0  # an invalid flag of the frame was set
+    internal_error: int = 0  # a bug; logged
+
+    @property
+    def errors(self) -> int:
+        """Frames and values that were dropped because they were bad (not merely unused)."""
+        return (
+            self.short_frame
+            + self.bad_mux
+            + self.decode_error
+            + self.non_finite
+            + self.out_of_range
+            + self.not_available
+            + self.flagged_invalid
+            + self.internal_error
+        )
+
+    def as_dict(self) -> dict[str, int]:
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["errors"] = self.errors
+        return d
+
+
+# One mapped signal: (kind, cell, signal, a, b, lo, hi, na_raws, flags)
+# flags: tuple of (flag_signal, invalid_value or None = "any non-zero")
+_Entry = tuple[EventKind, int, str, float, float, float, float, frozenset, tuple]
+
+
+@dataclass(slots=True)
+class _MessagePlan:
+    message: Message
+    length: int
+    mux_signal: str | None
+    common: list  # entries valid for every multiplexer value
+    by_mux: dict  # mux value -> entries (multiplexed messages only)
+
+
+def _key(frame_id: int, extended: bool) -> int:
+    return frame_id | (0x8000_0000 if extended else 0)
+
+
+class FrameDecoder:
+    """Decode frames of ``db`` according to ``mapping`` for a pack of ``n_cells``.
+
+    ``mapping`` may be a :class:`CanMapping`, a preset name, a TOML path or a
+    dict. Signals mapped to a cell index ``>= n_cells`` are left out (logged
+    once). Raises :class:`MappingError` if the mapping does not fit the DBC.
+    """
+
+    def __init__(self, db: Database, mapping: CanMapping | str | dict, n_cells: int) -> None:
+        if n_cells < 1:
+            raise ValueError("n_cells must be >= 1")
+        self.db = db
+        self.mapping = load_mapping(mapping)
+        self.n_cells = int(n_cells)
+        self.counters = DecodeCounters()
+        self._known = {_key(m.frame_id, m.is_extended_frame) for m in db.messages}
+        self._na_rx = re.compile(self.mapping.na_choice_pattern)
+        self._plans: dict[int, _MessagePlan] = {}
+        self.voltage_cells: set[int] = set()
+        self.temperature_cells: set[int] = set()
+        problems: list[str] = []
+        self._build(problems)
+        if problems:
+            raise MappingError("CAN mapping does not fit the DBC:\n" + "\n".join("  " + p for p in problems))
+        missing = self.n_cells - len(self.voltage_cells)
+        if missing:
+            log.warning(
+                "can.mapping.cells_without_voltage",
+                n_cells=self.n_cells,
+                missing=missing,
+                first_missing=min(set(range(self.n_cells)) - self.voltage_cells),
+            )
+
+    # ------------------------------------------------------------------ plan
+    def _message(self, name: str, problems: list[str]) -> Message | None:
+        try:
+            return self.db.get_message_by_name(name)
+        except KeyError:
+            problems.append(f"message {name!r} not in the DBC")
+            return None
+
+    def _plan_for(self, msg: Message) -> _MessagePlan:
+        key = _key(msg.frame_id, msg.is_extended_frame)
+        plan = self._plans.get(key)
+        if plan is None:
+            muxes = [s for s in msg.signals if s.is_multiplexer]
+            plan = _MessagePlan(msg, msg.length, muxes[0].name if muxes else None, [], {})
+            self._plans[key] = plan
+        return plan
+
+    def _na_raws(self, sig) -> frozenset:
+        choices = sig.choices or {}
+        return frozenset(int(raw) for raw, name in choices.items() if self._na_rx.fullmatch(str(name)))
+
+    def _conversion(self, sig, conv) -> tuple[float, float]:
+        # si = sign*scale*(raw*dbc_scale + dbc_offset) + offset = a*raw + b
+        k = conv.sign * conv.scale
+        return k * float(sig.scale), k * float(sig.offset) + conv.offset
+
+    def _build(self, problems: list[str]) -> None:
+        m = self.mapping
+        scalars: list[tuple[EventKind, ScalarSignal]] = [(EventKind.CURRENT, m.current)]
+        if m.pack_voltage is not None:
+            scalars.append((EventKind.PACK_VOLTAGE, m.pack_voltage))
+        for kind, spec in scalars:
+            self._build_scalar(kind, spec, problems)
+        for spec in m.cell_voltages:
+            self._build_cells(EventKind.CELL_VOLTAGE, spec, problems, self.voltage_cells)
+        for spec in m.cell_temperatures:
+            self._build_cells(EventKind.CELL_TEMPERATURE, spec, problems, self.temperature_cells)
+
+    def _build_scalar(self, kind: EventKind, spec: ScalarSignal, problems: list[str]) -> None:
+        msg = self._message(spec.message, problems)
+        if msg is None:
+            return
+        names = {s.name: s for s in msg.signals}
+        sig = names.get(spec.signal)
+        if sig is None:
+            problems.append(f"{kind.name.lower()}: signal {spec.signal!r} not in message {msg.name}")
+            return
+        for flag in spec.invalid_if_nonzero:
+            if flag not in names:
+                problems.append(f"{kind.name.lower()}: flag {flag!r} not in message {msg.name}")
+        plan = self._plan_for(msg)
+        a, b = self._conversion(sig, spec)
+        flags = tuple((f, None) for f in spec.invalid_if_nonzero)
+        entry = (kind, -1, sig.name, a, b, spec.valid_min, spec.valid_max, self._na_raws(sig), flags)
+        if spec.mux is None:
+            plan.common.append(entry)
+        elif plan.mux_signal is None:
+            problems.append(f"{kind.name.lower()}: mux given but {msg.name} is not multiplexed")
+        else:
+            plan.by_mux.setdefault(spec.mux, []).append(entry)
+
+    def _build_cells(self, kind: EventKind, spec: CellSignals, problems: list[str], covered: set[int]) -> None:
+        what = f"{kind.name.lower()} {spec.message}"
+        msg = self._message(spec.message, problems)
+        if msg is None:
+            return
+        plan = self._plan_for(msg)
+        names = {s.name: s for s in msg.signals}
+        # (mux or None, signal, cell, groups)
+        triples: list[tuple[int | None, str, int, dict]] = []
+        if spec.table is not None:
+            for row in spec.table:
+                for sname, cell in row.signals.items():
+                    sig = names.get(sname)
+                    if sig is None:
+                        problems.append(f"{what}: signal {sname!r} not in the message")
+                        continue
+                    if row.mux is not None and plan.mux_signal is None:
+                        problems.append(f"{what}: mux {row.mux} given but the message is not multiplexed")
+                        continue
+                    if row.mux is None and sig.multiplexer_ids:
+                        problems.append(f"{what}: signal {sname!r} is multiplexed; give mux")
+                        continue
+                    if row.mux is not None and sig.multiplexer_ids and row.mux not in sig.multiplexer_ids:
+                        problems.append(f"{what}: signal {sname!r} is not sent with mux {row.mux}")
+                        continue
+                    triples.append((row.mux, sname, cell + spec.index_offset, {}))
+        else:
+            rx = re.compile(spec.signal_pattern or "")
+            by_slot = "slot" in rx.groupindex
+            for sig in msg.signals:
+                if sig.is_multiplexer:
+                    continue
+                mt = rx.fullmatch(sig.name)
+                if mt is None:
+                    continue
+                groups = mt.groupdict()
+                try:
+                    number = int(groups["slot" if by_slot else "cell"])
+                except (TypeError, ValueError):
+                    problems.append(f"{what}: pattern group of {sig.name!r} is not an integer")
+                    continue
+                muxes = list(sig.multiplexer_ids or [None])
+                if by_slot and muxes != [None] and spec.mux_stride == 0:
+                    problems.append(f"{what}: slot rule on a multiplexed message needs mux_stride >= 1")
+                    return
+                for mux in muxes:
+                    if by_slot:
+                        cell = (mux or 0) * spec.mux_stride + number + spec.index_offset
+                    else:
+                        cell = number + spec.index_offset
+                    triples.append((mux, sig.name, cell, groups))
+            if not triples:
+                problems.append(f"{what}: signal_pattern {spec.signal_pattern!r} matches no signal")
+                return
+        dropped = 0
+        for mux, sname, cell, groups in triples:
+            if cell < 0 or cell >= self.n_cells:
+                dropped += 1
+                continue
+            sig = names[sname]
+            flags: tuple = ()
+            if spec.invalid_flag is not None:
+                try:
+                    flag_name = spec.invalid_flag.format(signal=sname, **groups)
+                except (KeyError, IndexError, ValueError) as exc:
+                    problems.append(f"{what}: invalid_flag template {spec.invalid_flag!r}: {exc}")
+                    return
+                if flag_name not in names:
+                    problems.append(f"{what}: flag signal {flag_name!r} not in the message")
+                    continue
+                flags = ((flag_name, spec.invalid_flag_value),)
+            a, b = self._conversion(sig, spec)
+            entry = (kind, cell, sname, a, b, spec.valid_min, spec.valid_max, self._na_raws(sig), flags)
+            if mux is None:
+                plan.common.append(entry)
+            else:
+                plan.by_mux.setdefault(mux, []).append(entry)
+            covered.add(cell)
+        if dropped:
+            log.info("can.mapping.cells_beyond_pack", group=what, n_cells=self.n_cells, signals_left_out=dropped)
+
+    def layout(self) -> list[MappedSignal]:
+        """Every mapped signal with its frame, multiplexer value, cell and raw->SI conversion."""
+        out: list[MappedSignal] = []
+        for plan in self._plans.values():
+            groups = [(None, plan.common)] + sorted(plan.by_mux.items(), key=lambda kv: kv[0])
+            for mux, entries in groups:
+                for kind, cell, sname, a, b, *_ in entries:
+                    out.append(MappedSignal(plan.message.name, mux, kind, cell, sname, a, b))
+        return out
+
+    # ---------------------------------------------------------------- decode
+    def decode(self, msg: can.Message) -> list[Event]:
+        """Events carried by ``msg`` (possibly ``[]``). Never raises."""
+        c = self.counters
+        c.frames += 1
+        try:
+            plan = self._plans.get(msg.arbitration_id | (0x8000_0000 if msg.is_extended_id else 0))
+            if plan is None:
+                if _key(msg.arbitration_id, msg.is_extended_id) in self._known:
+                    c.unmapped += 1
+                else:
+                    c.unknown_id += 1
+                return []
+            if msg.is_error_frame or msg.is_remote_frame:
+                c.ignored += 1
+                return []
+            data = msg.data
+            if data is None or len(data) < plan.length:
+                c.short_frame += 1
+                return []
+            try:
+                raw = plan.message.decode(bytes(data[: plan.length]), decode_choices=False, scaling=False)
+            except Exception as exc:  # cantools DecodeError and friends
+                if plan.mux_signal is not None and "multiplexer" in str(exc):
+                    c.bad_mux += 1
+                else:
+                    c.decode_error += 1
+                return []
+            c.decoded += 1
+            entries = plan.common
+            if plan.mux_signal is not None:
+                muxed = plan.by_mux.get(raw.get(plan.mux_signal))
+                if muxed is not None:
+                    entries = entries + muxed if entries else muxed
+            if not entries:
+                c.unmapped += 1
+                return []
+            out: list[Event] = []
+            isfinite = math.isfinite
+            for kind, cell, sname, a, b, lo, hi, na_raws, flags in entries:
+                value = raw.get(sname)
+                if value is None:
+                    continue
+                if flags:
+                    bad = False
+                    for fname, fval in flags:
+                        f = raw.get(fname, 0)
+                        if (f != 0) if fval is None else (f == fval):
+                            bad = True
+                            break
+                    if bad:
+                        c.flagged_invalid += 1
+                        continue
+                if na_raws and value in na_raws:
+                    c.not_available += 1
+                    continue
+                si = a * value + b
+                if not isfinite(si):
+                    c.non_finite += 1
+                    continue
+                if si < lo or si > hi:
+                    c.out_of_range += 1
+                    continue
+                out.append(Event(kind, cell, si))
+            c.events += len(out)
+            return out
+        except Exception:  # pragma: no cover - defensive: decode must never raise
+            c.internal_error += 1
+            log.exception("can.decode.internal_error", arbitration_id=getattr(msg, "arbitration_id", None))
+            return []

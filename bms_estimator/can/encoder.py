@@ -1,0 +1,351 @@
+"""Estimator state -> CAN frames of the project's DBC (``dbc/bms_estimator.dbc``).
+
+Frames (all 8-byte classic CAN, 29-bit identifiers; exact bit layouts and
+scalings are in the DBC's ``CM_`` comments):
+
+``CellStateA`` (0x1B5E0100), one per cell
+    ``CellIndex`` (mux) | ``Soc`` % | ``R0`` mOhm | ``R1`` mOhm | ``C0`` mV
+``CellStateB`` (0x1B5E0101), one per cell, right after its CellStateA
+    ``CellIndex`` (mux) | ``C1`` F | ``R2`` mOhm | ``C2`` F
+``PackSummary`` (0x1B5E0110) + ``PackElectrical`` (0x1B5E0111)
+    min/mean/max SOC and their cells, rolling counter; mean current, pack
+    voltage, number of valid cells
+``EstimatorStatus`` (0x1B5E0120) + ``EstimatorCounters`` (0x1B5E0121)
+    uptime, sample count; error counters and service state
+
+Inputs are SI (ohm, F, V, A); the encoder converts to the DBC's units from each
+signal's ``unit`` (``mOhm``, ``mV``, ...), so it follows the DBC if a scaling is
+changed there. SOC is a fraction 0..1 unless ``soc_unit="percent"``.
+
+Value policy - the encoder never raises for any float input:
+
+* finite values and +-inf are rounded to the signal's resolution and clamped
+  to its ``[minimum, maximum]``;
+* NaN (and None) -> the signal's ``NotAvailable`` raw value from the DBC's value
+  table, or the raw value of ``minimum`` when the signal has none;
+* counters saturate at the signal maximum.
+
+Cells without a usable index (NaN, negative, above the multiplexer's range)
+are skipped and counted in ``skipped_cells``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Mapping
+from typing import Any, Literal
+
+import can
+import numpy as np
+import structlog
+from cantools.database.can import Database, Message
+
+__all__ = ["StateEncoder"]
+
+log = structlog.get_logger(__name__)
+
+#: factor from the SI value handed to the encoder to the DBC signal's unit
+UNIT_FROM_SI: dict[str, float] = {
+    "": 1.0,
+    "Ohm": 1.0,
+    "mOhm": 1e3,
+    "uOhm": 1e6,
+    "V": 1.0,
+    "mV": 1e3,
+    "A": 1.0,
+    "mA": 1e3,
+    "F": 1.0,
+    "kF": 1e-3,
+    "s": 1.0,
+    "%": 1.0,
+    "degC": 1.0,
+}
+
+_NA_RX = re.compile(r"(?i)not[ _-]?available|n/?a|sna")
+
+
+@dataclasses.dataclass(slots=True)
+class _SignalCodec:
+    name: str
+    scale: float
+    offset: float
+    raw_min: int
+    raw_max: int
+    na_raw: int
+    unit_factor: float
+    choices_by_name: dict[str, int]
+
+    def raw(self, values: Any) -> np.ndarray:
+        """Vectorised SI -> raw integer with the module's clamp/NaN policy."""
+        x = np.asarray(values, dtype=float) if not isinstance(values, np.ndarray) else values.astype(float)
+        with np.errstate(all="ignore"):
+            r = np.rint((x * self.unit_factor - self.offset) / self.scale)
+            nan = np.isnan(r)
+            r = np.clip(np.where(nan, self.raw_min, r), self.raw_min, self.raw_max)
+        return np.asarray(np.where(nan, self.na_raw, r), dtype=np.int64)
+
+
+def _to_float(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError, OverflowError):
+        return math.nan
+
+
+def _floats(values: Any) -> np.ndarray:
+    """Anything array-like -> float array; elements that are not numbers become NaN."""
+    try:
+        return np.asarray(math.nan if values is None else values, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        try:
+            arr = np.asarray(values, dtype=object)
+        except Exception:
+            return np.asarray(math.nan)
+        return np.array([_to_float(v) for v in arr.reshape(-1)], dtype=float).reshape(arr.shape)
+
+
+def _snake(name: str) -> str:
+    s = re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", name)
+    return s.lower()
+
+
+class StateEncoder:
+    """Encode estimator outputs into :class:`can.Message` lists.
+
+    ``db`` is the project's DBC (or one with the same message and signal
+    names). Construction raises ``KeyError`` if a required message is missing;
+    the ``encode_*`` methods never raise.
+    """
+
+    CELL_A = "CellStateA"
+    CELL_B = "CellStateB"
+    SUMMARY = "PackSummary"
+    ELECTRICAL = "PackElectrical"
+    STATUS = "EstimatorStatus"
+    COUNTERS = "EstimatorCounters"
+
+    def __init__(self, db: Database) -> None:
+        self.db = db
+        self._msgs: dict[str, Message] = {}
+        self._codecs: dict[str, dict[str, _SignalCodec]] = {}
+        for name in (self.CELL_A, self.CELL_B, self.SUMMARY, self.ELECTRICAL, self.STATUS, self.COUNTERS):
+            msg = db.get_message_by_name(name)
+            self._msgs[name] = msg
+            self._codecs[name] = {s.name: self._codec(s) for s in msg.signals}
+        self.skipped_cells = 0
+        self.encode_failures = 0
+        self._summary_counter = 0
+
+    @staticmethod
+    def _codec(sig) -> _SignalCodec:
+        scale, offset = float(sig.scale), float(sig.offset)
+        full_min = -(1 << (sig.length - 1)) if sig.is_signed else 0
+        full_max = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
+        lo, hi = full_min, full_max
+        if sig.minimum is not None:
+            lo = max(lo, math.ceil((sig.minimum - offset) / scale - 1e-9))
+        if sig.maximum is not None:
+            hi = min(hi, math.floor((sig.maximum - offset) / scale + 1e-9))
+        choices = {str(n): int(r) for r, n in (sig.choices or {}).items()}
+        na = next((r for n, r in choices.items() if _NA_RX.fullmatch(n)), lo)
+        return _SignalCodec(
+            name=sig.name,
+            scale=scale,
+            offset=offset,
+            raw_min=int(lo),
+            raw_max=int(hi),
+            na_raw=int(na),
+            unit_factor=UNIT_FROM_SI.get(sig.unit or "", 1.0),
+            choices_by_name=choices,
+        )
+
+    def _frame(self, name: str, raws: dict[str, int], timestamp: float | None) -> can.Message | None:
+        msg = self._msgs[name]
+        try:
+            data = msg.encode(raws, scaling=False, strict=False, padding=False)
+        except Exception:  # pragma: no cover - the raws are in range by construction
+            self.encode_failures += 1
+            log.exception("can.encode.failed", message=name)
+            return None
+        return can.Message(
+            arbitration_id=msg.frame_id,
+            is_extended_id=msg.is_extended_frame,
+            data=data,
+            is_fd=False,
+            timestamp=0.0 if timestamp is None else float(timestamp),
+        )
+
+    # ----------------------------------------------------------------- cells
+    def encode_cells(
+        self,
+        cell_index: Any,
+        soc: Any,
+        r0_ohm: Any,
+        r1_ohm: Any,
+        c1_f: Any,
+        r2_ohm: Any,
+        c2_f: Any,
+        c0_v: Any,
+        *,
+        soc_unit: Literal["fraction", "percent"] = "fraction",
+        timestamp: float | None = None,
+    ) -> list[can.Message]:
+        """Two frames per cell (CellStateA, CellStateB), interleaved per cell.
+
+        All value arguments broadcast against ``cell_index`` (scalars allowed).
+        """
+        try:
+            idx = _floats(cell_index).reshape(-1)
+            n = idx.size
+            soc_scale = 100.0 if soc_unit == "fraction" else 1.0
+            cols = {}
+            for key, values in (
+                ("soc", soc),
+                ("r0", r0_ohm),
+                ("r1", r1_ohm),
+                ("c1", c1_f),
+                ("r2", r2_ohm),
+                ("c2", c2_f),
+                ("c0", c0_v),
+            ):
+                flt = _floats(values).reshape(-1)
+                # a column that does not broadcast against the cells is sent as NotAvailable
+                cols[key] = np.broadcast_to(flt, (n,)) if flt.size in (1, n) else np.full(n, math.nan)
+            a, b = self._codecs[self.CELL_A], self._codecs[self.CELL_B]
+            with np.errstate(all="ignore"):  # huge * 100 -> inf is fine (clamped); never a warning
+                cols["soc"] = cols["soc"] * soc_scale
+            raw_a = {
+                "Soc": a["Soc"].raw(cols["soc"]),
+                "R0": a["R0"].raw(cols["r0"]),
+                "R1": a["R1"].raw(cols["r1"]),
+                "C0": a["C0"].raw(cols["c0"]),
+            }
+            raw_b = {"C1": b["C1"].raw(cols["c1"]), "R2": b["R2"].raw(cols["r2"]), "C2": b["C2"].raw(cols["c2"])}
+            mux_max = min(a["CellIndex"].raw_max, b["CellIndex"].raw_max)
+            lists_a = {k: v.tolist() for k, v in raw_a.items()}
+            lists_b = {k: v.tolist() for k, v in raw_b.items()}
+        except Exception:  # pragma: no cover - defensive
+            self.encode_failures += 1
+            log.exception("can.encode_cells.failed")
+            return []
+        out: list[can.Message] = []
+        for j in range(n):
+            ci = idx[j]
+            if not (math.isfinite(ci) and ci == int(ci) and 0 <= ci <= mux_max):
+                self.skipped_cells += 1
+                continue
+            ci = int(ci)
+            fa = self._frame(self.CELL_A, {"CellIndex": ci, **{k: v[j] for k, v in lists_a.items()}}, timestamp)
+            fb = self._frame(self.CELL_B, {"CellIndex": ci, **{k: v[j] for k, v in lists_b.items()}}, timestamp)
+            if fa is not None:
+                out.append(fa)
+            if fb is not None:
+                out.append(fb)
+        return out
+
+    # ------------------------------------------------------------------ pack
+    def encode_pack_summary(
+        self,
+        soc: Any,
+        current_a: Any = math.nan,
+        pack_voltage_v: Any = math.nan,
+        *,
+        valid: Any = None,
+        cell_index: Any = None,
+        cells_valid: Any = None,
+        soc_unit: Literal["fraction", "percent"] = "fraction",
+        timestamp: float | None = None,
+    ) -> list[can.Message]:
+        """PackSummary + PackElectrical from per-cell SOC.
+
+        Statistics use the cells where ``valid`` (default: all) is true and SOC
+        is not NaN; ``cell_index`` (default ``0..N-1``) names the cells.
+        ``cells_valid`` defaults to the number of such cells.
+        """
+        try:
+            s = _floats(soc).reshape(-1)
+            with np.errstate(all="ignore"):
+                s = s * (100.0 if soc_unit == "fraction" else 1.0)
+            n = s.size
+            use = ~np.isnan(s)
+            if valid is not None:
+                v = np.asarray(valid).reshape(-1)
+                if v.size == n:
+                    use &= v.astype(bool)
+            idx = np.arange(n, dtype=float)
+            if cell_index is not None:
+                ci = _floats(cell_index).reshape(-1)
+                if ci.size == n:
+                    idx = ci
+            if use.any():
+                sv = s[use]
+                iv = idx[use]
+                imin, imax = int(np.argmin(sv)), int(np.argmax(sv))
+                with np.errstate(all="ignore"):
+                    smean = float(np.mean(np.clip(sv, -1e300, 1e300)))
+                smin, smax = sv[imin], sv[imax]
+                cmin, cmax = iv[imin], iv[imax]
+            else:
+                smin = smean = smax = cmin = cmax = math.nan
+            nvalid = int(use.sum()) if cells_valid is None else _to_float(cells_valid)
+            cs = self._codecs[self.SUMMARY]
+            summary = {
+                "SocMin": int(cs["SocMin"].raw(smin)),
+                "SocMean": int(cs["SocMean"].raw(smean)),
+                "SocMax": int(cs["SocMax"].raw(smax)),
+                "SocMinCell": int(cs["SocMinCell"].raw(cmin)),
+                "SocMaxCell": int(cs["SocMaxCell"].raw(cmax)),
+                "SummaryCounter": self._summary_counter,
+            }
+            self._summary_counter = (self._summary_counter + 1) % (cs["SummaryCounter"].raw_max + 1)
+            ce = self._codecs[self.ELECTRICAL]
+            electrical = {
+                "PackCurrent": int(ce["PackCurrent"].raw(_to_float(current_a))),
+                "PackVoltage": int(ce["PackVoltage"].raw(_to_float(pack_voltage_v))),
+                "CellsValid": int(ce["CellsValid"].raw(nvalid)),
+            }
+        except Exception:  # pragma: no cover - defensive
+            self.encode_failures += 1
+            log.exception("can.encode_pack_summary.failed")
+            return []
+        return [m for m in (self._frame(self.SUMMARY, summary, timestamp),
+                            self._frame(self.ELECTRICAL, electrical, timestamp)) if m is not None]
+
+    # ---------------------------------------------------------------- status
+    def status_keys(self) -> list[str]:
+        """Keys understood by :meth:`encode_status` (snake_case of the signal names)."""
+        return [_snake(s) for m in (self.STATUS, self.COUNTERS) for s in self._codecs[m]]
+
+    def encode_status(self, counters: Mapping[str, Any] | Any, *, timestamp: float | None = None) -> list[can.Message]:
+        """EstimatorStatus + EstimatorCounters.
+
+        ``counters`` is a mapping or an object (e.g. a dataclass) with the keys
+        of :meth:`status_keys`: ``uptime_s, samples, decode_errors, rejections,
+        stale_cells, time_jumps, backward_frames, estimator_state`` (the state
+        may be a number or a value-table name such as ``"Running"``). Missing
+        keys encode as 0 (counters saturate at their maximum).
+        """
+        out: list[can.Message] = []
+        for mname in (self.STATUS, self.COUNTERS):
+            raws: dict[str, int] = {}
+            try:
+                for sname, codec in self._codecs[mname].items():
+                    key = _snake(sname)
+                    if isinstance(counters, Mapping):
+                        value = counters.get(key, counters.get(sname, 0))
+                    else:
+                        value = getattr(counters, key, getattr(counters, sname, 0))
+                    if isinstance(value, str) and value in codec.choices_by_name:
+                        raws[sname] = codec.choices_by_name[value]
+                        continue
+                    raws[sname] = int(codec.raw(_to_float(value)))
+            except Exception:  # pragma: no cover - defensive
+                self.encode_failures += 1
+                log.exception("can.encode_status.failed", message=mname)
+                continue
+            frame = self._frame(mname, raws, timestamp)
+            if frame is not None:
+                out.append(frame)
+        return out

@@ -1,0 +1,85 @@
+#!/usr/bin/env python3
+"""The README's results table: the paper's Section IV-A and Fig. 10 on the measured cells.
+
+For each cell at 25 degC: train on one drive cycle, validate on another (every pair
+listed below), stating only the nominal capacity; CT (LIF) and DT (ARX) simulation
+RMSE in the 20-90 % SOC window, and SOC from a 20 % initial error on the validation
+file. Prints Markdown; with --readme it replaces the block between the markers in
+README.md. Needs ../shared/data (or BMS_SHARED_DATA).
+
+    python scripts/paper_table.py --readme
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from bms_estimator.analysis import compare_methods, reference_capacity, reference_soc, run_soc, soc_errors
+from bms_estimator.core.ocv import OcvCurve
+from bms_estimator.data import load_recording, shared_data_dir
+
+PAIRS = [
+    ("panasonic-18650pf", 2.9, "cycle_1", "cycle_2"),
+    ("panasonic-18650pf", 2.9, "la92", "us06"),
+    ("panasonic-18650pf", 2.9, "hwfet_a", "nn"),
+    ("lg-hg2", 3.0, "udds", "la92"),
+    ("lg-hg2", 3.0, "mixed1", "us06"),
+    ("lg-hg2", 3.0, "mixed3", "mixed4"),
+]
+ROOT = Path(__file__).resolve().parents[1]
+BEGIN, END = "<!-- paper-table:begin -->", "<!-- paper-table:end -->"
+
+
+def one(job):
+    cell, q, train, val = job
+    data = shared_data_dir()
+    c20 = load_recording(data / cell / "25degC" / "c20_ocv.csv.gz", resample_s=None)
+    ocv = OcvCurve.from_c20(c20.time_s, c20.current_a, c20.voltage_v)
+    tr = load_recording(data / cell / "25degC" / f"{train}.csv.gz")
+    va = load_recording(data / cell / "25degC" / f"{val}.csv.gz")
+    m = compare_methods((tr.current_a, tr.voltage_v), (va.current_a, va.voltage_v), ocv, q).metrics
+    q_ref, _ = reference_capacity(va.current_a, va.voltage_v, va.dt_s, ocv, q)
+    s = run_soc(va.current_a, va.voltage_v, ocv, q, 0.8)
+    e = soc_errors(s.soc, reference_soc(va.current_a, va.dt_s, q_ref), va.time_s)
+    return job, m, e, float(s.capacity_ah[-1]), q_ref
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--readme", action="store_true", help="write the table into README.md")
+    args = ap.parse_args()
+    if shared_data_dir() is None:
+        print("../shared/data not found (set BMS_SHARED_DATA)", file=sys.stderr)
+        return 2
+    with ProcessPoolExecutor(2) as pool:
+        rows = list(pool.map(one, PAIRS))
+    lines = [
+        "| cell | train -> validate | CT sim train / val [mV] | DT sim train / val [mV] | CT OSA val [mV] | DT OSA val [mV] | capacity est. [Ah] | SOC RMSE all / after 1 h [%] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for (cell, q, train, val), m, e, q_est, q_ref in rows:
+        lif, arx = m["train"]["lif"], m["train"]["arx"]
+        vl, va = m["validate"]["lif"], m["validate"]["arx"]
+        lines.append(
+            f"| {cell} | {train} -> {val} | {lif['sim_rmse_mv']:.1f} / **{vl['sim_rmse_mv']:.1f}** | "
+            f"{arx['sim_rmse_mv']:.1f} / **{va['sim_rmse_mv']:.1f}** | {vl['osa_rmse_mv']:.1f} | {va['osa_rmse_mv']:.1f} | "
+            f"{m['capacity_ah_estimated']:.3f} (stated {q}) | {e['soc_rmse_pct']:.2f} / {e['soc_rmse_pct_after_3600s']:.2f} |"
+        )
+    lines.append("| paper (NCA 18650, 25 degC, simulation) | | 21.6 / 17.3 | 36.3 / 53.8 | | | | 2.3 |")
+    table = "\n".join(lines)
+    print(table)
+    if args.readme:
+        readme = ROOT / "README.md"
+        text = readme.read_text()
+        new = re.sub(f"{re.escape(BEGIN)}.*?{re.escape(END)}", f"{BEGIN}\n{table}\n{END}", text, flags=re.S)
+        readme.write_text(new)
+        print(f"updated {readme}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

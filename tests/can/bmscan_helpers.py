@@ -1,0 +1,59 @@
+"""Frame builders shared by the CAN tests (imported as a plain module: tests/can is on sys.path)."""
+
+from __future__ import annotations
+
+import can
+
+def frame(db, name: str, values: dict, t: float = 0.0, *, scaling: bool = True, strict: bool = True) -> can.Message:
+    """A python-can message made with cantools ``encode_message`` (by name)."""
+    m = db.get_message_by_name(name)
+    data = db.encode_message(name, values, scaling=scaling, strict=strict)
+    return can.Message(timestamp=t, arbitration_id=m.frame_id, is_extended_id=m.is_extended_frame, data=data)
+
+
+def fox_voltage_frame(db, mux: int, volts_mv: list[int], t: float = 0.0, invalid: tuple[int, ...] = ()) -> can.Message:
+    """foxBMS AFE_CellVoltages frame for cells 4*mux .. 4*mux+3 (values in mV)."""
+    values = {"AFE_CellVoltages_Mux": mux}
+    for j in range(4):
+        cell = 4 * mux + j
+        values[f"CellVoltage_{cell:03d}"] = volts_mv[j]
+        values[f"CellVoltage_{cell:03d}_invalidFlag"] = 1 if j in invalid else 0
+    return frame(db, "AFE_CellVoltages", values, t)
+
+
+def fox_current_frame(db, current_ma: int, t: float = 0.0, error: bool = False) -> can.Message:
+    return frame(
+        db,
+        "CS_IsabellenhuetteIvtString0Curr",
+        {
+            "IVT_ID_Result_I": 0,
+            "IVT_Result_I_System_Error": 0,
+            "IVT_Result_I_Measurement_Error": 1 if error else 0,
+            "IVT_Result_I_Channel_Error": 0,
+            "IVT_Result_I_OCS": 0,
+            "IVT_MsgCount_Result_I": 0,
+            "IVT_Result_I": current_ma,
+        },
+        t,
+    )
+
+
+def own_voltage_frame(db, base: int, volts: list[float], t: float = 0.0) -> can.Message:
+    values = {"CellIndexBase": base}
+    values.update({f"CellVoltage{j}": v for j, v in enumerate(volts)})
+    return frame(db, "CellVoltages", values, t)
+
+
+def own_current_frame(db, current_a: float, t: float = 0.0, voltage_v: float = 400.0, invalid: bool = False):
+    return frame(
+        db,
+        "PackMeasurement",
+        {
+            "PackCurrent": current_a,
+            "PackVoltage": voltage_v,
+            "MeasurementCounter": 0,
+            "CurrentInvalid": 1 if invalid else 0,
+            "VoltageInvalid": 0,
+        },
+        t,
+    )

@@ -1,0 +1,154 @@
+"""StateEncoder: clamping and NotAvailable policy, never an exception (hypothesis)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bms_estimator.can.dbc import load_project_db
+from bms_estimator.can.encoder import UNIT_FROM_SI, StateEncoder
+
+DB = load_project_db()  # module level: hypothesis prints its arguments, and a fixture DB is huge
+
+ENC = StateEncoder(DB)
+any_float = st.floats(allow_nan=True, allow_infinity=True, allow_subnormal=True)
+# SI value, column name, DBC signal, message, SI->signal factor beyond the unit (SOC fraction -> %)
+COLUMNS = [
+    ("soc", "Soc", "CellStateA", 100.0),
+    ("r0", "R0", "CellStateA", 1.0),
+    ("r1", "R1", "CellStateA", 1.0),
+    ("c1", "C1", "CellStateB", 1.0),
+    ("r2", "R2", "CellStateB", 1.0),
+    ("c2", "C2", "CellStateB", 1.0),
+    ("c0", "C0", "CellStateA", 1.0),
+]
+
+
+@pytest.fixture(scope="module")
+def project_db():
+    return DB
+
+
+@pytest.fixture(scope="module")
+def enc():
+    return StateEncoder(DB)
+
+
+def _expect(sig, si_value: float, extra: float):
+    """What the frame must carry for an SI input: ('na',) or the clamped physical value."""
+    if math.isnan(si_value):
+        return ("na",)
+    phys = si_value * extra * UNIT_FROM_SI[sig.unit or ""]
+    if math.isnan(phys):  # inf * 0 cannot happen (factors are non-zero) but be safe
+        return ("na",)
+    return ("value", min(max(phys, sig.minimum), sig.maximum))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    idx=st.lists(st.one_of(st.integers(-5, 2100), any_float), min_size=1, max_size=6),
+    values=st.lists(any_float, min_size=7, max_size=7),
+)
+def test_encode_cells_never_raises_and_clamps(idx, values):
+    project_db, enc = DB, ENC
+    msgs = enc.encode_cells(idx, *values)
+    usable = [i for i in idx if math.isfinite(i) and i == int(i) and 0 <= i <= 1999]
+    assert len(msgs) == 2 * len(usable)
+    for m in msgs:
+        assert len(m.data) == 8 and m.is_extended_id
+    msg_a = project_db.get_message_by_name("CellStateA")
+    msg_b = project_db.get_message_by_name("CellStateB")
+    for k, m in enumerate(msgs):
+        message = msg_a if k % 2 == 0 else msg_b
+        assert m.arbitration_id == message.frame_id
+        raw = project_db.decode_message(m.arbitration_id, m.data, decode_choices=False, scaling=False)
+        phys = project_db.decode_message(m.arbitration_id, m.data, decode_choices=False)
+        assert raw["CellIndex"] == int(usable[k // 2])
+        for (col, sname, mname, extra), v in zip(COLUMNS, values):
+            if mname != message.name:
+                continue
+            sig = message.get_signal_by_name(sname)
+            want = _expect(sig, v, extra)
+            na = [r for r, n in sig.choices.items() if str(n) == "NotAvailable"]
+            if want[0] == "na":
+                assert raw[sname] == na[0], (sname, v)
+            else:
+                assert raw[sname] != na[0]
+                tol = 1e-9 * max(1.0, abs(sig.maximum), abs(sig.minimum))
+                assert sig.minimum - tol <= phys[sname] <= sig.maximum + tol
+                assert abs(phys[sname] - want[1]) <= sig.scale / 2 + 1e-9 * max(1.0, abs(want[1])), (sname, v)
+
+
+def test_inf_clamps_to_the_limits(project_db, enc):
+    msgs = enc.encode_cells([0, 1], [math.inf, -math.inf], [math.inf, -math.inf], 0.0, [1e300, -1e300],
+                            0.0, 0.0, [math.inf, -math.inf])
+    d = [project_db.decode_message(m.arbitration_id, m.data) for m in msgs]
+    assert d[0]["Soc"] == pytest.approx(102.35) and d[2]["Soc"] == 0.0
+    assert d[0]["R0"] == pytest.approx(65.52) and d[2]["R0"] == 0.0
+    assert d[0]["C0"] == pytest.approx(655.32) and d[2]["C0"] == pytest.approx(-655.32)
+    assert d[1]["C1"] == pytest.approx(13106.8) and d[3]["C1"] == 0.0
+
+
+def test_scalars_broadcast_and_bad_shapes_become_not_available(project_db, enc):
+    msgs = enc.encode_cells(np.arange(3), 0.5, [1e-3, 2e-3], 0.0, None, "x", 1000.0, 0.0)
+    d = [project_db.decode_message(m.arbitration_id, m.data) for m in msgs]
+    assert [x["Soc"] for x in d[0::2]] == [50.0] * 3
+    assert all(x["R0"] == "NotAvailable" for x in d[0::2])  # 2 values for 3 cells
+    assert all(x["C1"] == "NotAvailable" and x["R2"] == "NotAvailable" for x in d[1::2])
+    assert enc.encode_cells([], 0.5, 0, 0, 0, 0, 0, 0) == []
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    soc=st.lists(any_float, max_size=6),
+    current=any_float,
+    voltage=any_float,
+    valid=st.one_of(st.none(), st.lists(st.booleans(), max_size=6)),
+)
+def test_pack_summary_never_raises(soc, current, voltage, valid):
+    project_db, enc = DB, ENC
+    msgs = enc.encode_pack_summary(soc, current, voltage, valid=valid)
+    assert len(msgs) == 2
+    s = project_db.decode_message(msgs[0].arbitration_id, msgs[0].data)
+    finite = [x for x in soc if not math.isnan(x)]
+    if valid is not None and len(valid) == len(soc):
+        finite = [x for x, ok in zip(soc, valid) if ok and not math.isnan(x)]
+    if not finite:
+        assert s["SocMin"] == "NotAvailable" and s["SocMinCell"] == "NotAvailable"
+    else:
+        assert s["SocMin"] != "NotAvailable"
+        assert 0 <= s["SocMin"] <= s["SocMax"] <= 102.35 + 1e-9
+
+
+@settings(max_examples=100, deadline=None)
+@given(counters=st.dictionaries(
+    st.sampled_from(["uptime_s", "samples", "decode_errors", "rejections", "stale_cells", "time_jumps",
+                     "backward_frames", "estimator_state", "unrelated"]),
+    st.one_of(any_float, st.integers(-10**20, 10**20), st.text(max_size=8), st.none()),
+))
+def test_status_never_raises(counters):
+    msgs = ENC.encode_status(counters)
+    assert len(msgs) == 2
+    for m in msgs:
+        DB.decode_message(m.arbitration_id, m.data)
+
+
+def test_status_from_a_dataclass(project_db, enc):
+    from dataclasses import dataclass
+
+    @dataclass
+    class C:
+        uptime_s: float = 12.7
+        samples: int = 12
+        decode_errors: int = 70_000
+        estimator_state: int = 1
+
+    d = {}
+    for m in enc.encode_status(C()):
+        d.update(project_db.decode_message(m.arbitration_id, m.data, decode_choices=False))
+    assert d["UptimeS"] == 13 and d["Samples"] == 12 and d["DecodeErrors"] == 65535 and d["EstimatorState"] == 1
+    assert d["Rejections"] == 0

@@ -1,0 +1,241 @@
+"""Configuration: TOML + BMS_ environment, strict keys, clear errors, secrets."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+from pydantic import BaseModel
+
+from bms_estimator.service.config import ConfigError, ServiceConfig, load_config
+from bms_estimator.service.logging import configure_logging, get_logger
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = REPO_ROOT / "deploy" / "config.example.toml"
+
+
+@pytest.fixture(autouse=True)
+def _clean_env(monkeypatch):
+    import os
+
+    for key in list(os.environ):
+        if key.upper().startswith("BMS_") or key == "STATE_DIRECTORY":
+            monkeypatch.delenv(key)
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "config.toml"
+    p.write_text(text)
+    return p
+
+
+def test_defaults_without_file():
+    cfg = load_config(None)
+    assert cfg.mqtt.port == 1883 and cfg.mqtt.qos == 1 and cfg.mqtt.base_topic == "bms"
+    assert cfg.health.host == "127.0.0.1"
+    assert cfg.estimator.sample_period_s == 1.0
+    assert cfg.state.path == Path("/var/lib/bms-estimator/state.npz")
+    assert cfg.logging.format == "auto"
+
+
+def test_state_path_follows_systemd_state_directory(monkeypatch, tmp_path):
+    monkeypatch.setenv("STATE_DIRECTORY", f"{tmp_path}/a:{tmp_path}/b")
+    assert load_config(None).state.path == tmp_path / "a" / "state.npz"
+
+
+def test_toml_and_env_override(tmp_path, monkeypatch):
+    path = write(
+        tmp_path,
+        """
+[pack]
+pack_id = "truck7"
+n_cells = 96
+capacity_ah = 280
+[can]
+channel = "can1"
+mapping = { current = { message = "PackI", signal = "I" } }
+[can.bus]
+reopen_max_s = 10.0
+[estimator.core]
+lif_window_s = 600
+[mqtt]
+host = "file-host"
+port = 1884
+username = "bms"
+password = "from-file"
+[mqtt.tls]
+enabled = false
+""",
+    )
+    monkeypatch.setenv("BMS_MQTT__HOST", "env-host")
+    monkeypatch.setenv("BMS_MQTT__TLS__ENABLED", "true")
+    monkeypatch.setenv("bms_mqtt__qos", "2")  # case-insensitive
+    monkeypatch.setenv("BMS_CAN__BITRATE", "250000")
+    cfg = load_config(path)
+    assert cfg.pack.pack_id == "truck7" and cfg.pack.n_cells == 96 and cfg.pack.capacity_ah == 280.0
+    assert cfg.mqtt.host == "env-host"  # env wins
+    assert cfg.mqtt.port == 1884  # file value kept (deep merge)
+    assert cfg.mqtt.username == "bms"
+    assert cfg.mqtt.tls.enabled is True
+    assert cfg.mqtt.qos == 2
+    assert cfg.can.channel == "can1"
+    assert cfg.can.mapping == {"current": {"message": "PackI", "signal": "I"}}
+    assert cfg.can.bus_kwargs() == {
+        "interface": "socketcan", "channel": "can1", "fd": False, "bitrate": 250000, "reopen_max_s": 10.0,
+    }
+    assert cfg.estimator.core == {"lif_window_s": 600}
+
+
+@pytest.mark.parametrize(
+    ("toml", "env", "expected"),
+    [
+        ("[mqtt]\nhostt = 'x'\n", {}, "mqtt.hostt: Extra inputs are not permitted"),
+        ("[mqtt.tls]\nca = 'x'\n", {}, "mqtt.tls.ca: Extra inputs are not permitted"),
+        ("[nonsense]\na = 1\n", {}, "nonsense: Extra inputs are not permitted"),
+        ("[health]\nhost = '127.0.0.1'\nprot = 1\n", {}, "health.prot: Extra inputs are not permitted"),
+        ("", {"BMS_MQTT__PROT": "1"}, "mqtt.prot: Extra inputs are not permitted"),
+        ("", {"BMS_MQTTT__PORT": "1"},
+         "BMS_MQTTT__PORT (environment): unknown setting; sections are can, estimator, health, "
+         "logging, mqtt, pack, state"),
+    ],
+)
+def test_unknown_keys_are_rejected_by_name(tmp_path, monkeypatch, toml, env, expected):
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    with pytest.raises(ConfigError) as exc:
+        load_config(write(tmp_path, toml))
+    assert expected in exc.value.problems
+    assert expected in str(exc.value)
+
+
+def test_bad_values_name_each_field_one_line_each(tmp_path):
+    path = write(
+        tmp_path,
+        """
+[pack]
+pack_id = "a/b"
+n_cells = 0
+[mqtt]
+port = "many"
+qos = 3
+reconnect_min_s = 5.0
+reconnect_max_s = 1.0
+[health]
+host = "0.0.0.0"
+[logging]
+format = "xml"
+""",
+    )
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    problems = exc.value.problems
+    fields = [p.split(":", 1)[0] for p in problems]
+    assert fields == [
+        "pack.pack_id",
+        "pack.n_cells",
+        "mqtt.port",
+        "mqtt.qos",
+        "mqtt.reconnect_max_s",
+        "health.host",
+        "logging.format",
+    ]
+    text = str(exc.value)
+    assert text.splitlines()[0].startswith("invalid configuration (")
+    assert len(text.splitlines()) == 1 + len(problems)
+    assert any(p.startswith("mqtt.port: Input should be a valid integer") for p in problems)
+    assert any("loopback" in p for p in problems)
+
+
+def test_env_value_type_error_names_field(monkeypatch):
+    monkeypatch.setenv("BMS_MQTT__PORT", "70000")
+    with pytest.raises(ConfigError) as exc:
+        load_config(None)
+    assert exc.value.problems == ["mqtt.port: Input should be less than or equal to 65535 (got '70000')"]
+
+
+def test_remote_health_needs_opt_in(monkeypatch):
+    monkeypatch.setenv("BMS_HEALTH__HOST", "0.0.0.0")
+    with pytest.raises(ConfigError):
+        load_config(None)
+    monkeypatch.setenv("BMS_HEALTH__ALLOW_REMOTE", "true")
+    assert load_config(None).health.host == "0.0.0.0"
+
+
+def test_toml_syntax_error_and_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="invalid TOML") as exc:
+        load_config(write(tmp_path, "[mqtt\nport = 1\n"))
+    assert "line 1" in str(exc.value)
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.toml")
+
+
+def test_secrets_never_in_redacted_dump_repr_or_logs(tmp_path, monkeypatch):
+    secret = "pa55-Very-Secret"
+    path = write(tmp_path, f"[mqtt]\nusername = 'bms'\npassword = '{secret}'\n")
+    cfg = load_config(path)
+    assert cfg.mqtt.password is not None and cfg.mqtt.password.get_secret_value() == secret
+    dump = cfg.redacted()
+    assert dump["mqtt"]["password"] == "**********"
+    assert secret not in json.dumps(dump)
+    assert secret not in repr(cfg) and secret not in str(cfg)
+
+    for fmt in ("json", "console"):
+        buf = io.StringIO()
+        configure_logging("DEBUG", fmt, stream=buf, env={})
+        log = get_logger("test")
+        log.info("config loaded", config=cfg.redacted())
+        log.info("config object", cfg=cfg, mqtt=cfg.mqtt)
+        try:
+            raise RuntimeError("boom")
+        except RuntimeError:
+            log.exception("with traceback")  # locals of this frame hold the secret
+        out = buf.getvalue()
+        assert "config loaded" in out and "**********" in out
+        assert secret not in out, fmt
+
+    # A bad password value is reported without echoing it.
+    path2 = write(tmp_path, "[mqtt]\nusername = 'u'\npassword = 12345678\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(path2)
+    assert "12345678" not in str(exc.value) and exc.value.problems[0].startswith("mqtt.password:")
+
+
+def _leaf_keys(model: type[BaseModel], prefix: str = "") -> list[tuple[str, str]]:
+    out = []
+    for name, field in model.model_fields.items():
+        ann = field.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            out += _leaf_keys(ann, f"{prefix}{name}.")
+        else:
+            out.append((prefix.rstrip("."), name))
+    return out
+
+
+def test_example_config_validates_and_documents_every_key(monkeypatch):
+    cfg = load_config(EXAMPLE)
+    assert isinstance(cfg, ServiceConfig)
+    assert cfg.model_dump() == ServiceConfig().model_dump()  # the example shows the defaults
+
+    text = EXAMPLE.read_text()
+    sections: dict[str, str] = {}
+    current = ""
+    for line in text.splitlines():
+        m = re.match(r"^\[([a-z_.]+)\]\s*$", line)
+        if m:
+            current = m.group(1)
+            continue
+        sections[current] = sections.get(current, "") + line + "\n"
+    missing = []
+    for section, key in _leaf_keys(ServiceConfig):
+        body = sections.get(section, "")
+        if (section, key) in {("estimator", "core"), ("can", "bus")} and f"{section}.{key}" in sections:
+            continue
+        if not re.search(rf"^#?\s*{re.escape(key)}\s*=", body, re.M):
+            missing.append(f"{section}.{key}")
+    assert missing == []
+    # and it is plain TOML
+    tomllib.loads(text)

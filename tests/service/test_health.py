@@ -1,0 +1,205 @@
+"""/healthz and /metrics over real HTTP on a free loopback port."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+
+import pytest
+from service_helpers import run_async
+
+from bms_estimator.service.config import HealthConfig
+from bms_estimator.service.health import HealthServer, Heartbeat, Metrics
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+async def http(port: int, raw: bytes, timeout: float = 5.0) -> tuple[int, dict[str, str], bytes]:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(raw)
+    await writer.drain()
+    data = await asyncio.wait_for(reader.read(), timeout)
+    writer.close()
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    status = int(lines[0].split()[1])
+    headers = {k.lower(): v.strip() for k, v in (line.split(":", 1) for line in lines[1:] if ":" in line)}
+    return status, headers, body
+
+
+def get(port: int, path: str):
+    return http(port, f"GET {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+
+
+def test_healthz_follows_heartbeat():
+    clock = FakeClock()
+    hb = Heartbeat(period_s=1.0, stale_after_periods=3.0, clock=clock)
+
+    async def main():
+        async with HealthServer(hb, Metrics(), "127.0.0.1", 0) as srv:
+            assert srv.port > 0
+            status, _, body = await get(srv.port, "/healthz")
+            assert status == 503 and b"no estimator tick" in body  # before the first tick
+
+            hb.beat()
+            clock.t += 2.9
+            status, headers, body = await get(srv.port, "/healthz")
+            assert (status, body) == (200, b"ok\n")
+            assert headers["content-length"] == "3" and headers["connection"] == "close"
+
+            clock.t += 0.2  # 3.1 s since the last tick > 3 periods
+            status, _, body = await get(srv.port, "/healthz?verbose=1")
+            assert status == 503 and b"stale" in body
+
+            hb.beat()
+            status, _, _ = await get(srv.port, "/healthz")
+            assert status == 200
+
+    run_async(main())
+
+
+def test_healthz_with_real_clock_and_stalled_loop():
+    hb = Heartbeat(period_s=0.1, stale_after_periods=3.0)  # stale after 0.3 s without a tick
+
+    async def main():
+        async with HealthServer(hb, Metrics(), "127.0.0.1", 0) as srv:
+            async def loop(ticks: int):
+                for _ in range(ticks):
+                    hb.beat()
+                    await asyncio.sleep(0.1)
+
+            ticking = asyncio.create_task(loop(6))
+            await asyncio.sleep(0.25)
+            assert (await get(srv.port, "/healthz"))[0] == 200
+            await ticking  # the loop "stalls": no more beats
+            await asyncio.sleep(0.5)
+            assert (await get(srv.port, "/healthz"))[0] == 503
+
+    run_async(main())
+
+
+SAMPLE_LINE = re.compile(r"^[a-zA-Z_:][a-zA-Z0-9_:]* (NaN|[+-]Inf|-?[0-9]+(\.[0-9]+)?([eE][+-]?[0-9]+)?)$")
+
+
+def parse_metrics(text: str) -> dict[str, float]:
+    values: dict[str, float] = {}
+    types: dict[str, str] = {}
+    for line in text.splitlines():
+        if line.startswith("# TYPE "):
+            _, _, name, kind = line.split()
+            types[name] = kind
+            continue
+        if line.startswith("#") or not line:
+            continue
+        assert SAMPLE_LINE.match(line), f"not 'name value': {line!r}"
+        name, value = line.split(" ")
+        assert name in types, f"{name} has no # TYPE"
+        values[name] = float(value)
+    return values
+
+
+def test_metrics_exposition():
+    hb = Heartbeat(1.0)
+    metrics = Metrics()
+    metrics.frames_decoded = 10
+    metrics.inc("frames_decoded", 5)
+    metrics.inc("decode_errors")
+    metrics.samples += 3
+    metrics.estimator_rejections = 2
+    metrics.mqtt_published = 42
+    metrics.mqtt_dropped = 7
+    metrics.set("loop_lag_seconds", 0.0125)
+    metrics.set("cells_stale", 3)
+    with pytest.raises(AttributeError):
+        metrics.set("no_such_metric", 1)
+
+    async def main():
+        async with HealthServer(hb, metrics, "127.0.0.1", 0) as srv:
+            status, headers, body = await get(srv.port, "/metrics")
+            assert status == 200
+            assert headers["content-type"].startswith("text/plain; version=0.0.4")
+            text = body.decode()
+            assert text.endswith("\n")
+            values = parse_metrics(text)
+            assert values["bms_frames_decoded_total"] == 15
+            assert values["bms_decode_errors_total"] == 1
+            assert values["bms_samples_total"] == 3
+            assert values["bms_estimator_rejections_total"] == 2
+            assert values["bms_mqtt_published_total"] == 42
+            assert values["bms_mqtt_dropped_total"] == 7
+            assert values["bms_loop_lag_seconds"] == 0.0125
+            assert values["bms_cells_stale"] == 3
+            assert values["bms_healthy"] == 0 and str(values["bms_heartbeat_age_seconds"]) == "nan"
+            assert "# TYPE bms_frames_decoded_total counter" in text
+            assert "# TYPE bms_loop_lag_seconds gauge" in text
+            assert "# HELP bms_mqtt_dropped_total " in text
+            hb.beat()
+            values = parse_metrics((await get(srv.port, "/metrics"))[2].decode())
+            assert values["bms_healthy"] == 1 and 0 <= values["bms_heartbeat_age_seconds"] < 1
+
+    run_async(main())
+
+
+def test_other_paths_methods_and_garbage():
+    hb = Heartbeat(1.0)
+    hb.beat()
+
+    async def main():
+        async with HealthServer(hb, Metrics(), "127.0.0.1", 0, request_timeout_s=0.5) as srv:
+            port = srv.port
+            assert (await get(port, "/"))[0] == 404
+            assert (await get(port, "/healthz/../etc/passwd"))[0] == 404
+            assert (await http(port, b"POST /healthz HTTP/1.1\r\nContent-Length: 0\r\n\r\n"))[0] == 405
+            status, headers, body = await http(port, b"HEAD /healthz HTTP/1.1\r\n\r\n")
+            assert status == 200 and body == b"" and headers["content-length"] == "3"
+            assert (await http(port, b"\x00\xff garbage\r\n\r\n"))[0] == 400
+            assert (await http(port, b"GET\r\n\r\n"))[0] == 400
+            assert (await http(port, b"GET /" + b"a" * 20000 + b" HTTP/1.1\r\n\r\n"))[0] == 400
+            assert (await http(port, b"GET /healthz HTTP/1.1\r\n" + b"X: y\r\n" * 200 + b"\r\n"))[0] == 400
+
+            # A client that connects and says nothing is dropped after the timeout...
+            r, w = await asyncio.open_connection("127.0.0.1", port)
+            assert await asyncio.wait_for(r.read(), 3) == b""
+            w.close()
+            # ...one that closes at once does no harm.
+            r, w = await asyncio.open_connection("127.0.0.1", port)
+            w.close()
+            # and the server still answers.
+            assert (await get(port, "/healthz"))[0] == 200
+
+    run_async(main())
+
+
+def test_from_config_and_run_task_is_cancellable():
+    cfg = HealthConfig(port=0)
+    hb = Heartbeat(1.0)
+
+    async def main():
+        srv = HealthServer.from_config(cfg, hb, Metrics())
+        task = asyncio.create_task(srv.run())
+        for _ in range(100):
+            if srv.port:
+                break
+            await asyncio.sleep(0.01)
+        port = srv.port
+        assert (await get(port, "/healthz"))[0] == 503
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        with pytest.raises(OSError):
+            await asyncio.open_connection("127.0.0.1", port)
+
+    run_async(main())
+
+
+def test_heartbeat_validation():
+    with pytest.raises(ValueError):
+        Heartbeat(0)
+    hb = Heartbeat(2.0, 3.0)
+    assert hb.max_age_s == 6.0 and hb.age_s() is None and not hb.is_fresh()

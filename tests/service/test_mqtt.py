@@ -1,0 +1,442 @@
+"""MqttPublisher against a real Mosquitto broker."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from service_helpers import (
+    Collector,
+    client_tls_context,
+    free_port,
+    make_tls_files,
+    retained,
+    run_async,
+    wait_until,
+)
+
+from bms_estimator.service.config import MqttConfig
+from bms_estimator.service.health import Metrics
+from bms_estimator.service.mqtt import MqttPublisher, pack_summary
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def mqtt_cfg(port: int, **kw) -> MqttConfig:
+    base = dict(
+        host="127.0.0.1",
+        port=port,
+        reconnect_min_s=0.05,
+        reconnect_max_s=0.2,
+        timeout_s=3.0,
+        keepalive=10,
+    )
+    base.update(kw)
+    return MqttConfig(**base)
+
+
+def cell_arrays(n: int, t: float) -> dict[str, np.ndarray]:
+    i = np.arange(n, dtype=float)
+    return {
+        "soc": 0.5 + 0.01 * i,
+        "r0_ohm": 0.001 * (1 + i),
+        "r1_ohm": np.full(n, 0.002),
+        "c1_f": np.full(n, 1000.0),
+        "r2_ohm": np.full(n, 0.003),
+        "c2_f": np.full(n, 20000.0),
+        "c0_v": np.full(n, t),  # lets a test tell submissions apart
+        "stale": np.arange(n) % 2 == 1,
+    }
+
+
+@contextlib.asynccontextmanager
+async def running(pub: MqttPublisher):
+    task = asyncio.create_task(pub.run())
+    try:
+        yield task
+    finally:
+        await pub.close(timeout_s=3.0)
+        assert task.done()
+        # run() ended by close(): no exception, no cancellation.
+        assert not task.cancelled()
+        assert task.exception() is None
+
+
+@pytest.mark.parametrize("qos", [0, 2])
+def test_states_arrive_as_json_with_availability(mosquitto, qos):
+    port = mosquitto.port
+    n = 3
+
+    async def main():
+        metrics = Metrics()
+        pub = MqttPublisher(mqtt_cfg(port, qos=qos, discovery=False), f"p{qos}", n, metrics=metrics)
+        async with Collector(port, ("bms/#",), qos=2) as col:
+            async with running(pub):
+                await wait_until(lambda: pub.connected, 5, "publisher connected")
+                arrays = cell_arrays(n, 1.0)
+                arrays["r0_ohm"][2] = math.nan
+                pub.submit_cells(12.5, arrays)
+                pub.submit_pack(pack_summary(12.5, arrays["soc"], -3.25, stale=arrays["stale"], samples=np.int64(7)))
+                await col.wait(
+                    lambda c: all(c.on(pub.cell_topic(i)) for i in range(n)) and c.on(pub.pack_topic),
+                    what="cell and pack states",
+                )
+                for i in range(n):
+                    (msg,) = col.on(f"bms/p{qos}/cell/{i}/state")
+                    assert msg.qos == qos
+                    assert not msg.retain
+                    st = json.loads(msg.payload)
+                    assert st["t_s"] == 12.5
+                    assert st["soc"] == pytest.approx(0.5 + 0.01 * i)
+                    assert st["r1_ohm"] == 0.002 and st["c1_f"] == 1000.0
+                    assert st["tau1_s"] == pytest.approx(2.0)  # derived R1*C1
+                    assert st["tau2_s"] == pytest.approx(60.0)
+                    assert st["c0_v"] == 1.0
+                    assert st["stale"] is (i % 2 == 1)
+                    assert set(st) >= {"soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v",
+                                       "tau1_s", "tau2_s", "stale", "t_s"}
+                assert json.loads(col.on(f"bms/p{qos}/cell/2/state")[0].payload)["r0_ohm"] is None  # NaN -> null
+                pack = json.loads(col.on(f"bms/p{qos}/pack/state")[0].payload)
+                assert pack["soc_min"] == pytest.approx(0.5) and pack["soc_max"] == pytest.approx(0.52)
+                assert pack["soc_mean"] == pytest.approx(0.51)
+                assert pack["current_a"] == -3.25 and pack["cells_stale"] == 1 and pack["samples"] == 7
+
+                online = await retained(port, f"bms/p{qos}/availability")
+                assert online is not None and online.payload == b"online" and online.retain
+                assert online.qos == qos
+
+            # close() published "offline" itself (retained) and disconnected cleanly.
+            offline = await retained(port, f"bms/p{qos}/availability")
+            assert offline is not None and offline.payload == b"offline"
+            assert col.payloads(f"bms/p{qos}/availability")[-1] == "offline"
+        c = pub.counters
+        assert c.connects == 1 and c.connect_failures == 0 and c.dropped == 0
+        assert c.published == n + 1 + 2  # states + pack + online + offline
+        assert metrics.mqtt_published == c.published and metrics.mqtt_connects == 1
+        assert metrics.mqtt_connected == 0
+
+    run_async(main())
+
+
+def test_home_assistant_discovery_retained_and_resent(mosquitto):
+    port = mosquitto.port
+    n = 2
+    n_configs = 5 + 2 * n  # pack: soc min/mean/max, current, stale cells; per cell: soc, r0
+
+    async def main():
+        pub = MqttPublisher(mqtt_cfg(port, qos=1), "hapack", n)
+        async with running(pub):
+            await wait_until(lambda: pub.counters.published >= 1 + n_configs, 5, "discovery published")
+            async with Collector(port, ("homeassistant/sensor/#",), qos=1) as col:
+                await col.wait(lambda c: len(c.messages) >= n_configs, what="retained discovery")
+                assert all(m.retain for m in col.messages)
+                configs = {m.topic.value: json.loads(m.payload) for m in col.messages}
+                assert len(configs) == n_configs
+                soc = configs["homeassistant/sensor/bms_hapack_cell1_soc/config"]
+                assert soc["state_topic"] == "bms/hapack/cell/1/state"
+                assert soc["availability_topic"] == "bms/hapack/availability"
+                assert soc["unique_id"] == "bms_hapack_cell1_soc"
+                assert soc["unit_of_measurement"] == "%" and soc["device_class"] == "battery"
+                assert "value_json.soc" in soc["value_template"]
+                assert soc["device"]["identifiers"] == ["bms_estimator_hapack"]
+                r0 = configs["homeassistant/sensor/bms_hapack_cell0_r0/config"]
+                assert "value_json.r0_ohm" in r0["value_template"] and r0["unit_of_measurement"] == "mΩ"
+                cur = configs["homeassistant/sensor/bms_hapack_pack_current/config"]
+                assert cur["state_topic"] == "bms/hapack/pack/state" and cur["device_class"] == "current"
+                assert {c["device"]["identifiers"][0] for c in configs.values()} == {"bms_estimator_hapack"}
+
+                # Home Assistant restarts: every config is sent again (live, not retained copies).
+                col.messages.clear()
+                await col.client.publish("homeassistant/status", "offline", qos=1)
+                await asyncio.sleep(0.3)
+                assert col.messages == []  # "offline" triggers nothing
+                await col.client.publish("homeassistant/status", "online", qos=1)
+                await col.wait(lambda c: len(c.messages) >= n_configs, what="discovery re-sent")
+                assert {m.topic.value for m in col.messages} == set(configs)
+                assert not any(m.retain for m in col.messages)  # fresh publishes to a live subscriber
+
+    run_async(main())
+
+
+def test_last_will_when_publisher_process_is_killed(mosquitto, tmp_path):
+    port = mosquitto.port
+    script = f"""
+import asyncio, sys
+sys.path.insert(0, {str(REPO_ROOT)!r})
+from bms_estimator.service.config import MqttConfig
+from bms_estimator.service.mqtt import MqttPublisher
+
+async def main():
+    cfg = MqttConfig(host="127.0.0.1", port={port}, discovery=False, qos=1, keepalive=30)
+    pub = MqttPublisher(cfg, "willpack", 2)
+    task = asyncio.create_task(pub.run())
+    while not pub.connected:
+        await asyncio.sleep(0.01)
+    print("connected", flush=True)
+    await task
+
+asyncio.run(main())
+"""
+    errlog = tmp_path / "publisher.stderr"
+    with errlog.open("wb") as err:
+        proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=err)
+    try:
+        assert proc.stdout is not None
+        # Wait (bounded) for the "connected" line; log lines may come first.
+        deadline = time.monotonic() + 15
+        seen = b""
+        while b"connected\n" not in seen.replace(b"mqtt connected", b""):
+            remaining = deadline - time.monotonic()
+            ready, _, _ = select.select([proc.stdout], [], [], max(0.0, remaining))
+            chunk = os.read(proc.stdout.fileno(), 4096) if ready else b""
+            if not chunk:
+                raise AssertionError(
+                    f"publisher subprocess not connected: {seen!r} {errlog.read_text(errors='replace')}"
+                )
+            seen += chunk
+
+        async def main():
+            async with Collector(port, ("bms/willpack/availability",), qos=1) as col:
+                await col.wait(lambda c: c.payloads("bms/willpack/availability") == ["online"], what="online")
+                os.kill(proc.pid, signal.SIGKILL)  # no chance to publish or DISCONNECT
+                proc.wait(timeout=5)
+                await col.wait(lambda c: c.payloads("bms/willpack/availability")[-1:] == ["offline"],
+                               what="last will")
+            msg = await retained(port, "bms/willpack/availability")
+            assert msg is not None and msg.payload == b"offline" and msg.retain
+
+        run_async(main())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=5)
+        if proc.stdout:
+            proc.stdout.close()
+
+
+def test_cancel_publishes_offline_best_effort(mosquitto):
+    port = mosquitto.port
+
+    async def main():
+        pub = MqttPublisher(mqtt_cfg(port, discovery=False), "cancelpack", 1)
+        task = asyncio.create_task(pub.run())
+        await wait_until(lambda: pub.connected, 5, "connected")
+        task.cancel()
+        done, _ = await asyncio.wait({task}, timeout=5)
+        assert done and task.cancelled()  # the cancellation is not swallowed
+        msg = await retained(port, "bms/cancelpack/availability")
+        assert msg is not None and msg.payload == b"offline"
+
+    run_async(main())
+
+
+def test_username_password(broker_factory, mosquitto_passwd, tmp_path):
+    pwfile = tmp_path / "passwd"
+    subprocess.run([mosquitto_passwd, "-b", "-c", str(pwfile), "bms", "s3cret-pw"], check=True,
+                   capture_output=True, timeout=30)
+    broker = broker_factory(f"password_file {pwfile}\n", anonymous=False)
+    port = broker.port
+
+    async def main():
+        bad = MqttPublisher(mqtt_cfg(port, username="bms", password="wrong", discovery=False), "authpack", 1)
+        async with running(bad):
+            await wait_until(lambda: bad.counters.connect_failures >= 2, 5, "rejected connects")
+            assert bad.counters.connects == 0 and not bad.connected
+
+        good = MqttPublisher(mqtt_cfg(port, username="bms", password="s3cret-pw", discovery=False), "authpack", 1)
+        async with Collector(port, ("bms/#",), username="bms", password="s3cret-pw") as col:
+            async with running(good):
+                await wait_until(lambda: good.connected, 5, "connected with password")
+                good.submit_cells(1.0, {"soc": [0.7]})
+                await col.wait(lambda c: c.on("bms/authpack/cell/0/state"), what="state")
+            assert json.loads(col.on("bms/authpack/cell/0/state")[0].payload)["soc"] == 0.7
+        assert good.counters.connect_failures == 0
+
+    run_async(main())
+
+
+def test_tls(broker_factory, tmp_path):
+    files = make_tls_files(tmp_path / "tls")
+    if files is None:
+        pytest.skip("cannot generate a test certificate: neither the cryptography package nor openssl exists")
+    broker = broker_factory(
+        f"cafile {files['ca']}\ncertfile {files['cert']}\nkeyfile {files['key']}\n"
+    )
+    port = broker.port
+
+    async def main():
+        # Without the test CA the server certificate is not trusted.
+        untrusted = MqttPublisher(mqtt_cfg(port, tls={"enabled": True}, discovery=False), "tlspack", 1)
+        async with running(untrusted):
+            await wait_until(lambda: untrusted.counters.connect_failures >= 1, 5, "TLS verify failure")
+            assert untrusted.counters.connects == 0
+
+        pub = MqttPublisher(
+            mqtt_cfg(port, tls={"enabled": True, "ca_file": str(files["ca"])}, discovery=False), "tlspack", 1
+        )
+        async with Collector(port, ("bms/#",), tls_context=client_tls_context(files["ca"])) as col:
+            async with running(pub):
+                await wait_until(lambda: pub.connected, 5, "TLS connected")
+                pub.submit_cells(2.0, {"soc": [0.25]})
+                await col.wait(lambda c: c.on("bms/tlspack/cell/0/state"), what="state over TLS")
+        assert json.loads(col.on("bms/tlspack/cell/0/state")[0].payload)["soc"] == 0.25
+
+    run_async(main())
+
+
+def test_broker_down_at_start_then_up_delivers_newest(broker_factory):
+    # A persistent subscriber session (restored by the broker's persistence
+    # across its restart) receives what is published while it is offline,
+    # so nothing depends on who reconnects first.
+    broker = broker_factory(persistence=True)
+    port = broker.port
+    n = 3
+    sub_kw = dict(identifier="down-start-collector", clean_session=False)
+
+    async def main():
+        async with Collector(port, ("bms/dstart/cell/#",), qos=1, **sub_kw):
+            pass
+        broker.stop()
+
+        pub = MqttPublisher(mqtt_cfg(port, qos=1, discovery=False), "dstart", n)
+        async with running(pub):
+            await wait_until(lambda: pub.counters.connect_failures >= 2, 5, "failed connects")
+            for t in (1.0, 2.0, 3.0):
+                pub.submit_cells(t, cell_arrays(n, t))  # must neither raise nor block
+            assert pub.buffered == n
+            assert pub.counters.dropped == 2 * n  # two older states per cell superseded
+            assert not pub.connected
+
+            broker.start()
+            await wait_until(lambda: pub.connected and pub.buffered == 0, 10, "reconnect and flush")
+            await wait_until(lambda: pub.counters.published >= 1 + n, 5, "states published")
+            assert pub.counters.connects == 1
+
+        async with Collector(port, ("bms/dstart/cell/#",), qos=1, **sub_kw) as col:
+            await col.wait(lambda c: len(c.messages) >= n, what="queued states")
+            await asyncio.sleep(0.2)
+            by_cell = {m.topic.value: json.loads(m.payload) for m in col.messages}
+            assert len(col.messages) == n  # only the newest state per cell
+            assert {s["t_s"] for s in by_cell.values()} == {3.0}
+            assert {s["c0_v"] for s in by_cell.values()} == {3.0}
+
+    run_async(main(), timeout=40)
+
+
+def test_broker_down_mid_run_and_back(broker_factory):
+    broker = broker_factory()
+    port = broker.port
+    n = 2
+
+    async def main():
+        metrics = Metrics()
+        pub = MqttPublisher(mqtt_cfg(port, qos=1, discovery=False), "midrun", n, metrics=metrics)
+        clock = {"t": 0.0}
+
+        async def ticker():
+            while True:
+                clock["t"] += 1.0
+                pub.submit_cells(clock["t"], cell_arrays(n, clock["t"]))
+                await asyncio.sleep(0.02)
+
+        async with running(pub) as task:
+            tick = asyncio.create_task(ticker())
+            try:
+                async with Collector(port, ("bms/midrun/#",), qos=1) as col:
+                    await col.wait(lambda c: len(c.on("bms/midrun/cell/1/state")) >= 3, what="live states")
+                broker.stop()
+                await wait_until(lambda: not pub.connected, 5, "disconnect noticed")
+                dropped_before = pub.counters.dropped
+                await wait_until(lambda: pub.counters.connect_failures >= 2, 5, "failed reconnects")
+                await asyncio.sleep(0.2)
+                assert not task.done()  # no exception escaped run()
+                assert pub.counters.dropped > dropped_before  # states superseded while down
+                assert pub.buffered <= n
+                assert pub.counters.disconnects == 1
+
+                t_restart = clock["t"]
+                broker.start()
+                await wait_until(lambda: pub.counters.connects == 2, 10, "reconnected")
+                async with Collector(port, ("bms/midrun/#",), qos=1) as col:
+                    await col.wait(
+                        lambda c: any(json.loads(m.payload)["t_s"] > t_restart
+                                      for m in c.on("bms/midrun/cell/0/state")),
+                        what="fresh states after reconnect",
+                    )
+                    assert col.payloads("bms/midrun/availability") == ["online"]  # retained, re-published
+            finally:
+                tick.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await tick
+        assert metrics.mqtt_connect_failures == pub.counters.connect_failures >= 2
+        assert metrics.mqtt_dropped == pub.counters.dropped
+
+    run_async(main(), timeout=40)
+
+
+def test_backoff_grows_and_is_bounded():
+    # Broker absent: count attempts over a fixed window with min=0.05, max=0.2.
+    port = free_port()
+
+    async def main():
+        pub = MqttPublisher(mqtt_cfg(port, reconnect_min_s=0.05, reconnect_max_s=0.2), "bo", 1)
+        delays = [pub._backoff(k) for k in range(1, 12)]
+        assert all(0.05 <= d <= 0.2 for d in delays)
+        assert max(delays[:1]) <= 0.05 + 1e-9 and min(delays[6:]) >= 0.1  # grows to max, jittered
+        t0 = time.monotonic()
+        async with running(pub):
+            await asyncio.sleep(1.0)
+        elapsed = time.monotonic() - t0
+        # Without back-off a refused localhost connect loops thousands of times a second;
+        # with it: at most 1.0/0.05 + 1 attempts, and at least 1.0/0.2 - 1.
+        assert 3 <= pub.counters.connect_failures <= 21
+        assert elapsed < 2.0  # close() returned promptly while disconnected
+
+    run_async(main())
+
+
+def test_buffer_is_bounded_and_submit_never_raises():
+    cfg = mqtt_cfg(free_port(), buffer_max=5)
+    pub = MqttPublisher(cfg, "buf", 10)  # never run: everything stays buffered
+    pub.submit_cells(1.0, {"soc": np.linspace(0, 1, 10)})
+    assert pub.buffered == 5 and pub.counters.dropped == 5  # 5 oldest cells evicted
+    pub.submit_cells(2.0, {"soc": np.linspace(0, 1, 10)})
+    assert pub.buffered == 5 and pub.counters.dropped == 15
+    pub.submit_pack({"soc_mean": np.float32(0.5), "x": math.inf, "arr": np.array([1.0, math.nan])})
+    assert pub.buffered == 5 and pub.counters.dropped == 16
+    items = {t: p for t, p, _ in pub._buffer.pop_all()}
+    assert set(items) == {f"bms/buf/cell/{i}/state" for i in (6, 7, 8, 9)} | {"bms/buf/pack/state"}
+    assert json.loads(items["bms/buf/cell/9/state"])["t_s"] == 2.0  # newest kept
+    # numpy scalars converted, non-finite -> null (strict JSON)
+    assert json.loads(items["bms/buf/pack/state"]) == {"soc_mean": 0.5, "x": None, "arr": [1.0, None]}
+
+    # Bad input is counted and logged, never raised, and queues nothing.
+    pub.submit_cells(3.0, {"soc": [0.1, 0.2]})  # wrong length
+    pub.submit_cells(3.0, {"soc": object()})  # not numeric
+    pub.submit_cells(3.0, None)  # type: ignore[arg-type]
+    pub.submit_pack(None)  # type: ignore[arg-type]
+    assert pub.counters.submit_errors == 4
+    assert pub.buffered == 0
+
+
+def test_disabled_publisher_is_inert():
+    pub = MqttPublisher(mqtt_cfg(free_port(), enabled=False), "off", 2)
+    pub.submit_cells(1.0, {"soc": [0.1, 0.2]})
+    assert pub.buffered == 0
+
+    async def main():
+        await asyncio.wait_for(pub.run(), 1.0)  # returns at once
+        await pub.close()
+
+    run_async(main())

@@ -1,0 +1,105 @@
+"""The command line on the shipped measured samples and on bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bms_estimator.cli.__main__ import main
+from bms_estimator.core.ecm import EcmParams, simulate_ecm
+from bms_estimator.core.ocv import OcvCurve
+from bms_estimator.data import CellRecording, save_recording
+from bms_estimator.samples import drive_cycle, ocv_table
+
+PAN_OCV = str(ocv_table("panasonic-18650pf"))
+
+
+def _c20_file(path, ocv: OcvCurve, q=3.0, hyst=0.02):
+    """A synthetic C/20 test: discharge from full, 2 h rest, charge back, 60 s logging."""
+    i_c20 = q / 20
+    n = 20 * 60  # 20 h at 60 s per sample
+    current = np.concatenate([np.full(n, -i_c20), np.zeros(120), np.full(n, i_c20)])
+    soc = np.clip(1.0 + np.concatenate([[0], np.cumsum(current[:-1])]) * 60 / 3600 / q, 0, 1)
+    v = ocv.ocv(soc) + 0.03 * current + hyst * np.sign(current)
+    t = np.arange(len(current)) * 60.0
+    save_recording(CellRecording(t, current, v, None, "synthetic"), path)
+
+
+def test_ocv_command_writes_a_table_the_others_read(tmp_path, nmc_like_ocv, capsys):
+    src, out = tmp_path / "c20.csv", tmp_path / "ocv.csv"
+    _c20_file(src, nmc_like_ocv)
+    assert main(["ocv", str(src), "-o", str(out)]) == 0
+    curve = OcvCurve.from_csv(out)
+    s = np.linspace(0.1, 0.9, 9)
+    np.testing.assert_allclose(curve.ocv(s), nmc_like_ocv.ocv(s), atol=0.01)
+    assert np.all(curve.hysteresis(s) > 0.015)
+    assert "C/20 branch capacities" in capsys.readouterr().out
+
+
+def test_compare_json_has_the_papers_figures(tmp_path):
+    out = tmp_path / "cmp.json"
+    rc = main(["compare", "--train", str(drive_cycle("panasonic-18650pf", "cycle_1")),
+               "--validate", str(drive_cycle("panasonic-18650pf", "cycle_2")),
+               "--ocv", PAN_OCV, "--capacity-ah", "2.9", "--json", str(out), "--plots", str(tmp_path / "plots")])
+    assert rc == 0
+    m = json.loads(out.read_text())
+    for part in ("train", "validate"):
+        for method in ("lif", "arx"):
+            assert set(m[part][method]) >= {"sim_rmse_mv", "osa_rmse_mv"}
+            assert 0 < m[part][method]["osa_rmse_mv"] < m["full_range"][part][method]["sim_rmse_mv"] + 50
+    # the issue's bound on the paper's chemistry; measured 9.2 mV when written
+    assert m["validate"]["lif"]["sim_rmse_mv"] <= 25.0
+    assert 2.6 < m["capacity_ah_estimated"] < 3.0  # 2.9 stated, the cell has less
+    pngs = sorted(p.name for p in (tmp_path / "plots").iterdir())
+    assert pngs == ["osa_train.png", "osa_validate.png", "parameters_train.png",
+                    "simulation_train.png", "simulation_validate.png"]
+
+
+def test_soc_and_fit_json(tmp_path):
+    data = str(drive_cycle("lg-hg2", "la92"))
+    lg_ocv = str(ocv_table("lg-hg2"))
+    out = tmp_path / "soc.json"
+    assert main(["soc", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--initial-soc-error", "0.2",
+                 "--json", str(out), "--plot", str(tmp_path / "soc.png")]) == 0
+    s = json.loads(out.read_text())
+    assert set(s) >= {"soc_rmse_pct", "soc_rmse_pct_after_3600s", "soc_max_abs_error_pct_after_3600s", "capacity_ah_estimated"}
+    assert s["reference_capacity_source"] == "end-of-test rest (OCV)"  # LG files end with 600 s rest
+    assert s["soc_rmse_pct_after_3600s"] < s["soc_rmse_pct"] < 20
+    assert (tmp_path / "soc.png").stat().st_size > 10_000
+    out = tmp_path / "fit.json"
+    assert main(["fit", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--method", "arx", "--json", str(out)]) == 0
+    f = json.loads(out.read_text())
+    med = f["median_soc_20_90"]
+    assert 0.005 < med["r0_ohm"] < 0.1 and med["tau1_s"] < med["tau2_s"]
+    assert f["sim_rmse_mv"] > 0
+
+
+@pytest.mark.parametrize("content, message", [
+    ("time_s,current_a\n0,1\n1,2\n", "voltage_v"),
+    ("time_s,current_a,voltage_v\n0,1,3.7\n1,x,3.7\n", "line 3"),
+    ("time_s,current_a,voltage_v\n0,1,3.7\n", "row"),
+])
+def test_bad_data_gives_a_clear_error_and_exit_2(tmp_path, capsys, content, message):
+    bad = tmp_path / "bad.csv"
+    bad.write_text(content)
+    rc = main(["soc", str(bad), "--ocv", PAN_OCV, "--capacity-ah", "2.9"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "bad.csv" in err and message in err, err
+
+
+def test_bad_options_are_named(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["soc", "x.csv", "--ocv", PAN_OCV, "--capacity-ah", "-1"])
+    assert "--capacity-ah" in capsys.readouterr().err
+    rc = main(["soc", str(tmp_path / "missing.csv"), "--ocv", PAN_OCV, "--capacity-ah", "2.9"])
+    assert rc == 2 and "missing.csv" in capsys.readouterr().err
+    rc = main(["fit", str(drive_cycle("lg-hg2", "la92")), "--ocv", PAN_OCV, "--capacity-ah", "3", "--window", "0"])
+    assert rc == 2 and "--window" in capsys.readouterr().err
+
+
+def test_bench_prints_the_figures(capsys):
+    assert main(["bench", "--json", "--seconds", "0.3"]) == 0
+    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert figures["cell_updates_per_s"] > 0 and figures["tick_ms_200_cells"] > 0
