@@ -5,8 +5,10 @@ Used by ``fit``, ``compare``, ``soc`` and ``diagnose``; no file I/O here.
 How a recording is simulated (the paper's Section IV-A):
 
 * The SOC path of a file is coulomb counting from its start SOC (the data's drive
-  cycles start full) with the *effective* capacity, which the online SOC
-  estimator identifies on the training file from the stated (nominal) one.
+  cycles start full) with the *effective* capacity of the training file: measured
+  from its end-of-test rest when it ends at rest (net charge over the SOC
+  travelled), otherwise identified by the online SOC estimator from the stated
+  (nominal) one.
 * Identification runs online over the training file with ``v_o = v - OCV(soc)``.
 * Training simulation: the model is simulated with the online parameter
   trajectory (R0, RC pairs and c0 at each second), from rest.
@@ -259,8 +261,10 @@ def compare_methods(
     i_tr, v_tr = (np.asarray(x, dtype=float) for x in train)
     i_va, v_va = (np.asarray(x, dtype=float) for x in validate)
     # effective capacity from the training file, as the online SOC estimator finds it
-    soc_run = run_soc(i_tr, v_tr, ocv, capacity_ah, initial_soc, dt_s, config)
-    q_eff = float(soc_run.capacity_ah[-1])
+    q_eff, source = reference_capacity(i_tr, v_tr, dt_s, ocv, capacity_ah, initial_soc)
+    if source == "stated":
+        soc_run = run_soc(i_tr, v_tr, ocv, capacity_ah, initial_soc, dt_s, config)
+        q_eff, source = float(soc_run.capacity_ah[-1]), "online SOC estimator"
     soc_tr = reference_soc(i_tr, dt_s, q_eff, initial_soc)
     soc_va = reference_soc(i_va, dt_s, q_eff, initial_soc)
     res_tr = FileResult(names[0], soc_tr, v_tr)
@@ -285,6 +289,7 @@ def compare_methods(
             metrics["full_range"][key][method] = full
         metrics["train"][method]["rejections"] = runs[method].rejections
     metrics["capacity_ah_estimated"] = q_eff
+    metrics["capacity_source"] = source
     metrics["soc_window"] = list(soc_window)
     return Comparison(q_eff, metrics, res_tr, res_va, runs)
 

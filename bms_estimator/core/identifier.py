@@ -52,7 +52,7 @@ class IdentifierConfig:
     trace_max: float = 1e3  # covariance trace limit (scaled regressors)
     init_samples: int = 600  # block-LS initialisation window in samples
     tau_min_s: float = 1.0  # admissible fast time constant, lower bound
-    tau_max_s: float = 1500.0  # admissible slow time constant, upper bound (the runaway guard)
+    tau_max_s: float = 500.0  # admissible slow time constant, upper bound (the runaway guard)
     c0_max_v: float = 0.5  # admissible |c0|: an OCV bias beyond this is not an SOC error but a broken fit
     prior_r0_ohm_ah: float = 0.06
     prior_r1_ohm_ah: float = 0.03

@@ -407,17 +407,21 @@ SENDER = textwrap.dedent(
     db = load_project_db()
     bus = can.Bus(interface="udp_multicast", channel="239.74.163.2", port={port}, fd=False)
     n = {n}
-    start = time.time()
-    k = 0
-    while time.time() - start < 3.2:
+    sent = junk = 0
+    for k in range(320):  # a fixed count, not a time budget: a loaded machine sends the same frames
         bus.send(own_current_frame(db, -7.5, voltage_v=3.7 * n))
+        sent += 1
         if k % 10 == 0:
             for base in range(0, n, 3):
                 bus.send(own_voltage_frame(db, base, [3.5 + 0.01 * c for c in range(base, base + 3)]))
+                sent += 1
         bus.send(can.Message(arbitration_id=0x123, data=b"junk", is_extended_id=False))
-        k += 1
+        sent += 1
+        junk += 1
         time.sleep(0.01)
+    time.sleep(0.2)
     bus.send(can.Message(arbitration_id=0x7FF, data=b"STOP", is_extended_id=False))
+    print(sent, junk, flush=True)
     bus.shutdown()
     """
 )
@@ -469,7 +473,8 @@ def test_udp_multicast_between_two_processes(netns):
     assert rx.returncode == 0, err
     result = json.loads(out.strip().splitlines()[-1])
     assert "error" not in result, result
-    assert result["frames"] > 300
+    sent, junk = map(int, tx.stdout.split()[-2:])
+    assert result["frames"] >= 0.95 * sent, (result["frames"], sent)  # loopback multicast loses next to nothing
     samples = result["samples"]
     assert len(samples) >= 2
     for t_s, current, volts, valid in samples:
@@ -478,7 +483,7 @@ def test_udp_multicast_between_two_processes(netns):
             assert current == pytest.approx(-7.5)
             assert volts == pytest.approx([3.5 + 0.01 * c for c in range(n)], abs=1e-4)
     assert any(all(v) for *_, v in samples)
-    assert result["counters"]["unknown_id"] > 300  # the junk frames were counted, not fatal
+    assert result["counters"]["unknown_id"] >= 0.95 * junk  # the junk frames were counted, not fatal
     assert result["counters"]["errors"] == 0
 
 
