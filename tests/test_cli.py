@@ -103,3 +103,15 @@ def test_bench_prints_the_figures(capsys):
     assert main(["bench", "--json", "--seconds", "0.3"]) == 0
     figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert figures["cell_updates_per_s"] > 0 and figures["tick_ms_200_cells"] > 0
+
+
+def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
+    """LG HG2 udds -> la92 (shipped samples): CT validation simulation RMSE <= 25 mV (10.7 mV when written)."""
+    out = tmp_path / "cmp.json"
+    assert main(["compare", "--train", str(drive_cycle("lg-hg2", "udds")),
+                 "--validate", str(drive_cycle("lg-hg2", "la92")),
+                 "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0", "--json", str(out)]) == 0
+    m = json.loads(out.read_text())
+    assert m["validate"]["lif"]["sim_rmse_mv"] <= 25.0
+    assert m["capacity_source"] == "end-of-test rest (OCV)"
+    assert 2.6 < m["capacity_ah_estimated"] < 2.8

@@ -34,6 +34,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # diagnostics go to stderr, so that stdout stays the command's output (JSON, tables)
+    from ..service.logging import configure_logging
+
+    configure_logging(level="WARNING", fmt="console", stream=sys.stderr)
     try:
         return int(args.func(args) or 0)
     except (DataError, ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
