@@ -78,6 +78,12 @@ def reference_soc(current_a: np.ndarray, dt_s: float, capacity_ah: float, soc0: 
     return s + np.asarray(current_a) * (0.5 * dt_s / 3600.0) / capacity_ah
 
 
+def _record(traj: dict[str, np.ndarray], k: int, params: dict[str, np.ndarray]) -> None:
+    """Store cell 0's parameters at sample k of the trajectories."""
+    for key in PARAM_KEYS:
+        traj[key][k] = params[key][0]
+
+
 def run_identification(
     current_a: np.ndarray,
     voltage_v: np.ndarray,
@@ -99,16 +105,8 @@ def run_identification(
         i1[0] = current_a[k]
         v1[0] = v_o[k]
         ident.update(i1, v1)
-        p = ident.params
-        traj["r0_ohm"][k] = p.r0_ohm[0]
-        traj["r1_ohm"][k] = p.r1_ohm[0]
-        traj["c1_f"][k] = p.c1_f[0]
-        traj["r2_ohm"][k] = p.r2_ohm[0]
-        traj["c2_f"][k] = p.c2_f[0]
-        traj["c0_v"][k] = p.c0_v[0]
+        _record(traj, k, ident.params.as_dict())
         identified[k] = ident.identified[0]
-    traj["tau1_s"] = traj["r1_ohm"] * traj["c1_f"]
-    traj["tau2_s"] = traj["r2_ohm"] * traj["c2_f"]
     t = np.arange(n) * dt_s
     return IdentificationRun(t, np.asarray(soc), traj, identified, int(ident.rejections[0]), config.method)
 
@@ -134,8 +132,7 @@ def run_soc(
         est.update(current_a[k], v1)
         soc[k] = est.soc[0]
         cap[k] = est.capacity_ah[0]
-        for key, val in est.params.items():
-            traj[key][k] = val[0]
+        _record(traj, k, est.params)
     return SocRun(np.arange(n) * dt_s, soc, cap, traj, int(est.corrections[0]), int(est.identifier.rejections[0]))
 
 
