@@ -114,4 +114,4 @@ def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
     m = json.loads(out.read_text())
     assert m["validate"]["lif"]["sim_rmse_mv"] <= 25.0
     assert m["capacity_source"] == "end-of-test rest (OCV)"
-    assert 2.6 < m["capacity_ah_estimated"] < 2.8
+    assert 2.7 < m["capacity_ah_estimated"] < 2.9  # its C/20 discharge gives 2.78 Ah

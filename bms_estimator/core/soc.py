@@ -52,6 +52,9 @@ class SocConfig:
     capacity_bounds: tuple[float, float] = (0.6, 1.4)  # relative to the stated capacity
     capacity_max_rmse: float = 0.03  # max RMS residual (SOC) of the anchor line fit
     reanchor_min_soc: float = 0.005  # re-anchor SOC to the capacity line when they differ by more
+    hysteresis: bool = False  # one-state OCV hysteresis from the OCV table's hysteresis_v column
+    hysteresis_rate: float = 30.0  # 1/(SOC fraction): the state saturates after ~3/rate of throughput
+    hysteresis_max_v: float = 0.05  # cap on H(soc): the C/20 gap near empty is a charge-start transient
 
     def with_(self, **changes) -> "SocConfig":
         return replace(self, **changes)
@@ -108,6 +111,22 @@ class SocEstimator:
         self._q_min = np.full(self.n_cells, np.inf)
         self._q_max = np.full(self.n_cells, -np.inf)
         self.samples = 0
+        # hysteresis state in [-1, 1]: -1 on the discharge branch, +1 on the charge branch
+        self.hysteresis_state = np.full(self.n_cells, -1.0)
+
+    def _ocv(self, soc: np.ndarray) -> np.ndarray:
+        """The OCV the cell shows now: the mean curve plus the hysteresis state times H(soc)."""
+        v = self.ocv.ocv(soc)
+        if self.config.hysteresis:
+            h = np.minimum(self.ocv.hysteresis(soc), self.config.hysteresis_max_v)
+            v = v + self.hysteresis_state * h
+        return v
+
+    def _soc_from_ocv(self, ocv_v: np.ndarray, soc_guess: np.ndarray) -> np.ndarray:
+        if not self.config.hysteresis:
+            return self.ocv.soc_from_ocv(ocv_v)
+        h = np.minimum(self.ocv.hysteresis(soc_guess), self.config.hysteresis_max_v)
+        return self.ocv.soc_from_ocv(ocv_v - self.hysteresis_state * h)
 
     # ------------------------------------------------------------------
     def update(
@@ -135,10 +154,14 @@ class SocEstimator:
         # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
         self.soc = np.where(have_soc, np.clip(self.soc + dq / self.capacity_ah, 0.0, 1.0), self.soc)
         self.charge_ah += dq
+        if self.config.hysteresis:
+            # Plett's one-state model: dh/dq = -rate |dq| / Q (h - sign(i))
+            k = np.exp(-self.config.hysteresis_rate * np.abs(dq) / self.capacity_ah)
+            self.hysteresis_state = k * self.hysteresis_state + (1 - k) * np.sign(self._i_prev)
         self._i_prev = i_use
         # 2. overpotential at the middle of the period (the voltage is a period mean)
         soc_mid = self.soc + i_use * (0.5 * self.dt_s / 3600.0) / self.capacity_ah
-        ocv_v = self.ocv.ocv(np.where(have_soc, soc_mid, 0.5))
+        ocv_v = self._ocv(np.where(have_soc, soc_mid, 0.5))
         self.v_o = v - ocv_v
         use = ok & i_ok & have_soc
         # 3. identification
@@ -165,8 +188,8 @@ class SocEstimator:
         stable = full & (c0_std < cfg.c0_stable_v) & np.isfinite(c0_avg)
         if not stable.any():
             return
-        ocv_now = self.ocv.ocv(self.soc)
-        soc_ocv = self.ocv.soc_from_ocv(ocv_now + c0_avg)
+        ocv_now = self._ocv(self.soc)
+        soc_ocv = self._soc_from_ocv(ocv_now + c0_avg, self.soc)
         if cfg.estimate_capacity:
             self._capacity_anchor(stable, soc_ocv)
         slope = self.ocv.docv_dsoc(self.soc)
@@ -215,7 +238,7 @@ class SocEstimator:
         move = good & np.isfinite(s_line) & (np.abs(s_line - self.soc) > cfg.reanchor_min_soc)
         if move.any():
             target = np.clip(s_line, 0.0, 1.0)
-            dv = np.where(move, self.ocv.ocv(target) - self.ocv.ocv(self.soc), 0.0)
+            dv = np.where(move, self._ocv(target) - self._ocv(self.soc), 0.0)
             self.soc = np.where(move, target, self.soc)
             self.identifier.shift_bias(dv, move)
             self._c0_buf -= dv[:, None]
