@@ -30,6 +30,10 @@ PAIRS = [
     ("lg-hg2", 3.0, "mixed1", "us06"),
     ("lg-hg2", 3.0, "mixed3", "mixed4"),
 ]
+# The issue measured Panasonic's best coulomb-counting capacity on these drive cycles at
+# about 2.79 Ah; its files' own rests do not settle it (see README), so the SOC error is
+# also reported against it.
+ISSUE_CAPACITY = {"panasonic-18650pf": 2.79}
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- paper-table:begin -->", "<!-- paper-table:end -->"
 
@@ -45,7 +49,9 @@ def one(job):
     q_ref, _ = reference_capacity(va.current_a, va.voltage_v, va.dt_s, ocv, q)
     s = run_soc(va.current_a, va.voltage_v, ocv, q, 0.8)
     e = soc_errors(s.soc, reference_soc(va.current_a, va.dt_s, q_ref), va.time_s)
-    return job, m, e, float(s.capacity_ah[-1]), q_ref
+    alt = ISSUE_CAPACITY.get(cell)
+    e_alt = soc_errors(s.soc, reference_soc(va.current_a, va.dt_s, alt), va.time_s) if alt else None
+    return job, m, e, float(s.capacity_ah[-1]), q_ref, e_alt
 
 
 def main() -> int:
@@ -58,16 +64,18 @@ def main() -> int:
     with ProcessPoolExecutor(2) as pool:
         rows = list(pool.map(one, PAIRS))
     lines = [
-        "| cell | train -> validate | CT sim train / val [mV] | DT sim train / val [mV] | CT OSA val [mV] | DT OSA val [mV] | capacity est. [Ah] | SOC RMSE all / after 1 h [%] |",
+        "| cell | train -> validate | CT sim train / val [mV] | DT sim train / val [mV] | CT OSA val [mV] | DT OSA val [mV] | capacity est. [Ah] | SOC RMSE all / after 1 h [%] (reference capacity) |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for (cell, q, train, val), m, e, q_est, q_ref in rows:
+    for (cell, q, train, val), m, e, q_est, q_ref, e_alt in rows:
         lif, arx = m["train"]["lif"], m["train"]["arx"]
         vl, va = m["validate"]["lif"], m["validate"]["arx"]
         lines.append(
             f"| {cell} | {train} -> {val} | {lif['sim_rmse_mv']:.1f} / **{vl['sim_rmse_mv']:.1f}** | "
             f"{arx['sim_rmse_mv']:.1f} / **{va['sim_rmse_mv']:.1f}** | {vl['osa_rmse_mv']:.1f} | {va['osa_rmse_mv']:.1f} | "
-            f"{m['capacity_ah_estimated']:.3f} (stated {q}) | {e['soc_rmse_pct']:.2f} / {e['soc_rmse_pct_after_3600s']:.2f} |"
+            f"{m['capacity_ah_estimated']:.3f} (stated {q}) | {e['soc_rmse_pct']:.2f} / {e['soc_rmse_pct_after_3600s']:.2f} "
+            f"({q_ref:.2f} Ah)" + (f"; {e_alt['soc_rmse_pct']:.2f} / {e_alt['soc_rmse_pct_after_3600s']:.2f} "
+                                  f"({ISSUE_CAPACITY[cell]:.2f} Ah)" if e_alt else "") + " |"
         )
     lines.append("| paper (NCA 18650, 25 degC, simulation) | | 21.6 / 17.3 | 36.3 / 53.8 | | | | 2.3 |")
     table = "\n".join(lines)
