@@ -16,6 +16,10 @@ SUBCOMMANDS = {
     "soc": "soc",
     "bench": "bench",
     "demo": "demo",
+    "encode-log": "encode_log",
+    "replay": "replay",
+    "dashboard": "dashboard",
+    "run": "run",
 }
 
 
