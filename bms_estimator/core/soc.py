@@ -102,6 +102,8 @@ class SocEstimator:
         self._c0_buf = np.zeros((self.n_cells, self._w))
         self._c0_head = 0
         self._c0_count = np.zeros(self.n_cells, dtype=np.int64)
+        self._c0_sum = np.zeros(self.n_cells)  # running sums over the window (re-summed every window)
+        self._c0_sq = np.zeros(self.n_cells)
         self._i_prev = np.zeros(self.n_cells)
         self.charge_ah = np.zeros(self.n_cells)  # counted charge since start (positive = charged)
         self.corrections = np.zeros(self.n_cells, dtype=np.int64)
@@ -177,14 +179,22 @@ class SocEstimator:
         # guard has a constant c0 that would look perfectly 'stable'
         learn = use & ident.accepted
         h = self._c0_head
-        self._c0_buf[:, h] = np.where(learn, ident.c0_v, self._c0_buf[:, h])
+        old = self._c0_buf[:, h]
+        new = np.where(learn, ident.c0_v, old)
+        self._c0_buf[:, h] = new
         self._c0_head = (h + 1) % self._w
+        if self._c0_head == 0:  # exact re-sum once per window: no drift of the running sums
+            self._c0_sum = self._c0_buf.sum(axis=1)
+            self._c0_sq = np.einsum("nw,nw->n", self._c0_buf, self._c0_buf)
+        else:
+            self._c0_sum += new - old
+            self._c0_sq += new * new - old * old
         self._c0_count = np.where(learn, self._c0_count + 1, self._c0_count)
         full = self._c0_count >= self._w
         if not full.any():
             return
-        c0_avg = self._c0_buf.mean(axis=1)
-        c0_std = self._c0_buf.std(axis=1)
+        c0_avg = self._c0_sum / self._w
+        c0_std = np.sqrt(np.maximum(self._c0_sq / self._w - c0_avg * c0_avg, 0.0))
         stable = full & (c0_std < cfg.c0_stable_v) & np.isfinite(c0_avg)
         if not stable.any():
             return
@@ -198,8 +208,15 @@ class SocEstimator:
             self.soc = np.where(fire, np.clip(soc_ocv, 0.0, 1.0), self.soc)
             ident.shift_bias(c0_avg, fire)
             self._c0_count = np.where(fire, 0, self._c0_count)
-            self._c0_buf[fire] -= c0_avg[fire, None]
+            self._shift_c0_window(np.where(fire, c0_avg, 0.0))
             self.corrections += fire
+
+    def _shift_c0_window(self, d: np.ndarray) -> None:
+        """Subtract a per-cell constant from every c0 in the window (and its running sums)."""
+        w = self._w
+        self._c0_sq += -2.0 * d * self._c0_sum + w * d * d
+        self._c0_sum -= w * d
+        self._c0_buf -= d[:, None]
 
     def _capacity_anchor(self, sel: np.ndarray, soc_ocv: np.ndarray) -> None:
         cfg = self.config
@@ -241,7 +258,7 @@ class SocEstimator:
             dv = np.where(move, self._ocv(target) - self._ocv(self.soc), 0.0)
             self.soc = np.where(move, target, self.soc)
             self.identifier.shift_bias(dv, move)
-            self._c0_buf -= dv[:, None]
+            self._shift_c0_window(dv)
 
     # ------------------------------------------------------------------
     @property
@@ -250,7 +267,7 @@ class SocEstimator:
 
     @property
     def c0_avg_v(self) -> np.ndarray:
-        return np.where(self._c0_count > 0, self._c0_buf.mean(axis=1), np.nan)
+        return np.where(self._c0_count > 0, self._c0_sum / self._w, np.nan)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         s = {f"id.{k}": v for k, v in self.identifier.state_dict().items()}
@@ -286,6 +303,8 @@ class SocEstimator:
         self._c0_buf = np.asarray(s["c0_buf"], dtype=float).copy()
         self._c0_head = int(s["c0_head"])
         self._c0_count = np.asarray(s["c0_count"], dtype=np.int64).copy()
+        self._c0_sum = self._c0_buf.sum(axis=1)
+        self._c0_sq = np.einsum("nw,nw->n", self._c0_buf, self._c0_buf)
         self._i_prev = np.asarray(s["i_prev"], dtype=float).copy()
         self.charge_ah = np.asarray(s["charge_ah"], dtype=float).copy()
         self.corrections = np.asarray(s["corrections"], dtype=np.int64).copy()
