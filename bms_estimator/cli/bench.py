@@ -81,6 +81,14 @@ def run(args: argparse.Namespace) -> int:
         pass
     else:
         out["frames_per_s"] = float(bench_frames_per_s(n_cells=200))
+    try:
+        from ..service.bench import bench_publish_latency_ms_p99
+    except ImportError:
+        pass
+    else:
+        latency = bench_publish_latency_ms_p99(n_cells=200)
+        if latency is not None:  # None without a Mosquitto to measure through
+            out["publish_latency_ms_p99"] = float(latency)
     if args.json:
         print(json.dumps(out))
     else:

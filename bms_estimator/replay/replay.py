@@ -1,0 +1,364 @@
+"""Replay a CAN log onto a bus, paced by the log's own timestamps (``bms-estimator replay``).
+
+Pacing
+------
+Message ``m`` is sent when the wall clock reaches
+``t0_wall + (m.timestamp - t0_log) / speed`` (``t0_*`` = the first message), so the
+schedule never drifts however long the log is; a sender that falls behind (a slow
+bus, a high speed) sends at once until it has caught up. ``speed="max"`` (or
+``inf``) never sleeps. Logs: candump ``.log``, Vector ``.asc`` and ``.blf``
+(python-can's ``can.LogReader``; ``.gz`` variants too).
+
+Timestamps: what the receiver sees
+----------------------------------
+The estimator service builds its samples on FRAME time (``msg.timestamp``; see
+``bms_estimator.can.sampler``), so its results are identical at any replay speed
+exactly when the receiver sees the LOG's timestamps. The replayer always sends the
+log's message objects with ``timestamp`` = the log time; whether that reaches the
+receiver depends on the interface:
+
+``virtual`` (python-can, in one process)
+    The SENDING bus decides: ``VirtualBus(preserve_timestamps=True)`` hands every
+    receiver a copy with the sender's ``timestamp``, otherwise ``time.time()``.
+    :func:`open_replay_bus` opens the sender with ``preserve_timestamps=True``, so
+    any receiver on the channel (a plain ``can.Bus(interface="virtual", channel=C)``,
+    the service's ``ResilientBus``) gets the log time, at any speed.
+``udp_multicast`` (between processes)
+    The frame's timestamp travels in the datagram (msgpack), but python-can's
+    ``UdpMulticastBus`` REPLACES it by the socket's receive time. A receiver that
+    wants the log time opens :class:`LogTimeUdpMulticastBus` instead (same
+    arguments; it keeps the sender's timestamp) - for the service:
+    ``Service(cfg, bus_factory=open_bus_log_time)`` (or ``ResilientBus(cfg,
+    bus_factory=open_bus_log_time)``). Datagrams can be lost when the receiver
+    falls behind (socket buffers): prefer a finite speed.
+``socketcan`` (vcan/can)
+    The kernel stamps every frame on reception; the log time cannot be carried.
+    The service then sees the replay's pacing, so only ``--speed 1`` reproduces
+    the recording's timing (faster replays compress the service's time axis).
+
+The message's ``channel`` is cleared before sending (socketcan would otherwise
+send a frame logged on ``can1`` to the interface ``can1``).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+__all__ = [
+    "LOG_SUFFIXES",
+    "LogTimeUdpMulticastBus",
+    "ReplayStats",
+    "log_span",
+    "open_bus_log_time",
+    "open_replay_bus",
+    "parse_speed",
+    "read_log",
+    "replay_messages",
+]
+
+LOG_SUFFIXES = (".log", ".asc", ".blf")
+#: interfaces on which the receiver can see the log's timestamps (see the module docstring)
+LOG_TIME_INTERFACES = ("virtual", "udp_multicast")
+
+
+def parse_speed(text: str | float) -> float:
+    """``"max"``/``"inf"`` -> ``math.inf``; otherwise a positive finite factor (1 = real time)."""
+    if isinstance(text, str):
+        t = text.strip().lower()
+        if t in ("max", "inf", "infinity"):
+            return math.inf
+        try:
+            value = float(t.rstrip("x"))
+        except ValueError:
+            raise ValueError(f"speed {text!r}: give a positive factor (1 = real time) or 'max'") from None
+    else:
+        value = float(text)
+    if math.isnan(value) or value <= 0:
+        raise ValueError(f"speed {text!r} must be > 0 (or 'max')")
+    return value
+
+
+# ------------------------------------------------------------------- reading
+def _log_suffix(path: Path) -> str:
+    suffixes = [s.lower() for s in path.suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes = suffixes[:-1]
+    return suffixes[-1] if suffixes else ""
+
+
+def read_log(path: str | Path) -> Iterator[can.Message]:
+    """Messages of a candump ``.log``, ``.asc`` or ``.blf`` file (``can.LogReader``), lazily."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such log file")
+    if _log_suffix(path) not in LOG_SUFFIXES:
+        raise ValueError(f"{path}: replay reads {', '.join(LOG_SUFFIXES)} logs (by suffix)")
+    reader = can.LogReader(str(path))
+
+    def gen() -> Iterator[can.Message]:
+        try:
+            yield from reader
+        finally:
+            stop = getattr(reader, "stop", None)
+            if stop is not None:
+                stop()
+
+    return gen()
+
+
+def _tail_lines(path: Path, nbytes: int = 8192) -> list[str]:
+    with open(path, "rb") as fh:
+        fh.seek(0, 2)
+        size = fh.tell()
+        fh.seek(max(0, size - nbytes))
+        return fh.read().decode("utf-8", "replace").splitlines()
+
+
+def _head_lines(path: Path, nbytes: int = 8192) -> list[str]:
+    with open(path, "rb") as fh:
+        return fh.read(nbytes).decode("utf-8", "replace").splitlines()
+
+
+def log_span(path: str | Path) -> tuple[float, float] | None:
+    """``(first, last)`` message time of a log without reading it all, as ``read_log`` reports
+    them (an ASC file's times are relative to its start); ``None`` when unknown (``.gz``)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".log":
+            def ts(line: str) -> float | None:
+                line = line.strip()
+                if line.startswith("(") and ")" in line:
+                    try:
+                        return float(line[1 : line.index(")")])
+                    except ValueError:
+                        return None
+                return None
+
+            first = next((t for t in map(ts, _head_lines(path)) if t is not None), None)
+            last = next((t for t in map(ts, reversed(_tail_lines(path))) if t is not None), None)
+        elif suffix == ".asc":
+            def ts(line: str) -> float | None:
+                parts = line.split()
+                if len(parts) < 3 or not parts[1][:1].isdigit():  # "<time> <channel> <id> ..."
+                    return None
+                try:
+                    return float(parts[0])
+                except ValueError:
+                    return None
+
+            first = next((t for t in map(ts, _head_lines(path, 65536)) if t is not None), None)
+            last = next((t for t in map(ts, reversed(_tail_lines(path))) if t is not None), None)
+        elif suffix == ".blf":
+            from can.io.blf import BLFReader
+
+            reader = BLFReader(str(path))
+            try:
+                first, last = float(reader.start_timestamp), float(reader.stop_timestamp)
+            finally:
+                reader.stop()
+        else:
+            return None
+    except (OSError, ValueError, can.CanError, Exception):  # noqa: BLE001 - best effort (progress only)
+        return None
+    if first is None or last is None or not (math.isfinite(first) and math.isfinite(last)) or last <= first:
+        return None
+    return first, last
+
+
+# ------------------------------------------------------------------- buses
+def open_replay_bus(interface: str, channel: str | int | None = None, **kwargs: Any) -> can.BusABC:
+    """The sending bus: ``virtual`` with ``preserve_timestamps=True`` (receivers see the log
+    time); ``udp_multicast`` (default group when ``channel`` is None); ``socketcan`` and any
+    other python-can interface as given."""
+    kw: dict[str, Any] = {"interface": interface, "receive_own_messages": False}
+    if channel is not None:
+        kw["channel"] = channel
+    if interface == "virtual":
+        kw["preserve_timestamps"] = True
+    kw.update(kwargs)
+    return can.Bus(**kw)
+
+
+try:  # the multicast interface needs msgpack (python-can[multicast])
+    from can.interfaces.udp_multicast import UdpMulticastBus as _UdpMulticastBus
+    from can.interfaces.udp_multicast.utils import unpack_message as _unpack_message
+except ImportError:  # pragma: no cover
+    _UdpMulticastBus = None  # type: ignore[assignment,misc]
+
+
+if _UdpMulticastBus is not None:
+
+    class LogTimeUdpMulticastBus(_UdpMulticastBus):  # type: ignore[misc,valid-type]
+        """``udp_multicast`` receiver that keeps the SENDER's ``timestamp`` (the log time on a
+        replay) instead of the socket's receive time. Same arguments as ``UdpMulticastBus``, plus
+        ``receive_buffer_bytes`` (default 4 MiB; the kernel caps it at ``net.core.rmem_max``): a
+        replay sends bursts, and a datagram that does not fit the socket buffer is lost."""
+
+        def __init__(self, *args: Any, receive_buffer_bytes: int | None = 4 << 20, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            if receive_buffer_bytes:
+                import socket
+
+                sock = getattr(self._multicast, "_socket", None)
+                if sock is not None:
+                    try:
+                        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(receive_buffer_bytes))
+                    except OSError:  # pragma: no cover - best effort
+                        pass
+
+        def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+            result = self._multicast.recv(timeout)
+            if not result:
+                return None, False
+            data, _sender, rx_time = result
+            try:
+                msg = _unpack_message(data, check=True)
+            except Exception as exc:  # noqa: BLE001
+                raise can.CanOperationError("could not unpack received message") from exc
+            if msg.timestamp is None or not isinstance(msg.timestamp, (int, float)):
+                msg.timestamp = rx_time
+            if msg.is_fd and getattr(self, "_can_protocol", None) is not can.CanProtocol.CAN_FD:
+                return None, False
+            return msg, False
+
+else:  # pragma: no cover
+    LogTimeUdpMulticastBus = None  # type: ignore[assignment,misc]
+
+
+def open_bus_log_time(cfg: Any) -> can.BusABC:
+    """``bus_factory`` for :class:`bms_estimator.can.bus.ResilientBus` (``cfg``: its ``BusConfig``)
+    that receives with the log's timestamps where the interface can carry them: ``udp_multicast``
+    opens :class:`LogTimeUdpMulticastBus`; everything else is ``bms_estimator.can.bus.open_bus``
+    (``virtual`` already delivers the sender's timestamps when the sender preserves them)."""
+    from ..can.bus import open_bus
+
+    if cfg.interface != "udp_multicast":
+        return open_bus(cfg)
+    if LogTimeUdpMulticastBus is None:  # pragma: no cover
+        raise ImportError("udp_multicast needs msgpack: pip install 'python-can[multicast]'")
+    kw: dict[str, Any] = {"channel": cfg.channel, "receive_own_messages": cfg.receive_own_messages}
+    if cfg.fd:
+        kw["fd"] = True
+    if cfg.can_filters is not None:
+        kw["can_filters"] = cfg.can_filters
+    kw.update(cfg.options)
+    return LogTimeUdpMulticastBus(**kw)
+
+
+# ------------------------------------------------------------------- replay
+@dataclass
+class ReplayStats:
+    sent: int = 0
+    send_errors: int = 0  # frames dropped after retries (bus full/down)
+    first_log_s: float = math.nan
+    last_log_s: float = math.nan
+    wall_s: float = 0.0
+    speed: float = 1.0
+    stopped: bool = False  # ended by the stop event
+
+    @property
+    def log_duration_s(self) -> float:
+        d = self.last_log_s - self.first_log_s
+        return d if math.isfinite(d) else 0.0
+
+    @property
+    def effective_speed(self) -> float:
+        """Log seconds per wall second (``inf`` for an instantaneous replay)."""
+        if self.wall_s <= 0:
+            return math.inf
+        return self.log_duration_s / self.wall_s
+
+
+#: ``progress(sent, log_elapsed_s)``, called about every 0.1 s of wall time and at the end
+ProgressCallback = Callable[[int, float], None]
+
+
+def replay_messages(
+    messages: Iterable[can.Message],
+    bus: can.BusABC,
+    speed: float | str = 1.0,
+    progress: ProgressCallback | None = None,
+    *,
+    stop: threading.Event | None = None,
+    send_timeout: float | None = None,
+    send_retries: int = 50,
+    retry_sleep_s: float = 0.002,
+    clock: Callable[[], float] = time.perf_counter,
+) -> ReplayStats:
+    """Send ``messages`` on ``bus`` paced by their timestamps (module docstring); blocking.
+
+    Usable in-process (e.g. from a thread next to an asyncio service: ``await
+    asyncio.to_thread(replay_messages, msgs, bus, 50)``). The message objects are sent as
+    they are (their ``channel`` is set to None). ``send_timeout`` is passed to
+    ``bus.send`` (None = block, which gives flow control on a bounded virtual queue); a
+    ``can.CanError`` is retried ``send_retries`` times ``retry_sleep_s`` apart, then the
+    frame is counted in ``send_errors``. ``stop`` ends the replay early.
+    """
+    rate = parse_speed(speed)
+    paced = math.isfinite(rate)
+    stats = ReplayStats(speed=rate)
+    send = bus.send
+    next_report = 0.0
+    t0_log = t0_wall = None
+    start = clock()
+    last_t = math.nan
+    n = 0
+    for msg in messages:
+        t = msg.timestamp
+        if t0_log is None:
+            t0_log, t0_wall = t, clock()
+            stats.first_log_s = t
+            next_report = t0_wall + 0.1
+        if paced:
+            delay = t0_wall + (t - t0_log) / rate - clock()
+            if delay > 0:
+                if stop is not None:
+                    if stop.wait(delay):
+                        stats.stopped = True
+                        break
+                else:
+                    time.sleep(delay)
+        if msg.channel is not None:
+            msg.channel = None
+        try:
+            send(msg, send_timeout)
+        except can.CanError:
+            if not _retry(send, msg, send_timeout, send_retries, retry_sleep_s):
+                stats.send_errors += 1
+        n += 1
+        last_t = t
+        if not n & 0xFF:
+            if stop is not None and stop.is_set():
+                stats.stopped = True
+                break
+            if progress is not None:
+                now = clock()
+                if now >= next_report:
+                    next_report = now + 0.1
+                    progress(n, t - t0_log)
+    stats.sent = n - stats.send_errors
+    stats.last_log_s = last_t if n else math.nan
+    stats.wall_s = clock() - start
+    if progress is not None:
+        progress(n, (last_t - t0_log) if n and t0_log is not None else 0.0)
+    return stats
+
+
+def _retry(send: Callable, msg: can.Message, timeout: float | None, retries: int, pause: float) -> bool:
+    for _ in range(max(0, retries)):
+        time.sleep(pause)
+        try:
+            send(msg, timeout)
+            return True
+        except can.CanError:
+            continue
+    return False
