@@ -341,12 +341,17 @@ def load_config(path: Path | str | None = None) -> ServiceConfig:
     return cfg
 
 
+#: ``BMS_*`` variables that are not service settings: the offline tools' data location
+#: (``bms_estimator.data.shared_data_dir``) may be set in the same environment.
+NON_CONFIG_ENV = frozenset({"BMS_SHARED_DATA"})
+
+
 def _unknown_env_sections(environ: Mapping[str, str]) -> list[str]:
     """``BMS_*`` variables naming no section (pydantic-settings ignores those)."""
     sections = set(ServiceConfig.model_fields)
     bad = []
     for key in sorted(environ):
-        if not key.upper().startswith(ENV_PREFIX):
+        if not key.upper().startswith(ENV_PREFIX) or key.upper() in NON_CONFIG_ENV:
             continue
         section = key[len(ENV_PREFIX) :].split("__", 1)[0].lower()
         if section not in sections:

@@ -239,3 +239,16 @@ def test_example_config_validates_and_documents_every_key(monkeypatch):
     assert missing == []
     # and it is plain TOML
     tomllib.loads(text)
+
+
+
+def test_the_data_location_variable_is_not_a_config_error(tmp_path, monkeypatch):
+    """BMS_SHARED_DATA belongs to the offline tools; a service in the same environment still starts."""
+    from bms_estimator.service.config import load_config
+
+    monkeypatch.setenv("BMS_SHARED_DATA", str(tmp_path))
+    monkeypatch.setenv("BMS_PACK__N_CELLS", "4")
+    assert load_config(None).pack.n_cells == 4
+    monkeypatch.setenv("BMS_SHARDE_DATA", "typo")  # any other unknown BMS_ variable is still an error
+    with pytest.raises(Exception, match="BMS_SHARDE_DATA"):
+        load_config(None)
