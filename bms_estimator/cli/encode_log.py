@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-        bar = Progress(TextColumn("writing {task.description}"), BarColumn(), MofNCompleteColumn(),
+        bar = Progress(TextColumn("encode-log {task.description}"), BarColumn(), MofNCompleteColumn(),
                        TimeRemainingColumn(), console=Console(stderr=True), transient=True)
         task = bar.add_task(args.output.name, total=None)
 

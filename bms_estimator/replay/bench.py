@@ -20,6 +20,12 @@ estimated:
     the same pipeline without the service: a receiving ``VirtualBus``
     (bounded queue = flow control) read in the main thread, ``FrameDecoder``
     + ``SampleAssembler`` + ``SocEstimator.update``.
+``via="inline"``
+    no bus and no second thread: ``replay_messages`` hands every frame to a
+    sink whose ``send`` decodes, assembles and estimates at once (what an
+    in-process demo can do with ``Service.process_frame``; the results are the
+    same because everything runs on frame time). The upper bound of this
+    pipeline in CPython.
 
 Both run the replayer (:func:`~bms_estimator.replay.replay.replay_messages`) in a
 second thread that also makes the ``can.Message`` objects from the encoded arrays
@@ -27,7 +33,7 @@ second thread that also makes the ``can.Message`` objects from the encoded array
 simulation, encoding) is not timed. The figure is ``log seconds / wall seconds``.
 Nothing here is asserted by the tests (speed depends on the machine).
 
-Run: ``python -m bms_estimator.replay.bench [--hours H] [--cells N] [--via daemon|direct|both]``.
+Run: ``python -m bms_estimator.replay.bench [--hours H] [--cells N] [--via daemon|direct|inline|all]``.
 """
 
 from __future__ import annotations
@@ -68,7 +74,7 @@ class ReplayBenchResult:
     wall_s: float
     log_s: float
     prepare_s: float
-    estimator_s: float | None = None  # direct path: time inside SocEstimator.update
+    estimator_s: float | None = None  # direct path: CPU time inside SocEstimator.update
     notes: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
@@ -132,7 +138,7 @@ def _bench_direct(fa: FrameArrays, ocv: OcvCurve, q: float, n_cells: int) -> tup
     out: dict = {}
     th = _sender(fa, tx, out)
     decode, feed, update, recv = dec.decode, sampler.feed_frame, est.update, rx.recv
-    perf = time.perf_counter
+    perf, cpu = time.perf_counter, time.thread_time  # CPU time of this thread: not the GIL waits
     n = samples = 0
     t_est = 0.0
     try:
@@ -146,9 +152,9 @@ def _bench_direct(fa: FrameArrays, ocv: OcvCurve, q: float, n_cells: int) -> tup
                 continue
             n += 1
             for s in feed(decode(msg), msg.timestamp):
-                a = perf()
+                a = cpu()
                 update(s.current_a, s.cell_voltage_v, s.valid)
-                t_est += perf() - a
+                t_est += cpu() - a
                 samples += 1
         wall = perf() - t0
     finally:
@@ -163,6 +169,36 @@ def _bench_direct(fa: FrameArrays, ocv: OcvCurve, q: float, n_cells: int) -> tup
     if dec.counters.errors:
         notes.append(f"decode errors {dec.counters.errors}")
     return wall, n, samples, t_est, notes
+
+
+class _InlineSink:
+    """A ``bus`` for :func:`replay_messages` that processes each frame where it is sent."""
+
+    def __init__(self, dec, sampler, est) -> None:
+        self.decode, self.feed, self.update = dec.decode, sampler.feed_frame, est.update
+        self.frames = self.samples = 0
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.frames += 1
+        for s in self.feed(self.decode(msg), msg.timestamp):
+            self.update(s.current_a, s.cell_voltage_v, s.valid)
+            self.samples += 1
+
+
+def _bench_inline(fa: FrameArrays, ocv: OcvCurve, q: float, n_cells: int) -> tuple[float, int, int, list[str]]:
+    from ..can.dbc import load_project_db
+    from ..can.decoder import FrameDecoder
+    from ..can.sampler import SampleAssembler
+    from ..core.soc import SocEstimator
+
+    dec = FrameDecoder(load_project_db(), "default", n_cells)
+    sink = _InlineSink(dec, SampleAssembler(n_cells, period_s=1.0, staleness_s=5.0),
+                       SocEstimator(n_cells, ocv, q, 1.0, initial_soc=None))
+    t0 = time.perf_counter()
+    replay_messages(fa.iter_messages(), sink, "max")  # type: ignore[arg-type]
+    wall = time.perf_counter() - t0
+    notes = [f"decode errors {dec.counters.errors}"] if dec.counters.errors else []
+    return wall, sink.frames, sink.samples, notes
 
 
 def _bench_daemon(fa: FrameArrays, ocv_path: str, q: float, n_cells: int) -> tuple[float, int, int, list[str]]:
@@ -249,8 +285,8 @@ def bench_replay_speedup(hours: float = 4.0, n_cells: int = 96, *, via: str = "a
     :func:`prepare_frames` to reuse between calls."""
     if via == "auto":
         via = "daemon" if daemon_available() else "direct"
-    if via not in ("daemon", "direct"):
-        raise ValueError("via must be 'auto', 'daemon' or 'direct'")
+    if via not in ("daemon", "direct", "inline"):
+        raise ValueError("via must be 'auto', 'daemon', 'direct' or 'inline'")
     t = time.perf_counter()
     fa, ocv, q, ocv_path = frames if frames is not None else prepare_frames(hours, n_cells, cell=cell, cycle=cycle,
                                                                           seed=seed)
@@ -259,6 +295,8 @@ def bench_replay_speedup(hours: float = 4.0, n_cells: int = 96, *, via: str = "a
     t_est = None
     if via == "direct":
         wall, n, samples, t_est, notes = _bench_direct(fa, ocv, q, n_cells)
+    elif via == "inline":
+        wall, n, samples, notes = _bench_inline(fa, ocv, q, n_cells)
     else:
         wall, n, samples, notes = _bench_daemon(fa, ocv_path, q, n_cells)
     return ReplayBenchResult(
@@ -272,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--hours", type=float, default=4.0)
     p.add_argument("--cells", type=int, default=96)
-    p.add_argument("--via", choices=("auto", "daemon", "direct", "both"), default="both")
+    p.add_argument("--via", choices=("auto", "daemon", "direct", "inline", "all"), default="all")
     p.add_argument("--one-core", action="store_true", help="pin the process to one core")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
@@ -285,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
         except (AttributeError, OSError):
             pass
     frames = prepare_frames(args.hours, args.cells)
-    vias = ["direct", "daemon"] if args.via == "both" else [args.via]
+    vias = ["inline", "direct", "daemon"] if args.via == "all" else [args.via]
     results = []
     for via in vias:
         if via == "daemon" and not daemon_available():
