@@ -100,9 +100,12 @@ def test_bad_options_are_named(tmp_path, capsys):
 
 
 def test_bench_prints_the_figures(capsys):
-    assert main(["bench", "--json", "--seconds", "0.3"]) == 0
+    assert main(["bench", "--json", "--seconds", "0.3", "--figures", "cell_updates_per_s,tick_ms_200_cells"]) == 0
     figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert set(figures) == {"cell_updates_per_s", "tick_ms_200_cells"}
     assert figures["cell_updates_per_s"] > 0 and figures["tick_ms_200_cells"] > 0
+    assert main(["bench", "--figures", "warp_speed"]) == 2
+    assert "warp_speed" in capsys.readouterr().err
 
 
 def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):

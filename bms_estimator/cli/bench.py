@@ -5,7 +5,11 @@ Figures (one core, this machine, one run):
 * ``cell_updates_per_s``: full SOC estimator updates (LIF identification, c0
   compensation, capacity estimation) of a 2000-cell pack, cells x samples / s.
 * ``tick_ms_200_cells``: median wall time of one 1 s update of a 200-cell pack.
-* ``frames_per_s``: CAN decode + sample assembly (when the CAN layer is present).
+* ``frames_per_s``: CAN decode + sample assembly, 200 cells.
+* ``publish_latency_ms_p99``: from the CAN frame that closes a 1 s sample to the MQTT
+  message for it, 200 cells, through a real Mosquitto (left out without one).
+* ``replay_speedup``: times faster than real time that a 4-hour drive cycle of a 96-cell
+  pack goes through replay + the service at ``max`` (in-process virtual bus).
 """
 
 from __future__ import annotations
@@ -24,7 +28,11 @@ from ..core.soc import SocEstimator
 def add_parser(sub) -> None:
     p = sub.add_parser("bench", help="print speed figures (estimator throughput, tick time, CAN frames/s)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--seconds", type=float, default=3.0, help="time budget per figure (default 3 s)")
+    p.add_argument("--seconds", type=float, default=3.0, help="time budget of the estimator figure (default 3 s)")
+    p.add_argument("--figures", default=None,
+                   help="comma-separated subset (default all: " + ", ".join(
+                       ["cell_updates_per_s", "tick_ms_200_cells", "frames_per_s", "publish_latency_ms_p99",
+                        "replay_speedup"]) + "); replay_speedup takes a few minutes")
     p.set_defaults(func=run)
 
 
@@ -66,29 +74,48 @@ def bench_tick_ms(n_cells: int = 200, ticks: int = 300) -> float:
     return float(np.median(times) * 1e3)
 
 
+def _frames_per_s() -> float | None:
+    from ..can.bench import bench_frames_per_s
+
+    return float(bench_frames_per_s(n_cells=200))
+
+
+def _publish_latency() -> float | None:
+    from ..service.bench import bench_publish_latency_ms_p99
+
+    return bench_publish_latency_ms_p99(n_cells=200)  # None without a Mosquitto to measure through
+
+
+def _replay_speedup() -> float | None:
+    from ..replay.bench import bench_replay_speedup
+
+    return float(bench_replay_speedup(hours=4.0, n_cells=96, via="daemon").speedup)
+
+
+#: figure name -> how to measure it (each prints on its own; slow ones can be left out)
+FIGURES = {
+    "cell_updates_per_s": lambda args: bench_cell_updates(2000, args.seconds),
+    "tick_ms_200_cells": lambda args: bench_tick_ms(200),
+    "frames_per_s": lambda args: _frames_per_s(),
+    "publish_latency_ms_p99": lambda args: _publish_latency(),
+    "replay_speedup": lambda args: _replay_speedup(),
+}
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core, as the goals state
     except (AttributeError, OSError):
         pass
-    out: dict[str, float] = {
-        "cell_updates_per_s": bench_cell_updates(2000, args.seconds),
-        "tick_ms_200_cells": bench_tick_ms(200),
-    }
-    try:
-        from ..can.bench import bench_frames_per_s
-    except ImportError:
-        pass
-    else:
-        out["frames_per_s"] = float(bench_frames_per_s(n_cells=200))
-    try:
-        from ..service.bench import bench_publish_latency_ms_p99
-    except ImportError:
-        pass
-    else:
-        latency = bench_publish_latency_ms_p99(n_cells=200)
-        if latency is not None:  # None without a Mosquitto to measure through
-            out["publish_latency_ms_p99"] = float(latency)
+    names = list(FIGURES) if args.figures is None else [f.strip() for f in args.figures.split(",") if f.strip()]
+    unknown = [n for n in names if n not in FIGURES]
+    if unknown:
+        raise ValueError(f"unknown figure(s) {', '.join(unknown)}; choose from {', '.join(FIGURES)}")
+    out: dict[str, float] = {}
+    for name in names:
+        value = FIGURES[name](args)
+        if value is not None:
+            out[name] = float(value)
     if args.json:
         print(json.dumps(out))
     else:
