@@ -118,3 +118,26 @@ def test_shift_bias_moves_c0_and_history_together():
         est.update(i[k : k + 1], v[k : k + 1] - 0.004)
     assert abs(est.params.c0_v[0] - (TRUE["c0_v"] - 0.004)) < 2e-4
     assert abs(est.params.r0_ohm[0] / TRUE["r0_ohm"] - 1) < 0.02
+
+
+def test_turn_off_adaptation_freezes_theta_and_p_while_the_error_is_small():
+    """With turn-on/turn-off, a well-explained stretch does not move theta or wind up P."""
+    from bms_estimator.core.rls import RlsConfig, WeightedRls
+
+    rng = np.random.default_rng(0)
+    true = np.array([0.5, -1.0, 2.0])
+    rls = WeightedRls(2, 3, RlsConfig(forgetting=0.99, error_on=0.05, error_off=0.02, error_window=10, init_samples=50))
+    for _ in range(300):  # learn with a rich regressor
+        phi = rng.normal(size=(2, 3))
+        rls.update(phi, phi @ true + 0.001 * rng.normal(size=2))
+    theta, P = rls.theta.copy(), rls.P.copy()
+    assert not rls.adapting.any()  # the error is far below error_off
+    for _ in range(500):  # a weakly exciting, well-explained stretch: P would grow as 1/0.99^k
+        phi = np.tile([1.0, 0.0, 0.0], (2, 1))
+        rls.update(phi, phi @ true)
+    np.testing.assert_array_equal(rls.theta, theta)
+    np.testing.assert_array_equal(rls.P, P)
+    phi = rng.normal(size=(2, 3))
+    for _ in range(20):  # a changed system: the error exceeds error_on and learning resumes
+        rls.update(phi, phi @ (true + 1.0))
+    assert rls.adapting.all() and not np.allclose(rls.theta, theta)
