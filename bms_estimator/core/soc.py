@@ -179,7 +179,7 @@ class SocEstimator:
         # guard has a constant c0 that would look perfectly 'stable'
         learn = use & ident.accepted
         h = self._c0_head
-        old = self._c0_buf[:, h]
+        old = self._c0_buf[:, h].copy()  # a copy: the slot is overwritten next
         new = np.where(learn, ident.c0_v, old)
         self._c0_buf[:, h] = new
         self._c0_head = (h + 1) % self._w

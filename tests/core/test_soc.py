@@ -68,3 +68,16 @@ def test_initial_soc_from_ocv_when_not_given(nmc_like_ocv):
     est = SocEstimator(2, nmc_like_ocv, 3.0)
     est.update(0.0, nmc_like_ocv.ocv(np.array([0.3, 0.7])))
     np.testing.assert_allclose(est.soc, [0.3, 0.7], atol=1e-3)
+
+
+def test_running_c0_statistics_equal_the_window_at_every_sample(nmc_like_ocv):
+    """The c0 average the compensation uses is the mean of the window, at every sample, through corrections."""
+    n = 3600
+    i, v = _cell(n, 4, nmc_like_ocv)
+    est = SocEstimator(2, nmc_like_ocv, 3.0, initial_soc=np.array([0.8, 1.0]),
+                       config=SocConfig(c0_window_s=50))
+    for k in range(n):
+        est.update(i[k], np.full(2, v[k]))
+        np.testing.assert_allclose(est._c0_sum, est._c0_buf.sum(axis=1), atol=1e-12)
+        np.testing.assert_allclose(est._c0_sq, (est._c0_buf**2).sum(axis=1), atol=1e-12)
+    assert est.corrections[0] >= 1  # the window went through at least one compensation
