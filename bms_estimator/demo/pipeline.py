@@ -1,0 +1,539 @@
+"""The demo's pipeline: shipped drive cycle -> pack CAN traffic -> the real service -> MQTT.
+
+1. :func:`prepare_pack` (:mod:`bms_estimator.replay.encode_log`, in memory): the measured
+   cell is identified on the whole recording, a pack of ``n_cells`` is drawn with the seeded
+   spread (cell 0 = the measured voltage, the others simulated + the measured residual),
+   and the pack is encoded as the frames of the project DBC at the DBC's rates (10 ms
+   current, 100 ms cell voltages, 1 s temperatures). The reference capacity of the pack
+   (``Q_ref``, the simulated cells' capacities are ``Q_ref`` times their factor) is the one
+   ``bms-estimator soc`` uses for the measured file: measured from its end-of-test rest when
+   it ends at a relaxed rest, else the stated one.
+2. :func:`run_pipeline` starts :class:`RecordingService` (a
+   :class:`~bms_estimator.service.daemon.Service` that also keeps every sample's estimate for
+   the summary; its data path is the service's own: ``ResilientBus`` -> ``FrameDecoder`` ->
+   ``SampleAssembler`` -> ``SocEstimator`` -> ``MqttPublisher``) on a python-can ``virtual``
+   channel, and replays the frames onto that channel from a thread
+   (:func:`~bms_estimator.replay.replay.replay_messages`, sender with
+   ``preserve_timestamps=True`` so the service sees the log's time). At ``speed="max"`` the
+   sender keeps at most ``FLOW_WINDOW`` frames in flight, watching the service's receive
+   counter, so the service's bounded receive queue never overflows; a finite speed paces the
+   frames by their timestamps. One extra current frame at the log's end closes the last
+   1 s sample. CAN output and the health server are off (nothing would read them here).
+3. An MQTT subscriber (aiomqtt) on the same broker feeds a
+   :class:`~bms_estimator.replay.dashboard.DashboardState` (the live view) and keeps the
+   newest payload of every topic; without a broker the view is fed from the service's state
+   directly. The run ends when the service has decoded every frame; the service then stops
+   as it would under systemd (final state published, ``offline``), and the subscriber waits
+   until every cell's last state has arrived.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from ..analysis import PARAM_KEYS, reference_capacity
+from ..core.ocv import OcvCurve
+from ..data import load_recording
+from ..replay.encode_log import CellSpread, FrameArrays, PackTrace, build_pack, frame_arrays, truth_dict
+from ..samples import CELLS, drive_cycle, ocv_table
+
+__all__ = [
+    "DEFAULT_CYCLE",
+    "FLOW_WINDOW",
+    "MqttWatcher",
+    "PackSetup",
+    "Record",
+    "RecordingService",
+    "RunResult",
+    "prepare_pack",
+    "run_pipeline",
+]
+
+#: default drive cycle per shipped cell: one that is not the cell's training file in the paper table
+DEFAULT_CYCLE = {"lg-hg2": "la92", "panasonic-18650pf": "cycle_2"}
+#: frames the ``max``-speed sender may be ahead of the service's receive loop
+FLOW_WINDOW = 20_000
+PACK_ID = "demo"
+
+
+# ------------------------------------------------------------------- the pack
+@dataclass
+class PackSetup:
+    cell: str
+    cycle: str
+    n_cells: int
+    seed: int
+    capacity_stated_ah: float
+    ocv_path: str
+    ocv: OcvCurve
+    trace: PackTrace
+    frames: FrameArrays
+    truth: dict[str, Any]
+    prepare_s: float
+
+    @property
+    def duration_s(self) -> float:
+        return self.trace.duration_s
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.trace.current_a.size)
+
+
+def prepare_pack(cell: str = "lg-hg2", cycle: str | None = None, n_cells: int = 16, *, seed: int = 0,
+                 duration_s: float | None = None, spread: CellSpread | None = None) -> PackSetup:
+    """Encode a shipped drive cycle as the CAN traffic of an ``n_cells`` pack (module docstring, 1)."""
+    if cell not in CELLS:
+        raise ValueError(f"unknown cell {cell!r}; shipped: {', '.join(sorted(CELLS))}")
+    q_stated, cycles = CELLS[cell]
+    cycle = cycle or DEFAULT_CYCLE.get(cell, cycles[-1])
+    if cycle not in cycles:
+        raise ValueError(f"no shipped {cell} cycle {cycle!r}; shipped: {', '.join(cycles)}")
+    t0 = time.perf_counter()
+    rec = load_recording(drive_cycle(cell, cycle))
+    ocv_path = ocv_table(cell)
+    ocv = OcvCurve.from_csv(ocv_path)
+    # the reference capacity exactly as `bms-estimator soc` takes it for this file (from full)
+    q_ref, source = reference_capacity(rec.current_a, rec.voltage_v, rec.dt_s, ocv, q_stated, 1.0)
+    trace = build_pack(rec, n_cells, ocv, q_stated, seed=seed, spread=spread or CellSpread(),
+                       initial_soc=1.0, reference_capacity_ah=q_ref, duration_s=duration_s,
+                       ocv_source=str(ocv_path))
+    fa = frame_arrays(trace)
+    truth = truth_dict(trace, fa, out="(in memory: bms-estimator demo)")
+    truth["reference"]["capacity_source"] = f"{source} (as bms-estimator soc, on the whole file)"
+    truth["cycle"] = {"cell": cell, "cycle": cycle}
+    return PackSetup(cell, cycle, n_cells, seed, float(q_stated), str(ocv_path), ocv, trace, fa, truth,
+                     time.perf_counter() - t0)
+
+
+def closing_frame(fa: FrameArrays, period_s: float) -> can.Message:
+    """A copy of the last current frame at the log's end: it completes the last sample period."""
+    from ..can.dbc import load_project_db
+
+    cur_id = int(load_project_db().get_message_by_name("PackMeasurement").frame_id)
+    last = int(np.flatnonzero(fa.arbitration_id == cur_id)[-1])
+    p_us = int(round(period_s * 1e6))
+    t_end_us = (int(fa.t_us[-1]) // p_us + 1) * p_us
+    data = np.asarray([fa.data[last]], dtype="<u8").tobytes()
+    return can.Message(timestamp=fa.t0_s + t_end_us / 1e6, arbitration_id=cur_id,
+                       is_extended_id=fa.extended.get(cur_id, True), dlc=8, data=data, check=False)
+
+
+# ----------------------------------------------------------------- recording
+@dataclass
+class Record:
+    """Every sample the service estimated (rows in arrival order)."""
+
+    n_cells: int
+    capacity: int = 16384
+    rows: int = 0
+    t_s: np.ndarray = field(init=False)
+    current_a: np.ndarray = field(init=False)
+    voltage_v: np.ndarray = field(init=False)
+    v_o: np.ndarray = field(init=False)
+    soc: np.ndarray = field(init=False)
+    capacity_ah: np.ndarray = field(init=False)
+    params: dict[str, np.ndarray] = field(init=False)
+
+    def __post_init__(self) -> None:
+        n, c = self.n_cells, self.capacity
+        self.t_s = np.full(c, np.nan)
+        self.current_a = np.full(c, np.nan)
+        self.voltage_v = np.full((c, n), np.nan)
+        self.v_o = np.full((c, n), np.nan)
+        self.soc = np.full((c, n), np.nan)
+        self.capacity_ah = np.full((c, n), np.nan)
+        self.params = {k: np.full((c, n), np.nan) for k in PARAM_KEYS}
+
+    def _grow(self) -> None:
+        c = self.capacity
+        for name in ("t_s", "current_a", "voltage_v", "v_o", "soc", "capacity_ah"):
+            a = getattr(self, name)
+            b = np.full((2 * c, *a.shape[1:]), np.nan)
+            b[:c] = a
+            setattr(self, name, b)
+        for k, a in self.params.items():
+            b = np.full((2 * c, *a.shape[1:]), np.nan)
+            b[:c] = a
+            self.params[k] = b
+        self.capacity = 2 * c
+
+    def add(self, t_s: float, current_a: float, voltage_v: np.ndarray, est: Any) -> None:
+        if self.rows >= self.capacity:
+            self._grow()
+        k = self.rows
+        self.t_s[k] = t_s
+        self.current_a[k] = current_a
+        self.voltage_v[k] = voltage_v
+        self.v_o[k] = est.v_o
+        self.soc[k] = est.soc
+        self.capacity_ah[k] = est.capacity_ah
+        p = est.params
+        for key in PARAM_KEYS:
+            self.params[key][k] = p[key]
+        self.rows = k + 1
+
+    def trimmed(self) -> "Record":
+        """A copy with exactly ``rows`` rows."""
+        out = Record(self.n_cells, max(1, self.rows))
+        n = self.rows
+        for name in ("t_s", "current_a", "voltage_v", "v_o", "soc", "capacity_ah"):
+            setattr(out, name, getattr(self, name)[:n].copy())
+        out.params = {k: v[:n].copy() for k, v in self.params.items()}
+        out.rows = n
+        return out
+
+
+def _recording_service_class():
+    from ..service.daemon import Service
+
+    class RecordingService(Service):
+        """The service, unchanged, plus a :class:`Record` of every sample it estimated."""
+
+        def __init__(self, cfg, *, expected_samples: int = 16384, **kwargs: Any) -> None:
+            super().__init__(cfg, **kwargs)
+            self.record = Record(self.n_cells, max(16, int(expected_samples) + 8))
+
+        def tick(self, sample) -> None:  # type: ignore[override]
+            super().tick(sample)
+            if sample.current_valid and math.isfinite(sample.current_a):
+                self.record.add(sample.t_s, sample.current_a, sample.cell_voltage_v, self.estimator)
+
+    return RecordingService
+
+
+def __getattr__(name: str) -> Any:  # RecordingService without importing the service at module import
+    if name == "RecordingService":
+        return _recording_service_class()
+    raise AttributeError(name)
+
+
+# ---------------------------------------------------------------------- MQTT
+class MqttWatcher:
+    """Subscriber to the service's topics, in a thread with its own event loop (so that it keeps
+    up with a service running flat out): feeds a dashboard state (under :attr:`lock`) and keeps
+    the newest payload of every topic."""
+
+    def __init__(self, state: Any, host: str, port: int, lock: threading.Lock | None = None) -> None:
+        self.state = state
+        self.host, self.port = host, port
+        self.lock = lock if lock is not None else threading.Lock()
+        self.latest: dict[str, str] = {}
+        self.messages = 0
+        self.error: str | None = None
+        self._subscribed = threading.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._thread: threading.Thread | None = None
+
+    def cell_payloads(self, pack_id: str, n_cells: int, base: str = "bms") -> list[dict[str, Any] | None]:
+        with self.lock:
+            texts = [self.latest.get(f"{base}/{pack_id}/cell/{i}/state") for i in range(n_cells)]
+        return [json.loads(t) if t is not None else None for t in texts]
+
+    def start(self, timeout: float = 15.0) -> bool:
+        """Connect and subscribe; True when subscribed (else :attr:`error` says why)."""
+        self._thread = threading.Thread(target=self._main, name="bms-demo-mqtt-view", daemon=True)
+        self._thread.start()
+        if not self._subscribed.wait(timeout) and self.error is None:
+            self.error = f"no subscription within {timeout:g} s"
+        return self.error is None
+
+    def stop(self, timeout: float = 5.0) -> None:
+        loop, task = self._loop, self._task
+        if loop is not None and task is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(task.cancel)
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _main(self) -> None:
+        loop = self._loop = asyncio.new_event_loop()
+        try:
+            self._task = loop.create_task(self._run())
+            with contextlib.suppress(asyncio.CancelledError):
+                loop.run_until_complete(self._task)
+        finally:
+            loop.close()
+            self._subscribed.set()
+
+    async def _run(self) -> None:
+        import aiomqtt
+
+        with self.lock:
+            self.state.broker = f"{self.host}:{self.port}"
+        try:
+            async with aiomqtt.Client(self.host, self.port, identifier=f"bms-demo-view-{os.getpid()}",
+                                      timeout=10) as client:
+                for topic in self.state.subscriptions():
+                    await client.subscribe(topic, qos=1)
+                with self.lock:
+                    self.state.connected, self.state.status = True, "connected"
+                self._subscribed.set()
+                clock = time.monotonic
+                async for message in client.messages:
+                    topic = message.topic.value
+                    payload = message.payload
+                    text = (bytes(payload).decode("utf-8", "replace") if isinstance(payload, (bytes, bytearray))
+                            else str(payload))
+                    with self.lock:
+                        self.messages += 1
+                        self.latest[topic] = text
+                        self.state.apply(topic, text, clock())
+        except aiomqtt.MqttError as exc:
+            self.error = str(exc) or type(exc).__name__
+            with self.lock:
+                self.state.status = f"subscriber: {self.error}"
+        finally:
+            with self.lock:
+                self.state.connected = False
+
+
+def feed_state_directly(state: Any, svc: Any, now: float) -> None:
+    """Without a broker: hand the dashboard the payloads the service would have published."""
+    est = svc.estimator
+    sample = svc._last_sample  # noqa: SLF001 - the demo's own view of its own service
+    if sample is None:
+        return
+    base = f"bms/{PACK_ID}"
+    params = est.params
+    stale = ~np.asarray(sample.valid, dtype=bool)
+    for i in range(svc.n_cells):
+        payload = {"soc": float(est.soc[i]), **{k: float(params[k][i]) for k in PARAM_KEYS},
+                   "stale": bool(stale[i]), "t_s": sample.t_s}
+        state.apply(f"{base}/cell/{i}/state", json.dumps(payload), now)
+    finite = est.soc[np.isfinite(est.soc)]
+    state.apply(f"{base}/pack/state", json.dumps({
+        "t_s": sample.t_s, "soc_min": float(finite.min()) if finite.size else None,
+        "soc_mean": float(finite.mean()) if finite.size else None,
+        "soc_max": float(finite.max()) if finite.size else None,
+        "current_a": sample.current_a, "cells_stale": int(stale.sum())}), now)
+    state.apply(f"{base}/availability", "online", now)
+
+
+# ----------------------------------------------------------------------- run
+@dataclass
+class Progress:
+    """What the live view shows (read from the event loop)."""
+
+    log_total_s: float
+    frames_total: int
+    speed: float
+    frames_sent: int = 0
+    t_start: float = field(default_factory=time.perf_counter)
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t_start
+
+
+@dataclass
+class ViewData:
+    """Handed to the live view: the service, the dashboard state (read it under ``lock``), progress."""
+
+    svc: Any
+    state: Any
+    progress: Progress
+    lock: threading.Lock
+
+
+@dataclass
+class RunResult:
+    record: Record
+    samples: int
+    frames_sent: int
+    frames_decoded: int
+    decode_errors: int
+    rx_dropped: int
+    wall_s: float  # replay start to the last frame decoded
+    speed: float
+    mqtt_messages: int
+    mqtt_published: int
+    mqtt_final: list[dict[str, Any] | None]  # newest cell payloads received over MQTT (None = none)
+    mqtt_error: str | None
+    final_state: dict[str, np.ndarray]
+    notes: list[str]
+
+    @property
+    def effective_speed(self) -> float:
+        return (self.samples / self.wall_s) if self.wall_s > 0 else math.inf
+
+
+def service_config(setup: PackSetup, channel: str, state_path: Path, broker: Any) -> Any:
+    """The service's configuration for the demo. ``BMS_*`` environment variables (the service's
+    overrides) are ignored: the demo is self-contained, whatever the shell has set."""
+    from ..service.config import ServiceConfig
+
+    class DemoConfig(ServiceConfig):
+        @classmethod
+        def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,
+                                       file_secret_settings):  # type: ignore[override]
+            return (init_settings,)
+
+    mqtt: dict[str, Any] = {"enabled": False}
+    if broker is not None and broker.enabled:
+        mqtt = {"enabled": True, "host": broker.host, "port": broker.port,
+                "client_id": f"bms-demo-{os.getpid()}", "timeout_s": 10.0}
+    return DemoConfig(
+        pack={"pack_id": PACK_ID, "n_cells": setup.n_cells, "capacity_ah": setup.capacity_stated_ah,
+              "ocv_csv": setup.ocv_path},
+        can={"interface": "virtual", "channel": channel, "output": {"enabled": False}},
+        mqtt=mqtt,
+        health={"enabled": False},
+        state={"path": str(state_path), "save_interval_s": 3600.0},
+        logging={"level": "WARNING"},
+    )
+
+
+def _messages(setup: PackSetup, period_s: float) -> Iterator[can.Message]:
+    yield from setup.frames.iter_messages()
+    yield closing_frame(setup.frames, period_s)
+
+
+async def run_pipeline(setup: PackSetup, *, broker: Any = None, speed: float = math.inf,
+                       on_tick: Callable[[ViewData], None] | None = None,
+                       tick_s: float = 0.25, dashboard: Any = None) -> RunResult:
+    """Run the service over the pack's frames (module docstring, 2-3).
+
+    ``broker``: a :class:`~bms_estimator.demo.broker.BrokerInfo` (None or disabled = no MQTT).
+    ``on_tick(ViewData)`` is called every ``tick_s`` of wall time from the event loop (the live
+    view). ``dashboard``: the state to feed (a new one by default).
+    """
+    from ..replay.dashboard import DashboardState
+    from ..replay.replay import open_replay_bus, replay_messages
+
+    state = dashboard if dashboard is not None else DashboardState(PACK_ID)
+    lock = threading.Lock()
+    mqtt_on = broker is not None and broker.enabled
+    channel = f"bms-demo-{os.getpid()}-{time.monotonic_ns()}"
+    total = len(setup.frames) + 1
+    progress = Progress(setup.duration_s, total, speed)
+    notes: list[str] = []
+    with tempfile.TemporaryDirectory(prefix="bms-demo-") as tmp:
+        cfg = service_config(setup, channel, Path(tmp) / "state.npz", broker)
+        svc = _recording_service_class()(cfg, expected_samples=setup.n_samples)
+        watcher = MqttWatcher(state, broker.host, broker.port, lock) if mqtt_on else None
+        if watcher is not None:
+            # subscribe before the service starts, so that the view sees everything it publishes
+            if not await asyncio.to_thread(watcher.start):
+                notes.append(f"MQTT subscriber could not connect ({watcher.error}): view fed from the service")
+        else:
+            state.status = "MQTT off: fed from the service directly"
+        stop = asyncio.Event()
+        svc_task = asyncio.create_task(svc.run(stop), name="bms-demo-service")
+        await asyncio.wait_for(svc.ready.wait(), 15)
+
+        tx = open_replay_bus("virtual", channel)
+        out: dict[str, Any] = {}
+        abort = threading.Event()
+        counters = svc.bus.counters
+
+        def gate(msgs: Iterator[can.Message]) -> Iterator[can.Message]:
+            sent = 0
+            for m in msgs:
+                if not sent & 0x3FF:
+                    while sent - counters.rx_frames - counters.rx_dropped > FLOW_WINDOW:
+                        if abort.is_set():
+                            return
+                        time.sleep(0.0005)
+                sent += 1
+                yield m
+
+        def progress_cb(sent: int, _log_s: float) -> None:
+            progress.frames_sent = sent
+
+        def sender() -> None:
+            try:
+                msgs = _messages(setup, svc.period_s)
+                if math.isinf(speed):
+                    msgs = gate(msgs)
+                out["stats"] = replay_messages(msgs, tx, speed, progress_cb, stop=abort)
+            except BaseException as exc:  # noqa: BLE001 - reported below
+                out["error"] = exc
+
+        thread = threading.Thread(target=sender, name="bms-demo-replay", daemon=True)
+        progress.t_start = time.perf_counter()
+        thread.start()
+        wall = math.nan
+        direct = watcher is None or watcher.error is not None
+        try:
+            next_tick = 0.0
+            settled_at, last_frames = None, -1
+            while True:
+                now = time.perf_counter()
+                if on_tick is not None and now >= next_tick:
+                    next_tick = now + tick_s
+                    with lock:
+                        if direct:
+                            feed_state_directly(state, svc, time.monotonic())
+                        state.tick(time.monotonic())
+                    on_tick(ViewData(svc, state, progress, lock))
+                frames = svc.decoder.counters.frames
+                if frames >= total:
+                    break
+                if not thread.is_alive():
+                    if "error" in out:
+                        break
+                    # the sender is done: wait until the service has taken everything it received
+                    if frames != last_frames:
+                        settled_at, last_frames = now, frames
+                    elif settled_at is not None and now - settled_at > 1.0:
+                        break
+                await asyncio.sleep(0.02)
+            wall = time.perf_counter() - progress.t_start
+        finally:
+            abort.set()
+            thread.join(10)
+            stop.set()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(svc_task, 30)
+            tx.shutdown()
+        if "error" in out:
+            raise RuntimeError(f"replay failed: {out['error']!r}") from out["error"]
+        final_t = svc.record.t_s[svc.record.rows - 1] if svc.record.rows else math.nan
+        if watcher is not None:
+            # the service published its final states on shutdown: wait until they are all here
+            deadline = time.monotonic() + 15
+            while time.monotonic() < deadline and watcher.error is None:
+                finals = watcher.cell_payloads(PACK_ID, setup.n_cells)
+                if all(p is not None and p.get("t_s") == final_t for p in finals):
+                    break
+                await asyncio.sleep(0.05)
+            else:
+                notes.append("not every cell's final state arrived over MQTT")
+            await asyncio.to_thread(watcher.stop)
+        with lock:
+            if direct:
+                feed_state_directly(state, svc, time.monotonic())
+            state.tick(time.monotonic())
+        if on_tick is not None:
+            on_tick(ViewData(svc, state, progress, lock))
+    dec = svc.decoder.counters
+    if dec.frames < total:
+        notes.append(f"the service decoded {dec.frames} of {total} frames")
+    if svc.bus.counters.rx_dropped:
+        notes.append(f"the service's receive queue dropped {svc.bus.counters.rx_dropped} frames")
+    rec = svc.record.trimmed()
+    return RunResult(
+        record=rec, samples=rec.rows, frames_sent=out["stats"].sent if "stats" in out else 0,
+        frames_decoded=dec.frames, decode_errors=dec.errors, rx_dropped=svc.bus.counters.rx_dropped,
+        wall_s=wall, speed=speed, mqtt_messages=watcher.messages if watcher else 0,
+        mqtt_published=svc.publisher.counters.published,
+        mqtt_final=watcher.cell_payloads(PACK_ID, setup.n_cells) if watcher else [None] * setup.n_cells,
+        mqtt_error=watcher.error if watcher else None,
+        final_state={k: np.array(v, copy=True) for k, v in svc.estimator.state_dict().items()},
+        notes=notes,
+    )
