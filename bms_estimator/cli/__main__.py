@@ -16,6 +16,7 @@ SUBCOMMANDS = {
     "soc": "soc",
     "bench": "bench",
     "demo": "demo",
+    "diagnose": "diagnose",
     "encode-log": "encode_log",
     "replay": "replay",
     "dashboard": "dashboard",

@@ -10,6 +10,7 @@ Figures (one core, this machine, one run):
   message for it, 200 cells, through a real Mosquitto (left out without one).
 * ``replay_speedup``: times faster than real time that a 4-hour drive cycle of a 96-cell
   pack goes through replay + the service at ``max`` (in-process virtual bus).
+* ``diagnose_4h_s``: wall time of ``diagnose`` on the 4.4 h LG UDDS sample (goal: under 60 s).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ def add_parser(sub) -> None:
     p.add_argument("--figures", default=None,
                    help="comma-separated subset (default all: " + ", ".join(
                        ["cell_updates_per_s", "tick_ms_200_cells", "frames_per_s", "publish_latency_ms_p99",
-                        "replay_speedup"]) + "); replay_speedup takes a few minutes")
+                        "replay_speedup", "diagnose_4h_s"]) + "); replay_speedup takes a few minutes")
     p.set_defaults(func=run)
 
 
@@ -92,6 +93,12 @@ def _replay_speedup() -> float | None:
     return float(bench_replay_speedup(hours=4.0, n_cells=96, via="daemon").speedup)
 
 
+def _diagnose_s() -> float | None:
+    from ..diagnose import bench_diagnose_s
+
+    return float(bench_diagnose_s())
+
+
 #: figure name -> how to measure it (each prints on its own; slow ones can be left out)
 FIGURES = {
     "cell_updates_per_s": lambda args: bench_cell_updates(2000, args.seconds),
@@ -99,6 +106,7 @@ FIGURES = {
     "frames_per_s": lambda args: _frames_per_s(),
     "publish_latency_ms_p99": lambda args: _publish_latency(),
     "replay_speedup": lambda args: _replay_speedup(),
+    "diagnose_4h_s": lambda args: _diagnose_s(),
 }
 
 

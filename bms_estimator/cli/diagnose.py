@@ -1,0 +1,86 @@
+"""``bms-estimator diagnose``: what does the 2-RC model get wrong on this recording?
+
+Identifies the paper's 2-RC model (LIF warm start, batch output-error fit), fits
+one model extension per candidate cause (hysteresis, temperature, SOC
+dependence, current nonlinearity, direction asymmetry, slow diffusion, current
+offset, capacity error), scores each out of sample and names the cause
+(:mod:`bms_estimator.diagnose`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .common import add_cell_options, load, load_ocv, positive_float, write_json
+
+
+def add_parser(sub) -> None:
+    from ..diagnose import CAUSES
+
+    p = sub.add_parser(
+        "diagnose", help="name what the 2-RC model gets wrong on a recording (hysteresis, temperature, ...)",
+        description="Fits the 2-RC baseline and one extension per candidate cause, scores them out of sample "
+                    "(4-fold cross-validation over interleaved time blocks, or on --validate) with a penalty for "
+                    "extra parameters, and names the cause with the largest significant gain ('none' when no "
+                    "extension earns its parameters).")
+    p.add_argument("data", type=Path)
+    add_cell_options(p)
+    p.add_argument("--validate", type=Path, default=None,
+                   help="score on this recording instead of cross-validating on DATA "
+                        "(same cell, starts at --initial-soc)")
+    p.add_argument("--json", type=Path, default=None, help="write the result as JSON ('-' for stdout)")
+    p.add_argument("--report", type=Path, default=None, help="folder for report.md and the PNG figures")
+    p.add_argument("--causes", default=",".join(CAUSES),
+                   help="comma-separated candidate causes (default: all)")
+    p.add_argument("--no-lif", action="store_true",
+                   help="skip the online LIF run that warm-starts the baseline (faster; a grid start is always tried)")
+    p.add_argument("--no-pairs", action="store_true", help="skip the pair stage (two effects at once)")
+    p.add_argument("--soc-min", type=float, default=None,
+                   help="fit and score only where the counted SOC is at least this (e.g. 0.1 leaves out the "
+                        "voltage collapse before a 2.5 V cut-off); default: the whole file")
+    p.add_argument("--soc-max", type=float, default=None, help="fit and score only up to this counted SOC")
+    p.add_argument("--resample-s", type=positive_float, default=1.0,
+                   help="sample period; finer data is averaged (default 1 s)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..diagnose import CAUSES, DiagnoseConfig, Series, diagnose, write_report
+
+    causes = tuple(c.strip() for c in args.causes.split(",") if c.strip())
+    bad = [c for c in causes if c not in CAUSES]
+    if bad:
+        raise ValueError(f"unknown cause(s) {', '.join(bad)}; choose from {', '.join(CAUSES)}")
+    ocv = load_ocv(args.ocv)
+    rec = load(args.data, args)
+    data = Series.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
+    val = None
+    if args.validate is not None:
+        rv = load(args.validate, args)
+        val = Series.from_recording(rv, ocv, args.capacity_ah, args.initial_soc)
+    window = (-1.0 if args.soc_min is None else args.soc_min, 2.0 if args.soc_max is None else args.soc_max)
+    cfg = DiagnoseConfig(candidates=causes, lif=not args.no_lif, pairs=not args.no_pairs, soc_window=window)
+    d = diagnose(data, validate=val, config=cfg)
+    out = d.to_json()
+    out["data"] = str(args.data)
+    if args.validate is not None:
+        out["validate"] = str(args.validate)
+    if args.report is not None:
+        md = write_report(d, args.report, title=f"diagnose {args.data.name}")
+        out["report"] = str(md)
+    if args.json is not None:
+        write_json(out, args.json)
+    if args.json is None or str(args.json) != "-":
+        print(f"cause: {d.cause}" + (f" (then {d.secondary})" if d.secondary else ""))
+        print(f"baseline {d.baseline_rmse_mv:.2f} mV -> extended {d.extended_rmse_mv:.2f} mV "
+              f"({d.gain_pct:.1f} % gain, {d.scoring}); noise {d.noise_mv:.2f} mV; {d.seconds:.1f} s")
+        for c in d.ranking():
+            if c.rmse_mv == c.rmse_mv:  # not NaN
+                print(f"  {c.cause:22s} {c.rmse_mv:8.2f} mV  gain {c.gain_pct:6.1f} %  score {c.score:7.3f}  "
+                      f"t {c.t_stat:6.1f}  {'significant' if c.significant else ''}")
+            else:
+                print(f"  {c.cause:22s}        -     ({c.note})")
+        if args.report is not None:
+            print(f"report: {out['report']}")
+    return 0
