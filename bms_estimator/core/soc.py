@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
 
@@ -113,8 +114,15 @@ class SocEstimator:
         self._q_min = np.full(self.n_cells, np.inf)
         self._q_max = np.full(self.n_cells, -np.inf)
         self.samples = 0
-        # hysteresis state in [-1, 1]: -1 on the discharge branch, +1 on the charge branch
+        # hysteresis state in [-1, 1]: -1 on the discharge branch, +1 on the charge branch.
+        # The state recursion is core.hysteresis's (unit amplitude); the amplitude here is the
+        # OCV table's H(soc), capped.
         self.hysteresis_state = np.full(self.n_cells, -1.0)
+        self._hyst = (
+            HysteresisState(self.n_cells, self.capacity_ah,
+                            HysteresisParams(m_v=1.0, m0_v=0.0, gamma=config.hysteresis_rate, h0=-1.0), self.dt_s)
+            if config.hysteresis else None
+        )
 
     def _ocv(self, soc: np.ndarray) -> np.ndarray:
         """The OCV the cell shows now: the mean curve plus the hysteresis state times H(soc)."""
@@ -156,11 +164,11 @@ class SocEstimator:
         # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
         self.soc = np.where(have_soc, np.clip(self.soc + dq / self.capacity_ah, 0.0, 1.0), self.soc)
         self.charge_ah += dq
-        if self.config.hysteresis:
-            # Plett's one-state model: dh/dq = -rate |dq| / Q (h - sign(i))
-            k = np.exp(-self.config.hysteresis_rate * np.abs(dq) / self.capacity_ah)
-            self.hysteresis_state = k * self.hysteresis_state + (1 - k) * np.sign(self._i_prev)
         self._i_prev = i_use
+        if self._hyst is not None:
+            # Plett's one-state model (core.hysteresis): the state at this sample's start
+            self._hyst.capacity_ah = self.capacity_ah
+            self.hysteresis_state = self._hyst.update(i_use)
         # 2. overpotential at the middle of the period (the voltage is a period mean)
         soc_mid = self.soc + i_use * (0.5 * self.dt_s / 3600.0) / self.capacity_ah
         ocv_v = self._ocv(np.where(have_soc, soc_mid, 0.5))
@@ -286,6 +294,8 @@ class SocEstimator:
             q_max=self._q_max.copy(),
             samples=np.array(self.samples),
         )
+        if self._hyst is not None:
+            s.update({f"hyst.{k}": v for k, v in self._hyst.state_dict().items()})
         return s
 
     def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
@@ -312,3 +322,8 @@ class SocEstimator:
         self._q_min = np.asarray(s["q_min"], dtype=float).copy()
         self._q_max = np.asarray(s["q_max"], dtype=float).copy()
         self.samples = int(s["samples"])
+        if self._hyst is not None:
+            if "hyst.h" not in s:
+                raise ValueError("state has no hysteresis state but this configuration models hysteresis")
+            self._hyst.load_state_dict({"h": s["hyst.h"], "s": s["hyst.s"]})
+            self.hysteresis_state = self._hyst.h.copy()

@@ -81,3 +81,29 @@ def test_running_c0_statistics_equal_the_window_at_every_sample(nmc_like_ocv):
         np.testing.assert_allclose(est._c0_sum, est._c0_buf.sum(axis=1), atol=1e-12)
         np.testing.assert_allclose(est._c0_sq, (est._c0_buf**2).sum(axis=1), atol=1e-12)
     assert est.corrections[0] >= 1  # the window went through at least one compensation
+
+
+def test_hysteresis_option_tracks_the_branch_and_survives_a_restart(nmc_like_ocv):
+    """The state follows Plett's one-state model (throughput-driven), the OCV the estimator
+    reads carries H(soc) times the state, and a restored estimator continues identically."""
+    from bms_estimator.core.ocv import OcvCurve
+
+    curve = OcvCurve(nmc_like_ocv.soc, nmc_like_ocv.ocv_v, np.full(len(nmc_like_ocv.soc), 0.03))
+    est = SocEstimator(1, curve, 3.0, initial_soc=0.5, config=SocConfig(hysteresis=True))
+    assert est.hysteresis_state[0] == -1.0  # a pack starts after discharge by default
+    for _ in range(600):  # 0.5 Ah of charge = 17 % SOC = 5/rate: h = 1 - 2 exp(-5), the charge branch
+        est.update(3.0, curve.ocv(est.soc) + 0.03)
+    assert est.hysteresis_state[0] > 0.9
+    np.testing.assert_allclose(est._ocv(est.soc), curve.ocv(est.soc) + 0.03 * est.hysteresis_state, atol=1e-12)
+    est.update(0.0, curve.ocv(est.soc) + 0.03)  # the state at a sample's start: the last charge lands here
+    h_charged = est.hysteresis_state[0]
+    for _ in range(60):  # a rest does not move it: the state is driven by throughput, not time
+        est.update(0.0, curve.ocv(est.soc) + 0.03)
+    assert est.hysteresis_state[0] == h_charged
+    twin = SocEstimator(1, curve, 3.0, config=SocConfig(hysteresis=True))
+    twin.load_state_dict(est.state_dict())
+    for _ in range(400):  # 11 % SOC discharged = 3.3/rate
+        for e in (est, twin):
+            e.update(-3.0, curve.ocv(e.soc) - 0.03)
+    np.testing.assert_array_equal(twin.hysteresis_state, est.hysteresis_state)
+    assert est.hysteresis_state[0] < -0.8  # back on the discharge branch
