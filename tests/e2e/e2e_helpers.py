@@ -7,10 +7,7 @@ import asyncio
 import contextlib
 import json
 import math
-import os
-import signal
-import socket
-import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -21,63 +18,25 @@ from typing import Any
 import aiomqtt
 import numpy as np
 
-MOSQUITTO = os.environ.get("MOSQUITTO", "/usr/sbin/mosquitto")
+_SERVICE_TESTS = str(Path(__file__).resolve().parents[1] / "service")
+if _SERVICE_TESTS not in sys.path:  # the shared broker and helpers, by module name
+    sys.path.insert(0, _SERVICE_TESTS)
+
+from service_helpers import MOSQUITTO, free_port, mosquitto_available  # noqa: E402,F401 - re-exported
+from service_helpers import Broker as _ServiceBroker  # noqa: E402
+
 PACK = "e2e"
 #: the measured drive cycle of the pack logs (ends at a relaxed rest: a measured reference capacity)
 CELL, CYCLE = "lg-hg2", "la92"
 FLOW_WINDOW = 20_000
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def mosquitto_available() -> bool:
-    return Path(MOSQUITTO).is_file() and os.access(MOSQUITTO, os.X_OK)
-
-
-class Broker:
+class Broker(_ServiceBroker):
     """Mosquitto on a free loopback port. The per-client queue is deep: a subscriber that falls
     behind a replay at full speed must still get the service's final states."""
 
     def __init__(self, workdir: Path) -> None:
-        self.workdir = workdir
-        self.host, self.port = "127.0.0.1", free_port()
-        self.proc: subprocess.Popen | None = None
-
-    def start(self) -> "Broker":
-        conf = self.workdir / "mosquitto.conf"
-        lines = [f"listener {self.port} 127.0.0.1", "allow_anonymous true", "persistence false",
-                 "max_queued_messages 1000000", f"log_dest file {self.workdir / 'mosquitto.log'}"]
-        if hasattr(os, "geteuid") and os.geteuid() == 0:
-            lines.append("user root")
-        conf.write_text("\n".join(lines) + "\n")
-        self.proc = subprocess.Popen([MOSQUITTO, "-c", str(conf)], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"mosquitto exited with {self.proc.returncode}")
-            try:
-                with socket.create_connection((self.host, self.port), timeout=0.2):
-                    return self
-            except OSError:
-                time.sleep(0.02)
-        self.stop()
-        raise RuntimeError("mosquitto did not start")
-
-    def stop(self) -> None:
-        proc, self.proc = self.proc, None
-        if proc is None or proc.poll() is not None:
-            return
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
+        super().__init__(workdir, extra_conf="max_queued_messages 1000000")
 
 
 @dataclass

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -14,7 +13,7 @@ for p in (REPO_ROOT, REPO_ROOT / "tests" / "service", Path(__file__).resolve().p
     if str(p) not in sys.path:  # the package may not be installed; helpers by module name
         sys.path.insert(0, str(p))
 
-from replay_helpers import CELL, CYCLE, DURATION_S, MOSQUITTO, N_CELLS, SEED, Broker  # noqa: E402
+from replay_helpers import CELL, CYCLE, DURATION_S, MOSQUITTO, N_CELLS, SEED, Broker, mosquitto_available  # noqa: E402
 
 from bms_estimator.cli.__main__ import main  # noqa: E402
 from bms_estimator.samples import drive_cycle  # noqa: E402
@@ -34,7 +33,7 @@ def encoded(tmp_path_factory) -> dict:
 
 @pytest.fixture
 def mosquitto(tmp_path):
-    if not (Path(MOSQUITTO).is_file() and os.access(MOSQUITTO, os.X_OK)):
+    if not mosquitto_available():
         pytest.skip(f"mosquitto broker not found at {MOSQUITTO} (apt-get install mosquitto, or set $MOSQUITTO)")
     b = Broker(tmp_path).start()
     yield b

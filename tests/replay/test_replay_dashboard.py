@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import time
 
 import aiomqtt
 import pytest
-from replay_helpers import MOSQUITTO, Broker
+from replay_helpers import MOSQUITTO, Broker, mosquitto_available
 from rich.console import Console
 from service_helpers import run_async, wait_until
 
@@ -144,7 +143,7 @@ def test_dashboard_command_prints_a_snapshot_when_piped(mosquitto, capsys):
 
 
 def test_subscriber_waits_for_a_broker_that_comes_later(tmp_path):
-    if not os.access(MOSQUITTO, os.X_OK):
+    if not mosquitto_available():
         pytest.skip(f"mosquitto broker not found at {MOSQUITTO}")
     broker = Broker(tmp_path)  # port reserved, not started yet
 
