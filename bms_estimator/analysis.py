@@ -5,11 +5,12 @@ Used by ``fit``, ``compare``, ``soc`` and ``diagnose``; no file I/O here.
 How a recording is simulated (the paper's Section IV-A):
 
 * The SOC path of a file is coulomb counting from its start SOC (the data's drive
-  cycles start full) with the *effective* capacity of the training file: measured
-  from its end-of-test rest when it ends at rest (net charge over the SOC
-  travelled), otherwise identified by the online SOC estimator from the stated
-  (nominal) one.
-* Identification runs online over the training file with ``v_o = v - OCV(soc)``.
+  cycles start full) with the *effective* capacity of the training file: the
+  output-error capacity (:func:`output_error_capacity`), i.e. the capacity whose
+  identified model simulates the training file best, found in one vectorised pass
+  over candidate SOC paths.
+* Identification runs online over the training file with ``v_o = v - OCV(soc)``
+  and, since that SOC is given, a prior c0 = 0 (``KNOWN_SOC_C0_PRIOR_WEIGHT``).
 * Training simulation: the model is simulated with the online parameter
   trajectory (R0, RC pairs and c0 at each second), from rest.
 * Validation simulation: the parameters are looked up by SOC in a table built
@@ -35,12 +36,19 @@ from .core.ocv import OcvCurve
 from .core.params import dt_theta_from_physical
 from .core.soc import SocConfig, SocEstimator
 
+# weight of the prior c0 = 0 when the SOC path is given (fit, compare): per sample, relative
+# to one data sample; c0 is then an OCV-model error, not an SOC error, and the prior keeps
+# it from trading off against the slow RC branch (c0 + R2 * mean current) on drive cycles
+KNOWN_SOC_C0_PRIOR_WEIGHT = 0.1
+
 PARAM_KEYS = ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "tau1_s", "tau2_s")
 
 __all__ = [
     "IdentificationRun",
     "SocRun",
     "run_identification",
+    "run_identification_paths",
+    "output_error_capacity",
     "run_soc",
     "simulate_with_params",
     "one_step_ahead",
@@ -49,6 +57,8 @@ __all__ = [
     "rmse_mv",
     "compare_methods",
     "reference_soc",
+    "reference_capacity",
+    "measured_capacity",
 ]
 
 
@@ -94,21 +104,90 @@ def run_identification(
     config: IdentifierConfig = IdentifierConfig(),
 ) -> IdentificationRun:
     """Online identification along a known SOC path (no SOC compensation)."""
-    n = len(current_a)
-    ident = make_identifier(1, dt_s, capacity_ah, config)
-    v_o = np.asarray(voltage_v) - ocv.ocv(soc)
-    traj = {k: np.empty(n) for k in PARAM_KEYS}
-    identified = np.zeros(n, dtype=bool)
-    i1 = np.empty(1)
-    v1 = np.empty(1)
+    return run_identification_paths(current_a, voltage_v, np.asarray(soc)[:, None], ocv, capacity_ah,
+                                    dt_s, config)[0]
+
+
+def run_identification_paths(
+    current_a: np.ndarray,
+    voltage_v: np.ndarray,
+    soc_paths: np.ndarray,
+    ocv: OcvCurve,
+    capacity_ah: float,
+    dt_s: float = 1.0,
+    config: IdentifierConfig = IdentifierConfig(),
+) -> list[IdentificationRun]:
+    """Online identification of one recording along m SOC paths ``(n, m)`` at once.
+
+    The paths are m cells of one vectorised identifier, so m candidate SOC
+    paths (candidate capacities, say) cost about as much as one.
+    """
+    soc_paths = np.asarray(soc_paths, dtype=float)
+    n, m = soc_paths.shape
+    ident = make_identifier(m, dt_s, capacity_ah, config)
+    v_o = np.asarray(voltage_v, dtype=float)[:, None] - ocv.ocv(soc_paths)
+    traj = {k: np.empty((n, m)) for k in PARAM_KEYS}
+    identified = np.zeros((n, m), dtype=bool)
+    i = np.asarray(current_a, dtype=float)
     for k in range(n):
-        i1[0] = current_a[k]
-        v1[0] = v_o[k]
-        ident.update(i1, v1)
-        _record(traj, k, ident.params.as_dict())
-        identified[k] = ident.identified[0]
+        ident.update(i[k], v_o[k])
+        p = ident.params.as_dict()
+        for key in PARAM_KEYS:
+            traj[key][k] = p[key]
+        identified[k] = ident.identified
     t = np.arange(n) * dt_s
-    return IdentificationRun(t, np.asarray(soc), traj, identified, int(ident.rejections[0]), config.method)
+    return [
+        IdentificationRun(t, soc_paths[:, j], {key: traj[key][:, j].copy() for key in PARAM_KEYS},
+                          identified[:, j].copy(), int(ident.rejections[j]), config.method)
+        for j in range(m)
+    ]
+
+
+def output_error_capacity(
+    current_a: np.ndarray,
+    voltage_v: np.ndarray,
+    ocv: OcvCurve,
+    stated_ah: float,
+    initial_soc: float = 1.0,
+    dt_s: float = 1.0,
+    config: IdentifierConfig = IdentifierConfig(),
+    *,
+    relative: tuple[float, float] = (0.8, 1.1),
+    step: float = 0.02,
+    soc_window: tuple[float, float] = (0.2, 0.9),
+) -> tuple[float, dict[str, np.ndarray]]:
+    """The capacity that makes the identified model simulate the recording best.
+
+    Capacity is a parameter of the model like R0 (the gain of the SOC
+    integrator): each candidate Q on a grid of ``relative`` x the stated
+    capacity gives an SOC path by coulomb counting from ``initial_soc``; the
+    online identifier runs along every path at once (one vectorised pass) and
+    the free-run simulation RMSE of its parameter trajectory, over the samples
+    inside ``soc_window`` on the stated capacity's path, is the output error of
+    that Q.  A parabola through the best grid point and its neighbours refines
+    the minimum.  Returns (Q, profile) with the profile's ``capacity_ah`` and
+    ``sim_rmse_mv``.
+    """
+    i = np.asarray(current_a, dtype=float)
+    v = np.asarray(voltage_v, dtype=float)
+    rel = np.arange(relative[0], relative[1] + 0.5 * step, step)
+    q = stated_ah * rel
+    paths = np.stack([reference_soc(i, dt_s, qj, initial_soc) for qj in q], axis=1)
+    runs = run_identification_paths(i, v, paths, ocv, stated_ah, dt_s, config)
+    s_stated = reference_soc(i, dt_s, stated_ah, initial_soc)
+    inside = (s_stated >= soc_window[0]) & (s_stated <= soc_window[1])
+    if inside.sum() < 100:
+        inside = np.ones_like(inside)
+    err = np.array([rmse_mv(simulate_with_params(i, r.soc, ocv, r.params, dt_s), v, inside) for r in runs])
+    err = np.where(np.isfinite(err), err, np.inf)
+    k = int(np.argmin(err))
+    q_best = q[k]
+    if 0 < k < len(q) - 1 and np.all(np.isfinite(err[k - 1:k + 2])):
+        e0, e1, e2 = err[k - 1:k + 2]
+        curv = e0 - 2 * e1 + e2
+        if curv > 0:
+            q_best = q[k] + 0.5 * (e0 - e2) / curv * (q[1] - q[0])
+    return float(q_best), {"capacity_ah": q, "sim_rmse_mv": err}
 
 
 def run_soc(
@@ -253,22 +332,29 @@ def compare_methods(
     config: SocConfig = SocConfig(),
     methods: tuple[str, ...] = ("lif", "arx"),
     names: tuple[str, str] = ("train", "validate"),
+    c0_prior_weight: float = KNOWN_SOC_C0_PRIOR_WEIGHT,
 ) -> Comparison:
-    """The paper's Section IV-A on any pair of recordings (current, voltage at dt_s)."""
+    """The paper's Section IV-A on any pair of recordings (current, voltage at dt_s).
+
+    The SOC of both files is coulomb counting from ``initial_soc`` with the
+    training file's output-error capacity (:func:`output_error_capacity`);
+    since that SOC is given, the identifiers carry a prior c0 = 0 of weight
+    ``c0_prior_weight`` (0 = the paper's plain estimate).
+    """
     i_tr, v_tr = (np.asarray(x, dtype=float) for x in train)
     i_va, v_va = (np.asarray(x, dtype=float) for x in validate)
-    # effective capacity from the training file, as the online SOC estimator finds it
-    q_eff, source = reference_capacity(i_tr, v_tr, dt_s, ocv, capacity_ah, initial_soc)
-    if source.startswith("stated"):
-        soc_run = run_soc(i_tr, v_tr, ocv, capacity_ah, initial_soc, dt_s, config)
-        q_eff, source = float(soc_run.capacity_ah[-1]), "online SOC estimator"
+    ident_cfg = config.identifier.with_(c0_prior_weight=c0_prior_weight)
+    q_eff, profile = output_error_capacity(i_tr, v_tr, ocv, capacity_ah, initial_soc, dt_s,
+                                           ident_cfg.with_(method=methods[0]), soc_window=soc_window)
+    source = f"output error of the {methods[0]} model on the training file"
+    q_rest, rest_source = reference_capacity(i_tr, v_tr, dt_s, ocv, capacity_ah, initial_soc)
     soc_tr = reference_soc(i_tr, dt_s, q_eff, initial_soc)
     soc_va = reference_soc(i_va, dt_s, q_eff, initial_soc)
     res_tr = FileResult(names[0], soc_tr, v_tr)
     res_va = FileResult(names[1], soc_va, v_va)
     runs = {}
     for method in methods:
-        run = run_identification(i_tr, v_tr, soc_tr, ocv, capacity_ah, dt_s, config.identifier.with_(method=method))
+        run = run_identification(i_tr, v_tr, soc_tr, ocv, capacity_ah, dt_s, ident_cfg.with_(method=method))
         runs[method] = run
         res_tr.params[method] = run.params
         res_tr.simulated_v[method] = simulate_with_params(i_tr, soc_tr, ocv, run.params, dt_s)
@@ -287,6 +373,10 @@ def compare_methods(
         metrics["train"][method]["rejections"] = runs[method].rejections
     metrics["capacity_ah_estimated"] = q_eff
     metrics["capacity_source"] = source
+    metrics["capacity_profile"] = {k: [float(x) for x in v] for k, v in profile.items()}
+    if not rest_source.startswith("stated"):
+        metrics["capacity_ah_end_rest"] = q_rest
+    metrics["c0_prior_weight"] = c0_prior_weight
     metrics["soc_window"] = list(soc_window)
     return Comparison(q_eff, metrics, res_tr, res_va, runs)
 
@@ -299,14 +389,15 @@ def reference_capacity(
     stated_ah: float,
     soc0: float = 1.0,
     *,
-    rest_s: float = 300.0,
+    rest_s: float = 600.0,
     relaxed_v: float = 0.002,
 ) -> tuple[float, str]:
     """Capacity for the reference SOC of a recording that starts at a known SOC.
 
     When the file ends at a relaxed rest (the last ``rest_s`` below C/50 and the
     voltage moving less than ``relaxed_v`` over the last minute, like the LG
-    files' final 600 s rest) the end SOC is read from the OCV and the capacity
+    files' final 600 s rest; the Panasonic files' 300 s rests still recover
+    2-5 mV a minute and would read 2.88-2.92 Ah) the end SOC is read from the OCV and the capacity
     is the net charge over the SOC travelled: that is measured, not stated.
     Otherwise the stated capacity is all there is.
 
@@ -322,7 +413,8 @@ def reference_capacity(
     net_ah = float(np.sum(i) * dt_s / 3600.0)
     n_last = max(2, int(round(60.0 / dt_s)))
     v = np.asarray(voltage_v, dtype=float)
-    at_rest = len(i) > n_rest and np.all(np.abs(i[-n_rest:]) < stated_ah / 50.0)
+    # a rest of rest_s (a sample or two of it may carry residual current)
+    at_rest = len(i) > n_rest and np.mean(np.abs(i[-n_rest:]) < stated_ah / 50.0) >= 0.99
     # only a relaxed rest tells the OCV: a voltage still rising after a deep discharge
     # (the Panasonic files' 300 s rests) would put the end SOC too low
     relaxed = at_rest and abs(v[-1] - v[-n_last]) < relaxed_v
@@ -339,6 +431,29 @@ def reference_capacity(
             if 0.5 * stated_ah < q < 1.5 * stated_ah:
                 return q, "end-of-test rest (OCV)"
     return float(stated_ah), "stated"
+
+
+def measured_capacity(
+    current_a: np.ndarray,
+    voltage_v: np.ndarray,
+    dt_s: float,
+    ocv: OcvCurve,
+    stated_ah: float,
+    soc0: float = 1.0,
+    config: IdentifierConfig = IdentifierConfig(),
+) -> tuple[float, str]:
+    """The effective capacity of a recording that starts at a known SOC, never the stated one.
+
+    A relaxed end-of-test rest measures it (:func:`reference_capacity`); without
+    one, the output-error capacity of the model fitted along the known-start
+    SOC path (:func:`output_error_capacity`, with the known-SOC c0 prior).
+    """
+    q, source = reference_capacity(current_a, voltage_v, dt_s, ocv, stated_ah, soc0)
+    if not source.startswith("stated"):
+        return q, source
+    q, _ = output_error_capacity(current_a, voltage_v, ocv, stated_ah, soc0, dt_s,
+                                 config.with_(c0_prior_weight=KNOWN_SOC_C0_PRIOR_WEIGHT))
+    return q, "output error of the model from the known start"
 
 
 def soc_errors(

@@ -109,12 +109,16 @@ def test_bench_prints_the_figures(capsys):
 
 
 def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
-    """LG HG2 udds -> la92 (shipped samples): CT validation simulation RMSE <= 25 mV (10.7 mV when written)."""
+    """LG HG2 udds -> la92 (shipped samples): CT validation simulation RMSE <= 25 mV (11.8 mV when written)."""
     out = tmp_path / "cmp.json"
     assert main(["compare", "--train", str(drive_cycle("lg-hg2", "udds")),
                  "--validate", str(drive_cycle("lg-hg2", "la92")),
                  "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0", "--json", str(out)]) == 0
     m = json.loads(out.read_text())
     assert m["validate"]["lif"]["sim_rmse_mv"] <= 25.0
-    assert m["capacity_source"] == "end-of-test rest (OCV)"
-    assert 2.7 < m["capacity_ah_estimated"] < 2.9  # its C/20 discharge gives 2.78 Ah
+    assert m["capacity_source"].startswith("output error")
+    assert 2.65 < m["capacity_ah_estimated"] < 2.9  # its C/20 discharge gives 2.78 Ah, its end rest 2.81
+    assert 2.75 < m["capacity_ah_end_rest"] < 2.85
+    prof = m["capacity_profile"]
+    assert len(prof["capacity_ah"]) == len(prof["sim_rmse_mv"]) >= 10
+    assert m["c0_prior_weight"] == 0.1

@@ -37,6 +37,24 @@ def add_cell_options(p: argparse.ArgumentParser) -> None:
                    help="SOC at the file's start (default 1.0: the drive cycles of ../shared/data start full)")
 
 
+def non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a number >= 0")
+    return value
+
+
+def add_c0_prior_option(p: argparse.ArgumentParser) -> None:
+    from ..analysis import KNOWN_SOC_C0_PRIOR_WEIGHT
+
+    p.add_argument("--c0-prior", type=non_negative_float, default=KNOWN_SOC_C0_PRIOR_WEIGHT,
+                   help="weight of the prior c0 = 0 when the SOC path is known, per sample relative to one data "
+                        f"sample (default {KNOWN_SOC_C0_PRIOR_WEIGHT}; 0 = the paper's plain estimate)")
+
+
 def add_tuning_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("estimator tuning (defaults serve both cells of ../shared/data)")
     g.add_argument("--window", type=int, default=_ID.window, help=f"LIF window L in samples (default {_ID.window})")

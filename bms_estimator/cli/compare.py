@@ -6,12 +6,14 @@ import argparse
 from pathlib import Path
 
 from ..analysis import compare_methods
-from .common import add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
+from .common import add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("compare", help="the paper's Section IV-A: CT vs DT identification on any two files",
-                       description="Both methods run online over the training file; their parameters simulate the "
+                       description="The SOC path of both files is coulomb counting from the known start with the "
+                                   "training file's output-error capacity. Both methods run online over the training "
+                                   "file; their parameters simulate the "
                                    "training file (online trajectory) and the validation file (training parameters "
                                    "looked up by SOC). RMSEs cover the 20-90 %% SOC part unless --full-range.")
     p.add_argument("--train", type=Path, required=True)
@@ -22,6 +24,7 @@ def add_parser(sub) -> None:
     p.add_argument("--full-range", action="store_true", help="score the whole file (both are reported anyway)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--plots", type=Path, default=None, help="folder for the figures (paper Figs 5-9)")
+    add_c0_prior_option(p)
     add_tuning_options(p)
     p.set_defaults(func=run)
 
@@ -37,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     res = compare_methods(
         (tr.current_a, tr.voltage_v), (va.current_a, va.voltage_v), ocv, args.capacity_ah,
         dt_s=tr.dt_s, initial_soc=args.initial_soc, soc_window=window, config=soc_config(args),
-        names=(args.train.name, args.validate.name),
+        names=(args.train.name, args.validate.name), c0_prior_weight=args.c0_prior,
     )
     m = res.metrics
     m["files"] = {"train": str(args.train), "validate": str(args.validate)}

@@ -8,22 +8,24 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis import (
-    PARAM_KEYS, one_step_ahead, reference_soc, rmse_mv, run_identification, run_soc, simulate_with_params,
-    soc_lookup_table,
+    PARAM_KEYS, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
+    simulate_with_params, soc_lookup_table,
 )
-from .common import add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
+from .common import add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("fit", help="identify R0/R1/C1/R2/C2/c0 online over a recording",
-                       description="Estimates the effective capacity with the online SOC estimator, then runs the "
-                                   "chosen identifier along the coulomb-counted SOC path and simulates the file with "
-                                   "the identified parameter trajectory.")
+                       description="Estimates the effective capacity as the output-error capacity of the model "
+                                   "along the coulomb-counted SOC path from the known start, then runs the chosen "
+                                   "identifier along that path (with the known-SOC c0 prior, --c0-prior) and "
+                                   "simulates the file with the identified parameter trajectory.")
     p.add_argument("data", type=Path)
     add_cell_options(p)
     p.add_argument("--method", choices=("lif", "arx"), default="lif")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--plot", type=Path, default=None, help="PNG of the parameter trajectories and the errors")
+    add_c0_prior_option(p)
     add_tuning_options(p)
     p.set_defaults(func=run)
 
@@ -31,11 +33,11 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv)
-    cfg = soc_config(args)
+    ident = soc_config(args).identifier.with_(c0_prior_weight=args.c0_prior)
     dt = rec.dt_s
-    q_eff = float(run_soc(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, args.initial_soc, dt, cfg).capacity_ah[-1])
+    q_eff, _ = output_error_capacity(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, args.initial_soc, dt, ident)
     soc = reference_soc(rec.current_a, dt, q_eff, args.initial_soc)
-    run_ = run_identification(rec.current_a, rec.voltage_v, soc, ocv, args.capacity_ah, dt, cfg.identifier)
+    run_ = run_identification(rec.current_a, rec.voltage_v, soc, ocv, args.capacity_ah, dt, ident)
     sim = simulate_with_params(rec.current_a, soc, ocv, run_.params, dt)
     osa = one_step_ahead(rec.current_a, rec.voltage_v, soc, ocv, run_.params, dt)
     inside = (soc >= 0.2) & (soc <= 0.9)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..analysis import reference_capacity, reference_soc, run_soc, soc_errors
+from ..analysis import measured_capacity, reference_soc, run_soc, soc_errors
 from .common import add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
 
 
@@ -14,8 +14,9 @@ def add_parser(sub) -> None:
                        description="Runs the online SOC estimator (LIF identification, c0 compensation, capacity "
                                    "estimation) from initial SOC = reference start - error. The reference SOC is "
                                    "coulomb counting from the known start (full) with the reference capacity: the "
-                                   "one measured from the file's end-of-test rest when it ends at rest, else the "
-                                   "stated one, unless --reference-capacity-ah is given.")
+                                   "one measured from the file's end-of-test rest when it ends relaxed, else the output-"
+                                   "error capacity of the model fitted from the known start (never the stated one), "
+                                   "unless --reference-capacity-ah is given.")
     p.add_argument("data", type=Path, help="drive-cycle CSV(.gz) in the ../shared/data layout")
     add_cell_options(p)
     p.add_argument("--initial-soc-error", type=float, default=0.2,
@@ -35,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     if args.reference_capacity_ah is not None:
         q_ref, source = float(args.reference_capacity_ah), "given"
     else:
-        q_ref, source = reference_capacity(rec.current_a, rec.voltage_v, dt, ocv, args.capacity_ah, args.initial_soc)
+        q_ref, source = measured_capacity(rec.current_a, rec.voltage_v, dt, ocv, args.capacity_ah, args.initial_soc)
     soc_ref = reference_soc(rec.current_a, dt, q_ref, args.initial_soc)
     start = min(max(args.initial_soc - args.initial_soc_error, 0.0), 1.0)
     run_ = run_soc(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, start, dt, soc_config(args))

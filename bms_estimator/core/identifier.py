@@ -53,12 +53,22 @@ class IdentifierConfig:
     init_samples: int = 600  # block-LS initialisation window in samples
     tau_min_s: float = 1.0  # admissible fast time constant, lower bound
     tau_max_s: float = 500.0  # admissible slow time constant, upper bound (the runaway guard)
+    # Prior c0 = 0 as a pseudo-measurement each learning sample, weighted relative to one
+    # data sample (0 = off, the paper's estimate).  For identification along a *given*
+    # SOC path (fit, compare): c0 is then an OCV-model error, and the prior stops it
+    # trading off against the slow branch.  Off in the SOC estimator, where c0 carries
+    # the SOC error the compensation needs.
+    c0_prior_weight: float = 0.0
     c0_max_v: float = 0.5  # admissible |c0|: an OCV bias beyond this is not an SOC error but a broken fit
     prior_r0_ohm_ah: float = 0.06
     prior_r1_ohm_ah: float = 0.03
     prior_tau1_s: float = 10.0
     prior_r2_ohm_ah: float = 0.03
     prior_tau2_s: float = 200.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.c0_prior_weight) and self.c0_prior_weight >= 0):
+            raise ValueError(f"c0_prior_weight must be a finite number >= 0, got {self.c0_prior_weight}")
 
     def rls(self) -> RlsConfig:
         return RlsConfig(
@@ -155,6 +165,8 @@ class Identifier:
         learn = ready & np.isfinite(y) & np.all(np.isfinite(phi), axis=1)
         was_init = self.rls.initialised.copy()
         self.error = self.rls.update(phi, np.where(learn, y, 0.0), learn)
+        if self.config.c0_prior_weight > 0:
+            self._c0_prior(learn & was_init)
         theta = self.rls.theta
         new = self.rls.initialised & ~was_init
         params = self._physical(theta)
@@ -174,6 +186,10 @@ class Identifier:
         self.identified |= good
         self.params = params.select(good, self.params) if good.any() else self.params
         self.updates += 1
+
+    def _c0_prior(self, cells: np.ndarray) -> None:
+        """One pseudo-measurement ``c0 = 0`` (linearised at theta) for the selected cells."""
+        raise NotImplementedError
 
     def shift_bias(self, dv: np.ndarray, cells: np.ndarray | None = None) -> None:
         """Move an OCV bias ``dv`` (V, per cell) out of the model: v_o history and c0 both shift.
@@ -264,6 +280,17 @@ class LifEstimator(Identifier):
         # history.push scaled the current columns by 1/T, 1/T^2 only (i_ref = 1); currents came in C-rate
         return y, phi, (self._taint == 0) & self.history.ready
 
+    def _c0_prior(self, cells):
+        # c0 = -th6_s / th2_s (s2 = s6 = T^2): the row h = e6 / |th2_s| gives h' theta = c0 in volts
+        th2 = self.rls.theta[:, 1]
+        ok = cells & (th2 < 0)
+        if not ok.any():
+            return
+        w = np.sqrt(self.config.c0_prior_weight)
+        h = np.zeros((self.n_cells, 6))
+        h[:, 5] = w / np.where(ok, -th2, 1.0)
+        self.rls.pseudo_update(h, np.zeros(self.n_cells), ok)
+
     def _shift_theta(self, theta_s, dv):
         # th6 = -th2 c0  ->  c0 - dv  gives  th6 + th2 dv ; both scaled by T^2
         theta_s[:, 5] += theta_s[:, 1] * dv
@@ -333,6 +360,15 @@ class ArxEstimator(Identifier):
         self._count += 1
         self._taint = np.where(ok, np.maximum(self._taint - 1, 0), 3)
         return v_in, phi, (self._taint == 0) & (self._count >= 3)
+
+    def _c0_prior(self, cells):
+        g = 1.0 - self.rls.theta[:, 0] - self.rls.theta[:, 1]  # K = c0 g
+        ok = cells & (g > 0)
+        if not ok.any():
+            return
+        h = np.zeros((self.n_cells, 6))
+        h[:, 5] = np.sqrt(self.config.c0_prior_weight) / np.where(ok, g, 1.0)
+        self.rls.pseudo_update(h, np.zeros(self.n_cells), ok)
 
     def _shift_theta(self, theta_s, dv):
         # K = c0 (1 - A1 - A2): c0 -> c0 - dv

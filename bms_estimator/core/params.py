@@ -86,6 +86,9 @@ class PhysicalParams:
         return (self.r0_ohm, self.r1_ohm, self.c1_f, self.r2_ohm, self.c2_f, self.c0_v)
 
 
+R_MIN_OHM = 1e-9
+
+
 def _check(
     r0: np.ndarray,
     r1: np.ndarray,
@@ -98,7 +101,8 @@ def _check(
     tau_max_s: float,
 ) -> np.ndarray:
     ok = real & np.isfinite(r0) & np.isfinite(r1) & np.isfinite(r2) & np.isfinite(c0)
-    ok &= (r0 > 0) & (r1 > 0) & (r2 > 0)
+    # a resistance below a nano-ohm is no cell's (and its C = tau / R overflows)
+    ok &= (r0 > R_MIN_OHM) & (r1 > R_MIN_OHM) & (r2 > R_MIN_OHM)
     ok &= (tau1 >= tau_min_s) & (tau2 <= tau_max_s) & (tau1 < tau2)
     return ok
 

@@ -126,6 +126,13 @@ class WeightedRls:
             P *= np.where(over, self.config.trace_max / np.where(tr > 0, tr, 1.0), 1.0)[:, None, None]
         self.P = P
 
+    def pseudo_update(self, h: np.ndarray, y: np.ndarray, mask: np.ndarray) -> None:
+        """A prior as a pseudo-measurement y = h' theta (no forgetting, no error window)."""
+        run = mask & self.initialised
+        if run.any():
+            e = y - np.einsum("np,np->n", h, self.theta)
+            self._rls_step(h, np.where(run, e, 0.0), run, 1.0)
+
     def _accumulate(self, phi: np.ndarray, y: np.ndarray, sel: np.ndarray) -> None:
         lam = self.config.forgetting
         s = sel[:, None]
