@@ -14,7 +14,7 @@ Definitions (``analyse``):
   identified at ``k-1`` (R0, R1, tau1, R2, tau2, c0, ZOH-discretised) predicts the
   overpotential ``v_o[k] = v[k] - OCV(soc)`` from the measured current and the measured
   overpotentials of ``k-1`` and ``k-2``; the RMSE of prediction minus measurement over the
-  samples after the identifier's block-LS initialisation (``init_samples``, 600 s), leaving out
+  samples after the first 600 s (the block-LS start and the first compensations), leaving out
   the two samples after each SOC correction or re-anchoring (there the OCV bias moves from the
   model into the SOC, and the stored overpotentials of the two bases do not compare).
 * **Identified parameters**: the values the service holds (and has published) at the end.
