@@ -142,7 +142,7 @@ def ct_physical_from_theta(
     # roots of s^2 + th1 s - th2: a = (-th1 -+ sq)/2 ; a_fast is the larger pole
     a_fast = 0.5 * (-th1 + sq)
     a_slow = 0.5 * (-th1 - sq)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         r0 = th3
         big_b = th4 - r0 * (a_fast + a_slow)
         big_d = th5 - r0 * a_fast * a_slow
@@ -186,7 +186,7 @@ def dt_physical_from_theta(
     p_slow = 0.5 * (a1 + sq)
     p_fast = 0.5 * (a1 - sq)
     real = (disc > 0) & (p_fast > 0) & (p_slow < 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         r0 = b0
         big_b = b1 + r0 * (p_fast + p_slow)
         big_d = r0 * p_fast * p_slow - b2
