@@ -19,14 +19,19 @@ _ID = IdentifierConfig()
 _SOC = SocConfig()
 
 
-def positive_float(text: str) -> float:
+def _number(text: str, *, allow_zero: bool) -> float:
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+    if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a number >= 0" if allow_zero else
+                                         f"{text!r} must be a positive number")
     return value
+
+
+def positive_float(text: str) -> float:
+    return _number(text, allow_zero=False)
 
 
 def add_cell_options(p: argparse.ArgumentParser) -> None:
@@ -38,13 +43,7 @@ def add_cell_options(p: argparse.ArgumentParser) -> None:
 
 
 def non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be a number >= 0")
-    return value
+    return _number(text, allow_zero=True)
 
 
 def add_c0_prior_option(p: argparse.ArgumentParser) -> None:

@@ -187,9 +187,19 @@ class Identifier:
         self.params = params.select(good, self.params) if good.any() else self.params
         self.updates += 1
 
+    def _c0_gain(self, theta_s: np.ndarray) -> np.ndarray:
+        """g with c0 = theta_s[:, 5] / g (per cell); g > 0 where c0 is defined."""
+        raise NotImplementedError
+
     def _c0_prior(self, cells: np.ndarray) -> None:
         """One pseudo-measurement ``c0 = 0`` (linearised at theta) for the selected cells."""
-        raise NotImplementedError
+        g = self._c0_gain(self.rls.theta)
+        ok = cells & (g > 0)
+        if not ok.any():
+            return
+        h = np.zeros((self.n_cells, self.n_params))
+        h[:, 5] = np.sqrt(self.config.c0_prior_weight) / np.where(ok, g, 1.0)  # h' theta = sqrt(w) c0
+        self.rls.pseudo_update(h, np.zeros(self.n_cells), ok)
 
     def shift_bias(self, dv: np.ndarray, cells: np.ndarray | None = None) -> None:
         """Move an OCV bias ``dv`` (V, per cell) out of the model: v_o history and c0 both shift.
@@ -280,16 +290,9 @@ class LifEstimator(Identifier):
         # history.push scaled the current columns by 1/T, 1/T^2 only (i_ref = 1); currents came in C-rate
         return y, phi, (self._taint == 0) & self.history.ready
 
-    def _c0_prior(self, cells):
-        # c0 = -th6_s / th2_s (s2 = s6 = T^2): the row h = e6 / |th2_s| gives h' theta = c0 in volts
-        th2 = self.rls.theta[:, 1]
-        ok = cells & (th2 < 0)
-        if not ok.any():
-            return
-        w = np.sqrt(self.config.c0_prior_weight)
-        h = np.zeros((self.n_cells, 6))
-        h[:, 5] = w / np.where(ok, -th2, 1.0)
-        self.rls.pseudo_update(h, np.zeros(self.n_cells), ok)
+    def _c0_gain(self, theta_s):
+        # c0 = -th6_s / th2_s (s2 = s6 = T^2)
+        return -theta_s[:, 1]
 
     def _shift_theta(self, theta_s, dv):
         # th6 = -th2 c0  ->  c0 - dv  gives  th6 + th2 dv ; both scaled by T^2
@@ -361,14 +364,9 @@ class ArxEstimator(Identifier):
         self._taint = np.where(ok, np.maximum(self._taint - 1, 0), 3)
         return v_in, phi, (self._taint == 0) & (self._count >= 3)
 
-    def _c0_prior(self, cells):
-        g = 1.0 - self.rls.theta[:, 0] - self.rls.theta[:, 1]  # K = c0 g
-        ok = cells & (g > 0)
-        if not ok.any():
-            return
-        h = np.zeros((self.n_cells, 6))
-        h[:, 5] = np.sqrt(self.config.c0_prior_weight) / np.where(ok, g, 1.0)
-        self.rls.pseudo_update(h, np.zeros(self.n_cells), ok)
+    def _c0_gain(self, theta_s):
+        # K = c0 (1 - A1 - A2)
+        return 1.0 - theta_s[:, 0] - theta_s[:, 1]
 
     def _shift_theta(self, theta_s, dv):
         # K = c0 (1 - A1 - A2): c0 -> c0 - dv
