@@ -8,8 +8,13 @@ physical (negative R or C, complex or repeated poles, a time constant outside
 theta - not just its output - and the rejection is counted.  Resetting the
 estimate is what stops the slow pole from running away to 1e3..1e6 s and c0 to
 volts during weakly exciting stretches: a bound on the output alone would let
-the hidden estimate drift on.  Until a cell's block-LS initialisation is done
-(or if it gives a non-physical theta) the cell reports a prior.
+the hidden estimate drift on.  A cell rejected sample after sample is stuck
+against the admissible set (the slow pole absorbing a drifting OCV error, say):
+after ``restart_after_rejections`` in a row its identification restarts from a
+fresh block.  Until a cell's block-LS initialisation is done the cell reports a
+prior; a block whose least-squares theta is not physical (too short to place the
+slow pole) grows sample by sample up to ``init_max_samples``, after which the
+cell starts from the prior.
 
 Currents are regressed in C-rate (``i / I_ref``, ``I_ref`` = capacity in A for
 1C) and the LIF columns are time-scaled by the window, so the same tuning
@@ -50,7 +55,14 @@ class IdentifierConfig:
     error_off_v: float = 0.0  # turn it off below this one
     error_window: int = 30  # samples in the windowed error
     trace_max: float = 1e3  # covariance trace limit (scaled regressors)
-    init_samples: int = 600  # block-LS initialisation window in samples
+    init_samples: int = 120  # shortest block-LS initialisation window, samples
+    # The block grows while its LS theta is not physical (a block too short to see the slow
+    # pole); past this many samples (or init_samples, if longer) the cell starts from the prior.
+    init_max_samples: int = 1200
+    # A cell whose estimate the guard has rejected this many samples in a row is stuck
+    # against the admissible set (the slow pole absorbing a drifting OCV error, say): its
+    # identification restarts from a fresh block (0 = never).
+    restart_after_rejections: int = 300
     tau_min_s: float = 1.0  # admissible fast time constant, lower bound
     tau_max_s: float = 500.0  # admissible slow time constant, upper bound (the runaway guard)
     # Prior c0 = 0 as a pseudo-measurement each learning sample, weighted relative to one
@@ -67,6 +79,8 @@ class IdentifierConfig:
     prior_tau2_s: float = 200.0
 
     def __post_init__(self) -> None:
+        if self.restart_after_rejections < 0:
+            raise ValueError(f"restart_after_rejections must be >= 0, got {self.restart_after_rejections}")
         if not (np.isfinite(self.c0_prior_weight) and self.c0_prior_weight >= 0):
             raise ValueError(f"c0_prior_weight must be a finite number >= 0, got {self.c0_prior_weight}")
 
@@ -117,9 +131,12 @@ class Identifier:
             np.full(self.n_cells, tau2),
             np.zeros(self.n_cells),
         )
+        self.rls.theta_ref = self._prior_theta_s.copy()  # unexcited directions of the block start
         self.theta_good = self._prior_theta_s.copy()  # last admissible scaled theta
         self.identified = np.zeros(self.n_cells, dtype=bool)
         self.rejections = np.zeros(self.n_cells, dtype=np.int64)
+        self.restarts = np.zeros(self.n_cells, dtype=np.int64)
+        self._rejected_run = np.zeros(self.n_cells, dtype=np.int64)  # consecutive rejections
         self.updates = 0
         self.error = np.full(self.n_cells, np.nan)
         self.accepted = np.zeros(self.n_cells, dtype=bool)  # learnt an admissible theta this sample
@@ -167,20 +184,35 @@ class Identifier:
         self.error = self.rls.update(phi, np.where(learn, y, 0.0), learn)
         if self.config.c0_prior_weight > 0:
             self._c0_prior(learn & was_init)
+
         theta = self.rls.theta
         new = self.rls.initialised & ~was_init
         params = self._physical(theta)
         admissible = params.admissible & (np.abs(params.c0_v) <= self.config.c0_max_v)
         params = PhysicalParams(*params._arrays(), admissible=admissible)
         good = admissible & self.rls.initialised
-        # a fresh block-LS start that is not physical starts from the prior instead
+        # a fresh block-LS start that is not physical: the block grows by a sample and is
+        # solved again; once it is init_max_samples long the cell starts from the prior
         bad_start = new & ~good
         if bad_start.any():
-            theta[bad_start] = self._prior_theta_s[bad_start]
+            longest = max(self.config.init_max_samples, self.config.init_samples)
+            grow = bad_start & (self.rls.block_samples < longest)
+            if grow.any():
+                self.rls.extend_block(grow)
+            give_up = bad_start & ~grow
+            theta[give_up] = self._prior_theta_s[give_up]
         rejected = self.rls.initialised & ~params.admissible & ~new
         self.rejections += rejected
         if rejected.any():
             self.rls.reset_theta(rejected, self.theta_good)
+        self._rejected_run = np.where(rejected, self._rejected_run + 1, np.where(good & learn, 0, self._rejected_run))
+        n_stuck = self.config.restart_after_rejections
+        if n_stuck > 0:
+            stuck = self._rejected_run >= n_stuck
+            if stuck.any():
+                self.rls.restart(stuck)
+                self._rejected_run[stuck] = 0
+                self.restarts += stuck
         self.accepted = good & learn
         self.theta_good = np.where(good[:, None], theta, self.theta_good)
         self.identified |= good
@@ -232,6 +264,8 @@ class Identifier:
             theta_good=self.theta_good.copy(),
             identified=self.identified.copy(),
             rejections=self.rejections.copy(),
+            restarts=self.restarts.copy(),
+            rejected_run=self._rejected_run.copy(),
             updates=np.array(self.updates),
         )
         return out
@@ -244,6 +278,8 @@ class Identifier:
         self.theta_good = tg.copy()
         self.identified = np.asarray(s["identified"], dtype=bool).copy()
         self.rejections = np.asarray(s["rejections"], dtype=np.int64).copy()
+        self.restarts = np.asarray(s.get("restarts", np.zeros(self.n_cells)), dtype=np.int64).copy()
+        self._rejected_run = np.asarray(s.get("rejected_run", np.zeros(self.n_cells)), dtype=np.int64).copy()
         self.updates = int(s["updates"])
         self.params = self._physical(self.theta_good)
 

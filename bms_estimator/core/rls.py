@@ -18,9 +18,11 @@ which bounds the gain after long poorly exciting periods.
 
 Initialisation (block least squares): the first ``init_samples`` regressors of
 each cell are accumulated with forgetting, ``R = sum lambda^(n-k) phi phi'``
-and ``r = sum lambda^(n-k) phi y``; then ``P0 = (R + delta I)^-1`` and
-``theta0 = P0 r``.  This is exactly the RLS solution from a diffuse start, but
-without its transient.
+and ``r = sum lambda^(n-k) phi y``; then ``P0 = (R + delta)^-1`` and
+``theta0 = P0 (r + delta theta_ref)``.  This is the RLS solution from a diffuse
+start, but without its transient; the small ridge ``delta`` (relative to
+each column's energy, diag(R)) keeps P0 finite and, in directions the block does not excite, leaves
+theta0 at ``theta_ref`` (a prior the caller sets; zero by default) rather than at 0.
 
 Every array carries the cell axis first; one call updates every cell.
 """
@@ -42,7 +44,7 @@ class RlsConfig:
     error_window: int = 30
     trace_max: float = 1e4
     init_samples: int = 300
-    init_delta: float = 1e-6
+    init_delta: float = 1e-9
 
     def __post_init__(self) -> None:
         if not 0.9 <= self.forgetting <= 1.0:
@@ -70,6 +72,7 @@ class WeightedRls:
         self._R = np.zeros((n, p, p))
         self._r = np.zeros((n, p))
         self._init_count = np.zeros(n, dtype=np.int64)
+        self.theta_ref = np.zeros((n, p))  # where the block ridge pulls theta0
         self._err2 = np.zeros((n, config.error_window))
         self._err_head = 0
         self._err_count = np.zeros(n, dtype=np.int64)
@@ -89,9 +92,9 @@ class WeightedRls:
         e = y - np.einsum("np,np->n", phi, self.theta)
 
         init_now = mask & ~self.initialised
+        run = mask & self.initialised  # before the block solve: its last sample is in theta0 already
         if init_now.any():
             self._accumulate(phi, y, init_now)
-        run = mask & self.initialised
         if run.any():
             # windowed error RMS drives turn-on/turn-off (only from learning samples)
             h = self._err_head
@@ -143,15 +146,40 @@ class WeightedRls:
         if done.any():
             self.initialise_from_block(done)
 
+    def extend_block(self, cells: np.ndarray) -> None:
+        """Undo the start of the selected cells: their block keeps accumulating.
+
+        For a caller that rejects theta0 (e.g. a non-physical one from a block too
+        short to see the slow pole); the block is solved again after each further sample.
+        """
+        self.initialised[cells] = False
+        self.theta[cells] = 0.0
+        self.P[cells] = 0.0
+
+    def restart(self, cells: np.ndarray) -> None:
+        """Forget the selected cells' estimate and start a fresh initialisation block."""
+        self.extend_block(cells)
+        self._R[cells] = 0.0
+        self._r[cells] = 0.0
+        self._init_count[cells] = 0
+
+    @property
+    def block_samples(self) -> np.ndarray:
+        """Samples accumulated in each cell's initialisation block so far."""
+        return self._init_count
+
     def initialise_from_block(self, cells: np.ndarray) -> None:
         """theta0, P0 by block least squares over the accumulated window (selected cells)."""
         idx = np.flatnonzero(cells)
         R = self._R[idx]
-        # relative regularisation keeps P0 finite for a window with no excitation in some column
-        scale = np.maximum(np.einsum("nii->n", R) / self.n_params, 1e-12)
-        A = R + (self.config.init_delta * scale)[:, None, None] * self._eye
+        # a ridge relative to each column's own energy (Jacobi scaling) keeps P0 finite for a
+        # window with no excitation in some column without biasing a badly scaled one
+        diag = np.einsum("nii->ni", R)
+        floor = np.maximum(diag.sum(axis=1) / self.n_params, 1e-300)[:, None] * 1e-3
+        delta = self.config.init_delta * np.maximum(diag, floor)
+        A = R + delta[:, :, None] * self._eye
         P0 = np.linalg.inv(A)
-        theta0 = np.einsum("nij,nj->ni", P0, self._r[idx])
+        theta0 = np.einsum("nij,nj->ni", P0, self._r[idx] + delta * self.theta_ref[idx])
         tr = np.einsum("nii->n", P0)
         P0 *= np.minimum(1.0, self.config.trace_max / np.maximum(tr, 1e-300))[:, None, None]
         self.theta[idx] = theta0

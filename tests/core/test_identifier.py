@@ -56,7 +56,8 @@ def test_arx_baseline_recovers_noise_free_parameters():
 def test_guard_keeps_parameters_physical_and_counts_rejections():
     """A tight time-constant bound forces rejections; what leaves the estimator stays admissible."""
     i, v = synthetic_overpotential(3000, seed=5, noise_v=2e-3)
-    est = LifEstimator(1, 1.0, 3.0, IdentifierConfig(tau_max_s=120.0))  # true tau2 = 200 s is "too slow"
+    # true tau2 = 200 s is "too slow": no block start is admissible, so the cell starts from the prior
+    est = LifEstimator(1, 1.0, 3.0, IdentifierConfig(tau_max_s=120.0, init_max_samples=600))
     for k in range(len(i)):
         est.update(i[k : k + 1], v[k : k + 1])
         p = est.params
@@ -141,3 +142,80 @@ def test_turn_off_adaptation_freezes_theta_and_p_while_the_error_is_small():
     for _ in range(20):  # a changed system: the error exceeds error_on and learning resumes
         rls.update(phi, phi @ (true + 1.0))
     assert rls.adapting.all() and not np.allclose(rls.theta, theta)
+
+
+def test_block_start_is_the_least_squares_solution_of_the_block():
+    """theta0 solves the block exactly: its last sample is not used a second time with a stale error."""
+    from bms_estimator.core.rls import RlsConfig, WeightedRls
+
+    rng = np.random.default_rng(3)
+    theta_true = np.array([1.5, -0.7, 0.02, 3.0])
+    rls = WeightedRls(1, 4, RlsConfig(forgetting=1.0, init_samples=40))
+    for _ in range(40):
+        phi = rng.standard_normal((1, 4))
+        rls.update(phi, phi @ theta_true)
+    assert rls.initialised[0]
+    np.testing.assert_allclose(rls.theta[0], theta_true, rtol=1e-6)
+
+
+def test_ill_conditioned_block_is_solved_without_ridge_bias():
+    """ARX columns differ by orders of magnitude (v_o, C-rate, 1): the ridge is per column energy."""
+    from bms_estimator.core.ecm import EcmParams, simulate_ecm
+    from tests.conftest import pulse_current
+
+    i = pulse_current(900, seed=4)
+    p = EcmParams.from_rc(0.02, [0.01, 0.015], [10.0, 200.0], 0.005)
+    v = simulate_ecm(i, 1.0, p, output="sample").voltage_v
+    est = ArxEstimator(1, 1.0, 3.0, IdentifierConfig(method="arx", init_samples=600))
+    for k in range(len(i)):
+        est.update(i[k : k + 1], v[k : k + 1])
+    assert max(_rel_errors(est.params).values()) < 1e-4, _rel_errors(est.params)
+
+
+def test_a_block_too_short_for_the_slow_pole_grows_until_it_is_physical():
+    """With noise, a 60 s block cannot place the 200 s pole: it grows rather than falling back to the prior."""
+    i, v = synthetic_overpotential(1500, seed=4, noise_v=1e-3, noise_a=1e-2)
+    est = LifEstimator(1, 1.0, 3.0, IdentifierConfig(init_samples=60))
+    for k in range(len(i)):
+        est.update(i[k : k + 1], v[k : k + 1])
+        if est.rls.initialised[0]:
+            break
+    assert est.rls.block_samples[0] > 60
+    assert est.identified[0] and est.params.admissible[0]  # the block's own theta, not the prior
+    # with no room to grow, the same cell starts from the prior (identified only once it learns one)
+    capped = LifEstimator(1, 1.0, 3.0, IdentifierConfig(init_samples=60, init_max_samples=60))
+    for k in range(len(i)):
+        capped.update(i[k : k + 1], v[k : k + 1])
+        if capped.rls.initialised[0]:
+            break
+    assert capped.rls.block_samples[0] == 60 and not capped.identified[0]
+
+
+def test_a_cell_stuck_against_the_guard_restarts_its_identification():
+    """An OCV error that grows with the charge (a 10 % capacity error) pushes the slow pole
+    against tau_max sample after sample; the stuck cell restarts from a fresh block and
+    learns again instead of staying frozen (the SOC compensation needs accepted estimates)."""
+    from bms_estimator.core.ecm import EcmParams, simulate_ecm
+    from tests.conftest import pulse_current
+
+    n = 3 * 3600
+    i = pulse_current(n, 2, amp_a=4.0)
+    i = i - (i.mean() + 0.75)
+    v = simulate_ecm(i, 1.0, EcmParams.from_rc(0.02, [0.01, 0.015], [10.0, 200.0]), output="mean").voltage_v
+    v_o = v + np.cumsum(i) / 3600 * (1 / 2.7 - 1 / 3.0)  # OCV slope 1 V per unit SOC
+    v_o += 5e-4 * np.random.default_rng(2).standard_normal(n)
+    runs = {}
+    for after in (0, 300):
+        est = LifEstimator(1, 1.0, 3.0, IdentifierConfig(restart_after_rejections=after))
+        longest = accepted = 0
+        for k in range(n):
+            est.update(i[k : k + 1], v_o[k : k + 1])
+            longest = max(longest, int(est._rejected_run[0]))
+            accepted += bool(est.accepted[0])
+            assert est.params.admissible[0]
+        runs[after] = (longest, accepted, int(est.restarts[0]))
+    assert runs[0][0] > 300 and runs[0][2] == 0  # without the restart: stuck for > 5 min
+    assert runs[300][0] < 300 and runs[300][2] >= 1
+    assert runs[300][1] > 1.2 * runs[0][1]  # it learns on more samples
+    with pytest.raises(ValueError, match="restart_after_rejections"):
+        IdentifierConfig(restart_after_rejections=-1)
