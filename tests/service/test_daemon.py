@@ -327,11 +327,20 @@ def test_service_matches_offline_estimator_on_can_and_mqtt(mosquitto, tmp_path):
         assert abs(step.sample.current_a - rec.current_a[k]) <= 0.6e-3
         np.testing.assert_allclose(step.sample.cell_voltage_v, rec.voltage_v[k] + OFFSETS_V, atol=0.6e-4)
         assert step.sample.valid.all() and step.sample.current_valid
-    # a working estimator: starts from the OCV, coulomb-counts down through the discharge cycle
+    # a working estimator: starts from the OCV (the file starts at full, not yet relaxed, so
+    # the OCV reads low), coulomb-counts down, and its first c0 compensation moves the SOC
+    # towards the truth (counting from the known full start) within these 5 minutes
     soc0, soc_end = ref.steps[0].soc, ref.steps[-1].soc
-    assert np.all((soc0 > 0.8) & (soc0 <= 1.0))
+    assert np.all((soc0 > 0.8) & (soc0 < 0.97))
     counted = -np.sum(rec.current_a[1:n_rows]) / 3600 / CAPACITY_AH
-    np.testing.assert_allclose(soc0 - soc_end, counted, atol=0.01)
+    socs = np.array([s.soc for s in ref.steps])
+    jump = np.flatnonzero(np.any(np.diff(socs, axis=0) > 0.01, axis=1))
+    first = int(jump[0]) if jump.size else n_rows - 1
+    np.testing.assert_allclose(soc0 - socs[first], -np.sum(rec.current_a[1:first + 1]) / 3600 / CAPACITY_AH,
+                               atol=0.01)
+    assert np.all(ref.est.corrections >= 1)
+    truth_end = 1.0 - counted
+    assert np.all(np.abs(soc_end - truth_end) < 0.5 * np.abs(soc0 - 1.0)), (soc_end, truth_end)
     assert np.ptp(soc0) > 0  # the cell offsets show
 
     ch = channel()
