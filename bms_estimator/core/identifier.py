@@ -184,7 +184,6 @@ class Identifier:
         self.error = self.rls.update(phi, np.where(learn, y, 0.0), learn)
         if self.config.c0_prior_weight > 0:
             self._c0_prior(learn & was_init)
-
         theta = self.rls.theta
         new = self.rls.initialised & ~was_init
         params = self._physical(theta)

@@ -20,9 +20,10 @@ Initialisation (block least squares): the first ``init_samples`` regressors of
 each cell are accumulated with forgetting, ``R = sum lambda^(n-k) phi phi'``
 and ``r = sum lambda^(n-k) phi y``; then ``P0 = (R + delta)^-1`` and
 ``theta0 = P0 (r + delta theta_ref)``.  This is the RLS solution from a diffuse
-start, but without its transient; the small ridge ``delta`` (relative to
-each column's energy, diag(R)) keeps P0 finite and, in directions the block does not excite, leaves
-theta0 at ``theta_ref`` (a prior the caller sets; zero by default) rather than at 0.
+start, but without its transient.  The small ridge ``delta`` (relative to each
+column's energy, diag(R)) keeps P0 finite; in directions the block does not
+excite it leaves theta0 at ``theta_ref`` (a prior the caller sets, zero by
+default) rather than at 0.
 
 Every array carries the cell axis first; one call updates every cell.
 """
