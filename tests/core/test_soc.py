@@ -39,8 +39,7 @@ def test_compensation_removes_a_20pct_initial_error(nmc_like_ocv):
 CAPACITY_SEEDS = (2, 3, 4, 5, 6, 7)  # six drive cycles, not one that happens to work
 
 
-@pytest.fixture(scope="module")
-def capacity_runs():
+def _capacity_runs(config: SocConfig) -> dict:
     """A 2.7 Ah cell stated as 3.0 Ah, discharged to empty: estimated and trusted capacity runs."""
     ocv = _nmc_like_ocv()  # the conftest fixture's curve (that one is function-scoped)
     n = 3 * 3600
@@ -48,13 +47,18 @@ def capacity_runs():
     for seed in CAPACITY_SEEDS:
         i, v = _cell(n, seed, ocv, q_true=2.7)
         ref = reference_soc(i, 1.0, 2.7, 1.0)
-        run = run_soc(i, v, ocv, 3.0, initial_soc=1.0)
-        trusting = run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=SocConfig(estimate_capacity=False))
+        run = run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=config)
+        trusting = run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=config.with_(estimate_capacity=False))
         last_hour = np.arange(n) >= n - 3600
         errs = [soc_errors(r.soc[last_hour], ref[last_hour], np.arange(3600), after_s=0)["soc_rmse_pct"]
                 for r in (run, trusting)]
         out[seed] = (run.capacity_ah[-1], *errs)
     return out
+
+
+@pytest.fixture(scope="module")
+def capacity_runs():
+    return _capacity_runs(SocConfig())
 
 
 def _nmc_like_ocv():
@@ -63,9 +67,19 @@ def _nmc_like_ocv():
 
 
 def test_capacity_estimate_moves_towards_the_cells_and_helps_the_soc(capacity_runs):
-    """The stated 3.0 Ah is not trusted: on every drive cycle the estimate falls towards 2.7 Ah
-    and the last hour's SOC is no worse than with the stated capacity; typically it is better."""
+    """The stated 3.0 Ah is not trusted: on every drive cycle the estimate goes at least half-way
+    to 2.7 Ah, typically to within 0.1 Ah, and the last hour's SOC is typically better for it."""
     q, err, err_trusting = (np.array(x) for x in zip(*capacity_runs.values()))
+    assert np.all(q < 2.85), q
+    assert np.median(np.abs(q - 2.7)) < 0.1, q
+    assert np.sum(err < err_trusting + 0.1) >= len(q) - 1, (err, err_trusting)
+    assert np.median(err) < 0.85 * np.median(err_trusting), (err, err_trusting)
+
+
+def test_capacity_line_option_moves_the_soc_to_the_anchor_line():
+    """capacity_soc_update="line": on a 10 % capacity error the SOC gains most (the line also
+    carries each anchor's OCV-model error, which is why it is not the default on measured cells)."""
+    q, err, err_trusting = (np.array(x) for x in zip(*_capacity_runs(SocConfig(capacity_soc_update="line")).values()))
     assert np.all(q < 2.96), q
     assert np.all(err < err_trusting + 0.1), (err, err_trusting)
     assert np.median(err) < 2.0 and np.median(err) < 0.6 * np.median(err_trusting), (err, err_trusting)
@@ -73,11 +87,41 @@ def test_capacity_estimate_moves_towards_the_cells_and_helps_the_soc(capacity_ru
 
 @pytest.mark.xfail(strict=True, reason=(
     "known limitation: a capacity error makes the OCV error an integral of the current, which the "
-    "slow RC branch partly absorbs (it is an integrator for t << tau2), so c0 and the anchors see "
-    "only part of it; the estimate stops short of the true capacity on some drive cycles"))
-def test_capacity_estimate_reaches_the_cells_within_0p1_ah(capacity_runs):
-    for seed, (q, _, _) in capacity_runs.items():
-        assert abs(q - 2.7) < 0.1, (seed, q)
+    "slow RC branch partly absorbs (it is an integrator for t << tau2, and R2 grows towards the "
+    "tau bound), so c0 shows only part of the SOC error and the compensation fires late"))
+def test_soc_within_2pct_in_the_last_hour_despite_a_10pct_capacity_error(capacity_runs):
+    for seed, (_, err, _) in capacity_runs.items():
+        assert err < 2.0, (seed, err)
+
+
+def test_recount_option_counts_again_from_the_last_correction_with_the_new_capacity(nmc_like_ocv):
+    i, v = _cell(3 * 3600, 5, nmc_like_ocv, q_true=2.7)
+    est = SocEstimator(1, nmc_like_ocv, 3.0, initial_soc=1.0, config=SocConfig(capacity_soc_update="recount"))
+    moved = 0
+    for k in range(len(i)):
+        q_before = est.capacity_ah.copy()
+        est.update(i[k], v[k : k + 1])
+        if est.capacity_ah[0] != q_before[0] and est.corrections[0] >= 1:
+            expect = np.clip(est._soc_fix + (est.charge_ah - est._q_fix) / est.capacity_ah, 0, 1)
+            if abs(expect[0] - est.soc[0]) < 1e-12:
+                moved += 1
+            else:  # not moved: the recount was within reanchor_min_soc of the count
+                assert abs(expect[0] - est.soc[0]) <= est.config.reanchor_min_soc
+    assert est.capacity_estimated[0] and moved >= 1
+
+
+def test_a_state_saved_without_hysteresis_loads_with_every_other_field_kept(nmc_like_ocv):
+    i, v = _cell(1500, 3, nmc_like_ocv)
+    old = SocEstimator(1, nmc_like_ocv, 3.0, initial_soc=0.9, config=SocConfig(hysteresis=False))
+    for k in range(1500):
+        old.update(i[k], v[k : k + 1])
+    state = old.state_dict()
+    assert not any(k.startswith("hyst.") for k in state)
+    new = SocEstimator(1, nmc_like_ocv, 3.0)
+    new.load_state_dict(state)
+    np.testing.assert_array_equal(new.soc, old.soc)
+    np.testing.assert_array_equal(new.charge_ah, old.charge_ah)
+    assert new.hysteresis_state[0] == -1.0
 
 
 def test_state_round_trip_and_shape_errors_are_named(nmc_like_ocv):
