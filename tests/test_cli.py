@@ -68,6 +68,10 @@ def test_soc_and_fit_json(tmp_path):
     assert s["reference_capacity_source"] == "end-of-test rest (OCV)"  # LG files end with 600 s rest
     assert s["soc_rmse_pct_after_3600s"] < s["soc_rmse_pct"] < 20
     assert (tmp_path / "soc.png").stat().st_size > 10_000
+    mean_curve = tmp_path / "soc_mean_curve.json"
+    assert main(["soc", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--no-hysteresis", "--json", str(mean_curve)]) == 0
+    m = json.loads(mean_curve.read_text())
+    assert m["soc_rmse_pct"] != s["soc_rmse_pct"]  # the switch reaches the estimator
     out = tmp_path / "fit.json"
     assert main(["fit", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--method", "arx", "--json", str(out)]) == 0
     f = json.loads(out.read_text())

@@ -68,6 +68,8 @@ def add_tuning_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--soc-error-threshold", type=float, default=_SOC.soc_error_threshold,
                    help=f"c0 compensation threshold as an SOC error (default {_SOC.soc_error_threshold})")
     g.add_argument("--no-capacity-estimation", action="store_true", help="trust the stated capacity")
+    g.add_argument("--no-hysteresis", action="store_true",
+                   help="read SOC on the mean OCV curve, ignoring the OCV table's hysteresis_v column")
     g.add_argument("--resample-s", type=positive_float, default=1.0, help="sample period; finer data is averaged (default 1 s)")
 
 
@@ -86,6 +88,7 @@ def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig
         identifier=ident,
         soc_error_threshold=args.soc_error_threshold,
         estimate_capacity=not args.no_capacity_estimation,
+        hysteresis=not args.no_hysteresis,
     )
 
 
