@@ -107,6 +107,8 @@ class ServiceMetrics(Metrics):
     sample_backward_frames: int = _counter("frames ignored because their time went backwards")
     tick_errors: int = _counter("exceptions while processing a frame or sample (logged, skipped)")
     estimator_corrections: int = _counter("SOC corrections from the OCV bias, all cells")
+    estimator_restarts: int = _counter(
+        "identifications restarted after a run of guard rejections (a cell stuck against the admissible set), all cells")
     can_tx_frames: int = _counter("CAN frames sent")
     can_tx_dropped: int = _counter("CAN frames dropped (bus down or send queue full)")
     can_tx_errors: int = _counter("CAN send errors")
@@ -570,6 +572,7 @@ class Service:
         est = self.estimator
         m.estimator_rejections = int(np.sum(est.identifier.rejections))
         m.estimator_corrections = int(np.sum(est.corrections))
+        m.estimator_restarts = int(np.sum(est.identifier.restarts))
         m.estimator_state = self._state_code
         m.state_restored = int(self.restored)
         bus = self.bus

@@ -419,6 +419,10 @@ def test_service_matches_offline_estimator_on_can_and_mqtt(mosquitto, tmp_path):
     assert metrics["bms_mqtt_published_total"] > N
     assert metrics["bms_can_tx_frames_total"] >= (2 * N + 4) * n_rows
     assert metrics["bms_healthy"] == 1
+    ident = ref.est.identifier  # the estimator's own counters, as the offline run has them
+    assert metrics["bms_estimator_rejections_total"] == int(ident.rejections.sum())
+    assert metrics["bms_estimator_restarts_total"] == int(ident.restarts.sum())
+    assert metrics["bms_estimator_corrections_total"] == int(ref.est.corrections.sum())
     # and the state saved at shutdown is the final estimate
     assert_state_file_valid(Path(cfg.state.path), soc=ref.est.soc)
 
