@@ -39,7 +39,8 @@ def add_parser(sub) -> None:
 
 def _synthetic_curve() -> OcvCurve:
     soc = np.linspace(0, 1, 101)
-    return OcvCurve(soc, 3.0 + 1.2 * soc - 0.15 * np.sin(3 * soc))
+    # with a hysteresis column, as a C/20 table has: the SOC estimator then tracks the branch
+    return OcvCurve(soc, 3.0 + 1.2 * soc - 0.15 * np.sin(3 * soc), 0.015 + 0.01 * (1 - soc))
 
 
 def _pack_inputs(n_cells: int, n_steps: int, seed: int = 0):

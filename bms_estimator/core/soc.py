@@ -151,19 +151,19 @@ class SocEstimator:
         self._hyst = (
             HysteresisState(self.n_cells, self.capacity_ah,
                             HysteresisParams(m_v=1.0, m0_v=0.0, gamma=config.hysteresis_rate, h0=-1.0), self.dt_s)
-            if config.hysteresis else None
+            if config.hysteresis and ocv.has_hysteresis else None  # H = 0 without the column: nothing to track
         )
 
     def _ocv(self, soc: np.ndarray) -> np.ndarray:
         """The OCV the cell shows now: the mean curve plus the hysteresis state times H(soc)."""
         v = self.ocv.ocv(soc)
-        if self.config.hysteresis:
+        if self._hyst is not None:
             h = np.minimum(self.ocv.hysteresis(soc), self.config.hysteresis_max_v)
             v = v + self.hysteresis_state * h
         return v
 
     def _soc_from_ocv(self, ocv_v: np.ndarray, soc_guess: np.ndarray) -> np.ndarray:
-        if not self.config.hysteresis:
+        if self._hyst is None:
             return self.ocv.soc_from_ocv(ocv_v)
         h = np.minimum(self.ocv.hysteresis(soc_guess), self.config.hysteresis_max_v)
         return self.ocv.soc_from_ocv(ocv_v - self.hysteresis_state * h)

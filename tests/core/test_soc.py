@@ -111,17 +111,28 @@ def test_recount_option_counts_again_from_the_last_correction_with_the_new_capac
 
 
 def test_a_state_saved_without_hysteresis_loads_with_every_other_field_kept(nmc_like_ocv):
+    curve = OcvCurve(nmc_like_ocv.soc, nmc_like_ocv.ocv_v, np.full(len(nmc_like_ocv.soc), 0.02))
     i, v = _cell(1500, 3, nmc_like_ocv)
-    old = SocEstimator(1, nmc_like_ocv, 3.0, initial_soc=0.9, config=SocConfig(hysteresis=False))
+    old = SocEstimator(1, curve, 3.0, initial_soc=0.9, config=SocConfig(hysteresis=False))
     for k in range(1500):
         old.update(i[k], v[k : k + 1])
     state = old.state_dict()
     assert not any(k.startswith("hyst.") for k in state)
-    new = SocEstimator(1, nmc_like_ocv, 3.0)
+    new = SocEstimator(1, curve, 3.0)
+    assert new._hyst is not None  # the default tracks the branch of a table with hysteresis_v
     new.load_state_dict(state)
     np.testing.assert_array_equal(new.soc, old.soc)
     np.testing.assert_array_equal(new.charge_ah, old.charge_ah)
     assert new.hysteresis_state[0] == -1.0
+    new.update(-1.0, v[-1:])  # and it runs on
+    assert np.isfinite(new.soc[0])
+
+
+def test_hysteresis_without_a_hysteresis_column_is_the_mean_curve_exactly(nmc_like_ocv):
+    i, v = _cell(1800, 4, nmc_like_ocv)
+    a = run_soc(i, v, nmc_like_ocv, 3.0, initial_soc=0.8, config=SocConfig(hysteresis=True))
+    b = run_soc(i, v, nmc_like_ocv, 3.0, initial_soc=0.8, config=SocConfig(hysteresis=False))
+    np.testing.assert_array_equal(a.soc, b.soc)
 
 
 def test_state_round_trip_and_shape_errors_are_named(nmc_like_ocv):
