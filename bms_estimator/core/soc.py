@@ -162,12 +162,6 @@ class SocEstimator:
             v = v + self.hysteresis_state * h
         return v
 
-    def _soc_from_ocv(self, ocv_v: np.ndarray, soc_guess: np.ndarray) -> np.ndarray:
-        if self._hyst is None:
-            return self.ocv.soc_from_ocv(ocv_v)
-        h = np.minimum(self.ocv.hysteresis(soc_guess), self.config.hysteresis_max_v)
-        return self.ocv.soc_from_ocv(ocv_v - self.hysteresis_state * h)
-
     # ------------------------------------------------------------------
     def update(
         self,
@@ -237,8 +231,9 @@ class SocEstimator:
         stable = full & (c0_std < cfg.c0_stable_v) & np.isfinite(c0_avg)
         if not stable.any():
             return
-        ocv_now = self._ocv(self.soc)
-        soc_ocv = self._soc_from_ocv(ocv_now + c0_avg, self.soc)
+        # SOC whose OCV is c0_avg above the one now: OCV^-1(OCV(soc) + c0_avg).  The hysteresis
+        # term h H(soc) is on both sides (read at the SOC now), so the mean curve gives it
+        soc_ocv = self.ocv.soc_from_ocv(self.ocv.ocv(self.soc) + c0_avg)
         if cfg.estimate_capacity:
             self._capacity_anchor(stable, soc_ocv)
         slope = self.ocv.docv_dsoc(self.soc)
@@ -257,7 +252,9 @@ class SocEstimator:
         w = self._w
         self._c0_sq += -2.0 * d * self._c0_sum + w * d * d
         self._c0_sum -= w * d
-        self._c0_buf -= d[:, None]
+        rows = np.flatnonzero(d)  # usually a few cells: do not sweep the whole (N, window) buffer
+        if rows.size:
+            self._c0_buf[rows] -= d[rows, None]
 
     def _capacity_anchor(self, sel: np.ndarray, soc_ocv: np.ndarray) -> None:
         cfg = self.config
