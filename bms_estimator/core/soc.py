@@ -47,7 +47,10 @@ from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
 
-__all__ = ["SocConfig", "SocEstimator"]
+__all__ = ["SocConfig", "SocEstimator", "CAPACITY_SOC_UPDATES"]
+
+#: What a new capacity estimate may do to the SOC now (``SocConfig.capacity_soc_update``).
+CAPACITY_SOC_UPDATES = ("none", "recount", "line")
 
 
 @dataclass(frozen=True)
@@ -79,9 +82,8 @@ class SocConfig:
     hysteresis_max_v: float = 0.05  # cap on H(soc): the C/20 gap near empty is a charge-start transient
 
     def __post_init__(self) -> None:
-        if self.capacity_soc_update not in ("recount", "line", "none"):
-            raise ValueError(
-                f"capacity_soc_update must be 'recount', 'line' or 'none', got {self.capacity_soc_update!r}")
+        if self.capacity_soc_update not in CAPACITY_SOC_UPDATES:
+            raise ValueError(f"capacity_soc_update must be one of {CAPACITY_SOC_UPDATES}, got {self.capacity_soc_update!r}")
 
     def with_(self, **changes) -> "SocConfig":
         return replace(self, **changes)

@@ -63,7 +63,7 @@ from ..can.mapping import MappingError
 from ..can.sampler import Sample, SampleAssembler
 from ..core.identifier import IdentifierConfig
 from ..core.ocv import OcvCurve
-from ..core.soc import SocConfig, SocEstimator
+from ..core.soc import CAPACITY_SOC_UPDATES, SocConfig, SocEstimator
 from . import systemd
 from .config import ConfigError, ServiceConfig
 from .health import HealthServer, Heartbeat, Metrics, _counter, _gauge
@@ -181,6 +181,9 @@ def _range_problems(soc: dict[str, Any], ident: dict[str, Any]) -> list[tuple[st
     tmin, tmax = ident.get("tau_min_s", 1.0), ident.get("tau_max_s", 500.0)
     if not 0.0 < tmin < tmax:
         out.append(("tau_max_s", f"need 0 < tau_min_s < tau_max_s (got {tmin!r}, {tmax!r})"))
+    if soc.get("capacity_soc_update", "none") not in CAPACITY_SOC_UPDATES:
+        out.append(("capacity_soc_update", f"must be one of {', '.join(CAPACITY_SOC_UPDATES)} "
+                                           f"(got {soc['capacity_soc_update']!r})"))
     if soc.get("c0_window_s", 1.0) <= 0:
         out.append(("c0_window_s", "must be > 0"))
     lo, hi = soc.get("capacity_bounds", (0.6, 1.4))

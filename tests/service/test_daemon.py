@@ -691,9 +691,10 @@ def test_bad_config_exits_2_naming_each_field(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     assert not state.exists()  # nothing was started
     with pytest.raises(ConfigError) as exc:
-        soc_config_from_core({"identifier": {"window": "ten"}, "c0_window_s": -1})
+        soc_config_from_core({"identifier": {"window": "ten"}, "c0_window_s": -1, "capacity_soc_update": "guess"})
     assert {p.split(":")[0] for p in exc.value.problems} == {"estimator.core.identifier.window",
-                                                            "estimator.core.c0_window_s"}
+                                                            "estimator.core.c0_window_s",
+                                                            "estimator.core.capacity_soc_update"}
     good = soc_config_from_core({"window": 30, "identifier": {"forgetting": 0.999}, "estimate_capacity": False})
     assert good.identifier.window == 30 and good.identifier.forgetting == 0.999 and not good.estimate_capacity
 
