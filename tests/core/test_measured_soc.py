@@ -27,25 +27,27 @@ def _drive_cycles() -> list[tuple[str, str]]:
             if p.name.split(".")[0] not in SKIP]
 
 
-def _after_1h(job: tuple[str, str, bool]) -> tuple[str, float]:
-    cell, name, hysteresis = job
+def _after_1h(job: tuple[str, str]) -> tuple[str, dict[bool, float]]:
+    """After-1h SOC RMSE of one file, with and without the hysteresis branch (one reference)."""
+    cell, name = job
     d = SHARED / cell / "25degC"
     c20 = load_recording(next(d.glob("c20_ocv.csv*")), resample_s=None)
     ocv = OcvCurve.from_c20(c20.time_s, c20.current_a, c20.voltage_v)
     rec = load_recording(next(d.glob(f"{name}.csv*")))
     q_ref, _ = measured_capacity(rec.current_a, rec.voltage_v, rec.dt_s, ocv, CELLS[cell])
-    run = run_soc(rec.current_a, rec.voltage_v, ocv, CELLS[cell], 0.8, rec.dt_s, SocConfig(hysteresis=hysteresis))
-    err = soc_errors(run.soc, reference_soc(rec.current_a, rec.dt_s, q_ref), rec.time_s - rec.time_s[0])
-    return f"{cell}/{name}", err["soc_rmse_pct_after_3600s"]
+    ref = reference_soc(rec.current_a, rec.dt_s, q_ref)
+    out = {}
+    for hysteresis in (True, False):
+        run = run_soc(rec.current_a, rec.voltage_v, ocv, CELLS[cell], 0.8, rec.dt_s, SocConfig(hysteresis=hysteresis))
+        out[hysteresis] = soc_errors(run.soc, ref, rec.time_s - rec.time_s[0])["soc_rmse_pct_after_3600s"]
+    return f"{cell}/{name}", out
 
 
 @pytest.fixture(scope="module")
 def after_1h() -> dict[bool, dict[str, float]]:
-    jobs = [(c, n, h) for h in (True, False) for c, n in _drive_cycles()]
     with ProcessPoolExecutor(max_workers=2) as pool:
-        res = list(pool.map(_after_1h, jobs))
-    half = len(res) // 2
-    return {True: dict(res[:half]), False: dict(res[half:])}
+        res = list(pool.map(_after_1h, _drive_cycles()))
+    return {h: {key: errs[h] for key, errs in res} for h in (True, False)}
 
 
 @needs_shared
