@@ -39,26 +39,36 @@ def test_compensation_removes_a_20pct_initial_error(nmc_like_ocv):
 CAPACITY_SEEDS = (2, 3, 4, 5, 6, 7)  # six drive cycles, not one that happens to work
 
 
-def _capacity_runs(config: SocConfig) -> dict:
-    """A 2.7 Ah cell stated as 3.0 Ah, discharged to empty: estimated and trusted capacity runs."""
+def _capacity_runs(updates: tuple[str, ...]) -> dict[str, dict]:
+    """A 2.7 Ah cell stated as 3.0 Ah, discharged to empty, per ``capacity_soc_update`` mode:
+    {mode: {seed: (estimated capacity, last-hour SOC RMSE, the same trusting 3.0 Ah)}}.
+    The trusting run does not depend on the mode: it is run once per seed."""
     ocv = _nmc_like_ocv()  # the conftest fixture's curve (that one is function-scoped)
     n = 3 * 3600
-    out = {}
+    last_hour = np.arange(n) >= n - 3600
+
+    def last_hour_rmse(run, ref):
+        return soc_errors(run.soc[last_hour], ref[last_hour], np.arange(3600), after_s=0)["soc_rmse_pct"]
+
+    out: dict[str, dict] = {mode: {} for mode in updates}
     for seed in CAPACITY_SEEDS:
         i, v = _cell(n, seed, ocv, q_true=2.7)
         ref = reference_soc(i, 1.0, 2.7, 1.0)
-        run = run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=config)
-        trusting = run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=config.with_(estimate_capacity=False))
-        last_hour = np.arange(n) >= n - 3600
-        errs = [soc_errors(r.soc[last_hour], ref[last_hour], np.arange(3600), after_s=0)["soc_rmse_pct"]
-                for r in (run, trusting)]
-        out[seed] = (run.capacity_ah[-1], *errs)
+        trusting = last_hour_rmse(run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=SocConfig(estimate_capacity=False)), ref)
+        for mode in updates:
+            run = run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=SocConfig(capacity_soc_update=mode))
+            out[mode][seed] = (run.capacity_ah[-1], last_hour_rmse(run, ref), trusting)
     return out
 
 
 @pytest.fixture(scope="module")
-def capacity_runs():
-    return _capacity_runs(SocConfig())
+def capacity_modes():
+    return _capacity_runs((SocConfig().capacity_soc_update, "line"))
+
+
+@pytest.fixture(scope="module")
+def capacity_runs(capacity_modes):
+    return capacity_modes[SocConfig().capacity_soc_update]
 
 
 def _nmc_like_ocv():
@@ -76,10 +86,10 @@ def test_capacity_estimate_moves_towards_the_cells_and_helps_the_soc(capacity_ru
     assert np.median(err) < 0.85 * np.median(err_trusting), (err, err_trusting)
 
 
-def test_capacity_line_option_moves_the_soc_to_the_anchor_line():
+def test_capacity_line_option_moves_the_soc_to_the_anchor_line(capacity_modes):
     """capacity_soc_update="line": on a 10 % capacity error the SOC gains most (the line also
     carries each anchor's OCV-model error, which is why it is not the default on measured cells)."""
-    q, err, err_trusting = (np.array(x) for x in zip(*_capacity_runs(SocConfig(capacity_soc_update="line")).values()))
+    q, err, err_trusting = (np.array(x) for x in zip(*capacity_modes["line"].values()))
     assert np.all(q < 2.96), q
     assert np.all(err < err_trusting + 0.1), (err, err_trusting)
     assert np.median(err) < 2.0 and np.median(err) < 0.6 * np.median(err_trusting), (err, err_trusting)
