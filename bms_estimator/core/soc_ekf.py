@@ -1,0 +1,228 @@
+"""Extended Kalman filter on SOC, the RC voltages and a diffusion branch, driven by identified parameters.
+
+The field's common answer to "online parameters plus SOC" is Plett's EKF on an
+equivalent-circuit model with the parameters from an online identifier (RLS +
+EKF).  This one adds what the measured drive cycles showed the 2-RC model
+lacks: under a sustained current the cells build a slow (diffusion)
+overpotential with a time constant of 10^3 s, beyond the identified slow branch
+(tau2 <= 500 s), 30-60 mV at 1C on the LG HG2.  Left out, it reads as an SOC
+error and the filter drags the SOC down through every long discharge.  It is a
+third RC branch with a fixed time constant ``tau_d`` whose resistance ``r_d`` the
+filter learns itself (a joint EKF): at a start from rest ``v_d = 0`` is known,
+so the first minutes of current teach ``r_d`` rather than move the SOC.
+The counting capacity is a state too (``dq`` relative to the capacity in use),
+learnt from the same residual: a capacity error makes the SOC drift with the
+charge, which no RC branch explains over the whole discharge.
+
+State and model per cell, current ``i`` positive = charge, period ``Ts``::
+
+    x = [z, v1, v2, v_d, r_d, dq]          (SOC, RC voltages, diffusion voltage and resistance,
+                                            relative capacity error: the capacity is Q (1 + dq))
+
+    z[k+1]   = z[k] + i[k] Ts / (3600 Q (1 + dq))
+    vj[k+1]  = aj vj[k] + Rj (1 - aj) i[k],        aj = exp(-Ts / tau_j)     (R1, tau1, R2, tau2 identified)
+    v_d[k+1] = ad v_d[k] + r_d[k] (1 - ad) i[k],   ad = exp(-Ts / tau_d)
+    r_d[k+1] = r_d[k],   dq[k+1] = dq[k]           (random walks)
+
+    v[k]     = OCV(z[k], T) + h[k] H(z[k], T) + R0 i[k] + v1[k] + v2[k] + v_d[k] + e[k]
+
+``h`` is the one-state hysteresis (known from the current, not a state here) and
+``H`` the table's half gap.  Linearised::
+
+    F = I except F[1,1] = a1, F[2,2] = a2, F[3,3] = ad, F[3,4] = (1 - ad) i, F[0,5] = -i Ts / (3600 Q)
+    C = [dOCV/dz, 1, 1, 1, 0, 0]
+
+After each update the capacity takes in ``dq`` (``Q <- Q (1 + dq)``, ``dq <- 0``).
+While the SOC is still uncertain (sigma above ``capacity_learn_max_soc_sigma``)
+the row of ``K`` for ``dq`` is zero: an SOC error being corrected would
+otherwise read as a capacity error.  The Joseph form keeps ``P`` right for that
+suboptimal gain.
+
+    predict   x- = f(x, i),           P- = F P F' + Qn
+    update    S = C P- C' + Rv,       K = P- C' / S,
+              x = x- + K (v - v_hat), P = (I - K C) P- (I - K C)' + K Rv K'   (Joseph form)
+
+Noise, stated in the cell's terms rather than tuned per file:
+
+* ``Qn[z]`` = (``capacity_sigma`` |dz|)^2 + (``current_sigma_c`` Ts / 3600)^2
+  + ``drift_sigma_per_h``^2 Ts / 3600: a relative capacity uncertainty on the
+  counted step, a current-sensor noise (as a C-rate, so it fits any cell size),
+  and a random walk for what the count cannot see; ``Qn[v1], Qn[v2]`` =
+  (``rc_sigma_v``)^2, ``Qn[v_d]`` = (``rc_sigma_v``)^2 Ts / tau_d (the diffusion voltage
+  follows its resistance and the current; free to wander, it would soak up an SOC error); ``Qn[r_d]`` = (``diffusion_r_drift_ohm_ah`` / Q)^2 Ts / 3600;
+  ``Qn[dq]`` = ``capacity_drift_per_h``^2 Ts / 3600 (ageing and temperature).
+* ``dq`` starts at 0 with sigma ``capacity_sigma``.
+* ``r_d`` starts at 0 with sigma ``diffusion_r_sigma_ohm_ah / Q`` (resistances
+  per C-rate, so the same numbers fit any cell size); ``v_d`` starts at 0 with
+  sigma ``diffusion_v_sigma_v`` (the cell may not be at rest).
+* ``Rv`` = ``voltage_sigma_v``^2 ``correlation_s / Ts`` + (``(1 - |h|) H``)^2.  The
+  model's voltage error is not white: it stays for a minute or more, so one
+  sample carries only ``Ts / correlation_s`` of an independent reading's
+  information.  Inside a hysteresis transition (``|h| < 1``) the branch is
+  uncertain by up to ``H``, so the filter trusts the voltage less there.
+
+The 1-sigma SOC uncertainty is ``sqrt(P[0, 0])`` (:attr:`soc_sigma`).
+Everything is vectorised over cells: ``P`` is ``(N, 6, 6)``, the update is a
+rank-1 correction (one scalar measurement per cell), with no matrix inverse.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["SocEkfConfig", "SocEkf"]
+
+_N = 6  # z, v1, v2, v_d, r_d, dq
+
+
+@dataclass(frozen=True)
+class SocEkfConfig:
+    """Noise model of the SOC EKF (module docstring); the defaults serve both cells in ../shared/data."""
+
+    initial_soc_sigma: float = 0.10  # 1-sigma of a start SOC that is given, not measured
+    capacity_sigma: float = 0.05  # relative uncertainty of the counting capacity at a start
+    capacity_drift_per_h: float = 0.002  # its random walk per sqrt(hour)
+    # the capacity learns only while the SOC is this sure: before, a start error still being
+    # corrected would read as a capacity error (a Schmidt-style gain: the row of K is zeroed)
+    capacity_learn_max_soc_sigma: float = 0.02
+    drift_sigma_per_h: float = 0.003  # SOC random walk the count cannot see, per sqrt(hour)
+    current_sigma_c: float = 0.01  # current-sensor noise as a C-rate (0.03 A on a 3 Ah cell)
+    rc_sigma_v: float = 0.001  # process noise of each RC voltage per sample
+    voltage_sigma_v: float = 0.010  # model voltage error (OCV table, ...)
+    correlation_s: float = 60.0  # how long that error stays correlated
+    diffusion_tau_s: float = 1200.0  # time constant of the diffusion branch
+    diffusion_r_sigma_ohm_ah: float = 0.05  # prior sigma of its resistance, ohm * Ah (per C-rate)
+    diffusion_r_drift_ohm_ah: float = 0.01  # its random walk per sqrt(hour), ohm * Ah
+    diffusion_v_sigma_v: float = 0.02  # sigma of its voltage at a start
+    max_soc_step: float = 0.01  # at most this SOC correction per sample (a bad sample cannot jump it)
+
+    def __post_init__(self) -> None:
+        for name in ("drift_sigma_per_h", "diffusion_r_drift_ohm_ah", "capacity_drift_per_h"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        for name in ("initial_soc_sigma", "capacity_sigma", "capacity_learn_max_soc_sigma", "current_sigma_c", "rc_sigma_v", "voltage_sigma_v",
+                     "correlation_s", "diffusion_tau_s", "diffusion_r_sigma_ohm_ah", "diffusion_v_sigma_v",
+                     "max_soc_step"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+
+
+class SocEkf:
+    """The filter's state and covariance for N cells; the SOC itself is owned by the caller.
+
+    The caller (:class:`~bms_estimator.core.soc.SocEstimator`) counts the SOC and
+    passes the counted step in; :meth:`predict` moves the other states and the
+    covariance, :meth:`correct` returns the SOC correction and updates the rest.
+    """
+
+    def __init__(self, n_cells: int, dt_s: float, capacity_ah: np.ndarray, config: SocEkfConfig = SocEkfConfig()):
+        self.n_cells = int(n_cells)
+        self.dt_s = float(dt_s)
+        self.config = config
+        self.q_ref_ah = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
+        self.x = np.zeros((self.n_cells, _N))  # x[:, 0] unused: the caller owns the SOC
+        self.p = np.zeros((self.n_cells, _N, _N))
+        self.p[:, 0, 0] = config.initial_soc_sigma**2
+        self.p[:, 1, 1] = self.p[:, 2, 2] = 0.01**2
+        self.p[:, 3, 3] = config.diffusion_v_sigma_v**2
+        self.p[:, 4, 4] = (config.diffusion_r_sigma_ohm_ah / self.q_ref_ah) ** 2
+        self.p[:, 5, 5] = config.capacity_sigma**2
+        self._eye = np.eye(_N)
+
+    @property
+    def soc_sigma(self) -> np.ndarray:
+        return np.sqrt(np.maximum(self.p[:, 0, 0], 0.0))
+
+    @property
+    def v_model(self) -> np.ndarray:
+        """RC and diffusion voltages: what the model adds to OCV + R0 i."""
+        return self.x[:, 1] + self.x[:, 2] + self.x[:, 3]
+
+    @property
+    def r_diffusion_ohm(self) -> np.ndarray:
+        return self.x[:, 4]
+
+    def set_soc_sigma(self, sigma: float | np.ndarray, cells: np.ndarray | None = None) -> None:
+        """Restart the SOC variance (a new start SOC) of some cells; its cross terms dropped."""
+        sel = np.ones(self.n_cells, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
+        s2 = np.broadcast_to(np.asarray(sigma, dtype=float) ** 2, (self.n_cells,))
+        self.p[sel, 0, :] = 0.0
+        self.p[sel, :, 0] = 0.0
+        self.p[sel, 0, 0] = s2[sel]
+
+    def predict(self, current_a: np.ndarray, dz: np.ndarray, capacity_ah: np.ndarray,
+                r_ohm: np.ndarray, tau_s: np.ndarray, live: np.ndarray) -> None:
+        """One period of current ``current_a``: states forward, covariance grows (``live`` cells only).
+
+        ``dz`` is the counted SOC step, ``r_ohm`` and ``tau_s`` the identified ``(N, 2)`` RC pairs.
+        """
+        cfg = self.config
+        a = np.exp(-self.dt_s / np.maximum(tau_s, 1e-9))
+        a_d = np.exp(-self.dt_s / cfg.diffusion_tau_s)
+        x = self.x.copy()
+        x[:, 1:3] = a * self.x[:, 1:3] + r_ohm * (1.0 - a) * current_a[:, None]
+        x[:, 3] = a_d * self.x[:, 3] + self.x[:, 4] * (1.0 - a_d) * current_a
+        f = np.broadcast_to(self._eye, (self.n_cells, _N, _N)).copy()
+        f[:, 1, 1] = a[:, 0]
+        f[:, 2, 2] = a[:, 1]
+        f[:, 3, 3] = a_d
+        f[:, 3, 4] = (1.0 - a_d) * current_a
+        f[:, 0, 5] = -dz
+        p = f @ self.p @ np.swapaxes(f, 1, 2)
+        h_frac = self.dt_s / 3600.0
+        p[:, 0, 0] += (cfg.current_sigma_c * h_frac) ** 2 + cfg.drift_sigma_per_h**2 * h_frac
+        p[:, 1, 1] += cfg.rc_sigma_v**2
+        p[:, 2, 2] += cfg.rc_sigma_v**2
+        p[:, 3, 3] += cfg.rc_sigma_v**2 * (self.dt_s / cfg.diffusion_tau_s)  # driven by r_d, not free
+        p[:, 4, 4] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * h_frac
+        p[:, 5, 5] += cfg.capacity_drift_per_h**2 * h_frac
+        self.x = np.where(live[:, None], x, self.x)
+        self.p = np.where(live[:, None, None], p, self.p)
+
+    def correct(self, innovation_v: np.ndarray, slope_v: np.ndarray, hyst_uncertain_v: np.ndarray,
+                use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Measurement update; returns the SOC correction and the relative capacity correction per cell.
+
+        ``innovation_v`` = measured - predicted voltage (with :attr:`v_model`),
+        ``slope_v`` = dOCV/dz, ``hyst_uncertain_v`` = (1 - |h|) H.
+        """
+        cfg = self.config
+        c = np.ones((self.n_cells, _N))
+        c[:, 0] = slope_v
+        c[:, 4:] = 0.0
+        pc = np.einsum("nij,nj->ni", self.p, c)  # P C'
+        r_v = cfg.voltage_sigma_v**2 * max(cfg.correlation_s / self.dt_s, 1.0) + hyst_uncertain_v**2
+        s = np.einsum("ni,ni->n", c, pc) + r_v
+        k = pc / s[:, None]
+        k[:, 5] = np.where(self.soc_sigma > cfg.capacity_learn_max_soc_sigma, 0.0, k[:, 5])
+        e = np.where(use, innovation_v, 0.0)
+        dx = k * e[:, None]
+        dz = np.clip(dx[:, 0], -cfg.max_soc_step, cfg.max_soc_step)
+        # Joseph form: (I - K C) P (I - K C)' + K R K'
+        i_kc = self._eye[None] - k[:, :, None] * c[:, None, :]
+        p_new = i_kc @ self.p @ np.swapaxes(i_kc, 1, 2) + (r_v * k.T).T[:, :, None] * k[:, None, :]
+        p_new = 0.5 * (p_new + np.swapaxes(p_new, 1, 2))
+        self.p = np.where(use[:, None, None], p_new, self.p)
+        x = self.x + dx
+        x[:, 4] = np.maximum(x[:, 4], 0.0)  # a resistance is never negative
+        dq = np.where(use, np.clip(x[:, 5], -0.01, 0.01), 0.0)  # the caller's capacity takes it in
+        x[:, 5] = 0.0
+        self.x = np.where(use[:, None], x, self.x)
+        return np.where(use, dz, 0.0), dq
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {"x": self.x.copy(), "p": self.p.copy()}
+
+    def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
+        if np.shape(s.get("p")) != self.p.shape or np.shape(s.get("x")) != self.x.shape:
+            raise ValueError(f"EKF state has shape {np.shape(s.get('p'))}, expected {self.p.shape}")
+        x = np.asarray(s["x"], dtype=float)
+        p = np.asarray(s["p"], dtype=float)
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(p))):
+            raise ValueError("EKF state holds non-finite values")
+        self.x = x.copy()
+        self.p = p.copy()
