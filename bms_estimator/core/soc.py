@@ -46,8 +46,12 @@ import numpy as np
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
+from .soc_ekf import SocEkf, SocEkfConfig
 
-__all__ = ["SocConfig", "SocEstimator", "CAPACITY_SOC_UPDATES"]
+__all__ = ["SocConfig", "SocEstimator", "CAPACITY_SOC_UPDATES", "SOC_METHODS"]
+
+#: How the OCV evidence corrects the counted SOC (``SocConfig.soc_method``).
+SOC_METHODS = ("c0", "ekf")
 
 #: What a new capacity estimate may do to the SOC now (``SocConfig.capacity_soc_update``).
 CAPACITY_SOC_UPDATES = ("none", "recount", "line")
@@ -58,6 +62,14 @@ class SocConfig:
     """SOC-side tuning; the defaults serve both cells in ../shared/data."""
 
     identifier: IdentifierConfig = field(default_factory=IdentifierConfig)
+    # "c0": the paper's OCV-bias compensation above a threshold; "ekf": an extended Kalman
+    # filter on SOC and the RC voltages driven by the identified parameters (core.soc_ekf)
+    soc_method: str = "c0"
+    ekf: SocEkfConfig = field(default_factory=SocEkfConfig)
+    # Count with the OCV table's own C/20 capacity (the scale SOC is defined on) where the
+    # table carries one, interpolated by temperature; else with the stated capacity.
+    capacity_from_ocv: bool = True
+    default_temperature_c: float = 25.0  # a cell whose temperature is unknown
     soc_error_threshold: float = 0.02  # compensate when c0 means more than this SOC error
     c0_window_s: float = 120.0  # averaging window of c0
     c0_stable_v: float = 0.010  # c0 is stable when its std over the window is below this
@@ -82,6 +94,8 @@ class SocConfig:
     hysteresis_max_v: float = 0.05  # cap on H(soc): the C/20 gap near empty is a charge-start transient
 
     def __post_init__(self) -> None:
+        if self.soc_method not in SOC_METHODS:
+            raise ValueError(f"soc_method must be one of {SOC_METHODS}, got {self.soc_method!r}")
         if self.capacity_soc_update not in CAPACITY_SOC_UPDATES:
             raise ValueError(f"capacity_soc_update must be one of {CAPACITY_SOC_UPDATES}, got {self.capacity_soc_update!r}")
 
@@ -97,11 +111,23 @@ class SocEstimator:
 
     Args:
         n_cells: number of cells (1..2000 and more), all updated in one call.
-        ocv: the cell's OCV curve.
+        ocv: the cell's OCV: one :class:`~bms_estimator.core.ocv.OcvCurve`, or an
+            ``OcvSurface`` (several tables interpolated by the cell temperature).
         capacity_ah: the stated (nominal) capacity, scalar or per cell.
         dt_s: sample period.
-        initial_soc: per-cell start SOC; ``None`` reads it from the OCV at the first sample
-            (valid when the pack starts from rest).
+        initial_soc: per-cell start SOC; ``None`` (or NaN for a cell) reads it from the
+            OCV at the first sample (valid when the pack starts from rest).
+
+    Temperature.  ``update(..., temperature_c=...)`` gives each cell's temperature;
+    the OCV, its slope and hysteresis are read on the tables interpolated at it, and
+    the counting capacity is the table capacity there, ``Q(T) = Q_cell Q_table(T) /
+    Q_table(T_ref)``.  SOC is the fraction of the C/20 throughput at the cell's
+    temperature: a charge moves it by ``dq / Q(T)``; a temperature change alone
+    moves the OCV under it, not the SOC.
+
+    Starting hysteresis.  A cell started full came off a charge (the charge branch,
+    h = +1), one started empty off a discharge (h = -1); anywhere else the branch is
+    unknown and the mean curve (h = 0) is the least-error guess.
     """
 
     def __init__(
@@ -118,10 +144,18 @@ class SocEstimator:
         self.ocv = ocv
         self.dt_s = float(dt_s)
         self.config = config
+        self._t_aware = hasattr(ocv, "temperatures_c")
+        self.temperature_c = np.full(self.n_cells, float(config.default_temperature_c))
         self.capacity_stated_ah = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
         if np.any(~np.isfinite(self.capacity_stated_ah)) or np.any(self.capacity_stated_ah <= 0):
             raise ValueError("capacity_ah must be positive and finite")
+        # capacity at the tables' reference temperature (the count uses it times relative_capacity(T))
         self.capacity_ah = self.capacity_stated_ah.copy()
+        q_table = self._table_capacity_ah() if config.capacity_from_ocv else None
+        if q_table is not None:
+            self.capacity_ah[:] = q_table
+        self.capacity_initial_ah = self.capacity_ah.copy()
+        self._rel_q = np.ones(self.n_cells)
         self.capacity_estimated = np.zeros(self.n_cells, dtype=bool)
         self.identifier: Identifier = make_identifier(self.n_cells, self.dt_s, self.capacity_stated_ah, config.identifier)
         self.soc = np.full(self.n_cells, np.nan)
@@ -135,6 +169,8 @@ class SocEstimator:
         self._c0_sq = np.zeros(self.n_cells)
         self._i_prev = np.zeros(self.n_cells)
         self.charge_ah = np.zeros(self.n_cells)  # counted charge since start (positive = charged)
+        # the same at the reference temperature (dq / relative capacity): the capacity line's abscissa
+        self._charge_ref_ah = np.zeros(self.n_cells)
         # the SOC and counted charge at the last OCV correction (or the start): a new capacity
         # estimate recounts the SOC from there
         self._soc_fix = self.soc.copy()
@@ -149,20 +185,86 @@ class SocEstimator:
         # hysteresis state in [-1, 1]: -1 on the discharge branch, +1 on the charge branch.
         # The state recursion is core.hysteresis's (unit amplitude); the amplitude here is the
         # OCV table's H(soc), capped.
-        self.hysteresis_state = np.full(self.n_cells, -1.0)
+        self.hysteresis_state = np.zeros(self.n_cells)
         self._hyst = (
             HysteresisState(self.n_cells, self.capacity_ah,
-                            HysteresisParams(m_v=1.0, m0_v=0.0, gamma=config.hysteresis_rate, h0=-1.0), self.dt_s)
+                            HysteresisParams(m_v=1.0, m0_v=0.0, gamma=config.hysteresis_rate, h0=0.0), self.dt_s)
             if config.hysteresis and ocv.has_hysteresis else None  # H = 0 without the column: nothing to track
         )
+        self._start_hysteresis(np.isfinite(self.soc))
+        self.ekf = (SocEkf(self.n_cells, self.dt_s, self.capacity_ah, config.ekf)
+                    if config.soc_method == "ekf" else None)
+
+    # ------------------------------------------------------------------ OCV at the cell temperature
+    def _table_capacity_ah(self) -> float | None:
+        """The OCV table's C/20 capacity at its reference temperature, if it carries one."""
+        ocv = self.ocv
+        if self._t_aware:
+            q = ocv.capacity_ah(self.config.default_temperature_c)
+            rel = ocv.relative_capacity(self.config.default_temperature_c)
+            q = None if q is None else float(q) / float(rel)
+        else:
+            q = getattr(ocv, "capacity_discharge_ah", None)
+        return float(q) if q is not None and np.isfinite(q) and q > 0 else None
+
+    def _mean_ocv(self, soc: np.ndarray) -> np.ndarray:
+        return self.ocv.ocv(soc, self.temperature_c) if self._t_aware else self.ocv.ocv(soc)
+
+    def _half_gap(self, soc: np.ndarray) -> np.ndarray:
+        h = self.ocv.hysteresis(soc, self.temperature_c) if self._t_aware else self.ocv.hysteresis(soc)
+        return np.minimum(h, self.config.hysteresis_max_v)
+
+    def _slope(self, soc: np.ndarray) -> np.ndarray:
+        return self.ocv.docv_dsoc(soc, self.temperature_c) if self._t_aware else self.ocv.docv_dsoc(soc)
+
+    def _soc_at(self, ocv_v: np.ndarray) -> np.ndarray:
+        return self.ocv.soc_from_ocv(ocv_v, self.temperature_c) if self._t_aware else self.ocv.soc_from_ocv(ocv_v)
 
     def _ocv(self, soc: np.ndarray) -> np.ndarray:
         """The OCV the cell shows now: the mean curve plus the hysteresis state times H(soc)."""
-        v = self.ocv.ocv(soc)
+        v = self._mean_ocv(soc)
         if self._hyst is not None:
-            h = np.minimum(self.ocv.hysteresis(soc), self.config.hysteresis_max_v)
-            v = v + self.hysteresis_state * h
+            v = v + self.hysteresis_state * self._half_gap(soc)
         return v
+
+    def _start_hysteresis(self, cells: np.ndarray) -> None:
+        if self._hyst is None or not cells.any():
+            return
+        s = np.where(np.isfinite(self.soc), self.soc, 0.5)
+        h0 = np.where(s >= 0.98, 1.0, np.where(s <= 0.02, -1.0, 0.0))
+        self._hyst.h = np.where(cells, h0, self._hyst.h)
+        self.hysteresis_state = self._hyst.h.copy()
+
+    def set_soc(self, soc: float | np.ndarray, cells: np.ndarray | None = None,
+                sigma: float | np.ndarray | None = None) -> None:
+        """Set the SOC of some cells (all by default), as a user or a state file would.
+
+        The count restarts there; the c0 average restarts, since it was learnt
+        against the old SOC; the hysteresis branch is guessed again from the SOC
+        (class docstring); the EKF's SOC sigma becomes ``sigma`` (default: its
+        ``initial_soc_sigma``).
+        """
+        sel = np.ones(self.n_cells, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
+        s = np.broadcast_to(np.asarray(soc, dtype=float), (self.n_cells,))
+        self.soc = np.where(sel, s, self.soc)
+        self._soc_fix = np.where(sel, self.soc, self._soc_fix)
+        self._q_fix = np.where(sel, self._charge_ref_ah, self._q_fix)
+        self._c0_count = np.where(sel, 0, self._c0_count)
+        self._start_hysteresis(sel)
+        if self.ekf is not None:
+            self.ekf.set_soc_sigma(self.config.ekf.initial_soc_sigma if sigma is None else sigma, sel)
+
+    @property
+    def soc_sigma(self) -> np.ndarray:
+        """1-sigma SOC uncertainty (the EKF's; NaN for the c0 method, which has none)."""
+        if self.ekf is None:
+            return np.full(self.n_cells, np.nan)
+        return self.ekf.soc_sigma
+
+    @property
+    def counting_capacity_ah(self) -> np.ndarray:
+        """The capacity the count uses now: the cell's, at its temperature."""
+        return self.capacity_ah * self._rel_q
 
     # ------------------------------------------------------------------
     def update(
@@ -170,11 +272,16 @@ class SocEstimator:
         current_a: float | np.ndarray,
         voltage_v: np.ndarray,
         valid: np.ndarray | None = None,
+        temperature_c: float | np.ndarray | None = None,
     ) -> None:
-        """One sample period: mean current over the period and the cell voltages."""
+        """One sample period: mean current over the period, the cell voltages and temperatures."""
         n = self.n_cells
         i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
         v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
+        if temperature_c is not None and self._t_aware:
+            t = np.broadcast_to(np.asarray(temperature_c, dtype=float), (n,))
+            self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last
+            self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
         ok = np.isfinite(v)
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
@@ -183,29 +290,63 @@ class SocEstimator:
         unset = ~np.isfinite(self.soc)
         if unset.any():
             start = unset & ok
-            self.soc = np.where(start, np.clip(self.ocv.soc_from_ocv(np.where(start, v, 3.7)), 0.0, 1.0), self.soc)
-            self._soc_fix = np.where(start, self.soc, self._soc_fix)
+            if start.any():
+                self.soc = np.where(start, np.clip(self._soc_at(np.where(start, v, 3.7)), 0.0, 1.0), self.soc)
+                self._soc_fix = np.where(start, self.soc, self._soc_fix)
+                self._q_fix = np.where(start, self._charge_ref_ah, self._q_fix)
+                self._start_hysteresis(start)
         # 1. coulomb counting (the previous sample's current moved the SOC to now)
+        q_now = self.capacity_ah * self._rel_q
         dq = self._i_prev * (self.dt_s / 3600.0)
+        dz = dq / q_now
         have_soc = np.isfinite(self.soc)
         # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
-        self.soc = np.where(have_soc, np.clip(self.soc + dq / self.capacity_ah, 0.0, 1.0), self.soc)
+        self.soc = np.where(have_soc, np.clip(self.soc + dz, 0.0, 1.0), self.soc)
         self.charge_ah += dq
+        self._charge_ref_ah += dq / self._rel_q
+        i_prev = self._i_prev
         self._i_prev = i_use
         if self._hyst is not None:
             # Plett's one-state model (core.hysteresis): the state at this sample's start
-            self._hyst.capacity_ah = self.capacity_ah
+            self._hyst.capacity_ah = q_now
             self.hysteresis_state = self._hyst.update(i_use)
         # 2. overpotential at the middle of the period (the voltage is a period mean)
-        soc_mid = self.soc + i_use * (0.5 * self.dt_s / 3600.0) / self.capacity_ah
-        ocv_v = self._ocv(np.where(have_soc, soc_mid, 0.5))
+        soc_mid = self.soc + i_use * (0.5 * self.dt_s / 3600.0) / q_now
+        soc_mid = np.where(have_soc, soc_mid, 0.5)
+        ocv_v = self._ocv(soc_mid)
         self.v_o = v - ocv_v
         use = ok & i_ok & have_soc
         # 3. identification
         self.identifier.update(i_use, np.where(use, self.v_o, np.nan), use)
-        # 4.-6. bias averaging and compensation
+        # 4.-6. the OCV evidence corrects the count
+        if self.ekf is not None:
+            self._ekf_step(i_prev, i_use, dz, soc_mid, use & have_soc)
         self._compensate(use)
         self.samples += 1
+
+    def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, soc_mid: np.ndarray,
+                  use: np.ndarray) -> None:
+        p = self.identifier.params
+        r = np.stack([p.r1_ohm, p.r2_ohm], axis=1)
+        tau = np.stack([p.tau1_s, p.tau2_s], axis=1)
+        live = np.isfinite(self.soc)
+        self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q, r, tau, live)
+        v_hat = p.r0_ohm * i_now + self.ekf.v_model
+        innovation = self.v_o - v_hat
+        slope = self._slope(soc_mid)
+        unsure = (1.0 - np.abs(self.hysteresis_state)) * self._half_gap(soc_mid) if self._hyst is not None else 0.0
+        d_soc, d_q = self.ekf.correct(innovation, slope, np.broadcast_to(unsure, (self.n_cells,)), use)
+        if self.config.estimate_capacity:
+            self.capacity_ah = self.capacity_ah * (1.0 + d_q)
+            lo, hi = self.config.capacity_bounds
+            self.capacity_ah = np.clip(self.capacity_ah, lo * self.capacity_stated_ah, hi * self.capacity_stated_ah)
+            self.capacity_estimated |= self.ekf.p[:, 5, 5] < (0.5 * self.config.ekf.capacity_sigma) ** 2
+        moved = d_soc != 0.0
+        if moved.any():
+            self.soc = np.where(moved, np.clip(self.soc + d_soc, 0.0, 1.0), self.soc)
+            # the OCV the identifier saw moves with the SOC (as in a c0 compensation)
+            self.identifier.shift_bias(slope * d_soc, moved)
+            self._shift_c0_window(np.where(moved, slope * d_soc, 0.0))
 
     def _compensate(self, use: np.ndarray) -> None:
         cfg = self.config
@@ -235,15 +376,17 @@ class SocEstimator:
             return
         # SOC whose OCV is c0_avg above the one now: OCV^-1(OCV(soc) + c0_avg).  The hysteresis
         # term h H(soc) is on both sides (read at the SOC now), so the mean curve gives it
-        soc_ocv = self.ocv.soc_from_ocv(self.ocv.ocv(self.soc) + c0_avg)
+        soc_ocv = self._soc_at(self._mean_ocv(self.soc) + c0_avg)
+        if self.ekf is not None:
+            return  # the EKF corrects the SOC and the capacity every sample
         if cfg.estimate_capacity:
             self._capacity_anchor(stable, soc_ocv)
-        slope = self.ocv.docv_dsoc(self.soc)
+        slope = self._slope(self.soc)
         fire = stable & (np.abs(c0_avg) > slope * cfg.soc_error_threshold)
         if fire.any():
             self.soc = np.where(fire, np.clip(soc_ocv, 0.0, 1.0), self.soc)
             self._soc_fix = np.where(fire, self.soc, self._soc_fix)
-            self._q_fix = np.where(fire, self.charge_ah, self._q_fix)
+            self._q_fix = np.where(fire, self._charge_ref_ah, self._q_fix)
             ident.shift_bias(c0_avg, fire)
             self._c0_count = np.where(fire, 0, self._c0_count)
             self._shift_c0_window(np.where(fire, c0_avg, 0.0))
@@ -260,7 +403,7 @@ class SocEstimator:
 
     def _capacity_anchor(self, sel: np.ndarray, soc_ocv: np.ndarray) -> None:
         cfg = self.config
-        q = self.charge_ah
+        q = self._charge_ref_ah
         s = soc_ocv
         add = np.stack([np.ones_like(q), q, s, q * q, q * s, s * s], axis=1)
         self._cap += np.where(sel[:, None], add, 0.0)
@@ -271,10 +414,10 @@ class SocEstimator:
         if not cand.any():
             return
         n, sq, ss, sqq, sqs, sss = self._cap.T
-        var_q = sqq / n - (sq / n) ** 2
-        cov = sqs / n - (sq / n) * (ss / n)
-        var_s = sss / n - (ss / n) ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
+            var_q = sqq / n - (sq / n) ** 2
+            cov = sqs / n - (sq / n) * (ss / n)
+            var_s = sss / n - (ss / n) ** 2
             slope = cov / var_q
             resid_var = np.maximum(var_s - slope * cov, 0.0)
             q_est = 1.0 / slope
@@ -325,6 +468,8 @@ class SocEstimator:
             c0_count=self._c0_count.copy(),
             i_prev=self._i_prev.copy(),
             charge_ah=self.charge_ah.copy(),
+            charge_ref_ah=self._charge_ref_ah.copy(),
+            temperature_c=self.temperature_c.copy(),
             soc_fix=self._soc_fix.copy(),
             q_fix=self._q_fix.copy(),
             corrections=self.corrections.copy(),
@@ -335,6 +480,8 @@ class SocEstimator:
         )
         if self._hyst is not None:
             s.update({f"hyst.{k}": v for k, v in self._hyst.state_dict().items()})
+        if self.ekf is not None:
+            s.update({f"ekf.{k}": v for k, v in self.ekf.state_dict().items()})
         return s
 
     def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
@@ -356,9 +503,14 @@ class SocEstimator:
         self._c0_sq = np.einsum("nw,nw->n", self._c0_buf, self._c0_buf)
         self._i_prev = np.asarray(s["i_prev"], dtype=float).copy()
         self.charge_ah = np.asarray(s["charge_ah"], dtype=float).copy()
+        # states saved before temperature existed: the count was at the reference temperature
+        self._charge_ref_ah = np.asarray(s.get("charge_ref_ah", self.charge_ah), dtype=float).copy()
+        self.temperature_c = np.asarray(s.get("temperature_c", self.temperature_c), dtype=float).copy()
+        if self._t_aware:
+            self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
         # states saved before the recount existed: count from where the cells are now
         self._soc_fix = np.asarray(s.get("soc_fix", self.soc), dtype=float).copy()
-        self._q_fix = np.asarray(s.get("q_fix", self.charge_ah), dtype=float).copy()
+        self._q_fix = np.asarray(s.get("q_fix", self._charge_ref_ah), dtype=float).copy()
         self.corrections = np.asarray(s["corrections"], dtype=np.int64).copy()
         self._cap = np.asarray(s["cap"], dtype=float).copy()
         self._q_min = np.asarray(s["q_min"], dtype=float).copy()
@@ -367,6 +519,11 @@ class SocEstimator:
         if self._hyst is not None:
             if "hyst.h" in s:
                 self._hyst.load_state_dict({"h": s["hyst.h"], "s": s["hyst.s"]})
-            # a state saved without hysteresis (older version, or the option was off): every
-            # other field is kept and the cells start on the discharge branch, as a new pack does
-            self.hysteresis_state = self._hyst.h.copy()
+                self.hysteresis_state = self._hyst.h.copy()
+            else:
+                # a state saved without hysteresis (older version, or the option was off): every
+                # other field is kept and the branch is guessed from the SOC, as at a start
+                self._start_hysteresis(np.ones(n, dtype=bool))
+        if self.ekf is not None and "ekf.p" in s:
+            # a state saved by the c0 method keeps the EKF's fresh start (initial_soc_sigma)
+            self.ekf.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("ekf.")})
