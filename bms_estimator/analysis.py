@@ -75,11 +75,12 @@ class IdentificationRun:
 @dataclass
 class SocRun:
     time_s: np.ndarray
-    soc: np.ndarray
+    soc: np.ndarray  # NaN before the start
     capacity_ah: np.ndarray
     params: dict[str, np.ndarray]
     corrections: int
     rejections: int
+    soc_sigma: np.ndarray | None = None  # the EKF's 1-sigma SOC uncertainty (NaN for the c0 method)
 
 
 def reference_soc(current_a: np.ndarray, dt_s: float, capacity_ah: float, soc0: float = 1.0) -> np.ndarray:
@@ -195,24 +196,42 @@ def run_soc(
     voltage_v: np.ndarray,
     ocv: OcvCurve,
     capacity_ah: float,
-    initial_soc: float,
+    initial_soc: float | None,
     dt_s: float = 1.0,
     config: SocConfig = SocConfig(),
+    *,
+    temperature_c: np.ndarray | None = None,
+    start_index: int = 0,
 ) -> SocRun:
-    """The online SOC estimator over a recording (one cell)."""
+    """The online SOC estimator over a recording (one cell).
+
+    It starts at sample ``start_index`` with ``initial_soc`` (``None``: read from
+    the OCV at that sample, as after a rest); samples before it are NaN.
+    ``temperature_c`` (per sample) reads the OCV at the cell temperature when
+    ``ocv`` holds several tables.
+    """
     n = len(current_a)
+    k0 = int(start_index)
+    if not 0 <= k0 < n:
+        raise ValueError(f"start sample {k0} is outside the recording (0..{n - 1})")
     est = SocEstimator(1, ocv, capacity_ah, dt_s, initial_soc=initial_soc, config=config)
-    soc = np.empty(n)
-    cap = np.empty(n)
-    traj = {k: np.empty(n) for k in PARAM_KEYS}
+    soc = np.full(n, np.nan)
+    sigma = np.full(n, np.nan)
+    cap = np.full(n, np.nan)
+    traj = {k: np.full(n, np.nan) for k in PARAM_KEYS}
     v1 = np.empty(1)
-    for k in range(n):
+    t1 = None if temperature_c is None else np.empty(1)
+    for k in range(k0, n):
         v1[0] = voltage_v[k]
-        est.update(current_a[k], v1)
+        if t1 is not None:
+            t1[0] = temperature_c[k]
+        est.update(current_a[k], v1, temperature_c=t1)
         soc[k] = est.soc[0]
+        sigma[k] = est.soc_sigma[0]
         cap[k] = est.capacity_ah[0]
         _record(traj, k, est.params)
-    return SocRun(np.arange(n) * dt_s, soc, cap, traj, int(est.corrections[0]), int(est.identifier.rejections[0]))
+    return SocRun(np.arange(n) * dt_s, soc, cap, traj, int(est.corrections[0]), int(est.identifier.rejections[0]),
+                  sigma)
 
 
 def _ecm_params(p: dict[str, np.ndarray]) -> EcmParams:

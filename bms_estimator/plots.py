@@ -66,15 +66,22 @@ def plot_errors(time_s, voltage_v, predicted: dict[str, np.ndarray], path: Path,
     return _save(fig, path, ATTRIBUTION)
 
 
-def plot_soc(time_s, soc, soc_ref, capacity_ah, path: Path, title: str = "") -> Path:
-    """Estimated vs reference SOC and the error (the paper's Fig. 10)."""
+def plot_soc(time_s, soc, soc_ref, capacity_ah, path: Path, title: str = "", counted=None) -> Path:
+    """Estimated vs reference SOC and the error (the paper's Fig. 10), with plain counting from the same start."""
     t = np.asarray(time_s) / 3600.0
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
     axes[0].plot(t, np.asarray(soc_ref) * 100, color="black", label="reference (coulomb counting from full)")
     axes[0].plot(t, np.asarray(soc) * 100, color="tab:blue", label="estimated")
+    if counted is not None:
+        axes[0].plot(t, np.asarray(counted) * 100, color="0.5", ls=":", label="counting, stated capacity")
     axes[0].set_ylabel("SOC [%]")
     axes[0].legend()
-    axes[1].plot(t, (np.asarray(soc) - np.asarray(soc_ref)) * 100, color="tab:red")
+    if counted is not None:
+        axes[1].plot(t, (np.asarray(counted) - np.asarray(soc_ref)) * 100, color="0.5", ls=":",
+                     label="counting, stated capacity")
+    axes[1].plot(t, (np.asarray(soc) - np.asarray(soc_ref)) * 100, color="tab:red", label="estimated")
+    if counted is not None:
+        axes[1].legend()
     axes[1].axhline(2, color="0.5", ls="--", lw=0.8)
     axes[1].axhline(-2, color="0.5", ls="--", lw=0.8)
     axes[1].set_ylabel("SOC error [%]")

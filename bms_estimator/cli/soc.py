@@ -1,65 +1,153 @@
-"""``bms-estimator soc``: SOC from a wrong start, against coulomb counting from full (the paper's Fig. 10)."""
+"""``bms-estimator soc``: the online SOC estimator over a recording, from any start, against the reference."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from ..analysis import measured_capacity, reference_soc, run_soc, soc_errors
+import numpy as np
+
+from ..analysis import run_soc
+from ..core.soc import SOC_METHODS, SocConfig
+from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
+
+#: A C/20 table within this of the recording's median temperature is "the same ambient".
+SAME_AMBIENT_K = 5.0
+
+
+def _start_soc(text: str) -> str | float:
+    if text.strip().lower() == "ocv":
+        return "ocv"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a SOC fraction nor 'ocv'") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"--start-soc {text!r} must be a fraction in [0, 1] (or 'ocv')")
+    return value
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("soc", help="estimate SOC from a wrong initial SOC and score it against the reference",
-                       description="Runs the online SOC estimator (LIF identification, c0 compensation, capacity "
-                                   "estimation) from initial SOC = reference start - error. The reference SOC is "
-                                   "coulomb counting from the known start (full) with the reference capacity: the "
-                                   "one measured from the file's end-of-test rest when it ends relaxed, else the output-"
-                                   "error capacity of the model fitted from the known start (never the stated one), "
-                                   "unless --reference-capacity-ah is given.")
+    p = sub.add_parser(
+        "soc", help="run the SOC estimator from any start and score it against the independent reference",
+        description="Runs the online SOC estimator (identification, OCV correction, capacity estimation) over a "
+                    "recording, starting at --start-s with --start-soc (or the reference there minus "
+                    "--initial-soc-error). The reference is coulomb counting from the recording's full start with "
+                    "Q_ref = Ah_out(end) / (1 - SOC_end), SOC_end read from the relaxed end-of-test voltage on the "
+                    "discharge branch of the same cell's C/20 table at the same ambient (--reference-ocv; by default "
+                    "the --ocv table with hysteresis within 5 K of the recording's temperature).")
     p.add_argument("data", type=Path, help="drive-cycle CSV(.gz) in the ../shared/data layout")
     add_cell_options(p)
+    p.add_argument("--start-s", type=float, default=0.0, help="the estimator begins at this time of the file (s)")
+    p.add_argument("--start-soc", type=_start_soc, default=None,
+                   help="SOC the estimator begins with (a fraction), or 'ocv' to read it from the first sample's "
+                        "voltage as the service does after a rest (default: reference - --initial-soc-error)")
     p.add_argument("--initial-soc-error", type=float, default=0.2,
-                   help="estimator starts at reference start - this (default 0.2 = 20 %% low)")
-    p.add_argument("--reference-capacity-ah", type=float, default=None, help="capacity of the reference SOC")
-    p.add_argument("--method", choices=("lif", "arx"), default="lif")
+                   help="without --start-soc: start this far below the reference (default 0.2, the paper's Fig. 10)")
+    p.add_argument("--soc-method", choices=SOC_METHODS, default=SocConfig().soc_method,
+                   help=f"how the voltage corrects the count (default {SocConfig().soc_method}): c0 = the paper's "
+                        "OCV-bias compensation, ekf = an extended Kalman filter on SOC and the RC voltages")
+    p.add_argument("--reference-ocv", type=Path, default=None,
+                   help="the same cell's C/20 OCV table at the recording's ambient, for the reference")
+    p.add_argument("--reference-capacity-ah", type=float, default=None,
+                   help="count the reference with this capacity instead (e.g. a recording without a final rest)")
+    p.add_argument("--method", choices=("lif", "arx"), default="lif", help="identification method")
+    p.add_argument("--trace", type=Path, default=None,
+                   help="write time_s,soc,soc_sigma,soc_reference,soc_counted,capacity_ah,temperature_c (CSV) here")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here ('-' = stdout)")
     p.add_argument("--plot", type=Path, default=None, help="write the SOC figure (PNG) here")
     add_tuning_options(p)
     p.set_defaults(func=run)
 
 
+def _reference_table(args: argparse.Namespace, ocv, temp_c: float | None):
+    """The C/20 table of the recording's ambient: --reference-ocv, else the nearest --ocv table with hysteresis."""
+    if args.reference_ocv is not None:
+        return load_ocv([args.reference_ocv]), "given"
+    curves = getattr(ocv, "curves", None) or [ocv]
+    temps = list(getattr(ocv, "temperatures_c", [None] * len(curves)))
+    best = None
+    for c, t in zip(curves, temps):
+        if not c.has_hysteresis:
+            continue  # an HPPC table has no branches to read a rest on
+        if temp_c is not None and t is not None and abs(t - temp_c) > SAME_AMBIENT_K:
+            continue
+        d = 0.0 if temp_c is None or t is None else abs(t - temp_c)
+        if best is None or d < best[0]:
+            best = (d, c)
+    return (best[1], "--ocv table at the recording's ambient") if best else (None, None)
+
+
 def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv)
     dt = rec.dt_s
+    t = rec.time_s - rec.time_s[0]
+    k0 = int(np.searchsorted(t, args.start_s - 1e-9))
+    if not 0 <= k0 < len(rec) or args.start_s < 0:
+        raise ValueError(f"--start-s {args.start_s:g} is outside the recording (0..{t[-1]:.0f} s)")
+    temp = rec.temperature_c
+    temp_c = float(np.nanmedian(temp)) if temp is not None and np.isfinite(temp).any() else None
     if args.reference_capacity_ah is not None:
-        q_ref, source = float(args.reference_capacity_ah), "given"
+        q_ref, why, relaxed = float(args.reference_capacity_ah), "given capacity", True
+        soc_ref = counted_soc(rec.current_a, dt, q_ref, args.initial_soc)
     else:
-        q_ref, source = measured_capacity(rec.current_a, rec.voltage_v, dt, ocv, args.capacity_ah, args.initial_soc)
-    soc_ref = reference_soc(rec.current_a, dt, q_ref, args.initial_soc)
-    start = min(max(args.initial_soc - args.initial_soc_error, 0.0), 1.0)
-    run_ = run_soc(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, start, dt, soc_config(args))
-    out = soc_errors(run_.soc, soc_ref, rec.time_s - rec.time_s[0])
+        table, _ = _reference_table(args, ocv, temp_c)
+        if table is None:
+            raise ValueError(f"{args.data}: no C/20 table (with hysteresis) within {SAME_AMBIENT_K:g} K of the "
+                             f"recording's {temp_c} degC among --ocv: give --reference-ocv or --reference-capacity-ah")
+        ref = soc_reference(rec.current_a, rec.voltage_v, dt, table)
+        q_ref, why, relaxed, soc_ref = ref.capacity_ah, ref.why, ref.relaxed, ref.soc
+    if args.start_soc == "ocv":
+        s0, start_text = None, "read from the OCV"
+    elif args.start_soc is not None:
+        s0, start_text = float(args.start_soc), f"{args.start_soc:.3f}"
+    else:
+        s0 = float(np.clip(soc_ref[k0] - args.initial_soc_error, 0.0, 1.0))
+        start_text = f"{s0:.3f} (reference {soc_ref[k0]:.3f} - {args.initial_soc_error:g})"
+    cfg = soc_config(args).with_(soc_method=args.soc_method)
+    run_ = run_soc(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, s0, dt, cfg,
+                   temperature_c=temp, start_index=k0)
+    counted = np.full(len(rec), np.nan)
+    s_count0 = run_.soc[k0] if s0 is None else s0
+    counted[k0:] = counted_soc(rec.current_a[k0:], dt, args.capacity_ah, s_count0)
+    figs = soc_error_figures(run_.soc, soc_ref, t, t[k0])
+    base = soc_error_figures(counted, soc_ref, t, t[k0])
+    out = dict(figs)
     out.update(
+        counting_stated_capacity=base,
+        soc_method=args.soc_method,
+        start_s=float(t[k0]),
+        start_soc=float(run_.soc[k0]),
         capacity_ah_estimated=float(run_.capacity_ah[-1]),
         capacity_ah_stated=args.capacity_ah,
         capacity_ah_reference=q_ref,
-        reference_capacity_source=source,
-        initial_soc_estimate=start,
+        reference=why,
+        reference_scored=relaxed,
+        soc_sigma_end=float(run_.soc_sigma[-1]) if run_.soc_sigma is not None else None,
         soc_corrections=run_.corrections,
         estimator_rejections=run_.rejections,
         samples=len(rec),
     )
+    if args.trace is not None:
+        cols = {"time_s": rec.time_s, "soc": run_.soc, "soc_sigma": run_.soc_sigma, "soc_reference": soc_ref,
+                "soc_counted": counted, "capacity_ah": run_.capacity_ah,
+                "temperature_c": temp if temp is not None else np.full(len(rec), np.nan)}
+        args.trace.parent.mkdir(parents=True, exist_ok=True)
+        np.savetxt(args.trace, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
+                   comments="", fmt="%.6g")
     if args.plot:
         from ..plots import plot_soc
 
         plot_soc(rec.time_s, run_.soc, soc_ref, run_.capacity_ah, args.plot,
-                 f"{args.data.name}: SOC from {args.initial_soc_error*100:.0f} % initial error")
+                 f"{args.data.name}: SOC from {start_text} at {t[k0]:.0f} s ({args.soc_method})", counted=counted)
     if args.json is not None:
         write_json(out, args.json)
     if args.json is None or str(args.json) != "-":
-        print(f"SOC RMSE {out['soc_rmse_pct']:.2f} % (after 1 h {out['soc_rmse_pct_after_3600s']:.2f} %, "
-              f"max {out['soc_max_abs_error_pct_after_3600s']:.2f} %); capacity estimated "
-              f"{out['capacity_ah_estimated']:.3f} Ah (stated {args.capacity_ah:g}, reference {q_ref:.3f} from {source})")
+        note = "" if relaxed else " [reference not scored: " + why + "]"
+        print(f"SOC RMSE {figs['rmse_30min_pct']:.2f} % from 30 min after the start (after 1 h "
+              f"{figs['rmse_1h_pct']:.2f} %, max {figs['max_abs_pct']:.2f} %); counting with the stated "
+              f"{args.capacity_ah:g} Ah {base['rmse_30min_pct']:.2f} %; capacity estimated "
+              f"{out['capacity_ah_estimated']:.3f} Ah (reference {q_ref:.3f}){note}")
     return 0
