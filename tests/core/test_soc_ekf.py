@@ -1,0 +1,129 @@
+"""The EKF SOC method and the any-start promises, on synthetic cells run as the cells of one estimator."""
+
+import numpy as np
+import pytest
+
+from bms_estimator.core.ecm import EcmParams, simulate_ecm
+from bms_estimator.core.ocv import OcvCurve
+from bms_estimator.core.soc import SOC_METHODS, SocConfig, SocEstimator
+from bms_estimator.core.soc_ekf import SocEkfConfig
+from bms_estimator.scoring import counted_soc
+from tests.conftest import pulse_current
+
+N = 3 * 3600  # 3 h at 1 s
+STATED_AH = 3.0
+
+
+def _ocv() -> OcvCurve:
+    s = np.linspace(0.0, 1.0, 21)
+    return OcvCurve(s, 3.3 + 0.65 * s + 0.25 * s**2 - 0.15 * np.exp(-12 * s), None)
+
+
+def _cells(q_true: list[float], seeds: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Drive cycles to about 10 % SOC of cells with a 3-RC model (the slowest branch, 1500 s, is diffusion)."""
+    ocv = _ocv()
+    cur, vol = [], []
+    for q, seed in zip(q_true, seeds):
+        i = pulse_current(N, seed, amp_a=4.0)
+        i = i - (i.mean() + 0.85 * q * 3600 / N)
+        p = EcmParams.from_rc(0.02, [0.01, 0.012, 0.015], [10.0, 150.0, 1500.0])
+        v = simulate_ecm(i, 1.0, p, ocv.ocv, soc0=1.0, capacity_ah=q, output="mean").voltage_v
+        rng = np.random.default_rng(seed)
+        cur.append(i + 0.02 * rng.standard_normal(N))  # 20 mA current-sensor noise
+        vol.append(v + 2e-3 * rng.standard_normal(N))  # 2 mV voltage noise
+    return np.array(cur).T, np.array(vol).T
+
+
+def _run(cur, vol, start_soc, ocv, config):
+    est = SocEstimator(cur.shape[1], ocv, STATED_AH, 1.0, initial_soc=start_soc, config=config)
+    soc = np.empty_like(cur)
+    sigma = np.empty_like(cur)
+    for k in range(cur.shape[0]):
+        est.update(cur[k], vol[k])
+        soc[k] = est.soc
+        sigma[k] = est.soc_sigma
+    return soc, sigma, est
+
+
+def _true_soc(cur, q_true):
+    return np.stack([counted_soc(cur[:, j], 1.0, q, 1.0) for j, q in enumerate(q_true)], axis=1)
+
+
+def _rmse_after(soc, ref, after_s):
+    e = 100 * (soc[after_s:] - ref[after_s:])
+    return np.sqrt(np.mean(e**2, axis=0))
+
+
+@pytest.fixture(scope="module")
+def capacity_cases():
+    """True capacity 10 % below and above the stated 3 Ah, two drive cycles each."""
+    q_true = [2.7, 2.7, 3.3, 3.3]
+    cur, vol = _cells(q_true, [11, 12, 13, 14])
+    return q_true, cur, vol
+
+
+@pytest.mark.parametrize("ocv_bias_v", [0.0, 0.005])
+def test_a_correct_start_is_never_worse_than_counting_with_the_stated_capacity(capacity_cases, ocv_bias_v):
+    """Started right at full, after 1 h the default estimator beats counting with the stated 3 Ah, with an
+    exact OCV table and with one 5 mV off (about 1 % SOC on this curve)."""
+    q_true, cur, vol = capacity_cases
+    base = _ocv()
+    ocv = OcvCurve(base.soc, base.ocv_v + ocv_bias_v)
+    soc, _, _ = _run(cur, vol, 1.0, ocv, SocConfig())
+    ref = _true_soc(cur, q_true)
+    counting = np.stack([counted_soc(cur[:, j], 1.0, STATED_AH, 1.0) for j in range(len(q_true))], axis=1)
+    est = _rmse_after(soc, ref, 3600)
+    cnt = _rmse_after(counting, ref, 3600)
+    assert np.all(cnt > 3.0), cnt  # the stated capacity is 10 % off: counting drifts
+    assert np.all(est < cnt), (est, cnt)
+    assert np.all(est < 2.0), est
+
+
+def test_ekf_corrects_start_errors_both_ways_and_reports_its_uncertainty(capacity_cases):
+    q_true, cur, vol = capacity_cases
+    ref = _true_soc(cur, q_true)
+    start = np.array([0.8, 1.0, 0.8, 1.0])  # two cells 20 % low, two right
+    soc, sigma, est = _run(cur, vol, start, _ocv(), SocConfig(soc_method="ekf"))
+    e30 = _rmse_after(soc, ref, 1800)
+    assert np.all(e30 < 2.0), e30
+    # the uncertainty starts at the configured start sigma and shrinks as the voltage is read
+    assert sigma[0] == pytest.approx(SocEkfConfig().initial_soc_sigma, rel=0.2)
+    assert np.all(sigma[-1] < 0.5 * sigma[0])
+    assert np.all(np.isfinite(sigma)) and np.all((soc >= 0) & (soc <= 1))
+    # the capacity the count uses moved towards the truth from the stated 3 Ah
+    err_q = np.abs(est.capacity_ah - np.array(q_true))
+    assert np.all(err_q < 0.5 * np.abs(STATED_AH - np.array(q_true))), est.capacity_ah
+
+
+def test_the_c0_method_has_no_sigma_and_both_methods_exist():
+    assert set(SOC_METHODS) == {"c0", "ekf"}
+    est = SocEstimator(2, _ocv(), 3.0, 1.0, initial_soc=0.5, config=SocConfig(soc_method="c0"))
+    est.update(np.zeros(2), np.full(2, 3.7))
+    assert np.all(np.isnan(est.soc_sigma))
+    with pytest.raises(ValueError, match="soc_method"):
+        SocConfig(soc_method="kalman")
+
+
+def test_ekf_state_round_trips(capacity_cases):
+    q_true, cur, vol = capacity_cases
+    cfg = SocConfig(soc_method="ekf")
+    a = SocEstimator(4, _ocv(), 3.0, 1.0, initial_soc=0.9, config=cfg)
+    for k in range(900):
+        a.update(cur[k], vol[k])
+    b = SocEstimator(4, _ocv(), 3.0, 1.0, initial_soc=0.5, config=cfg)
+    b.load_state_dict(a.state_dict())
+    for k in range(900, 1200):
+        a.update(cur[k], vol[k])
+        b.update(cur[k], vol[k])
+    np.testing.assert_array_equal(a.soc, b.soc)
+    np.testing.assert_array_equal(a.soc_sigma, b.soc_sigma)
+    np.testing.assert_array_equal(a.capacity_ah, b.capacity_ah)
+
+
+def test_set_soc_restarts_the_count_and_the_uncertainty():
+    est = SocEstimator(3, _ocv(), 3.0, 1.0, initial_soc=0.9, config=SocConfig(soc_method="ekf"))
+    for _ in range(600):
+        est.update(np.full(3, -3.0), np.full(3, 3.8))
+    est.set_soc(0.5, np.array([True, False, False]), sigma=0.03)
+    assert est.soc[0] == 0.5 and est.soc[1] != 0.5
+    assert est.soc_sigma[0] == pytest.approx(0.03)
