@@ -583,11 +583,11 @@ class OcvCurve:
                 k = int(np.flatnonzero(col != col[0])[0])
                 raise ValueError(
                     f"{path}: column '{name}' must hold one value (the table's), but line {lines[1][0]} has "
-                    f"{col[0]!r} and line {lines[k + 1][0]} has {col[k]!r}"
+                    f"{float(col[0]):g} and line {lines[k + 1][0]} has {float(col[k]):g}"
                 )
             const[name] = float(col[0])
         if const.get("capacity_ah", 1.0) <= 0:
-            raise ValueError(f"{path}: capacity_ah must be positive, got {const['capacity_ah']!r}")
+            raise ValueError(f"{path}: capacity_ah must be positive, got {const['capacity_ah']:g}")
         data = data[:, :len(wanted) - len(constants)]
         s, v = data[:, 0], data[:, 1]
         h = data[:, 2] if data.shape[1] > 2 else None
