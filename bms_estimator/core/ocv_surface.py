@@ -51,8 +51,27 @@ measured at one temperature ``T_j`` (``T_0 < T_1 < ... < T_{m-1}``).
    theirs (NaN when none does); ``relative_capacity(T)`` divides it by the
    capacity of the known table nearest 25 degC (1.0 where unknown).
 
-Timing (2 shared cores, 2000 cells, ``timeit`` best of 200): see
-:data:`TIMINGS` below and the class docstring.
+8. Speed.  Measured with ``timeit`` (best of 15 x 200) on 2000 cells at random
+   temperatures -20..45 degC, the three LG HG2 C/20 tables (-10, -0.5, 23.9
+   degC), on 2 cores shared with other jobs (load average 7-8, so the absolute
+   figures are about 2x an idle machine's; OcvCurve's own docstring figures
+   are idle ones).  Against one :class:`OcvCurve` in the same run:
+
+   =============================  ==========  ============
+   call                           OcvSurface  OcvCurve
+   =============================  ==========  ============
+   ``ocv`` (same T as last call)  70-86 us    64 us
+   ``ocv`` (new T each call)      113-128 us
+   ``docv_dsoc``                  87 us       56 us
+   ``hysteresis``                 85 us       49 us
+   ``soc_from_ocv``               640-770 us  217-227 us
+   ``ocv`` scalar                 7 us        1.9 us
+   ``soc_from_ocv`` scalar        34-55 us
+   =============================  ==========  ============
+
+   The temperature location (``j``, ``w``) of an array is kept for the next
+   call with equal temperatures, as the estimator's calls in one step are;
+   with one table every call is the OcvCurve's own.
 """
 
 from __future__ import annotations
@@ -151,6 +170,18 @@ class _Blend:
         v += v1
         return v, inside
 
+    def scalar(self, x: float, jg: int, w: float) -> tuple[float, int]:
+        """One query (Python floats): (blended table value, -1/0/+1 for below/inside/above the grid)."""
+        u = (x - self.s0) * self.inv_h
+        side = -1 if u < 0 else (1 if u > self.g - 1 else 0)
+        u = min(max(u, 0.0), self.g - 1.0)
+        k = min(int(u), self.g - 2)
+        f = u - k
+        y, dy = self.y, self.dy
+        a, b = jg + k, jg + k + self.g
+        v0 = float(y[a] + dy[a] * f)
+        return v0 + w * (float(y[b] + dy[b] * f) - v0), side
+
     def ends(self, jg: Any, w: Any) -> tuple[Any, Any]:
         """Blended ``lo`` and ``hi`` constants."""
         j = jg // self.g
@@ -166,9 +197,7 @@ class OcvSurface:
     (or ``ocv_v``) and ``temperature_c`` broadcast against each other (any shape;
     scalars in give a float out, like :class:`OcvCurve`).
 
-    Speed, 2000 cells at mixed temperatures, 3 tables (``ocv`` / ``docv_dsoc`` /
-    ``hysteresis`` / ``soc_from_ocv``), against one :class:`OcvCurve`: see
-    ``TIMINGS`` in the docstring of :meth:`__init__`.
+    Speed: module docstring, item 8.
 
     Args:
         curves: one or more tables.
@@ -362,11 +391,27 @@ class OcvSurface:
     def _out(v: np.ndarray, shape: tuple, scalar: bool) -> np.ndarray | float:
         return float(v[0]) if scalar else v.reshape(shape)
 
+    def _scalar(self, x: Any, temperature_c: Any, blend: _Blend) -> tuple[float, int, int, float] | None:
+        """(value, side, jg, w) for a finite scalar query at a scalar temperature, else None."""
+        if not (isinstance(x, (float, int)) and math.isfinite(x)
+                and (temperature_c is None or isinstance(temperature_c, (float, int)))):
+            return None
+        jg, w = blend.locate_t(self._temperature(temperature_c))
+        value, side = blend.scalar(float(x), jg, w)
+        return value, side, jg, w
+
     def ocv(self, soc: Any, temperature_c: Any = None) -> np.ndarray | float:
         """OCV [V] at ``soc`` and ``temperature_c`` [degC]; linear in SOC beyond the tables."""
         if self._single is not None:
             return self._single.ocv(soc)
         b = self._ocv
+        one = self._scalar(soc, temperature_c, b)
+        if one is not None:
+            v, side, jg, w = one
+            if side:
+                lo, hi = b.ends(jg, w)
+                v += lo * min(soc - b.s0, 0.0) + hi * max(soc - b.s1, 0.0)
+            return v
         s, shape, jg, w, scalar = self._prepare(soc, temperature_c, b)
         v, inside = b(s, jg, w)
         if not inside:  # linear extension with the blended end slopes (NaN propagates)
@@ -381,6 +426,10 @@ class OcvSurface:
         if self._single is not None:
             return self._single.docv_dsoc(soc)
         b = self._slope
+        one = self._scalar(soc, temperature_c, b)
+        if one is not None:
+            d, side, jg, w = one
+            return float(b.ends(jg, w)[0 if side < 0 else 1]) if side else d
         s, shape, jg, w, scalar = self._prepare(soc, temperature_c, b)
         d, inside = b(s, jg, w)
         if not inside:
@@ -400,6 +449,9 @@ class OcvSurface:
             s, scalar = _as_float_array(soc)
             z = np.zeros(np.broadcast_shapes(s.shape, np.shape(temperature_c)))
             return float(z) if z.ndim == 0 else z
+        one = self._scalar(soc, temperature_c, b)
+        if one is not None:
+            return one[0]
         s, shape, jg, w, scalar = self._prepare(soc, temperature_c, b)
         h, inside = b(s, jg, w)  # held at the ends
         if not inside:

@@ -90,6 +90,10 @@ def test_monotone_in_soc_at_any_temperature_and_exact_inverse(surface):
     # scalar in, float out
     x = surface.soc_from_ocv(surface.ocv(0.37, 3.0), 3.0)
     assert isinstance(x, float) and x == pytest.approx(0.37, abs=1e-12)
+    for s1 in (-0.4, 0.0, 0.37, 1.0, 1.3):  # the scalar path is the array path
+        for t1 in (-15.0, 3.0, 30.0):
+            for f in (surface.ocv, surface.docv_dsoc, surface.hysteresis):
+                assert f(s1, t1) == pytest.approx(f(np.array([s1]), np.array([t1]))[0], abs=1e-12)
     assert isinstance(surface.docv_dsoc(0.5, 3.0), float) and isinstance(surface.hysteresis(0.5, 3.0), float)
     # broadcasting: one soc at many temperatures, many socs at one temperature
     assert surface.ocv(0.5, np.array([-10.0, 25.0])).tolist() == pytest.approx(
