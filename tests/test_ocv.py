@@ -348,21 +348,6 @@ def test_csv_round_trip_of_temperature_and_capacity(tmp_path: Path) -> None:
     assert OcvCurve.from_csv(c.to_csv(tmp_path / "old.csv")).temperature_c is None  # old tables still read
 
 
-@pytest.mark.parametrize(
-    "text, pattern",
-    [
-        ("soc,ocv_v,temperature_c\n0,3,25\n1,4,0\n", r"column 'temperature_c' must hold one value .* line 3 has 0$"),
-        ("soc,ocv_v,capacity_ah\n0,3,0\n1,4,0\n", r"capacity_ah must be positive"),
-        ("soc,ocv_v,temperature_c\n0,3,25\n1,4,\n", r"line 3: non-numeric value '' in column 'temperature_c'"),
-    ],
-)
-def test_csv_constant_columns_checked(tmp_path: Path, text: str, pattern: str) -> None:
-    p = tmp_path / "bad.csv"
-    p.write_text(text)
-    with pytest.raises(ValueError, match=pattern):
-        OcvCurve.from_csv(p)
-
-
 def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
     p = tmp_path / "x.csv"
     p.write_text("note,soc,ocv_v\na,0,3.0\nb,0.5,3.6\nc,1,4.2\n")
@@ -381,6 +366,9 @@ def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
         ("soc,ocv_v\n0,3\n0.5,3.8\n0.6,3.7\n1,4\n", r"ocv_v decreases by 100.0 mV"),
         ("soc,ocv_v\n0,3\n", r"at least 2 data rows"),
         ("", r"empty file"),
+        ("soc,ocv_v,temperature_c\n0,3,25\n1,4,0\n", r"column 'temperature_c' must hold one value .* line 3 has 0$"),
+        ("soc,ocv_v,capacity_ah\n0,3,0\n1,4,0\n", r"capacity_ah must be positive"),
+        ("soc,ocv_v,temperature_c\n0,3,25\n1,4,\n", r"line 3: non-numeric value '' in column 'temperature_c'"),
     ],
 )
 def test_csv_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: str) -> None:
