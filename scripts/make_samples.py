@@ -2,7 +2,8 @@
 """Rebuild the small measured samples shipped in bms_estimator/samples/ from ../shared/data.
 
 Each drive cycle is averaged to 1 s (the estimator's sample period) and saved in the
-same CSV layout; the OCV tables come from the cells' 25 degC C/20 tests.
+same CSV layout; the OCV tables come from the cells' 25 degC C/20 tests (as
+`bms-estimator ocv` builds them: with the test's median cell temperature and C/20 capacity).
 Data: P. Kollmeyer et al. (CC BY 4.0), see bms_estimator/samples/ATTRIBUTION.md.
 """
 
@@ -29,7 +30,8 @@ def main() -> int:
     SAMPLES.mkdir(exist_ok=True)
     for cell, cycles in CYCLES.items():
         c20 = load_recording(data / cell / "25degC" / "c20_ocv.csv.gz", resample_s=None)
-        OcvCurve.from_c20(c20.time_s, c20.current_a, c20.voltage_v).to_csv(SAMPLES / f"{cell}_25degC_ocv.csv")
+        OcvCurve.from_c20(c20.time_s, c20.current_a, c20.voltage_v, temperature_c=c20.temperature_c).to_csv(
+            SAMPLES / f"{cell}_25degC_ocv.csv")
         for cycle in cycles:
             rec = load_recording(data / cell / "25degC" / f"{cycle}.csv.gz", resample_s=1.0)
             out = save_recording(rec, SAMPLES / f"{cell}_25degC_{cycle}_1s.csv.gz")

@@ -16,7 +16,7 @@ from bms_estimator.samples import drive_cycle, ocv_table
 PAN_OCV = str(ocv_table("panasonic-18650pf"))
 
 
-def _c20_file(path, ocv: OcvCurve, q=3.0, hyst=0.02):
+def _c20_file(path, ocv: OcvCurve, q=3.0, hyst=0.02, temperature_c=None):
     """A synthetic C/20 test: discharge from full, 2 h rest, charge back, 60 s logging."""
     i_c20 = q / 20
     n = 20 * 60  # 20 h at 60 s per sample
@@ -24,7 +24,8 @@ def _c20_file(path, ocv: OcvCurve, q=3.0, hyst=0.02):
     soc = np.clip(1.0 + np.concatenate([[0], np.cumsum(current[:-1])]) * 60 / 3600 / q, 0, 1)
     v = ocv.ocv(soc) + 0.03 * current + hyst * np.sign(current)
     t = np.arange(len(current)) * 60.0
-    save_recording(CellRecording(t, current, v, None, "synthetic"), path)
+    temp = None if temperature_c is None else temperature_c + 0.5 * np.sin(t / 3600)
+    save_recording(CellRecording(t, current, v, temp, "synthetic"), path)
 
 
 def test_ocv_command_writes_a_table_the_others_read(tmp_path, nmc_like_ocv, capsys):
@@ -36,6 +37,41 @@ def test_ocv_command_writes_a_table_the_others_read(tmp_path, nmc_like_ocv, caps
     np.testing.assert_allclose(curve.ocv(s), nmc_like_ocv.ocv(s), atol=0.01)
     assert np.all(curve.hysteresis(s) > 0.015)
     assert "C/20 branch capacities" in capsys.readouterr().out
+
+
+def test_ocv_command_writes_the_tests_temperature_or_the_one_given(tmp_path, nmc_like_ocv, capsys):
+    src, out = tmp_path / "c20.csv", tmp_path / "ocv.csv"
+    _c20_file(src, nmc_like_ocv, temperature_c=10.0)
+    assert main(["ocv", str(src), "-o", str(out)]) == 0
+    header = out.read_text().splitlines()[0]
+    assert header == "soc,ocv_v,hysteresis_v,temperature_c,capacity_ah"
+    curve = OcvCurve.from_csv(out)
+    assert curve.temperature_c == pytest.approx(10.0, abs=0.1)  # the median of the logged cell temperature
+    assert curve.capacity_discharge_ah == pytest.approx(3.0, abs=0.01)
+    assert "at 10" in capsys.readouterr().out
+    assert main(["ocv", str(src), "-o", str(out), "--temperature-c", "-20"]) == 0
+    assert OcvCurve.from_csv(out).temperature_c == -20.0
+    bare = tmp_path / "bare.csv"
+    _c20_file(bare, nmc_like_ocv)  # no temperature logged
+    assert main(["ocv", str(bare), "-o", str(tmp_path / "bare_ocv.csv")]) == 0
+    assert "give --temperature-c" in capsys.readouterr().out
+    assert OcvCurve.from_csv(tmp_path / "bare_ocv.csv").temperature_c is None
+
+
+def test_fit_takes_several_ocv_tables(tmp_path, capsys):
+    lg = OcvCurve.from_csv(ocv_table("lg-hg2"))
+    cold = OcvCurve(lg.soc, lg.ocv_v - 0.02 * (1 - lg.soc), lg.hysteresis_v, temperature_c=0.0,
+                    capacity_discharge_ah=2.6).to_csv(tmp_path / "cold.csv")
+    data = str(drive_cycle("lg-hg2", "la92"))
+    out = tmp_path / "fit.json"
+    assert main(["fit", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(cold), "--capacity-ah", "3.0",
+                 "--method", "arx", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["sim_rmse_mv"] > 0
+    no_temperature = OcvCurve(lg.soc, lg.ocv_v).to_csv(tmp_path / "bare.csv")
+    assert main(["fit", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(no_temperature),
+                 "--capacity-ah", "3.0", "--method", "arx"]) != 0
+    err = capsys.readouterr().err
+    assert "bare.csv: has no temperature_c column; give --temperature-c" in err and "Traceback" not in err
 
 
 def test_compare_json_has_the_papers_figures(tmp_path):

@@ -193,6 +193,20 @@ def test_from_c20_recovers_ocv_hysteresis_and_branch_capacities() -> None:
     assert np.all(np.diff(c.ocv_v) > 0)
 
 
+def test_from_c20_and_from_hppc_take_the_tests_median_temperature() -> None:
+    t, i, v = make_c20()
+    temp = np.full(t.size, 24.0)
+    temp[: t.size // 3] = 30.0  # a warm start does not move the median
+    temp[5] = np.nan  # a logging gap is ignored
+    assert OcvCurve.from_c20(t, i, v, temperature_c=temp).temperature_c == pytest.approx(24.0)
+    assert OcvCurve.from_c20(t, i, v, temperature_c=-10).temperature_c == -10.0
+    assert OcvCurve.from_c20(t, i, v).temperature_c is None  # unknown stays unknown
+    h, s, _ = make_hppc()
+    assert OcvCurve.from_hppc(h, s, temperature_c=np.array([0.5, 1.0, 1.5])).temperature_c == 1.0
+    with pytest.raises(ValueError, match="temperature_c must be a finite"):
+        OcvCurve([0, 1], [3, 4], temperature_c=float("inf"))
+
+
 def test_from_c20_with_noise_is_still_monotone() -> None:
     t, i, v = make_c20()
     v = v + np.random.default_rng(3).normal(0, 2e-3, v.size)
@@ -318,6 +332,22 @@ def test_csv_round_trip(tmp_path: Path) -> None:
         assert (back.hysteresis_v is not None) == hyst
 
 
+def test_csv_round_trip_of_temperature_and_capacity(tmp_path: Path) -> None:
+    c = knot_curve(31, hysteresis=True)
+    warm = OcvCurve(c.soc, c.ocv_v, c.hysteresis_v, capacity_discharge_ah=2.778764189, temperature_c=-0.526)
+    path = warm.to_csv(tmp_path / "ocv.csv")
+    lines = path.read_text().splitlines()
+    assert lines[0] == "soc,ocv_v,hysteresis_v,temperature_c,capacity_ah"
+    assert all(ln.endswith(",-0.526,2.778764189") for ln in lines[1:])
+    back = OcvCurve.from_csv(path)
+    assert back.temperature_c == -0.526 and back.capacity_discharge_ah == 2.778764189
+    np.testing.assert_allclose(back.hysteresis_v, c.hysteresis_v, atol=1e-8)
+    only_t = OcvCurve(c.soc, c.ocv_v, temperature_c=10.0).to_csv(tmp_path / "t.csv")
+    assert only_t.read_text().splitlines()[0] == "soc,ocv_v,temperature_c"
+    assert OcvCurve.from_csv(only_t).capacity_discharge_ah is None
+    assert OcvCurve.from_csv(c.to_csv(tmp_path / "old.csv")).temperature_c is None  # old tables still read
+
+
 def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
     p = tmp_path / "x.csv"
     p.write_text("note,soc,ocv_v\na,0,3.0\nb,0.5,3.6\nc,1,4.2\n")
@@ -336,6 +366,9 @@ def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
         ("soc,ocv_v\n0,3\n0.5,3.8\n0.6,3.7\n1,4\n", r"ocv_v decreases by 100.0 mV"),
         ("soc,ocv_v\n0,3\n", r"at least 2 data rows"),
         ("", r"empty file"),
+        ("soc,ocv_v,temperature_c\n0,3,25\n1,4,0\n", r"column 'temperature_c' must hold one value .* line 3 has 0$"),
+        ("soc,ocv_v,capacity_ah\n0,3,0\n1,4,0\n", r"capacity_ah must be positive"),
+        ("soc,ocv_v,temperature_c\n0,3,25\n1,4,\n", r"line 3: non-numeric value '' in column 'temperature_c'"),
     ],
 )
 def test_csv_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: str) -> None:
@@ -370,7 +403,7 @@ def _shared_file(rel: str) -> Path:
 
 def _c20(rel: str) -> OcvCurve:
     rec = load_recording(_shared_file(rel), resample_s=None)
-    return OcvCurve.from_c20(rec.time_s, rec.current_a, rec.voltage_v)
+    return OcvCurve.from_c20(rec.time_s, rec.current_a, rec.voltage_v, temperature_c=rec.temperature_c)
 
 
 @pytest.mark.shared_data
@@ -390,6 +423,8 @@ def test_real_c20_capacities_and_gap(rel: str, cap_d: float, cap_c: float, gap50
     assert np.all(np.diff(c.ocv_v) > 0)
     assert 3.5 < c.ocv(0.5) < 3.85
     assert 4.1 < c.ocv(1.0) < 4.25
+    ambient = float(rel.split("/")[1].replace("degC", "").replace("n", "-"))
+    assert c.temperature_c == pytest.approx(ambient, abs=1.5)  # the cell's median, near the chamber's
 
 
 @pytest.mark.shared_data

@@ -6,12 +6,13 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
 from ..core.identifier import IdentifierConfig
-from ..core.ocv import OcvCurve
+from ..core.ocv import median_temperature_c
+from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
 from ..core.soc import SocConfig
 from ..data import CellRecording, load_recording
 
@@ -35,7 +36,9 @@ def positive_float(text: str) -> float:
 
 
 def add_cell_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--ocv", required=True, type=Path, help="OCV CSV (soc,ocv_v[,hysteresis_v]), e.g. from 'bms-estimator ocv'")
+    p.add_argument("--ocv", required=True, type=Path, action="append",
+                   help="OCV CSV (soc,ocv_v[,hysteresis_v][,temperature_c]), e.g. from 'bms-estimator ocv'; give it "
+                        "once per table (one per test and temperature, each with its temperature_c column)")
     p.add_argument("--capacity-ah", required=True, type=positive_float,
                    help="the capacity you state (nominal); the effective one is estimated from the data and reported")
     p.add_argument("--initial-soc", type=float, default=1.0,
@@ -99,8 +102,16 @@ def load(path: Path, args: argparse.Namespace) -> CellRecording:
     return rec
 
 
-def load_ocv(path: Path) -> OcvCurve:
-    return OcvCurve.from_csv(path)
+def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None) -> OcvSurface:
+    """The ``--ocv`` tables as one :class:`OcvSurface` (one path: that table, at every temperature).
+
+    Calls without a temperature read the tables at the recording's median cell
+    temperature when ``rec`` logs one, else at 25 degC: the commands that
+    identify on a whole file (fit, compare, diagnose) use one OCV per file.
+    """
+    t = median_temperature_c(rec.temperature_c) if rec is not None else None
+    return OcvSurface.from_csvs([paths] if isinstance(paths, (str, Path)) else paths,
+                                default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
 
 
 def to_jsonable(obj: Any) -> Any:

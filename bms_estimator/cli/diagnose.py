@@ -52,8 +52,8 @@ def run(args: argparse.Namespace) -> int:
     bad = [c for c in causes if c not in CAUSES]
     if bad:
         raise ValueError(f"unknown cause(s) {', '.join(bad)}; choose from {', '.join(CAUSES)}")
-    ocv = load_ocv(args.ocv)
     rec = load(args.data, args)
+    ocv = load_ocv(args.ocv, rec)
     data = Series.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
     val = None
     if args.validate is not None:

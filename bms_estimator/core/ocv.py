@@ -35,6 +35,9 @@ positive = charge, charge ``Q`` in Ah (``Q = integral I dt / 3600``).
    strictly positive (an estimator's Jacobian never vanishes).
 5. Hysteresis.  ``hysteresis(soc)`` is half the charge-minus-discharge gap
    (>= 0), PCHIP-interpolated, held constant beyond the knots, 0 if none.
+6. Temperature.  A curve is measured at one temperature, ``temperature_c``
+   (the test's median cell temperature, ``None`` when unknown).  Tables at
+   several temperatures are combined by :class:`~bms_estimator.core.ocv_surface.OcvSurface`.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
-__all__ = ["OcvCurve", "MIN_SLOPE_V"]
+__all__ = ["OcvCurve", "MIN_SLOPE_V", "median_temperature_c"]
 
 #: Floor of ``docv_dsoc`` [V per unit SOC].
 MIN_SLOPE_V = 1e-3
@@ -59,6 +62,8 @@ INVERSE_GRID_POINTS = 8001
 MAX_OCV_DIP_V = 5e-3
 #: Step of the strictly-increasing repair [V].
 _EPS_V = 1e-6
+#: Optional one-value-per-table CSV columns (the test's temperature, its C/20 discharge capacity).
+_CONSTANT_COLUMNS = ("temperature_c", "capacity_ah")
 
 
 def _strictly_increasing(y: np.ndarray, eps: float) -> np.ndarray:
@@ -90,6 +95,8 @@ class OcvCurve:
         capacity_discharge_ah, capacity_charge_ah: branch throughputs measured
             by :meth:`from_c20` (``None`` otherwise; :meth:`from_hppc` sets the
             discharge one to the coulomb-counted capacity it used).
+        temperature_c: the cell temperature the table was measured at [degC]
+            (``None`` when unknown).
 
     Raises:
         ValueError: shapes, NaN, non-monotone knots, negative hysteresis.
@@ -103,6 +110,7 @@ class OcvCurve:
         *,
         capacity_discharge_ah: float | None = None,
         capacity_charge_ah: float | None = None,
+        temperature_c: float | None = None,
     ) -> None:
         s = np.array(soc, dtype=np.float64)
         v = np.array(ocv_v, dtype=np.float64)
@@ -140,6 +148,9 @@ class OcvCurve:
         self.hysteresis_v: np.ndarray | None = h
         self.capacity_discharge_ah = None if capacity_discharge_ah is None else float(capacity_discharge_ah)
         self.capacity_charge_ah = None if capacity_charge_ah is None else float(capacity_charge_ah)
+        if temperature_c is not None and not math.isfinite(float(temperature_c)):
+            raise ValueError(f"temperature_c must be a finite number of degC, got {temperature_c!r}")
+        self.temperature_c = None if temperature_c is None else float(temperature_c)
         self._build()
 
     # ------------------------------------------------------------------ set-up
@@ -245,7 +256,8 @@ class OcvCurve:
         return (
             f"OcvCurve({self.soc.size} points, soc {self.soc[0]:.3f}..{self.soc[-1]:.3f}, "
             f"ocv {self.ocv_v[0]:.4f}..{self.ocv_v[-1]:.4f} V, "
-            f"hysteresis={'yes' if self.has_hysteresis else 'no'})"
+            f"hysteresis={'yes' if self.has_hysteresis else 'no'}"
+            + ("" if self.temperature_c is None else f", {self.temperature_c:g} degC") + ")"
         )
 
     # ------------------------------------------------------------ from C/20
@@ -259,6 +271,7 @@ class OcvCurve:
         capacity_ah: float | None = None,
         n_points: int = 201,
         current_threshold_a: float | None = None,
+        temperature_c: Any = None,
     ) -> "OcvCurve":
         """Pseudo-OCV from a C/20 test: discharge from full, rest, charge to full.
 
@@ -295,6 +308,8 @@ class OcvCurve:
            as the true hysteresis.
         5. Flat spots and noise are removed by the minimal strictly-increasing
            repair ``z_k = max_{j<=k}(y_j - eps j) + eps k`` (``eps`` = 1 uV).
+        6. ``temperature_c``: the test's cell temperature, a number or the logged
+           samples (their median, NaN ignored) becomes :attr:`temperature_c`.
 
         Raises:
             ValueError: no discharge or no charge branch after it, bad arrays.
@@ -348,7 +363,8 @@ class OcvCurve:
         v_c = _branch_on_grid(soc_c, v[c0:c1], grid)
         ocv_v = _strictly_increasing(0.5 * (v_c + v_d), _EPS_V)
         hyst = np.maximum(0.5 * (v_c - v_d), 0.0)
-        return cls(grid, ocv_v, hyst, capacity_discharge_ah=cap_d, capacity_charge_ah=cap_c)
+        return cls(grid, ocv_v, hyst, capacity_discharge_ah=cap_d, capacity_charge_ah=cap_c,
+                   temperature_c=median_temperature_c(temperature_c))
 
     # ------------------------------------------------------------- from HPPC
     @classmethod
@@ -360,6 +376,7 @@ class OcvCurve:
         capacity_ah: float | None = None,
         current_threshold_a: float = 0.01,
         ocv_window_s: float = 10.0,
+        temperature_c: Any = None,
     ) -> "OcvCurve":
         """OCV from the rests of an HPPC test (no hysteresis).
 
@@ -412,6 +429,7 @@ class OcvCurve:
            as ``capacity_discharge_ah``.  Points outside ``[0, 1]`` are dropped.
         6. OCV values are made strictly increasing with the repair of
            :meth:`from_c20`.
+        7. ``temperature_c`` as in :meth:`from_c20` (a number or the logged samples).
 
         Without ``steps`` every ampere-second must be in ``hppc``; a warning is
         given when ``hppc`` has logging gaps longer than 600 s that could hide
@@ -485,23 +503,27 @@ class OcvCurve:
                 "resampling fills the gaps that separate the pulse sets"
             )
         ocv = _strictly_increasing(ocv, _EPS_V)
-        return cls(soc, ocv, None, capacity_discharge_ah=capacity)
+        return cls(soc, ocv, None, capacity_discharge_ah=capacity, temperature_c=median_temperature_c(temperature_c))
 
     # ------------------------------------------------------------------- CSV
     def to_csv(self, path: str | Path) -> Path:
-        """Write ``soc,ocv_v[,hysteresis_v]`` (header row, 8 decimals: round trips to 5e-9).
+        """Write ``soc,ocv_v[,hysteresis_v][,temperature_c][,capacity_ah]`` (header row).
 
-        The capacity attributes are not stored.
+        The curve columns have 8 decimals (round trip to 5e-9).  ``temperature_c``
+        (:attr:`temperature_c`) and ``capacity_ah`` (:attr:`capacity_discharge_ah`,
+        the table's C/20 discharge throughput) are constant columns, written when
+        known (10 significant digits).  The charge-branch capacity is not stored.
         """
         path = Path(path)
-        cols = [self.soc, self.ocv_v]
-        header = "soc,ocv_v"
-        if self.hysteresis_v is not None:
-            cols.append(self.hysteresis_v)
-            header += ",hysteresis_v"
-        lines = [header]
+        header = ["soc", "ocv_v"] + (["hysteresis_v"] if self.hysteresis_v is not None else [])
+        cols = [self.soc, self.ocv_v] + ([self.hysteresis_v] if self.hysteresis_v is not None else [])
+        const = [(name, value) for name, value in (("temperature_c", self.temperature_c),
+                                                   ("capacity_ah", self.capacity_discharge_ah))
+                 if value is not None]
+        tail = "".join(f",{value:.10g}" for _, value in const)
+        lines = [",".join(header + [name for name, _ in const])]
         for row in zip(*cols):
-            lines.append(",".join(f"{x:.8f}" for x in row))
+            lines.append(",".join(f"{x:.8f}" for x in row) + tail)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("\n".join(lines) + "\n", encoding="utf-8")
         return path
@@ -510,7 +532,9 @@ class OcvCurve:
     def from_csv(cls, path: str | Path) -> "OcvCurve":
         """Read a table written by :meth:`to_csv` (extra columns ignored).
 
-        ``soc`` must be a strictly increasing fraction in [0, 1].  An ``ocv_v``
+        The optional constant columns ``temperature_c`` and ``capacity_ah`` set
+        :attr:`temperature_c` and :attr:`capacity_discharge_ah`; each must hold
+        one value on every row.  ``soc`` must be a strictly increasing fraction in [0, 1].  An ``ocv_v``
         column that is flat or dips by at most ``MAX_OCV_DIP_V`` (5 mV) is
         repaired to strictly increasing with a ``UserWarning``; a larger dip is an
         error.
@@ -531,6 +555,8 @@ class OcvCurve:
         if missing:
             raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (header: {hdr.strip()})")
         wanted = ["soc", "ocv_v"] + (["hysteresis_v"] if "hysteresis_v" in names else [])
+        constants = [c for c in _CONSTANT_COLUMNS if c in names]
+        wanted += constants
         idx = [names.index(c) for c in wanted]
         rows = []
         for n, ln in lines[1:]:
@@ -551,6 +577,18 @@ class OcvCurve:
         if len(rows) < 2:
             raise ValueError(f"{path}: needs at least 2 data rows, found {len(rows)}")
         data = np.asarray(rows)
+        const: dict[str, float] = {}
+        for col, name in zip(data.T[len(wanted) - len(constants):], constants):
+            if np.any(col != col[0]):
+                k = int(np.flatnonzero(col != col[0])[0])
+                raise ValueError(
+                    f"{path}: column '{name}' must hold one value (the table's), but line {lines[1][0]} has "
+                    f"{float(col[0]):g} and line {lines[k + 1][0]} has {float(col[k]):g}"
+                )
+            const[name] = float(col[0])
+        if const.get("capacity_ah", 1.0) <= 0:
+            raise ValueError(f"{path}: capacity_ah must be positive, got {const['capacity_ah']:g}")
+        data = data[:, :len(wanted) - len(constants)]
         s, v = data[:, 0], data[:, 1]
         h = data[:, 2] if data.shape[1] > 2 else None
         if s.min() < -1e-9 or s.max() > 1 + 1e-9:
@@ -581,7 +619,8 @@ class OcvCurve:
                 stacklevel=2,
             )
             v = _strictly_increasing(v, _EPS_V)
-        return cls(np.clip(s, 0.0, 1.0), v, h)
+        return cls(np.clip(s, 0.0, 1.0), v, h, capacity_discharge_ah=const.get("capacity_ah"),
+                   temperature_c=const.get("temperature_c"))
 
 
 # ---------------------------------------------------------------------------
@@ -658,6 +697,18 @@ class _UniformTable:
         while k < self.n - 2 and y > tab[k + 1]:
             k += 1
         return float(self.x0 + (k + (y - tab[k]) / self.dy[k]) / self.inv_h)
+
+
+def median_temperature_c(temperature_c: Any) -> float | None:
+    """A test's temperature [degC]: a number as given, or the median of logged samples (NaN ignored).
+
+    ``None`` (or no finite sample) gives ``None``.
+    """
+    if temperature_c is None:
+        return None
+    t = np.asarray(temperature_c, dtype=np.float64).ravel()
+    t = t[np.isfinite(t)]
+    return float(np.median(t)) if t.size else None
 
 
 def _unpack(rec: Any, name: str) -> tuple[Any, Any, Any]:
