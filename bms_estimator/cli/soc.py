@@ -81,7 +81,7 @@ def _reference_table(args: argparse.Namespace, ocv, temp_c: float | None):
 
 def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv)
+    ocv = load_ocv(args.ocv, rec)
     dt = rec.dt_s
     t = rec.time_s - rec.time_s[0]
     k0 = int(np.searchsorted(t, args.start_s - 1e-9))

@@ -64,7 +64,7 @@ class SocConfig:
     identifier: IdentifierConfig = field(default_factory=IdentifierConfig)
     # "c0": the paper's OCV-bias compensation above a threshold; "ekf": an extended Kalman
     # filter on SOC and the RC voltages driven by the identified parameters (core.soc_ekf)
-    soc_method: str = "c0"
+    soc_method: str = "ekf"
     ekf: SocEkfConfig = field(default_factory=SocEkfConfig)
     # Count with the OCV table's own C/20 capacity (the scale SOC is defined on) where the
     # table carries one, interpolated by temperature; else with the stated capacity.
@@ -145,7 +145,9 @@ class SocEstimator:
         self.dt_s = float(dt_s)
         self.config = config
         self._t_aware = hasattr(ocv, "temperatures_c")
-        self.temperature_c = np.full(self.n_cells, float(config.default_temperature_c))
+        # a cell's temperature until one is given: the tables' own default, else the config's
+        self.temperature_c = np.full(self.n_cells, float(getattr(ocv, "default_temperature_c",
+                                                                 config.default_temperature_c)))
         self.capacity_stated_ah = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
         if np.any(~np.isfinite(self.capacity_stated_ah)) or np.any(self.capacity_stated_ah <= 0):
             raise ValueError("capacity_ah must be positive and finite")
@@ -320,6 +322,9 @@ class SocEstimator:
         self.identifier.update(i_use, np.where(use, self.v_o, np.nan), use)
         # 4.-6. the OCV evidence corrects the count
         if self.ekf is not None:
+            # (gating the correction on an identified model, or on rest, was measured worse on the
+            # 25 degC matrix, 40 against 47 of 56 runs within 2 %: the strong early evidence of a
+            # wrong start is read through the prior impedance)
             self._ekf_step(i_prev, i_use, dz, soc_mid, use & have_soc)
         self._compensate(use)
         self.samples += 1
@@ -372,13 +377,11 @@ class SocEstimator:
         c0_avg = self._c0_sum / self._w
         c0_std = np.sqrt(np.maximum(self._c0_sq / self._w - c0_avg * c0_avg, 0.0))
         stable = full & (c0_std < cfg.c0_stable_v) & np.isfinite(c0_avg)
-        if not stable.any():
-            return
+        if not stable.any() or self.ekf is not None:
+            return  # (the EKF corrects the SOC and the capacity every sample; c0 is reported only)
         # SOC whose OCV is c0_avg above the one now: OCV^-1(OCV(soc) + c0_avg).  The hysteresis
         # term h H(soc) is on both sides (read at the SOC now), so the mean curve gives it
         soc_ocv = self._soc_at(self._mean_ocv(self.soc) + c0_avg)
-        if self.ekf is not None:
-            return  # the EKF corrects the SOC and the capacity every sample
         if cfg.estimate_capacity:
             self._capacity_anchor(stable, soc_ocv)
         slope = self._slope(self.soc)

@@ -90,8 +90,8 @@ class SocEkfConfig:
     drift_sigma_per_h: float = 0.003  # SOC random walk the count cannot see, per sqrt(hour)
     current_sigma_c: float = 0.01  # current-sensor noise as a C-rate (0.03 A on a 3 Ah cell)
     rc_sigma_v: float = 0.001  # process noise of each RC voltage per sample
-    voltage_sigma_v: float = 0.010  # model voltage error (OCV table, ...)
-    correlation_s: float = 60.0  # how long that error stays correlated
+    voltage_sigma_v: float = 0.020  # model voltage error (OCV table, slow dynamics, ...)
+    correlation_s: float = 300.0  # how long that error stays correlated
     diffusion_tau_s: float = 1200.0  # time constant of the diffusion branch
     diffusion_r_sigma_ohm_ah: float = 0.05  # prior sigma of its resistance, ohm * Ah (per C-rate)
     diffusion_r_drift_ohm_ah: float = 0.01  # its random walk per sqrt(hour), ohm * Ah

@@ -1,0 +1,245 @@
+"""The SOC matrix: every drive cycle of a cell, four starts, scored against the independent reference.
+
+Starts (the estimator is told the start SOC; the reference is always counted from
+the file's full start, :mod:`bms_estimator.scoring`):
+
+* ``full``      at t = 0 with SOC 1.0 (right)
+* ``full-20``   at t = 0 with SOC 0.8 (20 % low)
+* ``mid+10``    at 25 % of the file with the reference + 10 %
+* ``mid-10``    at 25 % of the file with the reference - 10 %
+
+OCV: every table the cell has (C/20 tests, and HPPC rests where an ambient has no
+C/20 test), interpolated by the cell temperature.  Where the file's own ambient
+has a table, the run is repeated with that table left out (``own table out``), as
+hidden recordings at other ambients will be run.  Beside each run: plain coulomb
+counting with the stated capacity from the same start.
+
+All files x starts of one cell run as the cells of one vectorised estimator
+(shorter files are padded with invalid samples).  ``scripts/soc_matrix.py``
+writes the README table from it; ``tests/core/test_measured_soc.py`` checks it.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .core.ocv import OcvCurve
+from .core.ocv_surface import OcvSurface
+from .core.soc import SocConfig, SocEstimator
+from .data import load_recording
+from .scoring import counted_soc, soc_error_figures, soc_reference
+
+__all__ = ["CELLS", "STARTS", "build_tables", "run_cell", "summary_lines", "markdown"]
+
+CELLS = {"lg-hg2": 3.0, "panasonic-18650pf": 2.9}  # stated (nominal) capacity, Ah
+STARTS = ("full", "full-20", "mid+10", "mid-10")
+DRIVE_SKIP = ("c20_ocv", "hppc", "hppc_steps")
+
+
+def ambient_c(folder: str) -> float:
+    return -float(folder[1:-4]) if folder.startswith("n") else float(folder[:-4])
+
+
+@dataclass
+class Table:
+    ambient: str
+    kind: str  # "c20" or "hppc"
+    curve: OcvCurve
+    temperature_c: float
+
+
+def build_tables(data: Path, cell: str) -> list[Table]:
+    """Every OCV table of a cell: its C/20 tests, and HPPC rests where an ambient has no C/20 test."""
+    out = []
+    for amb_dir in sorted((data / cell).iterdir()):
+        c20, hppc, steps = amb_dir / "c20_ocv.csv.gz", amb_dir / "hppc.csv.gz", amb_dir / "hppc_steps.csv.gz"
+        if c20.exists():
+            r = load_recording(c20, resample_s=None)
+            curve = OcvCurve.from_c20(r.time_s, r.current_a, r.voltage_v)
+            t = float(np.median(r.temperature_c)) if r.temperature_c is not None else ambient_c(amb_dir.name)
+            out.append(Table(amb_dir.name, "c20", curve, t))
+        elif hppc.exists() and steps.exists():
+            r = load_recording(hppc, resample_s=None)
+            s = load_recording(steps, resample_s=None)
+            curve = OcvCurve.from_hppc((r.time_s, r.current_a, r.voltage_v), (s.time_s, s.current_a, s.voltage_v))
+            t = float(np.median(r.temperature_c)) if r.temperature_c is not None else ambient_c(amb_dir.name)
+            out.append(Table(amb_dir.name, "hppc", curve, t))
+    return out
+
+
+def make_ocv(tables: list[Table]) -> OcvSurface:
+    """The estimator's OCV from several tables: OCV(soc, T)."""
+    return OcvSurface([t.curve for t in tables], [t.temperature_c for t in tables])
+
+
+def estimator_config(method: str, overrides: dict | None = None) -> SocConfig:
+    """The default SocConfig with ``soc_method`` and settings to try (``"ekf.voltage_sigma_v": 0.01``)."""
+    cfg = SocConfig(soc_method=method)
+    for key, value in (overrides or {}).items():
+        if "." in key:
+            part, name = key.split(".", 1)
+            cfg = cfg.with_(**{part: replace(getattr(cfg, part), **{name: value})})
+        else:
+            cfg = cfg.with_(**{key: value})
+    return cfg
+
+
+def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
+              temperature: bool = True) -> tuple[np.ndarray, SocEstimator]:
+    """One estimator, one cell per (recording, start); returns SOC (n_max, n_cells), NaN before a start."""
+    n_cells = len(recs)
+    n_max = max(len(r) for r in recs)
+    cur = np.full((n_max, n_cells), np.nan)
+    vol = np.full((n_max, n_cells), np.nan)
+    tmp = np.full((n_max, n_cells), np.nan)
+    for j, r in enumerate(recs):
+        cur[: len(r), j] = r.current_a
+        vol[: len(r), j] = r.voltage_v
+        if r.temperature_c is not None:
+            tmp[: len(r), j] = r.temperature_c
+    k_start = np.array([k for k, _ in starts])
+    soc_start = np.array([s for _, s in starts])
+    est = SocEstimator(n_cells, ocv, stated_ah, 1.0, initial_soc=np.where(k_start == 0, soc_start, np.nan),
+                       config=config)
+    out = np.full((n_max, n_cells), np.nan)
+    for k in range(n_max):
+        before = k < k_start
+        starting = k == k_start
+        if starting.any() and k > 0:
+            est.set_soc(soc_start, starting)
+        i = np.where(before, np.nan, cur[k])
+        v = np.where(before, np.nan, vol[k])
+        est.update(i, v, temperature_c=tmp[k] if temperature else None)
+        out[k] = np.where(before, np.nan, est.soc)
+    return out, est
+
+
+def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,
+             overrides: dict | None = None) -> list[dict]:
+    """Every drive cycle of ``cell`` under ``data`` matching ``pattern`` (cell/ambient/file), four starts
+    each, per SOC method: one row of figures per run."""
+    stated = CELLS[cell]
+    tables = build_tables(data, cell)
+    rows = []
+    files = []
+    for amb_dir in sorted((data / cell).iterdir()):
+        for p in sorted(amb_dir.glob("*.csv.gz")):
+            name = p.name.removesuffix(".csv.gz")
+            if name in DRIVE_SKIP or not fnmatch.fnmatch(f"{cell}/{amb_dir.name}/{name}", pattern):
+                continue
+            files.append((amb_dir.name, name, load_recording(p, resample_s=1.0)))
+    if not files:
+        return rows
+    c20 = {t.ambient: t for t in tables if t.kind == "c20"}
+    refs = []
+    for amb, name, rec in files:
+        table = c20.get(amb)
+        if table is None:  # no C/20 test at this ambient: the reference is not defined
+            refs.append(None)
+            continue
+        refs.append(soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, table.curve))
+    variants = [("all tables", None)]
+    if leave_out:
+        variants.append(("own table out", "own"))
+    for method in methods:
+        for variant, drop in variants:
+            # one estimator per left-out ambient (the tables differ), one for all tables
+            groups: dict[str | None, list[int]] = {}
+            for j, (amb, _, _) in enumerate(files):
+                key = amb if drop == "own" else None
+                if drop == "own" and not any(t.ambient == amb for t in tables):
+                    continue  # nothing to leave out: the 'all tables' run is already this
+                groups.setdefault(key, []).append(j)
+            for key, idx in groups.items():
+                tabs = [t for t in tables if t.ambient != key]
+                ocv = make_ocv(tabs)
+                recs, starts, meta = [], [], []
+                for j in idx:
+                    amb, name, rec = files[j]
+                    ref = refs[j]
+                    ref_soc = ref.soc if ref is not None else None
+                    k_mid = len(rec) // 4
+                    for start in STARTS:
+                        if start == "full":
+                            st = (0, 1.0)
+                        elif start == "full-20":
+                            st = (0, 0.8)
+                        else:
+                            base = ref_soc[k_mid] if ref_soc is not None else None
+                            if base is None:  # no reference: start from the stated-capacity count
+                                base = counted_soc(rec.current_a, rec.dt_s, stated)[k_mid]
+                            st = (k_mid, float(np.clip(base + (0.1 if start == "mid+10" else -0.1), 0, 1)))
+                        recs.append(rec)
+                        starts.append(st)
+                        meta.append((j, start))
+                t0 = time.time()
+                soc, est = run_group(recs, starts, ocv, stated, estimator_config(method, overrides))
+                elapsed = time.time() - t0
+                for c, (j, start) in enumerate(meta):
+                    amb, name, rec = files[j]
+                    ref = refs[j]
+                    k0, s0 = starts[c]
+                    n = len(rec)
+                    row = {
+                        "cell": cell, "ambient": amb, "file": name, "method": method, "ocv": variant,
+                        "start": start, "start_s": float(k0 * rec.dt_s), "start_soc": s0,
+                        "tables": [f"{t.ambient}:{t.kind}" for t in tabs],
+                        "capacity_ah_estimated": float(est.counting_capacity_ah[c]),
+                        "elapsed_s_group": elapsed,
+                    }
+                    if ref is not None:
+                        t = rec.time_s - rec.time_s[0]
+                        figs = soc_error_figures(soc[:n, c], ref.soc, t, k0 * rec.dt_s)
+                        # plain counting with the stated capacity from the same start
+                        cnt = np.full(n, np.nan)
+                        cnt[k0:] = counted_soc(rec.current_a[k0:], rec.dt_s, stated, s0)
+                        base = soc_error_figures(cnt, ref.soc, t, k0 * rec.dt_s)
+                        row.update({k: v for k, v in figs.items()})
+                        row["counting_rmse_30min_pct"] = base["rmse_30min_pct"]
+                        row["counting_rmse_1h_pct"] = base["rmse_1h_pct"]
+                        row.update(capacity_ah_reference=ref.capacity_ah, reference_relaxed=ref.relaxed,
+                                   reference=ref.why)
+                    else:
+                        row.update(reference_relaxed=False, reference="no C/20 test at this ambient: no reference")
+                    rows.append(row)
+    return rows
+
+
+def summary_lines(rows: list[dict]) -> list[str]:
+    lines = []
+    scored = [r for r in rows if r.get("reference_relaxed")]
+    for method in sorted({r["method"] for r in rows}):
+        for variant in ("all tables", "own table out"):
+            sel = [r for r in scored if r["method"] == method and r["ocv"] == variant]
+            if not sel:
+                continue
+            e30 = np.array([r["rmse_30min_pct"] for r in sel])
+            e1h = np.array([r["rmse_1h_pct"] for r in sel])
+            ok = int(np.sum(e30 <= 2.0))
+            lines.append(f"{method}, {variant}: {ok}/{len(sel)} runs within 2 % from 30 min after the start "
+                         f"(median {np.median(e30):.2f} %, worst {np.max(e30):.2f} %); after 1 h median "
+                         f"{np.nanmedian(e1h):.2f} %, worst {np.nanmax(e1h):.2f} %")
+    return lines
+
+
+def markdown(rows: list[dict]) -> str:
+    head = ("| cell | ambient | file | method | OCV | start | RMSE 30 min+ [%] | RMSE 1 h+ [%] | max [%] | "
+            "counting, stated Q, 30 min+ [%] | capacity est. / ref [Ah] |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    out = [head]
+    for r in rows:
+        if "rmse_30min_pct" in r:
+            figs = (f"{r['rmse_30min_pct']:.2f} | {r['rmse_1h_pct']:.2f} | {r['max_abs_pct']:.2f} | "
+                    f"{r['counting_rmse_30min_pct']:.2f} | {r['capacity_ah_estimated']:.3f} / {r['capacity_ah_reference']:.3f}")
+            if not r["reference_relaxed"]:
+                figs += " (not scored)"
+        else:
+            figs = f"- | - | - | - | {r['capacity_ah_estimated']:.3f} / -"
+        out.append(f"| {r['cell']} | {r['ambient']} | {r['file']} | {r['method']} | {r['ocv']} | {r['start']} | {figs} |")
+    return "\n".join(out)
+
+
