@@ -166,13 +166,17 @@ class SocEkf:
         x = self.x.copy()
         x[:, 1:3] = a * self.x[:, 1:3] + r_ohm * (1.0 - a) * current_a[:, None]
         x[:, 3] = a_d * self.x[:, 3] + self.x[:, 4] * (1.0 - a_d) * current_a
-        f = np.broadcast_to(self._eye, (self.n_cells, _N, _N)).copy()
-        f[:, 1, 1] = a[:, 0]
-        f[:, 2, 2] = a[:, 1]
-        f[:, 3, 3] = a_d
-        f[:, 3, 4] = (1.0 - a_d) * current_a
-        f[:, 0, 5] = -dz
-        p = f @ self.p @ np.swapaxes(f, 1, 2)
+        # P- = F P F' with F the identity but for a1, a2, ad on the diagonal, F[3,4] and F[0,5]:
+        # rows, then columns, in place of two dense (N, 6, 6) products
+        f34 = ((1.0 - a_d) * current_a)[:, None]
+        f05 = (-dz)[:, None]
+        p = self.p.copy()
+        for rows in (True, False):
+            q = p if rows else np.swapaxes(p, 1, 2)
+            q[:, 0, :] += f05 * q[:, 5, :]
+            q[:, 3, :] = a_d * q[:, 3, :] + f34 * q[:, 4, :]
+            q[:, 1, :] *= a[:, 0, None]
+            q[:, 2, :] *= a[:, 1, None]
         h_frac = self.dt_s / 3600.0
         p[:, 0, 0] += (cfg.current_sigma_c * h_frac) ** 2 + cfg.drift_sigma_per_h**2 * h_frac
         p[:, 1, 1] += cfg.rc_sigma_v**2
@@ -202,10 +206,10 @@ class SocEkf:
         e = np.where(use, innovation_v, 0.0)
         dx = k * e[:, None]
         dz = np.clip(dx[:, 0], -cfg.max_soc_step, cfg.max_soc_step)
-        # Joseph form: (I - K C) P (I - K C)' + K R K'
-        i_kc = self._eye[None] - k[:, :, None] * c[:, None, :]
-        p_new = i_kc @ self.p @ np.swapaxes(i_kc, 1, 2) + (r_v * k.T).T[:, :, None] * k[:, None, :]
-        p_new = 0.5 * (p_new + np.swapaxes(p_new, 1, 2))
+        # Joseph form, (I - K C) P (I - K C)' + K R K', expanded with pc = P C' and s0 = C P C':
+        # P - K pc' - pc K' + (s0 + R) K K'  (right for any K, the zeroed capacity row included)
+        kp = k[:, :, None] * pc[:, None, :]
+        p_new = self.p - kp - np.swapaxes(kp, 1, 2) + s[:, None, None] * (k[:, :, None] * k[:, None, :])
         self.p = np.where(use[:, None, None], p_new, self.p)
         x = self.x + dx
         x[:, 4] = np.maximum(x[:, 4], 0.0)  # a resistance is never negative

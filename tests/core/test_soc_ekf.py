@@ -159,3 +159,46 @@ def test_a_temperature_that_moves_20_k_during_a_drive_is_followed_by_the_ocv_tab
         errs[name] = float(np.sqrt(np.mean((100 * (out[3600:] - soc[3600:])) ** 2)))
     assert errs["tables"] < 1.5, errs
     assert errs["tables"] < 0.5 * errs["25 degC only"], errs
+
+
+def test_the_filter_equals_the_dense_textbook_ekf():
+    """The sparse covariance steps equal F P F' + Q and the Joseph form written out with dense matrices."""
+    from bms_estimator.core.soc_ekf import SocEkf
+
+    rng = np.random.default_rng(3)
+    n = 5
+    cfg = SocEkfConfig(capacity_learn_max_soc_sigma=1.0)  # the capacity row learns: the textbook gain
+    ekf = SocEkf(n, 1.0, np.full(n, 3.0), cfg)
+    a = rng.standard_normal((n, 6, 6))
+    ekf.p = 1e-4 * (a @ np.swapaxes(a, 1, 2) + np.eye(6))
+    ekf.x = 1e-3 * rng.standard_normal((n, 6))
+    p0, x0 = ekf.p.copy(), ekf.x.copy()
+    i = rng.normal(0, 3, n)
+    dz = i / (3600 * 3.0)
+    r = np.abs(rng.normal(0.01, 0.002, (n, 2)))
+    tau = np.array([[10.0, 200.0]] * n)
+    ekf.predict(i, dz, np.full(n, 3.0), r, tau, np.ones(n, bool))
+    a12 = np.exp(-1.0 / tau)
+    ad = np.exp(-1.0 / cfg.diffusion_tau_s)
+    for j in range(n):
+        f = np.eye(6)
+        f[1, 1], f[2, 2], f[3, 3], f[3, 4], f[0, 5] = a12[j, 0], a12[j, 1], ad, (1 - ad) * i[j], -dz[j]
+        p_ref = f @ p0[j] @ f.T
+        np.testing.assert_allclose(np.diag(ekf.p[j] - p_ref)[1:3], cfg.rc_sigma_v**2, rtol=1e-9)
+        off = ~np.eye(6, dtype=bool)
+        np.testing.assert_allclose((ekf.p[j] - p_ref)[off], 0.0, atol=1e-15)
+        assert ekf.x[j, 3] == pytest.approx(ad * x0[j, 3] + x0[j, 4] * (1 - ad) * i[j])
+    p1 = ekf.p.copy()
+    e = rng.normal(0, 0.01, n)
+    slope = rng.uniform(0.3, 2.0, n)
+    unsure = np.full(n, 0.005)
+    d_soc, d_q = ekf.correct(e, slope, unsure, np.ones(n, bool))
+    r_v = cfg.voltage_sigma_v**2 * cfg.correlation_s + unsure**2
+    for j in range(n):
+        c = np.array([slope[j], 1, 1, 1, 0, 0])
+        k = p1[j] @ c / (c @ p1[j] @ c + r_v[j])
+        ikc = np.eye(6) - np.outer(k, c)
+        p_ref = ikc @ p1[j] @ ikc.T + r_v[j] * np.outer(k, k)
+        np.testing.assert_allclose(ekf.p[j], p_ref, rtol=1e-9, atol=1e-18)
+        assert d_soc[j] == pytest.approx(k[0] * e[j])
+        assert d_q[j] == pytest.approx(np.clip(x0[j, 5] + k[5] * e[j], -0.01, 0.01))
