@@ -24,6 +24,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from statistics import median
 
+import numpy as np
+
 from bms_estimator.analysis import DEFAULT_METHODS, rmse_mv, train_methods, validate_methods
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import load_recording, shared_data_dir
@@ -80,6 +82,12 @@ def one(job, methods=DEFAULT_METHODS) -> list[dict]:
     tr = load_recording(data / cell / amb / f"{train}.csv.gz")
     training = train_methods((tr.current_a, tr.voltage_v), ocv, STATED_AH[cell], dt_s=tr.dt_s, methods=methods,
                              name=train)
+    mid = (training.result.soc >= 0.2) & (training.result.soc <= 0.9)
+    r_total = {}
+    for m, run in training.runs.items():
+        sel = mid & run.identified
+        r = run.params["r0_ohm"] + run.params["r1_ohm"] + run.params["r2_ohm"]
+        r_total[m] = float(1e3 * np.median(r[sel])) if sel.any() else float("nan")
     rows = []
     for val in vals:
         va = load_recording(data / cell / amb / f"{val}.csv.gz")
@@ -89,6 +97,12 @@ def one(job, methods=DEFAULT_METHODS) -> list[dict]:
             "cell": cell, "ambient": amb, "train": train, "validate": val, "ocv": ocv_source,
             "capacity_ah": training.capacity_ah,
             "val_mv": {m: rmse_mv(res.simulated_v[m], res.voltage_v, inside) for m in methods},
+            # what explains a pair: the validation error's mean, the training model's R0+R1+R2 (20-90 %
+            # SOC median), the RMS currents of both files
+            "val_bias_mv": {m: float(1e3 * np.nanmean((res.simulated_v[m] - res.voltage_v)[inside]))
+                            for m in methods},
+            "train_r_total_mohm": r_total,
+            "rms_current_a": [float(np.sqrt(np.mean(tr.current_a**2))), float(np.sqrt(np.mean(va.current_a**2)))],
         })
     return rows
 

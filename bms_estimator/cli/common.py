@@ -46,9 +46,9 @@ METHOD_HELP = ("identification method: lif = continuous time, LIF + RLS (the pap
                "recursive instrumental variables; arx = the discrete-time baseline")
 
 
-def add_method_option(p: argparse.ArgumentParser, what: str = "") -> None:
-    p.add_argument("--method", choices=METHODS, default=_ID.method,
-                   help=f"{METHOD_HELP}{' ' + what if what else ''} (default {_ID.method})")
+def add_method_option(p: argparse.ArgumentParser, default: str, what: str = "") -> None:
+    p.add_argument("--method", choices=METHODS, default=default,
+                   help=f"{METHOD_HELP}{' ' + what if what else ''} (default {default})")
 
 
 def non_negative_float(text: str) -> float:

@@ -16,7 +16,7 @@ from .common import add_cell_options, add_method_option, load, load_ocv, positiv
 
 
 def add_parser(sub) -> None:
-    from ..diagnose import CAUSES
+    from ..diagnose import CAUSES, DiagnoseConfig
 
     p = sub.add_parser(
         "diagnose", help="name what the 2-RC model gets wrong on a recording (hysteresis, temperature, ...)",
@@ -35,7 +35,7 @@ def add_parser(sub) -> None:
                    help="comma-separated candidate causes (default: all)")
     p.add_argument("--no-lif", action="store_true",
                    help="skip the online LIF run that warm-starts the baseline (faster; a grid start is always tried)")
-    add_method_option(p, "of the online run that warm-starts the baseline")
+    add_method_option(p, DiagnoseConfig.method, "of the online run that warm-starts the baseline")
     p.add_argument("--no-pairs", action="store_true", help="skip the pair stage (two effects at once)")
     p.add_argument("--soc-min", type=float, default=None,
                    help="fit and score only where the counted SOC is at least this (e.g. 0.1 leaves out the "

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis import (
-    PARAM_KEYS, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
+    IDENTIFICATION_METHOD, PARAM_KEYS, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
     simulate_with_params, soc_lookup_table,
 )
 from .common import (
@@ -24,7 +24,7 @@ def add_parser(sub) -> None:
                                    "simulates the file with the identified parameter trajectory.")
     p.add_argument("data", type=Path)
     add_cell_options(p)
-    add_method_option(p)
+    add_method_option(p, IDENTIFICATION_METHOD)
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--plot", type=Path, default=None, help="PNG of the parameter trajectories and the errors")
     add_c0_prior_option(p)

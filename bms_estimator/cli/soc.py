@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..analysis import measured_capacity, reference_soc, run_soc, soc_errors
+from ..core.identifier import IdentifierConfig
 from .common import add_cell_options, add_method_option, add_tuning_options, load, load_ocv, soc_config, write_json
 
 
@@ -22,7 +23,7 @@ def add_parser(sub) -> None:
     p.add_argument("--initial-soc-error", type=float, default=0.2,
                    help="estimator starts at reference start - this (default 0.2 = 20 %% low)")
     p.add_argument("--reference-capacity-ah", type=float, default=None, help="capacity of the reference SOC")
-    add_method_option(p)
+    add_method_option(p, IdentifierConfig().method, "(the SOC estimator's identification)")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here ('-' = stdout)")
     p.add_argument("--plot", type=Path, default=None, help="write the SOC figure (PNG) here")
     add_tuning_options(p)
