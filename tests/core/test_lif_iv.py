@@ -125,3 +125,14 @@ def test_no_nan_and_no_inadmissible_parameters_leave_it(seed, amp, noise_v, nois
         assert np.all(np.abs(p.c0_v) <= cfg.c0_max_v)
         assert np.all(np.isfinite(est.theta_good)) and np.all(np.isfinite(est.rls.theta))
         assert np.all(np.isfinite(est.rls.P))
+
+
+def test_the_service_config_takes_lif_iv_and_names_a_bad_method():
+    from bms_estimator.service.daemon import ConfigError, soc_config_from_core
+
+    cfg = soc_config_from_core({"method": "lif-iv", "identifier": {"iv_model_every": 5}})
+    assert cfg.identifier.method == "lif-iv" and cfg.identifier.iv_model_every == 5
+    for core, field in (({"method": "riv"}, "method"), ({"identifier": {"iv_model_every": 0}}, "iv_model_every")):
+        with pytest.raises(ConfigError) as exc:
+            soc_config_from_core(core)
+        assert [p.split(":")[0].rsplit(".", 1)[-1] for p in exc.value.problems] == [field], exc.value.problems
