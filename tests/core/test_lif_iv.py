@@ -72,18 +72,12 @@ def test_the_instrument_is_the_auxiliary_models_output():
     np.testing.assert_allclose(est._zeta[0], phi[-1], rtol=1e-9, atol=1e-12)
 
 
-def test_state_round_trip_and_bias_shift():
+def test_bias_shift_moves_c0_and_the_auxiliary_model_with_v_o():
+    """(State round trip: tests/core/test_identifier.py.)"""
     i, v = synthetic_overpotential(1800, seed=7, noise_v=5e-4)
     a = LifIvEstimator(2, 1.0, 3.0)
-    for k in range(900):
+    for k in range(1200):
         a.update(np.full(2, i[k]), np.full(2, v[k]))
-    b = LifIvEstimator(2, 1.0, 3.0)
-    b.load_state_dict(a.state_dict())
-    for k in range(900, 1200):
-        a.update(np.full(2, i[k]), np.full(2, v[k]))
-        b.update(np.full(2, i[k]), np.full(2, v[k]))
-    np.testing.assert_array_equal(a.params.r0_ohm, b.params.r0_ohm)
-    np.testing.assert_array_equal(a.rls.P, b.rls.P)
     c0 = a.params.c0_v.copy()
     a.shift_bias(np.array([0.004, 0.0]))
     np.testing.assert_allclose(a.params.c0_v, c0 - [0.004, 0.0], atol=1e-9)
