@@ -26,7 +26,7 @@ from statistics import median
 
 import numpy as np
 
-from bms_estimator.analysis import DEFAULT_METHODS, rmse_mv, train_methods, validate_methods
+from bms_estimator.analysis import DEFAULT_METHODS, IDENTIFICATION_METHOD, rmse_mv, train_methods, validate_methods
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import load_recording, shared_data_dir
 
@@ -113,8 +113,8 @@ def table(rows: list[dict], default_ct: str) -> str:
     head = " | ".join(f"{LABEL[m]} [mV]" for m in methods)
     lines = [
         "| cell | ambient | OCV | pairs | " + " | ".join(f"{LABEL[m]} median / worst [mV]" for m in methods)
-        + " | " + " | ".join(f"{LABEL[m]} < DT" for m in cts) + " |",
-        "|---|---|---|---|" + "---|" * (len(methods) + len(cts)),
+        + " | " + " | ".join(f"{LABEL[m]} < DT" for m in cts) + f" | {LABEL[default_ct]} <= 15 mV |",
+        "|---|---|---|---|" + "---|" * (len(methods) + len(cts) + 1),
     ]
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
@@ -124,20 +124,23 @@ def table(rows: list[dict], default_ct: str) -> str:
         wins = {m: sum(r["val_mv"][m] < r["val_mv"]["arx"] for r in rs) for m in cts}
         lines.append(f"| {cell} | {amb} | {rs[0]['ocv']} | {len(rs)} | "
                      + " | ".join(f"{median(figs[m]):.1f} / {max(figs[m]):.1f}" for m in methods) + " | "
-                     + " | ".join(f"{wins[m]} of {len(rs)}" for m in cts) + " |")
+                     + " | ".join(f"{wins[m]} of {len(rs)}" for m in cts)
+                     + f" | {sum(f <= 15.0 for f in figs[default_ct])} of {len(rs)} |")
     total = {m: sum(r["val_mv"][m] < r["val_mv"]["arx"] for r in rows) for m in cts}
     lines.append("")
     lines.append("All pairs: " + ", ".join(f"{LABEL[m]} below DT on {total[m]} of {len(rows)}" for m in cts)
                  + f"; default CT method: {LABEL[default_ct]}.")
     lines += ["", "<details><summary>Every pair (validation simulation RMSE, 20-90 % SOC)</summary>", "",
-              f"| cell | ambient | train -> validate | capacity [Ah] | {head} | best |",
-              "|---|---|---|---|" + "---|" * len(methods) + "---|"]
+              f"| cell | ambient | train -> validate | capacity [Ah] | {head} | best | RMS current train -> "
+              f"val [A] | mean error {LABEL[default_ct]} / DT [mV] |",
+              "|---|---|---|---|" + "---|" * len(methods) + "---|---|---|"]
     for r in rows:
         v = r["val_mv"]
         best = min(methods, key=lambda m: v[m])
         lines.append(f"| {r['cell']} | {r['ambient']} | {r['train']} -> {r['validate']} | {r['capacity_ah']:.3f} | "
                      + " | ".join(f"**{v[m]:.1f}**" if m == default_ct else f"{v[m]:.1f}" for m in methods)
-                     + f" | {LABEL[best]} |")
+                     + f" | {LABEL[best]} | {r['rms_current_a'][0]:.2f} -> {r['rms_current_a'][1]:.2f} | "
+                     f"{r['val_bias_mv'][default_ct]:+.1f} / {r['val_bias_mv']['arx']:+.1f} |")
     lines += ["", "</details>"]
     return "\n".join(lines)
 
@@ -160,9 +163,7 @@ def main() -> int:
             rows = [r for rs in pool.map(one, jobs(data)) for r in rs]
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")
-    from bms_estimator.core.identifier import IdentifierConfig
-
-    text = table(rows, IdentifierConfig().method)
+    text = table(rows, IDENTIFICATION_METHOD)
     print(text)
     if args.readme:
         readme = ROOT / "README.md"
