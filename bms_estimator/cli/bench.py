@@ -4,6 +4,7 @@ Figures (one core, this machine, one run):
 
 * ``cell_updates_per_s``: full SOC estimator updates (LIF identification, c0
   compensation, capacity estimation) of a 2000-cell pack, cells x samples / s.
+* ``cell_updates_per_s_lif_iv``: the same with the recursive-IV LIF identifier (``lif-iv``).
 * ``tick_ms_200_cells``: median wall time of one 1 s update of a 200-cell pack.
 * ``frames_per_s``: CAN decode + sample assembly, 200 cells.
 * ``publish_latency_ms_p99``: from the CAN frame that closes a 1 s sample to the MQTT
@@ -22,8 +23,9 @@ import time
 
 import numpy as np
 
+from ..core.identifier import IdentifierConfig
 from ..core.ocv import OcvCurve
-from ..core.soc import SocEstimator
+from ..core.soc import SocConfig, SocEstimator
 
 
 def add_parser(sub) -> None:
@@ -32,7 +34,7 @@ def add_parser(sub) -> None:
     p.add_argument("--seconds", type=float, default=3.0, help="time budget of the estimator figure (default 3 s)")
     p.add_argument("--figures", default=None,
                    help="comma-separated subset (default all: " + ", ".join(
-                       ["cell_updates_per_s", "tick_ms_200_cells", "frames_per_s", "publish_latency_ms_p99",
+                       ["cell_updates_per_s", "cell_updates_per_s_lif_iv", "tick_ms_200_cells", "frames_per_s", "publish_latency_ms_p99",
                         "replay_speedup", "diagnose_4h_s"]) + "); replay_speedup takes a few minutes")
     p.set_defaults(func=run)
 
@@ -58,8 +60,9 @@ def _warm_up(est: SocEstimator) -> int:
     return max(cfg.init_samples, cfg.init_max_samples) + 2 * cfg.window + 100
 
 
-def bench_cell_updates(n_cells: int = 2000, seconds: float = 3.0) -> float:
-    est = SocEstimator(n_cells, _synthetic_curve(), 3.0, 1.0, initial_soc=0.8)
+def bench_cell_updates(n_cells: int = 2000, seconds: float = 3.0, method: str = "lif") -> float:
+    cfg = SocConfig(identifier=IdentifierConfig(method=method))
+    est = SocEstimator(n_cells, _synthetic_curve(), 3.0, 1.0, initial_soc=0.8, config=cfg)
     warm = _warm_up(est)
     current, volts = _pack_inputs(n_cells, warm + 4000)
     for k in range(warm):
@@ -112,6 +115,7 @@ def _diagnose_s() -> float | None:
 #: figure name -> how to measure it (each prints on its own; slow ones can be left out)
 FIGURES = {
     "cell_updates_per_s": lambda args: bench_cell_updates(2000, args.seconds),
+    "cell_updates_per_s_lif_iv": lambda args: bench_cell_updates(2000, args.seconds, "lif-iv"),
     "tick_ms_200_cells": lambda args: bench_tick_ms(200),
     "frames_per_s": lambda args: _frames_per_s(),
     "publish_latency_ms_p99": lambda args: _publish_latency(),

@@ -10,7 +10,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..core.identifier import IdentifierConfig
+from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
 from ..core.soc import SocConfig
@@ -43,6 +43,15 @@ def add_cell_options(p: argparse.ArgumentParser) -> None:
                    help="the capacity you state (nominal); the effective one is estimated from the data and reported")
     p.add_argument("--initial-soc", type=float, default=1.0,
                    help="SOC at the file's start (default 1.0: the drive cycles of ../shared/data start full)")
+
+
+METHOD_HELP = ("identification method: lif = continuous time, LIF + RLS (the paper's); lif-iv = LIF + "
+               "recursive instrumental variables; arx = the discrete-time baseline")
+
+
+def add_method_option(p: argparse.ArgumentParser, default: str, what: str = "") -> None:
+    p.add_argument("--method", choices=METHODS, default=default,
+                   help=f"{METHOD_HELP}{' ' + what if what else ''} (default {default})")
 
 
 def non_negative_float(text: str) -> float:
@@ -78,7 +87,7 @@ def add_tuning_options(p: argparse.ArgumentParser) -> None:
 
 def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig:
     ident = IdentifierConfig(
-        method=method or getattr(args, "method", "lif"),
+        method=method or getattr(args, "method", None) or _ID.method,
         window=args.window,
         forgetting=args.forgetting,
         error_on_v=args.error_on_mv / 1e3,

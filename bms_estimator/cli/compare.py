@@ -1,12 +1,15 @@
-"""``bms-estimator compare``: CT (LIF) against DT (ARX) on a training and a validation file (paper IV-A)."""
+"""``bms-estimator compare``: CT (LIF, LS and IV) against DT (ARX) on a training and a validation file (paper IV-A)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from ..analysis import compare_methods
-from .common import add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
+from ..analysis import DEFAULT_METHODS, compare_methods
+from ..core.identifier import METHODS
+from .common import (
+    METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json,
+)
 
 
 def add_parser(sub) -> None:
@@ -22,6 +25,9 @@ def add_parser(sub) -> None:
     p.add_argument("--soc-min", type=float, default=0.2, help="lower end of the scored SOC window (default 0.2)")
     p.add_argument("--soc-max", type=float, default=0.9, help="upper end of the scored SOC window (default 0.9)")
     p.add_argument("--full-range", action="store_true", help="score the whole file (both are reported anyway)")
+    p.add_argument("--method", dest="methods", action="append", choices=METHODS, default=None,
+                   help=f"{METHOD_HELP}; repeat to compare several, the first one's model sets the effective "
+                        f"capacity (default: {' '.join(DEFAULT_METHODS)})")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--plots", type=Path, default=None, help="folder for the figures (paper Figs 5-9)")
     add_c0_prior_option(p)
@@ -41,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
         (tr.current_a, tr.voltage_v), (va.current_a, va.voltage_v), ocv, args.capacity_ah,
         dt_s=tr.dt_s, initial_soc=args.initial_soc, soc_window=window, config=soc_config(args),
         names=(args.train.name, args.validate.name), c0_prior_weight=args.c0_prior,
+        methods=tuple(dict.fromkeys(args.methods or DEFAULT_METHODS)),
     )
     m = res.metrics
     m["files"] = {"train": str(args.train), "validate": str(args.validate)}
@@ -54,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
               f"RMSE in SOC {window[0]:.0%}-{window[1]:.0%}, simulation / one-step-ahead [mV]:")
         for part in ("train", "validate"):
             row = "  ".join(f"{meth.upper()} {m[part][meth]['sim_rmse_mv']:6.1f} / {m[part][meth]['osa_rmse_mv']:5.1f}"
-                            for meth in ("lif", "arx"))
+                            for meth in m[part])
             print(f"  {part:9s} {row}")
     return 0
 

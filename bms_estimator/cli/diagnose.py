@@ -12,11 +12,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import add_cell_options, load, load_ocv, positive_float, write_json
+from .common import add_cell_options, add_method_option, load, load_ocv, positive_float, write_json
 
 
 def add_parser(sub) -> None:
-    from ..diagnose import CAUSES
+    from ..diagnose import CAUSES, DiagnoseConfig
 
     p = sub.add_parser(
         "diagnose", help="name what the 2-RC model gets wrong on a recording (hysteresis, temperature, ...)",
@@ -35,6 +35,7 @@ def add_parser(sub) -> None:
                    help="comma-separated candidate causes (default: all)")
     p.add_argument("--no-lif", action="store_true",
                    help="skip the online LIF run that warm-starts the baseline (faster; a grid start is always tried)")
+    add_method_option(p, DiagnoseConfig.method, "of the online run that warm-starts the baseline")
     p.add_argument("--no-pairs", action="store_true", help="skip the pair stage (two effects at once)")
     p.add_argument("--soc-min", type=float, default=None,
                    help="fit and score only where the counted SOC is at least this (e.g. 0.1 leaves out the "
@@ -60,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         rv = load(args.validate, args)
         val = Series.from_recording(rv, ocv, args.capacity_ah, args.initial_soc)
     window = (-1.0 if args.soc_min is None else args.soc_min, 2.0 if args.soc_max is None else args.soc_max)
-    cfg = DiagnoseConfig(candidates=causes, lif=not args.no_lif, pairs=not args.no_pairs, soc_window=window)
+    cfg = DiagnoseConfig(candidates=causes, lif=not args.no_lif, method=args.method, pairs=not args.no_pairs,
+                         soc_window=window)
     d = diagnose(data, validate=val, config=cfg)
     out = d.to_json()
     out["data"] = str(args.data)

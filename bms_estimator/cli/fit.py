@@ -8,10 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis import (
-    PARAM_KEYS, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
+    IDENTIFICATION_METHOD, PARAM_KEYS, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
     simulate_with_params, soc_lookup_table,
 )
-from .common import add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
+from .common import (
+    add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv, soc_config, write_json,
+)
 
 
 def add_parser(sub) -> None:
@@ -22,7 +24,7 @@ def add_parser(sub) -> None:
                                    "simulates the file with the identified parameter trajectory.")
     p.add_argument("data", type=Path)
     add_cell_options(p)
-    p.add_argument("--method", choices=("lif", "arx"), default="lif")
+    add_method_option(p, IDENTIFICATION_METHOD)
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--plot", type=Path, default=None, help="PNG of the parameter trajectories and the errors")
     add_c0_prior_option(p)

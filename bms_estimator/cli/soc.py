@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis import run_soc
+from ..core.identifier import IdentifierConfig
 from ..core.soc import SOC_METHODS, SocConfig
 from ..scoring import counted_soc, soc_error_figures, soc_reference
-from .common import add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json
+from .common import add_cell_options, add_method_option, add_tuning_options, load, load_ocv, soc_config, write_json
 
 #: A C/20 table within this of the recording's median temperature is "the same ambient".
 SAME_AMBIENT_K = 5.0
@@ -52,7 +53,7 @@ def add_parser(sub) -> None:
                    help="the same cell's C/20 OCV table at the recording's ambient, for the reference")
     p.add_argument("--reference-capacity-ah", type=float, default=None,
                    help="count the reference with this capacity instead (e.g. a recording without a final rest)")
-    p.add_argument("--method", choices=("lif", "arx"), default="lif", help="identification method")
+    add_method_option(p, IdentifierConfig().method, "(the SOC estimator's identification)")
     p.add_argument("--trace", type=Path, default=None,
                    help="write time_s,soc,soc_sigma,soc_reference,soc_counted,capacity_ah,temperature_c (CSV) here")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here ('-' = stdout)")

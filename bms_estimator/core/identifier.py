@@ -37,7 +37,10 @@ from .params import (
 )
 from .rls import RlsConfig, WeightedRls
 
-__all__ = ["IdentifierConfig", "Identifier", "LifEstimator", "ArxEstimator", "make_identifier"]
+#: identification methods: continuous time with RLS (the paper's), with recursive IV, discrete-time ARX
+METHODS = ("lif", "lif-iv", "arx")
+
+__all__ = ["METHODS", "IdentifierConfig", "Identifier", "LifEstimator", "ArxEstimator", "make_identifier"]
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,7 @@ class IdentifierConfig:
     C-rate, so that they fit any cell size.
     """
 
-    method: str = "lif"  # "lif" (continuous time) or "arx" (discrete-time baseline)
+    method: str = "lif"  # "lif" (continuous time, RLS), "lif-iv" (continuous time, recursive IV) or "arx" (DT baseline)
     window: int = 20  # LIF window L in samples
     forgetting: float = 0.9995  # RLS forgetting factor per sample (memory ~ 1/(1-lambda) samples)
     error_on_v: float = 0.0  # turn adaptation on above this windowed RMS error (0 = always on)
@@ -72,6 +75,9 @@ class IdentifierConfig:
     # the SOC error the compensation needs.
     c0_prior_weight: float = 0.0
     c0_max_v: float = 0.5  # admissible |c0|: an OCV bias beyond this is not an SOC error but a broken fit
+    # lif-iv: the auxiliary model that makes the instruments takes the last admissible
+    # parameters every this many samples
+    iv_model_every: int = 10
     prior_r0_ohm_ah: float = 0.06
     prior_r1_ohm_ah: float = 0.03
     prior_tau1_s: float = 10.0
@@ -81,6 +87,10 @@ class IdentifierConfig:
     def __post_init__(self) -> None:
         if self.restart_after_rejections < 0:
             raise ValueError(f"restart_after_rejections must be >= 0, got {self.restart_after_rejections}")
+        if self.method not in METHODS:
+            raise ValueError(f"unknown identification method {self.method!r}: use {', '.join(map(repr, METHODS))}")
+        if self.iv_model_every < 1:
+            raise ValueError(f"iv_model_every must be >= 1, got {self.iv_model_every}")
         if not (np.isfinite(self.c0_prior_weight) and self.c0_prior_weight >= 0):
             raise ValueError(f"c0_prior_weight must be a finite number >= 0, got {self.c0_prior_weight}")
 
@@ -105,6 +115,7 @@ class Identifier:
     """Common part of the CT and DT identifiers (N cells, one sample per call)."""
 
     n_params = 6
+    rls_class: type[WeightedRls] = WeightedRls  # the recursive estimator of theta
 
     def __init__(self, n_cells: int, dt_s: float, capacity_ah: float | np.ndarray, config: IdentifierConfig):
         if n_cells < 1:
@@ -117,7 +128,7 @@ class Identifier:
         self.i_ref_a = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
         if np.any(self.i_ref_a <= 0):
             raise ValueError("capacity_ah must be positive")
-        self.rls = WeightedRls(self.n_cells, self.n_params, config.rls())
+        self.rls = self.rls_class(self.n_cells, self.n_params, config.rls())
         self._init_scales()
         q = self.i_ref_a
         # the prior must itself pass the guard, whatever bounds the user set
@@ -181,7 +192,7 @@ class Identifier:
         y, phi, ready = self._regress(i, v, ok)
         learn = ready & np.isfinite(y) & np.all(np.isfinite(phi), axis=1)
         was_init = self.rls.initialised.copy()
-        self.error = self.rls.update(phi, np.where(learn, y, 0.0), learn)
+        self.error = self._learn(phi, np.where(learn, y, 0.0), learn)
         if self.config.c0_prior_weight > 0:
             self._c0_prior(learn & was_init)
         theta = self.rls.theta
@@ -217,6 +228,10 @@ class Identifier:
         self.identified |= good
         self.params = params.select(good, self.params) if good.any() else self.params
         self.updates += 1
+
+    def _learn(self, phi: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
+        """One step of the recursive estimator; returns its a-priori error."""
+        return self.rls.update(phi, y, learn)
 
     def _c0_gain(self, theta_s: np.ndarray) -> np.ndarray:
         """g with c0 = theta_s[:, 5] / g (per cell); g > 0 where c0 is defined."""
@@ -315,13 +330,13 @@ class LifEstimator(Identifier):
             theta_s / self._scale, tau_min_s=self.config.tau_min_s, tau_max_s=self.config.tau_max_s
         )
 
-    def _regress(self, i, v, ok):
+    def _regress(self, i, v, ok, aux=None):
         # hold the last valid overpotential for a bad sample; the window stays tainted for 2L+1 samples
         v_in = np.where(ok, v, self._v_hold)
         self._v_hold = v_in
         i_c = i / self.i_ref_a
         self._taint = np.where(ok, np.maximum(self._taint - 1, 0), self.history.length)
-        y, phi = self.history.push(v_in, np.where(np.isfinite(i_c), i_c, 0.0))
+        y, phi = self.history.push(v_in, np.where(np.isfinite(i_c), i_c, 0.0), aux)
         # history.push scaled the current columns by 1/T, 1/T^2 only (i_ref = 1); currents came in C-rate
         return y, phi, (self._taint == 0) & self.history.ready
 
@@ -429,6 +444,10 @@ class ArxEstimator(Identifier):
 def make_identifier(n_cells: int, dt_s: float, capacity_ah, config: IdentifierConfig = IdentifierConfig()) -> Identifier:
     if config.method == "lif":
         return LifEstimator(n_cells, dt_s, capacity_ah, config)
+    if config.method == "lif-iv":
+        from .lif_iv import LifIvEstimator
+
+        return LifIvEstimator(n_cells, dt_s, capacity_ah, config)
     if config.method == "arx":
         return ArxEstimator(n_cells, dt_s, capacity_ah, config)
-    raise ValueError(f"unknown identification method {config.method!r}: use 'lif' or 'arx'")
+    raise ValueError(f"unknown identification method {config.method!r}: use {', '.join(map(repr, METHODS))}")

@@ -87,9 +87,13 @@ class LifHistory:
     ``push(v_o, i)`` appends one sample per cell and returns ``(y, phi_s)`` of
     shapes (N,) and (N, 6).  ``shift_v_o(dv)`` subtracts a per-cell constant from
     the stored overpotential history (used when an OCV bias is moved into the SOC).
+
+    With ``aux=True`` a third signal x (an auxiliary model's simulated v_o) is
+    filtered alongside: ``push(v_o, i, x)``, and :meth:`instruments` then gives
+    phi_s with its two v_o columns taken from x (the recursive IV's instrument).
     """
 
-    def __init__(self, n_cells: int, window: int, dt_s: float, i_ref_a: float = 1.0):
+    def __init__(self, n_cells: int, window: int, dt_s: float, i_ref_a: float = 1.0, aux: bool = False):
         self.n_cells = int(n_cells)
         self.window = int(window)
         self.dt_s = float(dt_s)
@@ -101,7 +105,8 @@ class LifHistory:
         self._scale = lif_scale(self.window, self.dt_s, i_ref_a)
         self._inv_scale = 1.0 / self._scale
         self._t2_s = (self.window * self.dt_s) ** 2 * self._inv_scale[5]
-        self.buffer = np.zeros((2, self.n_cells, self.length))  # [v_o, i] x cells x slots
+        self.buffer = np.zeros((3 if aux else 2, self.n_cells, self.length))  # [v_o, i(, x)] x cells x slots
+        self._fx = np.zeros((self.n_cells, 3))
         self.head = -1
         self.count = 0
 
@@ -114,12 +119,17 @@ class LifHistory:
         """True once the window holds 2L+1 real samples."""
         return self.count >= self.length
 
-    def push(self, v_o: np.ndarray, current_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def push(self, v_o: np.ndarray, current_a: np.ndarray, aux: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
         self.head = (self.head + 1) % self.length
         self.buffer[0, :, self.head] = v_o
         self.buffer[1, :, self.head] = current_a
+        if aux is not None:
+            self.buffer[2, :, self.head] = aux
         self.count += 1
-        f = self.buffer @ self._rolled[self.head]  # (2, N, 3)
+        f = self.buffer @ self._rolled[self.head]  # (2 or 3, N, 3)
+        if len(f) == 3:
+            self._fx = f[2]
         fv, fi = f[0], f[1]
         phi = np.empty((self.n_cells, 6))
         phi[:, 0] = fv[:, 1]
@@ -129,8 +139,19 @@ class LifHistory:
         phi[:, 5] = self._t2_s
         return fv[:, 0], phi
 
+    def instruments(self, phi: np.ndarray) -> np.ndarray:
+        """phi_s of the last push with its v_o columns replaced by those of the auxiliary signal."""
+        zeta = phi.copy()
+        zeta[:, 0] = self._fx[:, 1] * self._inv_scale[0]
+        zeta[:, 1] = self._fx[:, 2] * self._inv_scale[1]
+        return zeta
+
     def shift_v_o(self, dv: np.ndarray) -> None:
-        self.buffer[0] -= np.asarray(dv, dtype=float)[:, None]
+        """Subtract dv from the stored v_o (and auxiliary-model) history."""
+        d = np.asarray(dv, dtype=float)[:, None]
+        self.buffer[0] -= d
+        if len(self.buffer) == 3:
+            self.buffer[2] -= d
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"buffer": self.buffer.copy(), "head": np.array(self.head), "count": np.array(self.count)}

@@ -80,6 +80,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from ..core.identifier import IdentifierConfig
 from ._blas import single_blas_thread
 from .extensions import BASELINE, CAUSES, FEATURES, Fit, Model, Series, fit_model
 
@@ -93,6 +94,8 @@ class DiagnoseConfig:
     block_s_bounds: tuple[float, float] = (300.0, 1800.0)
     candidates: tuple[str, ...] = CAUSES
     lif: bool = True  # warm-start the baseline from the online LIF identification
+    # its identification method (lif, lif-iv or arx); lif made the README's findings table
+    method: str = "lif"
     t_min: float = 2.0
     noise_fraction: float = 0.5
     penalty: float = 2.0  # per extra parameter, in units of 1/n_eff (AIC: 2)
@@ -233,10 +236,11 @@ def noise_level(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
-def _lif_start(s: Series) -> dict:
+def _lif_start(s: Series, method: str) -> dict:
     from ..analysis import run_identification, simulate_with_params
 
-    run = run_identification(s.current_a, s.voltage_v, s.soc, s.ocv, s.capacity_ah, s.dt_s)
+    run = run_identification(s.current_a, s.voltage_v, s.soc, s.ocv, s.capacity_ah, s.dt_s,
+                             IdentifierConfig(method=method))
     sel = run.identified & (s.soc > 0.2) & (s.soc < 0.9)
     if sel.sum() < 10:
         sel = run.identified
@@ -353,7 +357,7 @@ def _diagnose(data: Series, validate: Series | None, config: DiagnoseConfig) -> 
     lif: dict = {}
     starts: list[dict | None] = [None]
     if config.lif:
-        lif = _lif_start(s)
+        lif = _lif_start(s, config.method)
         if lif:
             starts.insert(0, {"tau1_s": lif["tau1_s"], "tau2_s": lif["tau2_s"]})
     win = window_mask(s, config)

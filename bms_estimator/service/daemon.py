@@ -61,7 +61,7 @@ from ..can.decoder import FrameDecoder
 from ..can.encoder import StateEncoder
 from ..can.mapping import MappingError
 from ..can.sampler import Sample, SampleAssembler
-from ..core.identifier import IdentifierConfig
+from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import OcvCurve
 from ..core.soc import CAPACITY_SOC_UPDATES, SocConfig, SocEstimator
 from . import systemd
@@ -171,13 +171,13 @@ def _range_problems(soc: dict[str, Any], ident: dict[str, Any]) -> list[tuple[st
         for key, v in group.items():
             if isinstance(v, (int, float)) and not isinstance(v, bool) and v < 0:
                 out.append((key, f"must be >= 0 (got {v!r})"))
-    for key in ("window", "init_samples", "error_window"):
+    for key in ("window", "init_samples", "error_window", "iv_model_every"):
         if ident.get(key, 1) < 1:
             out.append((key, f"must be >= 1 (got {ident[key]!r})"))
     if not 0.0 < ident.get("forgetting", 1.0) <= 1.0:
         out.append(("forgetting", f"must be in (0, 1] (got {ident['forgetting']!r})"))
-    if ident.get("method", "lif") not in ("lif", "arx"):
-        out.append(("method", f"must be 'lif' or 'arx' (got {ident['method']!r})"))
+    if ident.get("method", IdentifierConfig().method) not in METHODS:
+        out.append(("method", f"must be one of {', '.join(map(repr, METHODS))} (got {ident['method']!r})"))
     tmin, tmax = ident.get("tau_min_s", 1.0), ident.get("tau_max_s", 500.0)
     if not 0.0 < tmin < tmax:
         out.append(("tau_max_s", f"need 0 < tau_min_s < tau_max_s (got {tmin!r}, {tmax!r})"))

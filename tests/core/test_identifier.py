@@ -5,6 +5,7 @@ import pytest
 
 from bms_estimator.core.identifier import ArxEstimator, IdentifierConfig, LifEstimator
 from bms_estimator.core.lif import lif_regressors, lif_scale
+from bms_estimator.core.lif_iv import LifIvEstimator
 from bms_estimator.core.params import ct_physical_from_theta
 from tests.conftest import TRUE, synthetic_overpotential
 
@@ -81,7 +82,7 @@ def test_vectorised_cells_match_single_cell_runs():
         np.testing.assert_allclose(pack.params.tau2_s[j], s.params.tau2_s[0], rtol=1e-7)
 
 
-@pytest.mark.parametrize("cls", [LifEstimator, ArxEstimator])
+@pytest.mark.parametrize("cls", [LifEstimator, LifIvEstimator, ArxEstimator])
 def test_state_round_trip_continues_identically(cls):
     i, v = synthetic_overpotential(1600, seed=7, noise_v=5e-4)
     a = cls(2, 1.0, 3.0)

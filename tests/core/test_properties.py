@@ -15,7 +15,7 @@ CURVE = OcvCurve(np.linspace(0, 1, 51), 3.0 + 1.2 * np.linspace(0, 1, 51))
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 2**31 - 1),
-    method=st.sampled_from(["lif", "arx"]),
+    method=st.sampled_from(["lif", "lif-iv", "arx"]),
     amp=st.floats(0.0, 50.0),
     noise_v=st.floats(0.0, 0.05),
     dropout=st.floats(0.0, 0.5),
