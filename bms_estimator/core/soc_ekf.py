@@ -184,8 +184,11 @@ class SocEkf:
         p[:, 3, 3] += cfg.rc_sigma_v**2 * (self.dt_s / cfg.diffusion_tau_s)  # driven by r_d, not free
         p[:, 4, 4] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * h_frac
         p[:, 5, 5] += cfg.capacity_drift_per_h**2 * h_frac
-        self.x = np.where(live[:, None], x, self.x)
-        self.p = np.where(live[:, None, None], p, self.p)
+        if live.all():  # the usual case: no (N, 6, 6) select
+            self.x, self.p = x, p
+        else:
+            self.x = np.where(live[:, None], x, self.x)
+            self.p = np.where(live[:, None, None], p, self.p)
 
     def correct(self, innovation_v: np.ndarray, slope_v: np.ndarray, hyst_uncertain_v: np.ndarray,
                 use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -195,22 +198,24 @@ class SocEkf:
         ``slope_v`` = dOCV/dz, ``hyst_uncertain_v`` = (1 - |h|) H.
         """
         cfg = self.config
-        c = np.ones((self.n_cells, _N))
-        c[:, 0] = slope_v
-        c[:, 4:] = 0.0
-        pc = np.einsum("nij,nj->ni", self.p, c)  # P C'
+        p = self.p
+        # P C' with C = [slope, 1, 1, 1, 0, 0]: columns, not a product
+        pc = p[:, :, 0] * slope_v[:, None] + p[:, :, 1] + p[:, :, 2] + p[:, :, 3]
         r_v = cfg.voltage_sigma_v**2 * max(cfg.correlation_s / self.dt_s, 1.0) + hyst_uncertain_v**2
-        s = np.einsum("ni,ni->n", c, pc) + r_v
+        s = pc[:, 0] * slope_v + pc[:, 1] + pc[:, 2] + pc[:, 3] + r_v
         k = pc / s[:, None]
-        k[:, 5] = np.where(self.soc_sigma > cfg.capacity_learn_max_soc_sigma, 0.0, k[:, 5])
+        held = self.soc_sigma > cfg.capacity_learn_max_soc_sigma
+        k[:, 5] = np.where(held, 0.0, k[:, 5])
         e = np.where(use, innovation_v, 0.0)
         dx = k * e[:, None]
         dz = np.clip(dx[:, 0], -cfg.max_soc_step, cfg.max_soc_step)
-        # Joseph form, (I - K C) P (I - K C)' + K R K', expanded with pc = P C' and s0 = C P C':
-        # P - K pc' - pc K' + (s0 + R) K K'  (right for any K, the zeroed capacity row included)
-        kp = k[:, :, None] * pc[:, None, :]
-        p_new = self.p - kp - np.swapaxes(kp, 1, 2) + s[:, None, None] * (k[:, :, None] * k[:, None, :])
-        self.p = np.where(use[:, None, None], p_new, self.p)
+        # Joseph form, (I - K C) P (I - K C)' + K R K', for K = pc / S - d e5 (d = pc5 / S where the
+        # capacity row is held, else 0) expands to  P - pc pc' / S + S d^2 e5 e5':  one outer product
+        pp = np.multiply(pc[:, :, None], k[:, None, :], out=np.empty_like(p))  # pc pc' / S (k = pc / S here)
+        pp[:, :, 5] = pc * (pc[:, 5] / s)[:, None]  # the held capacity row of k is not pc / S
+        p_new = np.subtract(p, pp, out=pp)
+        p_new[:, 5, 5] += np.where(held, pc[:, 5] ** 2 / s, 0.0)
+        self.p = p_new if use.all() else np.where(use[:, None, None], p_new, self.p)
         x = self.x + dx
         x[:, 4] = np.maximum(x[:, 4], 0.0)  # a resistance is never negative
         dq = np.where(use, np.clip(x[:, 5], -0.01, 0.01), 0.0)  # the caller's capacity takes it in

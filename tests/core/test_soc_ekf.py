@@ -161,13 +161,15 @@ def test_a_temperature_that_moves_20_k_during_a_drive_is_followed_by_the_ocv_tab
     assert errs["tables"] < 0.5 * errs["25 degC only"], errs
 
 
-def test_the_filter_equals_the_dense_textbook_ekf():
-    """The sparse covariance steps equal F P F' + Q and the Joseph form written out with dense matrices."""
+@pytest.mark.parametrize("capacity_learns", [True, False])
+def test_the_filter_equals_the_dense_textbook_ekf(capacity_learns):
+    """The sparse covariance steps equal F P F' + Q and the Joseph form written out with dense matrices,
+    with the textbook gain and with the capacity row held (K[5] = 0 while the SOC is unsure)."""
     from bms_estimator.core.soc_ekf import SocEkf
 
     rng = np.random.default_rng(3)
     n = 5
-    cfg = SocEkfConfig(capacity_learn_max_soc_sigma=1.0)  # the capacity row learns: the textbook gain
+    cfg = SocEkfConfig(capacity_learn_max_soc_sigma=1.0 if capacity_learns else 1e-9)
     ekf = SocEkf(n, 1.0, np.full(n, 3.0), cfg)
     a = rng.standard_normal((n, 6, 6))
     ekf.p = 1e-4 * (a @ np.swapaxes(a, 1, 2) + np.eye(6))
@@ -197,6 +199,8 @@ def test_the_filter_equals_the_dense_textbook_ekf():
     for j in range(n):
         c = np.array([slope[j], 1, 1, 1, 0, 0])
         k = p1[j] @ c / (c @ p1[j] @ c + r_v[j])
+        if not capacity_learns:
+            k[5] = 0.0
         ikc = np.eye(6) - np.outer(k, c)
         p_ref = ikc @ p1[j] @ ikc.T + r_v[j] * np.outer(k, k)
         np.testing.assert_allclose(ekf.p[j], p_ref, rtol=1e-9, atol=1e-18)
