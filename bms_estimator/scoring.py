@@ -43,9 +43,12 @@ class SocReference:
     rest_s: float  # length of the final rest
     pct_per_doubling: float  # SOC the rest still recovers per doubling of its length
     relaxed: bool  # pct_per_doubling <= the bound: the reference counts for pass/fail
+    why_override: str | None = None  # a caller's reason to keep it out of pass/fail
 
     @property
     def why(self) -> str:
+        if self.why_override:
+            return self.why_override
         if self.relaxed:
             return f"relaxed end rest ({self.rest_s:.0f} s, {self.pct_per_doubling:.2f} % SOC per doubling)"
         return (f"end rest not relaxed ({self.rest_s:.0f} s, still {self.pct_per_doubling:.1f} % SOC per doubling "

@@ -16,7 +16,7 @@ sys.path.insert(0, str(ROOT))
 
 from bms_estimator.core.soc import SOC_METHODS  # noqa: E402
 from bms_estimator.data import shared_data_dir  # noqa: E402
-from bms_estimator.soc_matrix import CELLS, markdown, run_cell, summary_lines  # noqa: E402
+from bms_estimator.soc_matrix import CELLS, markdown, run_cell, summary_lines, summary_table  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,7 +27,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="an estimator setting to try (SocConfig field, or ekf.FIELD / identifier.FIELD)")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--readme", action="store_true", help="write the table into README.md between its markers")
+    ap.add_argument("--readme", action="store_true",
+                    help="write the summary into README.md between its markers and every run into docs/soc_matrix.md")
     args = ap.parse_args(argv)
     overrides = {}
     for item in args.set:
@@ -50,7 +51,10 @@ def main(argv: list[str] | None = None) -> int:
         readme = ROOT / "README.md"
         text = readme.read_text()
         a, b = "<!-- soc-matrix:begin -->", "<!-- soc-matrix:end -->"
-        body = "\n".join(["", markdown(rows), "", *[f"* {s}" for s in summary_lines(rows)], ""])
+        body = "\n".join(["", summary_table(rows), "", *[f"* {s}" for s in summary_lines(rows)], ""])
+        (ROOT / "docs" / "soc_matrix.md").write_text(
+            "# The SOC matrix, every run\n\nMade by `python scripts/soc_matrix.py --readme` (see the README's SOC "
+            "section for how it is scored).\n\n" + markdown(rows) + "\n")
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + body + text[text.index(b):]
             readme.write_text(text)

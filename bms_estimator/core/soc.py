@@ -196,6 +196,7 @@ class SocEstimator:
         self._start_hysteresis(np.isfinite(self.soc))
         self.ekf = (SocEkf(self.n_cells, self.dt_s, self.capacity_ah, config.ekf)
                     if config.soc_method == "ekf" else None)
+        self._ekf_shift_v = np.zeros(self.n_cells)  # EKF moves of the OCV not yet shifted out of the identifier
 
     # ------------------------------------------------------------------ OCV at the cell temperature
     def _table_capacity_ah(self) -> float | None:
@@ -345,15 +346,19 @@ class SocEstimator:
             self.capacity_ah = self.capacity_ah * (1.0 + d_q)
             lo, hi = self.config.capacity_bounds
             self.capacity_ah = np.clip(self.capacity_ah, lo * self.capacity_stated_ah, hi * self.capacity_stated_ah)
-            self.capacity_estimated |= self.ekf.p[:, 5, 5] < (0.5 * self.config.ekf.capacity_sigma) ** 2
-        moved = d_soc != 0.0
-        if moved.any():
-            self.soc = np.where(moved, np.clip(self.soc + d_soc, 0.0, 1.0), self.soc)
-            # the OCV the identifier saw moves with the SOC (as in a c0 compensation)
-            self.identifier.shift_bias(slope * d_soc, moved)
-            self._shift_c0_window(np.where(moved, slope * d_soc, 0.0))
+            self.capacity_estimated |= self.ekf.p[:, 3, 3] < (0.5 * self.config.ekf.capacity_sigma) ** 2
+        self.soc = np.clip(self.soc + d_soc, 0.0, 1.0)
+        # The OCV the identifier saw moves with the SOC, as in a c0 compensation: its history and
+        # c0 shift too, once the moves add up to a millivolt (a shift every sample costs a fifth
+        # of the update; a sub-millivolt step in v_o is below the noise of the regression).
+        self._ekf_shift_v += slope * d_soc
+        if np.max(np.abs(self._ekf_shift_v)) > 1e-3:
+            self.identifier.shift_bias(self._ekf_shift_v)
+            self._ekf_shift_v[:] = 0.0
 
     def _compensate(self, use: np.ndarray) -> None:
+        if self.ekf is not None:
+            return  # the EKF corrects the SOC and the capacity every sample; c0 is the identifier's
         cfg = self.config
         ident = self.identifier
         # only fresh, accepted estimates count: a theta frozen by the admissibility
@@ -377,8 +382,8 @@ class SocEstimator:
         c0_avg = self._c0_sum / self._w
         c0_std = np.sqrt(np.maximum(self._c0_sq / self._w - c0_avg * c0_avg, 0.0))
         stable = full & (c0_std < cfg.c0_stable_v) & np.isfinite(c0_avg)
-        if not stable.any() or self.ekf is not None:
-            return  # (the EKF corrects the SOC and the capacity every sample; c0 is reported only)
+        if not stable.any():
+            return
         # SOC whose OCV is c0_avg above the one now: OCV^-1(OCV(soc) + c0_avg).  The hysteresis
         # term h H(soc) is on both sides (read at the SOC now), so the mean curve gives it
         soc_ocv = self._soc_at(self._mean_ocv(self.soc) + c0_avg)
@@ -458,6 +463,9 @@ class SocEstimator:
 
     @property
     def c0_avg_v(self) -> np.ndarray:
+        """The OCV bias: averaged over the c0 window (c0 method), the identifier's own (EKF)."""
+        if self.ekf is not None:
+            return self.identifier.c0_v.copy()
         return np.where(self._c0_count > 0, self._c0_sum / self._w, np.nan)
 
     def state_dict(self) -> dict[str, np.ndarray]:

@@ -16,21 +16,25 @@ charge, which no RC branch explains over the whole discharge.
 
 State and model per cell, current ``i`` positive = charge, period ``Ts``::
 
-    x = [z, v1, v2, v_d, r_d, dq]          (SOC, RC voltages, diffusion voltage and resistance,
-                                            relative capacity error: the capacity is Q (1 + dq))
+    x = [z, v_d, r_d, dq]                  (SOC, diffusion voltage and resistance, relative
+                                            capacity error: the capacity is Q (1 + dq))
 
     z[k+1]   = z[k] + i[k] Ts / (3600 Q (1 + dq))
-    vj[k+1]  = aj vj[k] + Rj (1 - aj) i[k],        aj = exp(-Ts / tau_j)     (R1, tau1, R2, tau2 identified)
     v_d[k+1] = ad v_d[k] + r_d[k] (1 - ad) i[k],   ad = exp(-Ts / tau_d)
     r_d[k+1] = r_d[k],   dq[k+1] = dq[k]           (random walks)
+
+    vj[k+1]  = aj vj[k] + Rj (1 - aj) i[k],        aj = exp(-Ts / tau_j)     (R1, tau1, R2, tau2 identified)
 
     v[k]     = OCV(z[k], T) + h[k] H(z[k], T) + R0 i[k] + v1[k] + v2[k] + v_d[k] + e[k]
 
 ``h`` is the one-state hysteresis (known from the current, not a state here) and
-``H`` the table's half gap.  Linearised::
+``H`` the table's half gap.  The two identified RC voltages follow the identified
+model and are not filter states: the identifier has already fitted them, and
+left free they would soak up errors that belong to the SOC (a 6-state filter
+with them was measured no better and costs twice as much).  Linearised::
 
-    F = I except F[1,1] = a1, F[2,2] = a2, F[3,3] = ad, F[3,4] = (1 - ad) i, F[0,5] = -i Ts / (3600 Q)
-    C = [dOCV/dz, 1, 1, 1, 0, 0]
+    F = I except F[1,1] = ad, F[1,2] = (1 - ad) i, F[0,3] = -i Ts / (3600 Q)
+    C = [dOCV/dz, 1, 0, 0]
 
 After each update the capacity takes in ``dq`` (``Q <- Q (1 + dq)``, ``dq <- 0``).
 While the SOC is still uncertain (sigma above ``capacity_learn_max_soc_sigma``)
@@ -47,9 +51,9 @@ Noise, stated in the cell's terms rather than tuned per file:
 * ``Qn[z]`` = (``capacity_sigma`` |dz|)^2 + (``current_sigma_c`` Ts / 3600)^2
   + ``drift_sigma_per_h``^2 Ts / 3600: a relative capacity uncertainty on the
   counted step, a current-sensor noise (as a C-rate, so it fits any cell size),
-  and a random walk for what the count cannot see; ``Qn[v1], Qn[v2]`` =
-  (``rc_sigma_v``)^2, ``Qn[v_d]`` = (``rc_sigma_v``)^2 Ts / tau_d (the diffusion voltage
-  follows its resistance and the current; free to wander, it would soak up an SOC error); ``Qn[r_d]`` = (``diffusion_r_drift_ohm_ah`` / Q)^2 Ts / 3600;
+  and a random walk for what the count cannot see; ``Qn[v_d]`` = (``rc_sigma_v``)^2
+  Ts / tau_d (the diffusion voltage follows its resistance and the current; free to
+  wander, it would soak up an SOC error); ``Qn[r_d]`` = (``diffusion_r_drift_ohm_ah`` / Q)^2 Ts / 3600;
   ``Qn[dq]`` = ``capacity_drift_per_h``^2 Ts / 3600 (ageing and temperature).
 * ``dq`` starts at 0 with sigma ``capacity_sigma``.
 * ``r_d`` starts at 0 with sigma ``diffusion_r_sigma_ohm_ah / Q`` (resistances
@@ -62,7 +66,7 @@ Noise, stated in the cell's terms rather than tuned per file:
   uncertain by up to ``H``, so the filter trusts the voltage less there.
 
 The 1-sigma SOC uncertainty is ``sqrt(P[0, 0])`` (:attr:`soc_sigma`).
-Everything is vectorised over cells: ``P`` is ``(N, 6, 6)``, the update is a
+Everything is vectorised over cells: ``P`` is ``(N, 4, 4)``, the update is a
 rank-1 correction (one scalar measurement per cell), with no matrix inverse.
 """
 
@@ -74,7 +78,7 @@ import numpy as np
 
 __all__ = ["SocEkfConfig", "SocEkf"]
 
-_N = 6  # z, v1, v2, v_d, r_d, dq
+_N = 4  # z, v_d, r_d, dq
 
 
 @dataclass(frozen=True)
@@ -89,7 +93,7 @@ class SocEkfConfig:
     capacity_learn_max_soc_sigma: float = 0.02
     drift_sigma_per_h: float = 0.003  # SOC random walk the count cannot see, per sqrt(hour)
     current_sigma_c: float = 0.01  # current-sensor noise as a C-rate (0.03 A on a 3 Ah cell)
-    rc_sigma_v: float = 0.001  # process noise of each RC voltage per sample
+    rc_sigma_v: float = 0.001  # process noise of the diffusion voltage per sample, times sqrt(Ts / tau_d)
     voltage_sigma_v: float = 0.020  # model voltage error (OCV table, slow dynamics, ...)
     correlation_s: float = 300.0  # how long that error stays correlated
     diffusion_tau_s: float = 1200.0  # time constant of the diffusion branch
@@ -125,12 +129,12 @@ class SocEkf:
         self.config = config
         self.q_ref_ah = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
         self.x = np.zeros((self.n_cells, _N))  # x[:, 0] unused: the caller owns the SOC
+        self.v_rc = np.zeros((self.n_cells, 2))  # the identified RC pairs' voltages
         self.p = np.zeros((self.n_cells, _N, _N))
         self.p[:, 0, 0] = config.initial_soc_sigma**2
-        self.p[:, 1, 1] = self.p[:, 2, 2] = 0.01**2
-        self.p[:, 3, 3] = config.diffusion_v_sigma_v**2
-        self.p[:, 4, 4] = (config.diffusion_r_sigma_ohm_ah / self.q_ref_ah) ** 2
-        self.p[:, 5, 5] = config.capacity_sigma**2
+        self.p[:, 1, 1] = config.diffusion_v_sigma_v**2
+        self.p[:, 2, 2] = (config.diffusion_r_sigma_ohm_ah / self.q_ref_ah) ** 2
+        self.p[:, 3, 3] = config.capacity_sigma**2
         self._eye = np.eye(_N)
 
     @property
@@ -140,11 +144,11 @@ class SocEkf:
     @property
     def v_model(self) -> np.ndarray:
         """RC and diffusion voltages: what the model adds to OCV + R0 i."""
-        return self.x[:, 1] + self.x[:, 2] + self.x[:, 3]
+        return self.v_rc[:, 0] + self.v_rc[:, 1] + self.x[:, 1]
 
     @property
     def r_diffusion_ohm(self) -> np.ndarray:
-        return self.x[:, 4]
+        return self.x[:, 2]
 
     def set_soc_sigma(self, sigma: float | np.ndarray, cells: np.ndarray | None = None) -> None:
         """Restart the SOC variance (a new start SOC) of some cells; its cross terms dropped."""
@@ -163,32 +167,29 @@ class SocEkf:
         cfg = self.config
         a = np.exp(-self.dt_s / np.maximum(tau_s, 1e-9))
         a_d = np.exp(-self.dt_s / cfg.diffusion_tau_s)
+        v_rc = a * self.v_rc + r_ohm * (1.0 - a) * current_a[:, None]
         x = self.x.copy()
-        x[:, 1:3] = a * self.x[:, 1:3] + r_ohm * (1.0 - a) * current_a[:, None]
-        x[:, 3] = a_d * self.x[:, 3] + self.x[:, 4] * (1.0 - a_d) * current_a
-        # P- = F P F' with F the identity but for a1, a2, ad on the diagonal, F[3,4] and F[0,5]:
-        # rows, then columns, in place of two dense (N, 6, 6) products
-        f34 = ((1.0 - a_d) * current_a)[:, None]
-        f05 = (-dz)[:, None]
+        x[:, 1] = a_d * self.x[:, 1] + self.x[:, 2] * (1.0 - a_d) * current_a
+        # P- = F P F' with F the identity but for F[1,1] = ad, F[1,2] and F[0,3]: rows, then
+        # columns, in place of two dense (N, 4, 4) products
+        f12 = ((1.0 - a_d) * current_a)[:, None]
+        f03 = (-dz)[:, None]
         p = self.p.copy()
         for rows in (True, False):
             q = p if rows else np.swapaxes(p, 1, 2)
-            q[:, 0, :] += f05 * q[:, 5, :]
-            q[:, 3, :] = a_d * q[:, 3, :] + f34 * q[:, 4, :]
-            q[:, 1, :] *= a[:, 0, None]
-            q[:, 2, :] *= a[:, 1, None]
+            q[:, 0, :] += f03 * q[:, 3, :]
+            q[:, 1, :] = a_d * q[:, 1, :] + f12 * q[:, 2, :]
         h_frac = self.dt_s / 3600.0
         p[:, 0, 0] += (cfg.current_sigma_c * h_frac) ** 2 + cfg.drift_sigma_per_h**2 * h_frac
-        p[:, 1, 1] += cfg.rc_sigma_v**2
-        p[:, 2, 2] += cfg.rc_sigma_v**2
-        p[:, 3, 3] += cfg.rc_sigma_v**2 * (self.dt_s / cfg.diffusion_tau_s)  # driven by r_d, not free
-        p[:, 4, 4] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * h_frac
-        p[:, 5, 5] += cfg.capacity_drift_per_h**2 * h_frac
-        if live.all():  # the usual case: no (N, 6, 6) select
-            self.x, self.p = x, p
+        p[:, 1, 1] += cfg.rc_sigma_v**2 * (self.dt_s / cfg.diffusion_tau_s)  # driven by r_d, not free
+        p[:, 2, 2] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * h_frac
+        p[:, 3, 3] += cfg.capacity_drift_per_h**2 * h_frac
+        if live.all():  # the usual case: no (N, 4, 4) select
+            self.x, self.p, self.v_rc = x, p, v_rc
         else:
             self.x = np.where(live[:, None], x, self.x)
             self.p = np.where(live[:, None, None], p, self.p)
+            self.v_rc = np.where(live[:, None], v_rc, self.v_rc)
 
     def correct(self, innovation_v: np.ndarray, slope_v: np.ndarray, hyst_uncertain_v: np.ndarray,
                 use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -199,32 +200,32 @@ class SocEkf:
         """
         cfg = self.config
         p = self.p
-        # P C' with C = [slope, 1, 1, 1, 0, 0]: columns, not a product
-        pc = p[:, :, 0] * slope_v[:, None] + p[:, :, 1] + p[:, :, 2] + p[:, :, 3]
+        # P C' with C = [slope, 1, 0, 0]: columns, not a product
+        pc = p[:, :, 0] * slope_v[:, None] + p[:, :, 1]
         r_v = cfg.voltage_sigma_v**2 * max(cfg.correlation_s / self.dt_s, 1.0) + hyst_uncertain_v**2
-        s = pc[:, 0] * slope_v + pc[:, 1] + pc[:, 2] + pc[:, 3] + r_v
+        s = pc[:, 0] * slope_v + pc[:, 1] + r_v
         k = pc / s[:, None]
         held = self.soc_sigma > cfg.capacity_learn_max_soc_sigma
-        k[:, 5] = np.where(held, 0.0, k[:, 5])
+        k[:, 3] = np.where(held, 0.0, k[:, 3])
         e = np.where(use, innovation_v, 0.0)
         dx = k * e[:, None]
         dz = np.clip(dx[:, 0], -cfg.max_soc_step, cfg.max_soc_step)
-        # Joseph form, (I - K C) P (I - K C)' + K R K', for K = pc / S - d e5 (d = pc5 / S where the
-        # capacity row is held, else 0) expands to  P - pc pc' / S + S d^2 e5 e5':  one outer product
+        # Joseph form, (I - K C) P (I - K C)' + K R K', for K = pc / S - d e3 (d = pc3 / S where the
+        # capacity row is held, else 0) expands to  P - pc pc' / S + S d^2 e3 e3':  one outer product
         pp = np.multiply(pc[:, :, None], k[:, None, :], out=np.empty_like(p))  # pc pc' / S (k = pc / S here)
-        pp[:, :, 5] = pc * (pc[:, 5] / s)[:, None]  # the held capacity row of k is not pc / S
+        pp[:, :, 3] = pc * (pc[:, 3] / s)[:, None]  # the held capacity row of k is not pc / S
         p_new = np.subtract(p, pp, out=pp)
-        p_new[:, 5, 5] += np.where(held, pc[:, 5] ** 2 / s, 0.0)
+        p_new[:, 3, 3] += np.where(held, pc[:, 3] ** 2 / s, 0.0)
         self.p = p_new if use.all() else np.where(use[:, None, None], p_new, self.p)
         x = self.x + dx
-        x[:, 4] = np.maximum(x[:, 4], 0.0)  # a resistance is never negative
-        dq = np.where(use, np.clip(x[:, 5], -0.01, 0.01), 0.0)  # the caller's capacity takes it in
-        x[:, 5] = 0.0
+        x[:, 2] = np.maximum(x[:, 2], 0.0)  # a resistance is never negative
+        dq = np.where(use, np.clip(x[:, 3], -0.01, 0.01), 0.0)  # the caller's capacity takes it in
+        x[:, 3] = 0.0
         self.x = np.where(use[:, None], x, self.x)
         return np.where(use, dz, 0.0), dq
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        return {"x": self.x.copy(), "p": self.p.copy()}
+        return {"x": self.x.copy(), "p": self.p.copy(), "v_rc": self.v_rc.copy()}
 
     def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
         if np.shape(s.get("p")) != self.p.shape or np.shape(s.get("x")) != self.x.shape:
@@ -235,3 +236,5 @@ class SocEkf:
             raise ValueError("EKF state holds non-finite values")
         self.x = x.copy()
         self.p = p.copy()
+        if "v_rc" in s:
+            self.v_rc = np.asarray(s["v_rc"], dtype=float).copy()

@@ -171,10 +171,11 @@ def test_the_filter_equals_the_dense_textbook_ekf(capacity_learns):
     n = 5
     cfg = SocEkfConfig(capacity_learn_max_soc_sigma=1.0 if capacity_learns else 1e-9)
     ekf = SocEkf(n, 1.0, np.full(n, 3.0), cfg)
-    a = rng.standard_normal((n, 6, 6))
-    ekf.p = 1e-4 * (a @ np.swapaxes(a, 1, 2) + np.eye(6))
-    ekf.x = 1e-3 * rng.standard_normal((n, 6))
-    p0, x0 = ekf.p.copy(), ekf.x.copy()
+    a = rng.standard_normal((n, 4, 4))
+    ekf.p = 1e-4 * (a @ np.swapaxes(a, 1, 2) + np.eye(4))
+    ekf.x = 1e-3 * rng.standard_normal((n, 4))
+    ekf.v_rc = 1e-3 * rng.standard_normal((n, 2))
+    p0, x0, v0 = ekf.p.copy(), ekf.x.copy(), ekf.v_rc.copy()
     i = rng.normal(0, 3, n)
     dz = i / (3600 * 3.0)
     r = np.abs(rng.normal(0.01, 0.002, (n, 2)))
@@ -183,13 +184,14 @@ def test_the_filter_equals_the_dense_textbook_ekf(capacity_learns):
     a12 = np.exp(-1.0 / tau)
     ad = np.exp(-1.0 / cfg.diffusion_tau_s)
     for j in range(n):
-        f = np.eye(6)
-        f[1, 1], f[2, 2], f[3, 3], f[3, 4], f[0, 5] = a12[j, 0], a12[j, 1], ad, (1 - ad) * i[j], -dz[j]
+        f = np.eye(4)
+        f[1, 1], f[1, 2], f[0, 3] = ad, (1 - ad) * i[j], -dz[j]
         p_ref = f @ p0[j] @ f.T
-        np.testing.assert_allclose(np.diag(ekf.p[j] - p_ref)[1:3], cfg.rc_sigma_v**2, rtol=1e-9)
-        off = ~np.eye(6, dtype=bool)
+        assert ekf.p[j, 1, 1] - p_ref[1, 1] == pytest.approx(cfg.rc_sigma_v**2 / cfg.diffusion_tau_s, rel=1e-6)
+        off = ~np.eye(4, dtype=bool)
         np.testing.assert_allclose((ekf.p[j] - p_ref)[off], 0.0, atol=1e-15)
-        assert ekf.x[j, 3] == pytest.approx(ad * x0[j, 3] + x0[j, 4] * (1 - ad) * i[j])
+        assert ekf.x[j, 1] == pytest.approx(ad * x0[j, 1] + x0[j, 2] * (1 - ad) * i[j])
+        np.testing.assert_allclose(ekf.v_rc[j], a12[j] * v0[j] + r[j] * (1 - a12[j]) * i[j])
     p1 = ekf.p.copy()
     e = rng.normal(0, 0.01, n)
     slope = rng.uniform(0.3, 2.0, n)
@@ -197,12 +199,12 @@ def test_the_filter_equals_the_dense_textbook_ekf(capacity_learns):
     d_soc, d_q = ekf.correct(e, slope, unsure, np.ones(n, bool))
     r_v = cfg.voltage_sigma_v**2 * cfg.correlation_s + unsure**2
     for j in range(n):
-        c = np.array([slope[j], 1, 1, 1, 0, 0])
+        c = np.array([slope[j], 1, 0, 0])
         k = p1[j] @ c / (c @ p1[j] @ c + r_v[j])
         if not capacity_learns:
-            k[5] = 0.0
-        ikc = np.eye(6) - np.outer(k, c)
+            k[3] = 0.0
+        ikc = np.eye(4) - np.outer(k, c)
         p_ref = ikc @ p1[j] @ ikc.T + r_v[j] * np.outer(k, k)
         np.testing.assert_allclose(ekf.p[j], p_ref, rtol=1e-9, atol=1e-18)
         assert d_soc[j] == pytest.approx(k[0] * e[j])
-        assert d_q[j] == pytest.approx(np.clip(x0[j, 5] + k[5] * e[j], -0.01, 0.01))
+        assert d_q[j] == pytest.approx(np.clip(x0[j, 3] + k[3] * e[j], -0.01, 0.01))
