@@ -227,7 +227,8 @@ class SocEstimator:
         """The OCV the cell shows now: the mean curve plus the hysteresis state times H(soc)."""
         v = self._mean_ocv(soc)
         if self._hyst is not None:
-            v = v + self.hysteresis_state * self._half_gap(soc)
+            self._h_gap = self._half_gap(soc)  # kept for the EKF step at the same SOC
+            v = v + self.hysteresis_state * self._h_gap
         return v
 
     def _start_hysteresis(self, cells: np.ndarray) -> None:
@@ -340,7 +341,7 @@ class SocEstimator:
         v_hat = p.r0_ohm * i_now + self.ekf.v_model
         innovation = self.v_o - v_hat
         slope = self._slope(soc_mid)
-        unsure = (1.0 - np.abs(self.hysteresis_state)) * self._half_gap(soc_mid) if self._hyst is not None else 0.0
+        unsure = (1.0 - np.abs(self.hysteresis_state)) * self._h_gap if self._hyst is not None else 0.0
         d_soc, d_q = self.ekf.correct(innovation, slope, np.broadcast_to(unsure, (self.n_cells,)), use)
         if self.config.estimate_capacity:
             self.capacity_ah = self.capacity_ah * (1.0 + d_q)
