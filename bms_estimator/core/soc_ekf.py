@@ -37,9 +37,10 @@ with them was measured no better and costs twice as much).  Linearised::
     C = [dOCV/dz, 1, 0, 0]
 
 After each update the capacity takes in ``dq`` (``Q <- Q (1 + dq)``, ``dq <- 0``).
-While the SOC is still uncertain (sigma above ``capacity_learn_max_soc_sigma``)
-the row of ``K`` for ``dq`` is zero: an SOC error being corrected would
-otherwise read as a capacity error.  The Joseph form keeps ``P`` right for that
+While the SOC is still uncertain (sigma above ``capacity_learn_max_soc_sigma``),
+and in the steep ends of the OCV curve (slope above ``capacity_learn_max_slope_v``),
+the row of ``K`` for ``dq`` is zero: an SOC error being corrected, or the table's
+own error near empty, would otherwise read as a capacity error.  The Joseph form keeps ``P`` right for that
 suboptimal gain.
 
     predict   x- = f(x, i),           P- = F P F' + Qn
@@ -91,6 +92,10 @@ class SocEkfConfig:
     # the capacity learns only while the SOC is this sure: before, a start error still being
     # corrected would read as a capacity error (a Schmidt-style gain: the row of K is zeroed)
     capacity_learn_max_soc_sigma: float = 0.02
+    # nor in the steep ends of the OCV curve (slope above this, V per unit SOC: below about 10 %
+    # SOC on both cells), where the table's own error (C/20 polarisation, a 50-100 mV hysteresis
+    # gap) is largest and a capacity learnt there pulled the count off over the last few percent
+    capacity_learn_max_slope_v: float = 1.5
     drift_sigma_per_h: float = 0.003  # SOC random walk the count cannot see, per sqrt(hour)
     current_sigma_c: float = 0.01  # current-sensor noise as a C-rate (0.03 A on a 3 Ah cell)
     rc_sigma_v: float = 0.001  # process noise of the diffusion voltage per sample, times sqrt(Ts / tau_d)
@@ -107,7 +112,8 @@ class SocEkfConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        for name in ("initial_soc_sigma", "capacity_sigma", "capacity_learn_max_soc_sigma", "current_sigma_c", "rc_sigma_v", "voltage_sigma_v",
+        for name in ("initial_soc_sigma", "capacity_sigma", "capacity_learn_max_soc_sigma", "capacity_learn_max_slope_v",
+                     "current_sigma_c", "rc_sigma_v", "voltage_sigma_v",
                      "correlation_s", "diffusion_tau_s", "diffusion_r_sigma_ohm_ah", "diffusion_v_sigma_v",
                      "max_soc_step"):
             value = getattr(self, name)
@@ -205,7 +211,7 @@ class SocEkf:
         r_v = cfg.voltage_sigma_v**2 * max(cfg.correlation_s / self.dt_s, 1.0) + hyst_uncertain_v**2
         s = pc[:, 0] * slope_v + pc[:, 1] + r_v
         k = pc / s[:, None]
-        held = self.soc_sigma > cfg.capacity_learn_max_soc_sigma
+        held = (self.soc_sigma > cfg.capacity_learn_max_soc_sigma) | (slope_v > cfg.capacity_learn_max_slope_v)
         k[:, 3] = np.where(held, 0.0, k[:, 3])
         e = np.where(use, innovation_v, 0.0)
         dx = k * e[:, None]

@@ -169,7 +169,7 @@ def test_the_filter_equals_the_dense_textbook_ekf(capacity_learns):
 
     rng = np.random.default_rng(3)
     n = 5
-    cfg = SocEkfConfig(capacity_learn_max_soc_sigma=1.0 if capacity_learns else 1e-9)
+    cfg = SocEkfConfig(capacity_learn_max_soc_sigma=1.0 if capacity_learns else 1e-9, capacity_learn_max_slope_v=100.0)
     ekf = SocEkf(n, 1.0, np.full(n, 3.0), cfg)
     a = rng.standard_normal((n, 4, 4))
     ekf.p = 1e-4 * (a @ np.swapaxes(a, 1, 2) + np.eye(4))
