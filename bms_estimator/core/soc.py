@@ -494,6 +494,7 @@ class SocEstimator:
             s.update({f"hyst.{k}": v for k, v in self._hyst.state_dict().items()})
         if self.ekf is not None:
             s.update({f"ekf.{k}": v for k, v in self.ekf.state_dict().items()})
+            s["ekf.shift_v"] = self._ekf_shift_v.copy()
         return s
 
     def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
@@ -538,4 +539,5 @@ class SocEstimator:
                 self._start_hysteresis(np.ones(n, dtype=bool))
         if self.ekf is not None and "ekf.p" in s:
             # a state saved by the c0 method keeps the EKF's fresh start (initial_soc_sigma)
-            self.ekf.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("ekf.")})
+            self.ekf.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("ekf.") and k != "ekf.shift_v"})
+            self._ekf_shift_v = np.asarray(s.get("ekf.shift_v", np.zeros(n)), dtype=float).copy()
