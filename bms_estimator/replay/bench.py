@@ -267,7 +267,7 @@ async def _run_daemon(cfg: Any, fa: FrameArrays, channel: str) -> tuple[float, i
         notes.append(f"service receive queue dropped {svc.bus.counters.rx_dropped} frames")
     if svc.decoder.counters.errors:
         notes.append(f"decode errors {svc.decoder.counters.errors}")
-    return wall, frames, int(svc.metrics.samples), notes
+    return wall, frames, int(svc.pipeline.counters.samples), notes
 
 
 def daemon_available() -> bool:

@@ -44,6 +44,6 @@ def run_golden(log: Path, n_cells: int) -> tuple[list[list], list[list]]:
         payloads: list[list] = []
         svc.publisher._put = lambda items: payloads.extend([t, p] for t, p, _ in items)  # type: ignore[method-assign]
         for msg in read_log(log):
-            svc.process_frame(msg)
+            svc.pipeline.process_frame(msg)
     frames = [[m.arbitration_id, bytes(m.data).hex()] for m in bus.frames]
     return frames, payloads
