@@ -31,9 +31,7 @@ are skipped and counted in ``skipped_cells``.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import re
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -43,6 +41,7 @@ import structlog
 from cantools.database.can import Database, Message
 
 from ..service.schema import CAN_STATUS_SIGNALS, soc_stats
+from .signals import SignalCodec
 
 if TYPE_CHECKING:
     from ..service.pipeline import Snapshot
@@ -67,30 +66,6 @@ UNIT_FROM_SI: dict[str, float] = {
     "%": 1.0,
     "degC": 1.0,
 }
-
-_NA_RX = re.compile(r"(?i)not[ _-]?available|n/?a|sna")
-
-
-@dataclasses.dataclass(slots=True)
-class _SignalCodec:
-    name: str
-    scale: float
-    offset: float
-    raw_min: int
-    raw_max: int
-    na_raw: int
-    unit_factor: float
-    choices_by_name: dict[str, int]
-
-    def raw(self, values: Any) -> np.ndarray:
-        """Vectorised SI -> raw integer with the module's clamp/NaN policy."""
-        x = np.asarray(values, dtype=float) if not isinstance(values, np.ndarray) else values.astype(float)
-        with np.errstate(all="ignore"):
-            r = np.rint((x * self.unit_factor - self.offset) / self.scale)
-            nan = np.isnan(r)
-            r = np.clip(np.where(nan, self.raw_min, r), self.raw_min, self.raw_max)
-        return np.asarray(np.where(nan, self.na_raw, r), dtype=np.int64)
-
 
 def _to_float(v: Any) -> float:
     try:
@@ -129,7 +104,7 @@ class StateEncoder:
     def __init__(self, db: Database) -> None:
         self.db = db
         self._msgs: dict[str, Message] = {}
-        self._codecs: dict[str, dict[str, _SignalCodec]] = {}
+        self._codecs: dict[str, dict[str, SignalCodec]] = {}
         for name in (self.CELL_A, self.CELL_B, self.SUMMARY, self.ELECTRICAL, self.STATUS, self.COUNTERS):
             msg = db.get_message_by_name(name)
             self._msgs[name] = msg
@@ -144,27 +119,8 @@ class StateEncoder:
         self._summary_counter = 0
 
     @staticmethod
-    def _codec(sig) -> _SignalCodec:
-        scale, offset = float(sig.scale), float(sig.offset)
-        full_min = -(1 << (sig.length - 1)) if sig.is_signed else 0
-        full_max = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
-        lo, hi = full_min, full_max
-        if sig.minimum is not None:
-            lo = max(lo, math.ceil((sig.minimum - offset) / scale - 1e-9))
-        if sig.maximum is not None:
-            hi = min(hi, math.floor((sig.maximum - offset) / scale + 1e-9))
-        choices = {str(n): int(r) for r, n in (sig.choices or {}).items()}
-        na = next((r for n, r in choices.items() if _NA_RX.fullmatch(n)), lo)
-        return _SignalCodec(
-            name=sig.name,
-            scale=scale,
-            offset=offset,
-            raw_min=int(lo),
-            raw_max=int(hi),
-            na_raw=int(na),
-            unit_factor=UNIT_FROM_SI.get(sig.unit or "", 1.0),
-            choices_by_name=choices,
-        )
+    def _codec(sig) -> SignalCodec:
+        return SignalCodec.from_signal(sig, UNIT_FROM_SI.get(sig.unit or "", 1.0))
 
     def _frame(self, name: str, raws: dict[str, int], timestamp: float | None) -> can.Message | None:
         msg = self._msgs[name]

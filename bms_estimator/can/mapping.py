@@ -74,6 +74,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ..errors import MappingError
+from .signals import NOT_AVAILABLE_NAMES
 
 __all__ = [
     "CanMapping",
@@ -92,7 +93,7 @@ __all__ = [
 ]
 
 PRESET_ALIASES: dict[str, str] = {"default": "bms_estimator"}
-DEFAULT_NA_CHOICE_PATTERN = r"(?i)not[ _-]?available|n/?a|sna|invalid|error"
+DEFAULT_NA_CHOICE_PATTERN = NOT_AVAILABLE_NAMES
 
 
 class _Model(BaseModel):

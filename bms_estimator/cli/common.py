@@ -6,14 +6,12 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from ..core.identifier import IdentifierConfig
 from ..core.ocv import OcvCurve
 from ..core.soc import SocConfig
 from ..data import CellRecording, load_recording
+from ..jsonsafe import to_jsonable
 
 _ID = IdentifierConfig()
 _SOC = SocConfig()
@@ -101,23 +99,6 @@ def load(path: Path, args: argparse.Namespace) -> CellRecording:
 
 def load_ocv(path: Path) -> OcvCurve:
     return OcvCurve.from_csv(path)
-
-
-def to_jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
 
 
 def write_json(data: dict, path: Path | None) -> None:

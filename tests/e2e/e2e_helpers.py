@@ -32,11 +32,8 @@ FLOW_WINDOW = 20_000
 
 
 class Broker(_ServiceBroker):
-    """Mosquitto on a free loopback port. The per-client queue is deep: a subscriber that falls
-    behind a replay at full speed must still get the service's final states."""
-
-    def __init__(self, workdir: Path) -> None:
-        super().__init__(workdir, extra_conf="max_queued_messages 1000000")
+    """Mosquitto on a free loopback port (its per-client queue is deep: a subscriber that falls
+    behind a replay at full speed still gets the service's final states)."""
 
 
 @dataclass
