@@ -951,7 +951,7 @@ def test_systemd_ready_watchdog_and_stopping(tmp_path, monkeypatch):
 
 
 def test_publish_latency_bench_runs(tmp_path):
-    from bms_estimator.service.bench import bench_publish_latency, find_mosquitto
+    from benchmarks.publish_latency import bench_publish_latency, find_mosquitto
 
     if find_mosquitto() is None:
         pytest.skip("mosquitto not installed: the bench reports None")
