@@ -34,7 +34,7 @@ import structlog
 from ..can.decoder import FrameDecoder
 from ..can.sampler import Sample, SampleAssembler
 from ..core.soc import SocEstimator
-from .schema import EstimatorState, SocStats, soc_stats
+from .schema import CELL_FIELDS, EstimatorState, SocStats, soc_stats
 
 __all__ = ["Pipeline", "PipelineCounters", "Snapshot", "StatusCounters"]
 
@@ -192,6 +192,10 @@ class Pipeline:
                 "temperature_c": sample.cell_temperature_c,
                 "capacity_ah": np.broadcast_to(capacity, (self.n_cells,)),
             }
+        for f in CELL_FIELDS:  # further per-cell outputs the estimator offers (schema.CellField.estimator)
+            if f.estimator is not None and f.key not in cells and hasattr(est, f.estimator):
+                value = np.array(getattr(est, f.estimator), dtype=float, copy=True)
+                cells[f.key] = np.broadcast_to(value, (self.n_cells,))
         return Snapshot(
             t_s=sample.t_s,
             wall_time=self._wall_clock(),

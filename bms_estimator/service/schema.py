@@ -14,8 +14,10 @@ MQTT topics (``<base>`` = ``mqtt.base_topic``, cells indexed from 0)::
 
 Non-finite numbers are ``null``. SOC is a fraction 0..1 on MQTT and in percent on CAN.
 
-Adding a per-cell output (an SOC uncertainty, say) is one line in :data:`CELL_FIELDS`
-plus the value in the snapshot's ``cells`` mapping.
+Adding a per-cell output that the estimator has as an attribute (an SOC uncertainty
+``soc_sigma``, say) is one line in :data:`CELL_FIELDS` naming the attribute
+(``estimator="soc_sigma"``): the pipeline reads it into every snapshot, and the MQTT payload,
+the Home Assistant entity (if ``ha`` is given) and the dashboard follow.
 """
 
 from __future__ import annotations
@@ -72,6 +74,7 @@ class CellField:
     ha_scale: float = 1.0  # payload value -> displayed unit
     precision: int | None = None  # suggested_display_precision
     uid: str | None = None  # the entity's unique id suffix (default: key); never change a published one
+    estimator: str | None = None  # read from this SocEstimator attribute, when it has it (per cell or scalar)
 
 
 _SOC_HA = {"device_class": "battery", "unit_of_measurement": "%", "state_class": "measurement"}

@@ -26,7 +26,7 @@ def read_log(path: Path) -> list[can.Message]:
         return list(can.LogReader(str(plain)))
 
 
-def run_golden(log: Path, n_cells: int) -> tuple[list[list], list[list]]:
+def run_golden(log: Path, n_cells: int, max_frames: int | None = None) -> tuple[list[list], list[list]]:
     """``([[arbitration_id, data hex], ...], [[topic, payload json], ...])`` in sending order."""
     from bms_estimator.service.config import ServiceConfig
     from bms_estimator.samples import ocv_table
@@ -43,7 +43,7 @@ def run_golden(log: Path, n_cells: int) -> tuple[list[list], list[list]]:
         svc.bus = bus  # type: ignore[assignment]
         payloads: list[list] = []
         svc.publisher._put = lambda items: payloads.extend([t, p] for t, p, _ in items)  # type: ignore[method-assign]
-        for msg in read_log(log):
+        for msg in read_log(log)[:max_frames]:
             svc.pipeline.process_frame(msg)
     frames = [[m.arbitration_id, bytes(m.data).hex()] for m in bus.frames]
     return frames, payloads

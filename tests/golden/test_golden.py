@@ -63,3 +63,22 @@ def test_outputs_match_the_recording() -> None:
                 assert g[key] == value and type(g[key]) is type(value), f"{topic} t_s={w.get('t_s')}: {key}"
                 compared += 1
     assert compared > 20_000
+
+
+def test_a_per_cell_output_is_one_schema_line(monkeypatch):
+    """A per-cell value the estimator offers reaches the snapshot and the MQTT payload from one
+    CellField line (as an SOC uncertainty will)."""
+    import numpy as np
+
+    from bms_estimator.core.soc import SocEstimator
+    from bms_estimator.service import schema
+
+    monkeypatch.setattr(SocEstimator, "soc_sigma", property(lambda self: np.full(self.n_cells, 0.01)), raising=False)
+    monkeypatch.setattr(schema, "CELL_FIELDS", (*schema.CELL_FIELDS, schema.CellField("soc_sigma", "SOC sigma", estimator="soc_sigma")))
+    monkeypatch.setattr(schema, "CELL_KEYS", tuple(f.key for f in schema.CELL_FIELDS))
+    import bms_estimator.service.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "CELL_FIELDS", schema.CELL_FIELDS)
+    frames, payloads = run_golden(HERE / "pack4.log.gz", N_CELLS, max_frames=20_000)
+    cell = [json.loads(p) for t, p in payloads if "/cell/" in t]
+    assert cell and all(c["soc_sigma"] == 0.01 for c in cell)

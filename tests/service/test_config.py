@@ -296,3 +296,26 @@ def test_core_parameter_named_once_with_the_cores_bound(tmp_path, monkeypatch):
     with pytest.raises(ConfigError) as exc:
         load_config(path)
     assert exc.value.problems == ["estimator.core: tau_min_s must be below tau_max_s, got 600.0 and 500.0"]
+
+
+def test_secrets_come_from_systemd_credentials(tmp_path, monkeypatch):
+    """LoadCredential= puts a file per secret in $CREDENTIALS_DIRECTORY, named like the setting
+    (mqtt__password); it wins over the file, the environment wins over it; other credentials
+    are not ours and are ignored."""
+    creds = tmp_path / "creds"
+    creds.mkdir()
+    (creds / "mqtt__password").write_text("from-credential\n")
+    (creds / "something_else").write_text("x")
+    path = tmp_path / "c.toml"
+    path.write_text('[mqtt]\nusername = "bms"\npassword = "from-file"\nport = 1884\n')
+    monkeypatch.setenv("CREDENTIALS_DIRECTORY", str(creds))
+    cfg = load_config(path)
+    assert cfg.mqtt.password.get_secret_value() == "from-credential" and cfg.mqtt.port == 1884
+    assert "from-credential" not in str(cfg.redacted())
+    monkeypatch.setenv("BMS_MQTT__PASSWORD", "from-env")
+    assert load_config(path).mqtt.password.get_secret_value() == "from-env"
+    monkeypatch.delenv("BMS_MQTT__PASSWORD")
+    (creds / "mqtt__no_such_key").write_text("1")  # a credential for a setting that does not exist
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert any(p.startswith("mqtt.no_such_key:") for p in exc.value.problems)
