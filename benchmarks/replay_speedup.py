@@ -23,7 +23,7 @@ estimated:
 ``via="inline"``
     no bus and no second thread: ``replay_messages`` hands every frame to a
     sink whose ``send`` decodes, assembles and estimates at once (what an
-    in-process demo can do with ``Service.process_frame``; the results are the
+    in-process demo can do with ``Service.pipeline.process_frame``; the results are the
     same because everything runs on frame time). The upper bound of this
     pipeline in CPython.
 

@@ -120,7 +120,8 @@ class Service:
                 try:
                     self.encoder = StateEncoder(self.db)
                 except KeyError as exc:
-                    problems.append(f"can.dbc: output message {exc} missing (can.output.enabled needs the project's messages)")
+                    problems.append(f"can.dbc: {exc.args[0] if exc.args else exc} "
+                                    "(can.output.enabled needs the project's output messages)")
         try:
             bus_kwargs = cfg.can.bus_kwargs()
             if cfg.can.kernel_filters and "can_filters" not in bus_kwargs and self.decoder is not None:
