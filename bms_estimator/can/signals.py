@@ -1,12 +1,12 @@
-"""One DBC signal's values, both ways, and the NotAvailable rule: the one place the project
-converts between raw integers and physical (or SI) values.
+"""One DBC signal's raw encoding and the NotAvailable rule, once for the project.
 
 * :data:`NOT_AVAILABLE_NAMES`: a raw value whose DBC value-table name matches this means
   "no value" (``NotAvailable``, ``N/A``, ``SNA``, ``Invalid``, ``Error``). The decoder drops
   such values; the encoders send the signal's first such raw value for NaN.
 * :class:`SignalCodec`: physical -> raw (rounded to the resolution, clamped to the signal's
-  ``[minimum, maximum]``, NaN -> NotAvailable, or the minimum's raw value without one), and
-  raw -> physical. ``unit_factor`` scales an SI input to the signal's unit first (1000 for a
+  ``[minimum, maximum]``, NaN -> NotAvailable, or the minimum's raw value without one);
+  the decoder's raw -> SI is the same scale and offset composed with the mapping's
+  conversion (``can/decoder.py``). ``unit_factor`` scales an SI input to the signal's unit first (1000 for a
   signal in mOhm that is handed ohms).
 """
 
@@ -66,7 +66,3 @@ class SignalCodec:
             nan = np.isnan(r)
             r = np.clip(np.where(nan, self.raw_min, r), self.raw_min, self.raw_max)
         return np.asarray(np.where(nan, self.na_raw, r), dtype=np.int64)
-
-    def physical(self, raw: Any) -> np.ndarray:
-        """Raw -> physical (in the signal's unit)."""
-        return np.asarray(raw, dtype=float) * self.scale + self.offset

@@ -10,9 +10,9 @@ Families (``bms_`` prefix; counters end in ``_total``):
 
 * input: ``can_frames_received``, ``can_frames_decoded``, ``can_frames_ignored{reason}``,
   ``decode_problems{reason}``, ``samples``, ``samples_current_invalid``,
-  ``sample_anomalies{kind}``, ``tick_errors``
-* CAN bus: ``can_bus_up``, ``can_bus_events{event}``, ``can_rx_dropped``, ``can_tx_frames``,
-  ``can_tx_dropped``, ``can_tx_errors``
+  ``sample_anomalies{kind}``, ``cell_samples_stale``, ``tick_errors``
+* CAN bus: ``can_bus_up``, ``can_bus_events{event}``, ``can_rx_dropped``, ``can_rx_error_frames``,
+  ``can_tx_frames``, ``can_tx_dropped``, ``can_tx_errors``, ``can_encode_problems{kind}``
 * estimator: ``estimator_state{bms_estimator_state}`` (Enum), ``estimator_rejections``,
   ``estimator_corrections``, ``estimator_restarts``, ``state_restored``, ``tick_seconds``
   (histogram), ``last_sample_time_seconds``
@@ -149,9 +149,12 @@ class _ServiceCollector(Collector):
                             "not_available": dc.not_available, "flagged_invalid": dc.flagged_invalid,
                             "internal_error": dc.internal_error}, "reason")
         sc = svc.sampler.counters
-        yield _counter("bms_sample_anomalies", "frame-time anomalies of the sampler", None,
+        yield _counter("bms_sample_anomalies", "frames or values the sampler set aside or re-anchored on", None,
                        {"time_jump": sc.time_jumps, "rewind": sc.rewinds, "backward_frame": sc.backward_frames,
-                        "bad_timestamp": sc.bad_timestamps}, "kind")
+                        "bad_timestamp": sc.bad_timestamps, "non_finite_value": sc.non_finite_values,
+                        "bad_cell_index": sc.bad_cell_index, "internal_error": sc.internal_errors}, "kind")
+        yield _counter("bms_cell_samples_stale", "cell inputs stale or missing, summed over samples",
+                       sc.stale_cell_samples)
         pc = svc.pipeline.counters
         yield _counter("bms_samples", "samples estimated", pc.samples)
         yield _counter("bms_samples_current_invalid", "samples without a valid current (estimator update skipped)",
@@ -166,6 +169,10 @@ class _ServiceCollector(Collector):
         yield _counter("bms_estimator_restarts", "identifications restarted after a run of rejections, all cells",
                        int(np.sum(est.identifier.restarts)))
         yield _gauge("bms_state_restored", "1 when the estimator resumed from a saved state", int(svc.restored))
+        enc = svc.encoder
+        if enc is not None:
+            yield _counter("bms_can_encode_problems", "CAN output the encoder could not build", None,
+                           {"skipped_cell": enc.skipped_cells, "encode_failure": enc.encode_failures}, "kind")
         bus = svc.bus
         yield _gauge("bms_can_bus_up", "1 while the CAN bus is open", int(bus is not None and bus.is_open))
         if bus is not None:
@@ -173,6 +180,7 @@ class _ServiceCollector(Collector):
             yield _counter("bms_can_bus_events", "CAN bus opens, failed opens and failures that caused a reopen", None,
                            {"open": bc.opens, "open_failure": bc.open_failures, "error": bc.bus_errors}, "event")
             yield _counter("bms_can_rx_dropped", "received CAN frames dropped (receive queue full)", bc.rx_dropped)
+            yield _counter("bms_can_rx_error_frames", "CAN error frames received", bc.rx_error_frames)
             yield _counter("bms_can_tx_frames", "CAN frames sent", bc.tx_frames)
             yield _counter("bms_can_tx_dropped", "CAN frames not sent (bus down or send queue full)", bc.tx_dropped)
             yield _counter("bms_can_tx_errors", "CAN send errors", bc.tx_errors)
