@@ -29,7 +29,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import structlog
-from prometheus_client import CONTENT_TYPE_LATEST
+from prometheus_client.exposition import choose_encoder
 
 if TYPE_CHECKING:
     from .config import HealthConfig
@@ -150,7 +150,7 @@ class HealthServer:
         await self.close()
 
     # ------------------------------------------------------------------ request
-    def _route(self, method: str, target: str) -> tuple[int, str, bytes]:
+    def _route(self, method: str, target: str, headers: dict[str, str] | None = None) -> tuple[int, str, bytes]:
         path = target.split("?", 1)[0].split("#", 1)[0]
         if path not in ("/healthz", "/metrics") or (path == "/metrics" and self.metrics is None):
             return 404, _TEXT, b"not found\n"
@@ -158,7 +158,9 @@ class HealthServer:
             return 405, _TEXT, b"method not allowed\n"
         if path == "/metrics":
             assert self.metrics is not None
-            return 200, CONTENT_TYPE_LATEST, self.metrics.render()
+            # the library's content negotiation: Prometheus text, or OpenMetrics when asked for
+            encoder, ctype = choose_encoder((headers or {}).get("accept", ""))
+            return 200, ctype, encoder(self.metrics.registry)
         age = self.heartbeat.age_s()
         if age is None:
             status, text = 503, "starting: no estimator tick yet"
@@ -173,17 +175,21 @@ class HealthServer:
                 log.exception("health status failed")
         return status, _TEXT, (text + "\n").encode("utf-8")
 
-    async def _read_request(self, reader: asyncio.StreamReader) -> tuple[str, str] | None:
+    async def _read_request(self, reader: asyncio.StreamReader) -> tuple[str, str, dict[str, str]] | None:
         line = await reader.readline()
         if not line:
             return None
         parts = line.decode("latin-1").split()
         if len(parts) != 3 or not parts[2].startswith("HTTP/") or not parts[1].startswith("/"):
             raise _BadRequest
+        headers: dict[str, str] = {}
         for _ in range(self.MAX_HEADERS):
             header = await reader.readline()
             if header in (b"\r\n", b"\n", b""):
-                return parts[0], parts[1]
+                return parts[0], parts[1], headers
+            name, sep, value = header.decode("latin-1").partition(":")
+            if sep:
+                headers[name.strip().lower()] = value.strip()
         raise _BadRequest
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:

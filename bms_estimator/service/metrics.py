@@ -35,7 +35,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from prometheus_client import (
-    CONTENT_TYPE_LATEST,
     CollectorRegistry,
     Counter,
     Enum,
@@ -44,7 +43,6 @@ from prometheus_client import (
     Info,
     PlatformCollector,
     ProcessCollector,
-    generate_latest,
 )
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
@@ -55,7 +53,7 @@ from .schema import EstimatorState
 if TYPE_CHECKING:
     from .daemon import Service
 
-__all__ = ["CONTENT_TYPE_LATEST", "ServiceMetrics", "package_version"]
+__all__ = ["ServiceMetrics", "package_version"]
 
 #: tick time: 0.1 ms .. 1 s (a 2000-cell tick with every output is tens of ms)
 _TICK_BUCKETS = (1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0)
@@ -64,7 +62,7 @@ _PUBLISH_BUCKETS = (1e-3, 5e-3, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0
 
 
 class ServiceMetrics:
-    """The metrics of one service; :meth:`render` is the ``/metrics`` body."""
+    """The metrics of one service; ``registry`` is what ``/metrics`` exposes."""
 
     def __init__(self, *, cell_metrics: bool = False, registry: CollectorRegistry | None = None) -> None:
         self.registry = r = registry if registry is not None else CollectorRegistry()
@@ -105,9 +103,6 @@ class ServiceMetrics:
 
     def set_state(self, state: EstimatorState) -> None:
         self.estimator_state.state(state.label)
-
-    def render(self) -> bytes:
-        return generate_latest(self.registry)
 
 
 def _counter(name: str, doc: str, value: float, labels: dict[str, float] | None = None,

@@ -36,8 +36,9 @@ async def http(port: int, raw: bytes, timeout: float = 5.0) -> tuple[int, dict[s
     return status, headers, body
 
 
-def get(port: int, path: str):
-    return http(port, f"GET {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+def get(port: int, path: str, headers: dict[str, str] | None = None):
+    extra = "".join(f"{k}: {v}\r\n" for k, v in (headers or {}).items())
+    return http(port, f"GET {path} HTTP/1.1\r\nHost: x\r\n{extra}\r\n".encode())
 
 
 def test_healthz_follows_heartbeat():
@@ -143,6 +144,11 @@ def test_metrics_exposition():
             assert samples[("bms_build_info", (("python", platform.python_version()),
                                                ("version", package_version())))] == 1
             assert ("process_cpu_seconds_total", ()) in samples or sys.platform != "linux"
+            # the library's content negotiation: OpenMetrics when the scraper asks for it
+            status, headers, body = await get(srv.port, "/metrics",
+                                              headers={"Accept": "application/openmetrics-text; version=1.0.0"})
+            assert status == 200 and headers["content-type"].startswith("application/openmetrics-text")
+            assert body.rstrip().endswith(b"# EOF") and b"bms_mqtt_published_total 42.0" in body
             # liveness stays plain text
             status, _, body = await get(srv.port, "/healthz")
             assert status == 503 and body.startswith(b"starting")
