@@ -65,6 +65,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import DataError
+
 __all__ = [
     "CellRecording",
     "DataError",
@@ -75,10 +77,6 @@ __all__ = [
 
 REQUIRED_COLUMNS = ("time_s", "current_a", "voltage_v")
 OPTIONAL_COLUMNS = ("temperature_c",)
-
-
-class DataError(ValueError):
-    """A recording file is malformed; the message names the file and the problem."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -121,12 +121,12 @@ def test_soc_and_fit_json(tmp_path):
     ("time_s,current_a,voltage_v\n0,1,3.7\n1,x,3.7\n", "line 3"),
     ("time_s,current_a,voltage_v\n0,1,3.7\n", "row"),
 ])
-def test_bad_data_gives_a_clear_error_and_exit_2(tmp_path, capsys, content, message):
+def test_bad_data_gives_a_clear_error_and_exit_3(tmp_path, capsys, content, message):
     bad = tmp_path / "bad.csv"
     bad.write_text(content)
     rc = main(["soc", str(bad), "--ocv", PAN_OCV, "--capacity-ah", "2.9"])
     err = capsys.readouterr().err
-    assert rc == 2 and "bad.csv" in err and message in err, err
+    assert rc == 3 and "bad.csv" in err and message in err, err  # a data error, not a usage error
 
 
 def test_bad_options_are_named(tmp_path, capsys):
@@ -134,7 +134,7 @@ def test_bad_options_are_named(tmp_path, capsys):
         main(["soc", "x.csv", "--ocv", PAN_OCV, "--capacity-ah", "-1"])
     assert "--capacity-ah" in capsys.readouterr().err
     rc = main(["soc", str(tmp_path / "missing.csv"), "--ocv", PAN_OCV, "--capacity-ah", "2.9"])
-    assert rc == 2 and "missing.csv" in capsys.readouterr().err
+    assert rc == 3 and "missing.csv" in capsys.readouterr().err
     rc = main(["fit", str(drive_cycle("lg-hg2", "la92")), "--ocv", PAN_OCV, "--capacity-ah", "3", "--window", "0"])
     assert rc == 2 and "--window" in capsys.readouterr().err
 

@@ -8,12 +8,8 @@ One concept per module:
 ``sampler``  :class:`SampleAssembler`: events -> fixed-period :class:`Sample` on FRAME time
 ``encoder``  :class:`StateEncoder`: estimator state -> ``can.Message`` (clamped, NaN -> NotAvailable)
 ``bus``      :class:`ResilientBus`: python-can bus for asyncio that reopens itself
-``bench``    :func:`bench_frames_per_s`: decode + sample assembly throughput
 
-Data flow in the service::
-
-    bus (ResilientBus) --msg--> FrameDecoder.decode --events--> SampleAssembler.feed_frame(events, msg.timestamp)
-        --Sample--> estimator --> StateEncoder.encode_* --> ResilientBus.send_many
+The service's data path, hop by hop, is in the docstring of :mod:`bms_estimator.service.pipeline`.
 """
 
 from .bus import BusConfig, BusCounters, ResilientBus, open_bus

@@ -40,6 +40,8 @@ import can
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
+from ..errors import one_line_error
+
 __all__ = ["BusConfig", "BusCounters", "ResilientBus", "open_bus"]
 
 log = structlog.get_logger(__name__)
@@ -206,6 +208,7 @@ class ResilientBus:
         self._fail_request: BaseException | None = None
         self._opened = asyncio.Event()
         self._open_task: asyncio.Task[None] | None = None
+        self.last_error: str | None = None  # why the bus is not open (the last open failure or bus error)
 
     # ------------------------------------------------------------- lifecycle
     async def __aenter__(self) -> ResilientBus:
@@ -257,6 +260,20 @@ class ResilientBus:
     def is_open(self) -> bool:
         return self._bus is not None
 
+    @property
+    def state(self) -> str:
+        """``"open"``, ``"down"`` (opening or reopening in the background) or ``"closed"``."""
+        if self._closed:
+            return "closed"
+        return "open" if self._bus is not None else "down"
+
+    def describe(self) -> str:
+        """One line for status displays: ``can0 (socketcan): open`` / ``...: down (OSError: ...)``."""
+        text = f"{self.cfg.channel} ({self.cfg.interface}): {self.state}"
+        if self.state == "down" and self.last_error:
+            text += f" ({self.last_error})"
+        return text
+
     async def wait_open(self, timeout: float | None = None) -> bool:
         """Wait until a bus is open (e.g. before sending the first frames)."""
         try:
@@ -289,6 +306,7 @@ class ResilientBus:
                 bus = self._factory(self.cfg)
             except Exception as exc:  # can.CanError, OSError, ValueError, ImportError of a driver...
                 self.counters.open_failures += 1
+                self.last_error = one_line_error(exc)
                 log.warning(
                     "can.bus.open_failed",
                     interface=self.cfg.interface,
@@ -315,12 +333,14 @@ class ResilientBus:
             self._reader, self._notifier = reader, notifier
             self._got_frame_since_open = False
             self.counters.opens += 1
+            self.last_error = None
             self._opened.set()
             log.info("can.bus.open", interface=self.cfg.interface, channel=self.cfg.channel, opens=self.counters.opens)
             return
 
     async def _fail(self, exc: BaseException) -> None:
         self.counters.bus_errors += 1
+        self.last_error = one_line_error(exc)
         log.warning("can.bus.error", error=repr(exc), reopen_in_s=self._backoff)
         self._teardown()
         if not self._closed:

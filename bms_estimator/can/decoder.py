@@ -27,6 +27,7 @@ import structlog
 from cantools.database.can import Database, Message
 
 from .mapping import CanMapping, CellSignals, MappingError, ScalarSignal, load_mapping
+from .signals import not_available_raws
 
 __all__ = ["DecodeCounters", "Event", "EventKind", "FrameDecoder", "MappedSignal"]
 
@@ -138,7 +139,7 @@ class FrameDecoder:
         problems: list[str] = []
         self._build(problems)
         if problems:
-            raise MappingError("CAN mapping does not fit the DBC:\n" + "\n".join("  " + p for p in problems))
+            raise MappingError("CAN mapping does not fit the DBC:", problems)
         missing = self.n_cells - len(self.voltage_cells)
         if missing:
             log.warning(
@@ -166,8 +167,7 @@ class FrameDecoder:
         return plan
 
     def _na_raws(self, sig) -> frozenset:
-        choices = sig.choices or {}
-        return frozenset(int(raw) for raw, name in choices.items() if self._na_rx.fullmatch(str(name)))
+        return not_available_raws(sig, self._na_rx)
 
     def _conversion(self, sig, conv) -> tuple[float, float]:
         # si = sign*scale*(raw*dbc_scale + dbc_offset) + offset = a*raw + b
@@ -299,6 +299,17 @@ class FrameDecoder:
                 for kind, cell, sname, a, b, *_ in entries:
                     out.append(MappedSignal(plan.message.name, mux, kind, cell, sname, a, b))
         return out
+
+    def can_filters(self) -> list[dict[str, int | bool]]:
+        """python-can ``can_filters`` passing exactly the frames of the mapped messages (one exact
+        match per id). On socketcan the kernel applies them, so the rest of a busy vehicle bus is
+        never decoded in Python."""
+        out: list[dict[str, int | bool]] = []
+        for plan in self._plans.values():
+            m = plan.message
+            ext = bool(m.is_extended_frame)
+            out.append({"can_id": int(m.frame_id), "can_mask": 0x1FFFFFFF if ext else 0x7FF, "extended": ext})
+        return sorted(out, key=lambda f: (bool(f["extended"]), int(f["can_id"])))
 
     # ---------------------------------------------------------------- decode
     def decode(self, msg: can.Message) -> list[Event]:

@@ -31,16 +31,20 @@ are skipped and counted in ``skipped_cells``.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import re
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import can
 import numpy as np
 import structlog
 from cantools.database.can import Database, Message
+
+from ..service.schema import CAN_STATUS_SIGNALS, soc_stats
+from .signals import SignalCodec
+
+if TYPE_CHECKING:
+    from ..service.pipeline import Snapshot
 
 __all__ = ["StateEncoder"]
 
@@ -63,30 +67,6 @@ UNIT_FROM_SI: dict[str, float] = {
     "degC": 1.0,
 }
 
-_NA_RX = re.compile(r"(?i)not[ _-]?available|n/?a|sna")
-
-
-@dataclasses.dataclass(slots=True)
-class _SignalCodec:
-    name: str
-    scale: float
-    offset: float
-    raw_min: int
-    raw_max: int
-    na_raw: int
-    unit_factor: float
-    choices_by_name: dict[str, int]
-
-    def raw(self, values: Any) -> np.ndarray:
-        """Vectorised SI -> raw integer with the module's clamp/NaN policy."""
-        x = np.asarray(values, dtype=float) if not isinstance(values, np.ndarray) else values.astype(float)
-        with np.errstate(all="ignore"):
-            r = np.rint((x * self.unit_factor - self.offset) / self.scale)
-            nan = np.isnan(r)
-            r = np.clip(np.where(nan, self.raw_min, r), self.raw_min, self.raw_max)
-        return np.asarray(np.where(nan, self.na_raw, r), dtype=np.int64)
-
-
 def _to_float(v: Any) -> float:
     try:
         return float(v)
@@ -104,11 +84,6 @@ def _floats(values: Any) -> np.ndarray:
         except Exception:
             return np.asarray(math.nan)
         return np.array([_to_float(v) for v in arr.reshape(-1)], dtype=float).reshape(arr.shape)
-
-
-def _snake(name: str) -> str:
-    s = re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", name)
-    return s.lower()
 
 
 class StateEncoder:
@@ -129,37 +104,23 @@ class StateEncoder:
     def __init__(self, db: Database) -> None:
         self.db = db
         self._msgs: dict[str, Message] = {}
-        self._codecs: dict[str, dict[str, _SignalCodec]] = {}
+        self._codecs: dict[str, dict[str, SignalCodec]] = {}
         for name in (self.CELL_A, self.CELL_B, self.SUMMARY, self.ELECTRICAL, self.STATUS, self.COUNTERS):
             msg = db.get_message_by_name(name)
             self._msgs[name] = msg
             self._codecs[name] = {s.name: self._codec(s) for s in msg.signals}
+        unknown = [f"{m}.{sig}" for m in (self.STATUS, self.COUNTERS) for sig in self._codecs[m]
+                   if sig not in CAN_STATUS_SIGNALS]
+        if unknown:
+            raise KeyError(f"status signal(s) {', '.join(unknown)} carry no known counter "
+                           f"(known: {', '.join(CAN_STATUS_SIGNALS)})")
         self.skipped_cells = 0
         self.encode_failures = 0
         self._summary_counter = 0
 
     @staticmethod
-    def _codec(sig) -> _SignalCodec:
-        scale, offset = float(sig.scale), float(sig.offset)
-        full_min = -(1 << (sig.length - 1)) if sig.is_signed else 0
-        full_max = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
-        lo, hi = full_min, full_max
-        if sig.minimum is not None:
-            lo = max(lo, math.ceil((sig.minimum - offset) / scale - 1e-9))
-        if sig.maximum is not None:
-            hi = min(hi, math.floor((sig.maximum - offset) / scale + 1e-9))
-        choices = {str(n): int(r) for r, n in (sig.choices or {}).items()}
-        na = next((r for n, r in choices.items() if _NA_RX.fullmatch(n)), lo)
-        return _SignalCodec(
-            name=sig.name,
-            scale=scale,
-            offset=offset,
-            raw_min=int(lo),
-            raw_max=int(hi),
-            na_raw=int(na),
-            unit_factor=UNIT_FROM_SI.get(sig.unit or "", 1.0),
-            choices_by_name=choices,
-        )
+    def _codec(sig) -> SignalCodec:
+        return SignalCodec.from_signal(sig, UNIT_FROM_SI.get(sig.unit or "", 1.0))
 
     def _frame(self, name: str, raws: dict[str, int], timestamp: float | None) -> can.Message | None:
         msg = self._msgs[name]
@@ -266,8 +227,6 @@ class StateEncoder:
         """
         try:
             s = _floats(soc).reshape(-1)
-            with np.errstate(all="ignore"):
-                s = s * (100.0 if soc_unit == "fraction" else 1.0)
             n = s.size
             use = ~np.isnan(s)
             if valid is not None:
@@ -279,17 +238,16 @@ class StateEncoder:
                 ci = _floats(cell_index).reshape(-1)
                 if ci.size == n:
                     idx = ci
-            if use.any():
-                sv = s[use]
-                iv = idx[use]
-                imin, imax = int(np.argmin(sv)), int(np.argmax(sv))
-                with np.errstate(all="ignore"):
-                    smean = float(np.mean(np.clip(sv, -1e300, 1e300)))
-                smin, smax = sv[imin], sv[imax]
-                cmin, cmax = iv[imin], iv[imax]
+            st = soc_stats(s, use)
+            smin, smean, smax = st.soc_min, st.soc_mean, st.soc_max
+            if st.n:
+                cmin, cmax = idx[st.soc_min_cell], idx[st.soc_max_cell]
             else:
-                smin = smean = smax = cmin = cmax = math.nan
+                cmin = cmax = math.nan
             nvalid = int(use.sum()) if cells_valid is None else _to_float(cells_valid)
+            if soc_unit == "fraction":
+                with np.errstate(all="ignore"):
+                    smin, smean, smax = smin * 100.0, smean * 100.0, smax * 100.0
             cs = self._codecs[self.SUMMARY]
             summary = {
                 "SocMin": int(cs["SocMin"].raw(smin)),
@@ -315,8 +273,8 @@ class StateEncoder:
 
     # ---------------------------------------------------------------- status
     def status_keys(self) -> list[str]:
-        """Keys understood by :meth:`encode_status` (snake_case of the signal names)."""
-        return [_snake(s) for m in (self.STATUS, self.COUNTERS) for s in self._codecs[m]]
+        """Keys understood by :meth:`encode_status` (``schema.CAN_STATUS_SIGNALS``)."""
+        return [CAN_STATUS_SIGNALS[s] for m in (self.STATUS, self.COUNTERS) for s in self._codecs[m]]
 
     def encode_status(self, counters: Mapping[str, Any] | Any, *, timestamp: float | None = None) -> list[can.Message]:
         """EstimatorStatus + EstimatorCounters.
@@ -332,7 +290,7 @@ class StateEncoder:
             raws: dict[str, int] = {}
             try:
                 for sname, codec in self._codecs[mname].items():
-                    key = _snake(sname)
+                    key = CAN_STATUS_SIGNALS[sname]
                     if isinstance(counters, Mapping):
                         value = counters.get(key, counters.get(sname, 0))
                     else:
@@ -349,3 +307,15 @@ class StateEncoder:
             if frame is not None:
                 out.append(frame)
         return out
+
+    # -------------------------------------------------------------- snapshot
+    def encode_snapshot(self, snap: Snapshot) -> list[can.Message]:
+        """Every output frame of one :class:`~bms_estimator.service.pipeline.Snapshot`: the
+        cells' CellStateA/B, PackSummary + PackElectrical, EstimatorStatus + Counters."""
+        c, t = snap.cells, snap.t_s
+        frames = self.encode_cells(np.arange(snap.n_cells), c["soc"], c["r0_ohm"], c["r1_ohm"], c["c1_f"],
+                                   c["r2_ohm"], c["c2_f"], c["c0_v"], timestamp=t)
+        frames += self.encode_pack_summary(c["soc"], snap.current_a, snap.pack_voltage_v,
+                                           cells_valid=snap.cells_valid, timestamp=t)
+        frames += self.encode_status(snap.counters, timestamp=t)
+        return frames

@@ -73,6 +73,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from ..errors import MappingError
+from .signals import NOT_AVAILABLE_NAMES
+
 __all__ = [
     "CanMapping",
     "CellSignals",
@@ -90,11 +93,7 @@ __all__ = [
 ]
 
 PRESET_ALIASES: dict[str, str] = {"default": "bms_estimator"}
-DEFAULT_NA_CHOICE_PATTERN = r"(?i)not[ _-]?available|n/?a|sna|invalid|error"
-
-
-class MappingError(ValueError):
-    """A mapping that cannot be loaded or does not fit the DBC."""
+DEFAULT_NA_CHOICE_PATTERN = NOT_AVAILABLE_NAMES
 
 
 class _Model(BaseModel):
@@ -250,10 +249,8 @@ def _validate(data: Mapping[str, Any], origin: str) -> CanMapping:
     try:
         return CanMapping.model_validate(dict(data))
     except ValidationError as exc:
-        lines = [
-            f"  {'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}" for err in exc.errors()
-        ]
-        raise MappingError(f"invalid CAN mapping ({origin}):\n" + "\n".join(lines)) from None
+        lines = [f"{'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}" for err in exc.errors()]
+        raise MappingError(f"invalid CAN mapping ({origin}):", lines) from None
 
 
 def load_mapping(source: str | Path | Mapping[str, Any] | CanMapping) -> CanMapping:

@@ -6,7 +6,10 @@ import argparse
 import importlib
 import sys
 
-from ..data import DataError
+import can
+
+from .. import package_version
+from ..errors import EXIT_DATA, EXIT_RUNTIME, EXIT_USAGE, BmsEstimatorError, one_line_error
 
 #: subcommand name -> module in this package (each has ``add_parser`` and ``run``)
 SUBCOMMANDS = {
@@ -28,7 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="bms-estimator",
         description="Online battery ECM identification (continuous-time LIF) and SOC estimation.",
+        epilog="Exit codes: 0 done, 1 runtime failure (CAN bus, broker, service), 2 bad command line or "
+               "configuration, 3 unreadable or malformed input data.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module in SUBCOMMANDS.items():
         mod = importlib.import_module(f"{__package__}.{module}")
@@ -43,13 +49,26 @@ def main(argv: list[str] | None = None) -> int:
     from ..service.logging import configure_logging
 
     configure_logging(level="WARNING", fmt="console", stream=sys.stderr)
+    where = f"bms-estimator {args.command}"
     try:
         return int(args.func(args) or 0)
-    except (DataError, ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        print(f"bms-estimator {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    except BmsEstimatorError as exc:
+        print(f"{where}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, EOFError) as exc:
+        # an input file that cannot be read
+        print(f"{where}: error: {exc}", file=sys.stderr)
+        return EXIT_DATA
+    except ValueError as exc:  # an option value the commands or the core refuse
+        print(f"{where}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except (OSError, can.CanError) as exc:
+        print(f"{where}: error: {one_line_error(exc)}", file=sys.stderr)
+        return EXIT_RUNTIME
     except KeyboardInterrupt:
         return 130
+
+
 
 
 if __name__ == "__main__":

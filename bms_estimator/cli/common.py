@@ -15,6 +15,7 @@ from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
 from ..core.soc import SocConfig
 from ..data import CellRecording, load_recording
+from ..jsonsafe import to_jsonable
 
 _ID = IdentifierConfig()
 _SOC = SocConfig()
@@ -121,23 +122,6 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None) -> 
     t = median_temperature_c(rec.temperature_c) if rec is not None else None
     return OcvSurface.from_csvs([paths] if isinstance(paths, (str, Path)) else paths,
                                 default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
-
-
-def to_jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
 
 
 def write_json(data: dict, path: Path | None) -> None:

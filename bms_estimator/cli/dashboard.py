@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import sys
 import time
 
+from ..errors import EXIT_RUNTIME
 from .common import positive_float
 
 
@@ -71,7 +73,7 @@ async def _main(args: argparse.Namespace) -> int:
             await sub
         finally:
             console.print(view())
-        return 0
+        return _outcome(state)
     with Live(view(), console=console, auto_refresh=False, vertical_overflow="crop") as live:
         try:
             while not sub.done():
@@ -83,4 +85,12 @@ async def _main(args: argparse.Namespace) -> int:
             if not sub.done():
                 sub.cancel()
             live.update(view(), refresh=True)
-    return 0
+    return _outcome(state)
+
+
+def _outcome(state) -> int:
+    """0 when the broker was reached; else the runtime-failure code with one line saying why."""
+    if state.ever_connected:
+        return 0
+    print(f"bms-estimator dashboard: error: never connected to the broker: {state.status}", file=sys.stderr)
+    return EXIT_RUNTIME

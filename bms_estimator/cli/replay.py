@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import can.cli as can_cli
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
@@ -18,12 +20,10 @@ def add_parser(sub) -> None:
                     "bms_estimator/replay/replay.py.",
     )
     p.add_argument("log", type=Path, help="candump .log, Vector .asc or .blf file")
-    p.add_argument("--interface", default="virtual",
-                   help="python-can interface: virtual (in-process only), socketcan, udp_multicast, ... "
-                        "(default virtual)")
-    p.add_argument("--channel", default=None,
-                   help="channel: vcan0/can0 (socketcan), a multicast group (udp_multicast; default "
-                        "python-can's), a name (virtual)")
+    # python-can's own bus options (-i/-c/-b/--fd/--data-bitrate/--timing/--bus-kwargs); what is
+    # not given comes from python-can's configuration ($CAN_INTERFACE, $CAN_CHANNEL, ~/.canrc, ...)
+    can_cli.add_bus_arguments(p, group_title="bus (python-can; unset options come from CAN_INTERFACE, "
+                                             "CAN_CHANNEL, ~/.canrc)")
     p.add_argument("--port", type=int, default=None, help="udp_multicast port (default python-can's 43113)")
     p.add_argument("--speed", default="1", help="factor on real time (1 = real time, 50 = 50x) or 'max' (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -31,14 +31,14 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..replay.replay import log_span, open_replay_bus, parse_speed, read_log, replay_messages
+    from ..replay.replay import bus_config_from_args, log_span, open_replay_bus, parse_speed, read_log, replay_messages
 
     speed = parse_speed(args.speed)
     messages = read_log(args.log)
-    kwargs = {}
+    interface, channel, kwargs = bus_config_from_args(args)
     if args.port is not None:
         kwargs["port"] = args.port
-    bus = open_replay_bus(args.interface, args.channel, **kwargs)
+    bus = open_replay_bus(interface, channel, **kwargs)
     bar = None
     progress = None
     if sys.stderr.isatty() and not args.no_progress:

@@ -39,39 +39,13 @@ def _config_error(exc) -> int:
     return 2
 
 
-def _core_problems(path: Path | None) -> list[str]:
-    """Problems of ``[estimator.core]`` (checked by the daemon, not by load_config), so that
-    one run reports every problem of the file."""
-    import tomllib
-
-    from ..service.config import ConfigError
-    from ..service.daemon import soc_config_from_core
-
-    if path is None:
-        return []
-    try:
-        with open(path, "rb") as fh:
-            core = tomllib.load(fh).get("estimator", {}).get("core", {})
-        if isinstance(core, dict):
-            soc_config_from_core(core)
-    except ConfigError as exc:
-        return list(exc.problems)
-    except Exception:  # noqa: BLE001 - unreadable file, bad TOML: load_config reported it already
-        return []
-    return []
-
-
 def run(args: argparse.Namespace) -> int:
     from ..service.config import ConfigError, load_config
     from ..service.daemon import Service
     from ..service.logging import configure_logging
 
     try:
-        try:
-            cfg = load_config(args.config)
-        except ConfigError as exc:
-            exc.problems.extend(_core_problems(args.config))
-            raise
+        cfg = load_config(args.config)
         configure_logging(args.log_level or cfg.logging.level, args.log_format or cfg.logging.format)
         service = Service(cfg)  # checks DBC, mapping, OCV, estimator parameters; opens nothing
     except ConfigError as exc:

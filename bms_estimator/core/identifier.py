@@ -24,8 +24,10 @@ serves a 2 Ah cell and a 200 Ah cell, and any window length.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
+from typing import Annotated, Literal
 
 import numpy as np
+from annotated_types import Ge, Gt, Interval
 
 from .lif import LifHistory
 from .params import (
@@ -51,38 +53,38 @@ class IdentifierConfig:
     C-rate, so that they fit any cell size.
     """
 
-    method: str = "lif"  # "lif" (continuous time, RLS), "lif-iv" (continuous time, recursive IV) or "arx" (DT baseline)
-    window: int = 20  # LIF window L in samples
-    forgetting: float = 0.9995  # RLS forgetting factor per sample (memory ~ 1/(1-lambda) samples)
-    error_on_v: float = 0.0  # turn adaptation on above this windowed RMS error (0 = always on)
-    error_off_v: float = 0.0  # turn it off below this one
-    error_window: int = 30  # samples in the windowed error
-    trace_max: float = 1e3  # covariance trace limit (scaled regressors)
-    init_samples: int = 120  # shortest block-LS initialisation window, samples
+    method: Literal["lif", "lif-iv", "arx"] = "lif"  # "lif" (continuous time, RLS), "lif-iv" (continuous time, recursive IV) or "arx" (DT baseline)
+    window: Annotated[int, Ge(1)] = 20  # LIF window L in samples
+    forgetting: Annotated[float, Interval(ge=0.9, le=1.0)] = 0.9995  # RLS forgetting factor per sample (memory ~ 1/(1-lambda) samples)
+    error_on_v: Annotated[float, Ge(0)] = 0.0  # turn adaptation on above this windowed RMS error (0 = always on)
+    error_off_v: Annotated[float, Ge(0)] = 0.0  # turn it off below this one
+    error_window: Annotated[int, Ge(1)] = 30  # samples in the windowed error
+    trace_max: Annotated[float, Gt(0)] = 1e3  # covariance trace limit (scaled regressors)
+    init_samples: Annotated[int, Ge(1)] = 120  # shortest block-LS initialisation window, samples
     # The block grows while its LS theta is not physical (a block too short to see the slow
     # pole); past this many samples (or init_samples, if longer) the cell starts from the prior.
-    init_max_samples: int = 1200
+    init_max_samples: Annotated[int, Ge(1)] = 1200
     # A cell whose estimate the guard has rejected this many samples in a row is stuck
     # against the admissible set (the slow pole absorbing a drifting OCV error, say): its
     # identification restarts from a fresh block (0 = never).
-    restart_after_rejections: int = 300
-    tau_min_s: float = 1.0  # admissible fast time constant, lower bound
-    tau_max_s: float = 500.0  # admissible slow time constant, upper bound (the runaway guard)
+    restart_after_rejections: Annotated[int, Ge(0)] = 300
+    tau_min_s: Annotated[float, Gt(0)] = 1.0  # admissible fast time constant, lower bound
+    tau_max_s: Annotated[float, Gt(0)] = 500.0  # admissible slow time constant, upper bound (the runaway guard)
     # Prior c0 = 0 as a pseudo-measurement each learning sample, weighted relative to one
     # data sample (0 = off, the paper's estimate).  For identification along a *given*
     # SOC path (fit, compare): c0 is then an OCV-model error, and the prior stops it
     # trading off against the slow branch.  Off in the SOC estimator, where c0 carries
     # the SOC error the compensation needs.
-    c0_prior_weight: float = 0.0
-    c0_max_v: float = 0.5  # admissible |c0|: an OCV bias beyond this is not an SOC error but a broken fit
+    c0_prior_weight: Annotated[float, Ge(0)] = 0.0
+    c0_max_v: Annotated[float, Gt(0)] = 0.5  # admissible |c0|: an OCV bias beyond this is not an SOC error but a broken fit
     # lif-iv: the auxiliary model that makes the instruments takes the last admissible
     # parameters every this many samples
-    iv_model_every: int = 10
-    prior_r0_ohm_ah: float = 0.06
-    prior_r1_ohm_ah: float = 0.03
-    prior_tau1_s: float = 10.0
-    prior_r2_ohm_ah: float = 0.03
-    prior_tau2_s: float = 200.0
+    iv_model_every: Annotated[int, Ge(1)] = 10
+    prior_r0_ohm_ah: Annotated[float, Gt(0)] = 0.06
+    prior_r1_ohm_ah: Annotated[float, Gt(0)] = 0.03
+    prior_tau1_s: Annotated[float, Gt(0)] = 10.0
+    prior_r2_ohm_ah: Annotated[float, Gt(0)] = 0.03
+    prior_tau2_s: Annotated[float, Gt(0)] = 200.0
 
     def __post_init__(self) -> None:
         if self.restart_after_rejections < 0:
@@ -93,6 +95,10 @@ class IdentifierConfig:
             raise ValueError(f"iv_model_every must be >= 1, got {self.iv_model_every}")
         if not (np.isfinite(self.c0_prior_weight) and self.c0_prior_weight >= 0):
             raise ValueError(f"c0_prior_weight must be a finite number >= 0, got {self.c0_prior_weight}")
+        if not self.tau_min_s < self.tau_max_s:
+            raise ValueError(f"tau_min_s must be below tau_max_s, got {self.tau_min_s} and {self.tau_max_s}")
+        if self.error_off_v > self.error_on_v:
+            raise ValueError(f"error_off_v must not exceed error_on_v, got {self.error_off_v} > {self.error_on_v}")
 
     def rls(self) -> RlsConfig:
         return RlsConfig(

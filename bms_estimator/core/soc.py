@@ -40,8 +40,10 @@ reads that as a low SOC.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
+from typing import Annotated, Literal, get_args
 
 import numpy as np
+from annotated_types import Ge, Gt
 
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
@@ -51,10 +53,12 @@ from .soc_ekf import SocEkf, SocEkfConfig
 __all__ = ["SocConfig", "SocEstimator", "CAPACITY_SOC_UPDATES", "SOC_METHODS"]
 
 #: How the OCV evidence corrects the counted SOC (``SocConfig.soc_method``).
-SOC_METHODS = ("c0", "ekf")
+SocMethod = Literal["ekf", "c0"]
+SOC_METHODS = get_args(SocMethod)
 
 #: What a new capacity estimate may do to the SOC now (``SocConfig.capacity_soc_update``).
-CAPACITY_SOC_UPDATES = ("none", "recount", "line")
+CapacitySocUpdate = Literal["none", "recount", "line"]
+CAPACITY_SOC_UPDATES = get_args(CapacitySocUpdate)
 
 
 @dataclass(frozen=True)
@@ -62,21 +66,21 @@ class SocConfig:
     """SOC-side tuning; the defaults serve both cells in ../shared/data."""
 
     identifier: IdentifierConfig = field(default_factory=IdentifierConfig)
-    # "c0": the paper's OCV-bias compensation above a threshold; "ekf": an extended Kalman
-    # filter on SOC and the RC voltages driven by the identified parameters (core.soc_ekf)
-    soc_method: str = "ekf"
+    # "ekf": an extended Kalman filter on SOC, a diffusion branch and the capacity, driven by the
+    # identified parameters (core.soc_ekf); "c0": the paper's OCV-bias compensation above a threshold
+    soc_method: SocMethod = "ekf"
     ekf: SocEkfConfig = field(default_factory=SocEkfConfig)
     # Count with the OCV table's own C/20 capacity (the scale SOC is defined on) where the
     # table carries one, interpolated by temperature; else with the stated capacity.
     capacity_from_ocv: bool = True
     default_temperature_c: float = 25.0  # a cell whose temperature is unknown
-    soc_error_threshold: float = 0.02  # compensate when c0 means more than this SOC error
-    c0_window_s: float = 120.0  # averaging window of c0
-    c0_stable_v: float = 0.010  # c0 is stable when its std over the window is below this
+    soc_error_threshold: Annotated[float, Ge(0)] = 0.02  # compensate when c0 means more than this SOC error
+    c0_window_s: Annotated[float, Gt(0)] = 120.0  # averaging window of c0
+    c0_stable_v: Annotated[float, Ge(0)] = 0.010  # c0 is stable when its std over the window is below this
     estimate_capacity: bool = True
-    capacity_min_span: float = 0.5  # anchors must span this fraction of the stated capacity (short spans amplify OCV-model error)
-    capacity_bounds: tuple[float, float] = (0.6, 1.4)  # relative to the stated capacity
-    capacity_max_rmse: float = 0.03  # max RMS residual (SOC) of the anchor line fit
+    capacity_min_span: Annotated[float, Ge(0)] = 0.5  # anchors must span this fraction of the stated capacity (short spans amplify OCV-model error)
+    capacity_bounds: tuple[Annotated[float, Gt(0)], Annotated[float, Gt(0)]] = (0.6, 1.4)  # relative to the stated capacity
+    capacity_max_rmse: Annotated[float, Ge(0)] = 0.03  # max RMS residual (SOC) of the anchor line fit
     # What a new capacity estimate does to the SOC now (SOC RMSE after 1 h from a 20 % start,
     # 14 measured drive cycles at 25 degC, worst file: none 1.93 %, recount 2.38 %, line 2.19 %):
     #   "none"     only the count from now on uses it (the paper has no more)
@@ -84,20 +88,22 @@ class SocConfig:
     #   "line"     move to the capacity line's least-squares SOC; it mixes the OCV-model errors of
     #              every SOC the anchors were taken at, and on a synthetic 10 % capacity error it
     #              is the best of the three
-    capacity_soc_update: str = "none"
-    reanchor_min_soc: float = 0.005
+    capacity_soc_update: CapacitySocUpdate = "none"
+    reanchor_min_soc: Annotated[float, Ge(0)] = 0.005
     # One-state OCV hysteresis from the OCV table's hysteresis_v column (zero if it has none):
     # a cell that has been discharging sits on the discharge branch, H(soc) below the mean curve.
     # Read on the mean curve that reads as a 2-4 % low SOC on both cells in ../shared/data.
     hysteresis: bool = True
-    hysteresis_rate: float = 30.0  # 1/(SOC fraction): the state saturates after ~3/rate of throughput
-    hysteresis_max_v: float = 0.05  # cap on H(soc): the C/20 gap near empty is a charge-start transient
+    hysteresis_rate: Annotated[float, Ge(0)] = 30.0  # 1/(SOC fraction): the state saturates after ~3/rate of throughput
+    hysteresis_max_v: Annotated[float, Ge(0)] = 0.05  # cap on H(soc): the C/20 gap near empty is a charge-start transient
 
     def __post_init__(self) -> None:
         if self.soc_method not in SOC_METHODS:
             raise ValueError(f"soc_method must be one of {SOC_METHODS}, got {self.soc_method!r}")
         if self.capacity_soc_update not in CAPACITY_SOC_UPDATES:
             raise ValueError(f"capacity_soc_update must be one of {CAPACITY_SOC_UPDATES}, got {self.capacity_soc_update!r}")
+        if not 0 < self.capacity_bounds[0] < self.capacity_bounds[1]:
+            raise ValueError(f"capacity_bounds must be 0 < low < high, got {list(self.capacity_bounds)}")
 
     def with_(self, **changes) -> "SocConfig":
         return replace(self, **changes)

@@ -74,8 +74,10 @@ rank-1 correction (one scalar measurement per cell), with no matrix inverse.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge, Gt
 
 __all__ = ["SocEkfConfig", "SocEkf"]
 
@@ -86,26 +88,26 @@ _N = 4  # z, v_d, r_d, dq
 class SocEkfConfig:
     """Noise model of the SOC EKF (module docstring); the defaults serve both cells in ../shared/data."""
 
-    initial_soc_sigma: float = 0.10  # 1-sigma of a start SOC that is given, not measured
-    capacity_sigma: float = 0.05  # relative uncertainty of the counting capacity at a start
-    capacity_drift_per_h: float = 0.002  # its random walk per sqrt(hour)
+    initial_soc_sigma: Annotated[float, Gt(0)] = 0.10  # 1-sigma of a start SOC that is given, not measured
+    capacity_sigma: Annotated[float, Gt(0)] = 0.05  # relative uncertainty of the counting capacity at a start
+    capacity_drift_per_h: Annotated[float, Ge(0)] = 0.002  # its random walk per sqrt(hour)
     # the capacity learns only while the SOC is this sure: before, a start error still being
     # corrected would read as a capacity error (a Schmidt-style gain: the row of K is zeroed)
-    capacity_learn_max_soc_sigma: float = 0.02
+    capacity_learn_max_soc_sigma: Annotated[float, Gt(0)] = 0.02
     # nor in the steep ends of the OCV curve (slope above this, V per unit SOC: below about 10 %
     # SOC on both cells), where the table's own error (C/20 polarisation, a 50-100 mV hysteresis
     # gap) is largest and a capacity learnt there pulled the count off over the last few percent
-    capacity_learn_max_slope_v: float = 1.5
-    drift_sigma_per_h: float = 0.003  # SOC random walk the count cannot see, per sqrt(hour)
-    current_sigma_c: float = 0.01  # current-sensor noise as a C-rate (0.03 A on a 3 Ah cell)
-    rc_sigma_v: float = 0.001  # process noise of the diffusion voltage per sample, times sqrt(Ts / tau_d)
-    voltage_sigma_v: float = 0.020  # model voltage error (OCV table, slow dynamics, ...)
-    correlation_s: float = 300.0  # how long that error stays correlated
-    diffusion_tau_s: float = 1200.0  # time constant of the diffusion branch
-    diffusion_r_sigma_ohm_ah: float = 0.05  # prior sigma of its resistance, ohm * Ah (per C-rate)
-    diffusion_r_drift_ohm_ah: float = 0.01  # its random walk per sqrt(hour), ohm * Ah
-    diffusion_v_sigma_v: float = 0.02  # sigma of its voltage at a start
-    max_soc_step: float = 0.01  # at most this SOC correction per sample (a bad sample cannot jump it)
+    capacity_learn_max_slope_v: Annotated[float, Gt(0)] = 1.5
+    drift_sigma_per_h: Annotated[float, Ge(0)] = 0.003  # SOC random walk the count cannot see, per sqrt(hour)
+    current_sigma_c: Annotated[float, Gt(0)] = 0.01  # current-sensor noise as a C-rate (0.03 A on a 3 Ah cell)
+    rc_sigma_v: Annotated[float, Gt(0)] = 0.001  # process noise of the diffusion voltage per sample, times sqrt(Ts / tau_d)
+    voltage_sigma_v: Annotated[float, Gt(0)] = 0.020  # model voltage error (OCV table, slow dynamics, ...)
+    correlation_s: Annotated[float, Gt(0)] = 300.0  # how long that error stays correlated
+    diffusion_tau_s: Annotated[float, Gt(0)] = 1200.0  # time constant of the diffusion branch
+    diffusion_r_sigma_ohm_ah: Annotated[float, Gt(0)] = 0.05  # prior sigma of its resistance, ohm * Ah (per C-rate)
+    diffusion_r_drift_ohm_ah: Annotated[float, Ge(0)] = 0.01  # its random walk per sqrt(hour), ohm * Ah
+    diffusion_v_sigma_v: Annotated[float, Gt(0)] = 0.02  # sigma of its voltage at a start
+    max_soc_step: Annotated[float, Gt(0)] = 0.01  # at most this SOC correction per sample (a bad sample cannot jump it)
 
     def __post_init__(self) -> None:
         for name in ("drift_sigma_per_h", "diffusion_r_drift_ohm_ah", "capacity_drift_per_h"):

@@ -23,22 +23,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
-import shutil
-import signal
-import socket
-import subprocess
 import tempfile
 import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
+
+from ..mosquitto import Mosquitto, MosquittoError, find_mosquitto, free_port
 
 __all__ = ["BrokerInfo", "BrokerUnavailable", "find_mosquitto", "free_port", "open_broker"]
 
 CHOICES = ("auto", "mosquitto", "embedded", "none")
-_MOSQUITTO_PLACES = ("/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto", "/opt/homebrew/sbin/mosquitto")
 
 
 class BrokerUnavailable(RuntimeError):
@@ -64,84 +58,25 @@ class BrokerInfo:
         return f"{what} at {self.host}:{self.port}" + (f" ({self.note})" if self.note else "")
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _wait_port(host: str, port: int, timeout: float, alive=lambda: True) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if not alive():
-            return False
-        try:
-            with socket.create_connection((host, port), timeout=0.2):
-                return True
-        except OSError:
-            time.sleep(0.02)
-    return False
-
-
-def find_mosquitto() -> str | None:
-    """Path of the ``mosquitto`` program, or None (``$MOSQUITTO`` first, then ``$PATH``, then sbin)."""
-    env = os.environ.get("MOSQUITTO")
-    candidates = [env] if env else []
-    which = shutil.which("mosquitto")
-    if which:
-        candidates.append(which)
-    candidates.extend(_MOSQUITTO_PLACES)
-    for c in candidates:
-        if c and Path(c).is_file() and os.access(c, os.X_OK):
-            return c
-    return None
-
-
 # ------------------------------------------------------------------ mosquitto
 @contextlib.contextmanager
 def _mosquitto(program: str) -> Iterator[BrokerInfo]:
     with tempfile.TemporaryDirectory(prefix="bms-demo-mosquitto-") as tmp:
-        workdir = Path(tmp)
-        proc = None
         last_err = ""
         for _attempt in range(3):  # a free port can be taken between the probe and the bind
-            port = free_port()
-            conf = workdir / "mosquitto.conf"
-            lines = [f"listener {port} 127.0.0.1", "allow_anonymous true", "persistence false",
-                     # a subscriber that falls behind a replay at max speed must not lose the final states
-                     "max_queued_messages 1000000",
-                     f"log_dest file {workdir / 'mosquitto.log'}"]
-            if hasattr(os, "geteuid") and os.geteuid() == 0:
-                lines.append("user root")  # do not drop to the 'mosquitto' user (cannot read the temp folder)
-            conf.write_text("\n".join(lines) + "\n")
-            proc = subprocess.Popen([program, "-c", str(conf)], stdout=subprocess.DEVNULL,
-                                    stderr=subprocess.PIPE, start_new_session=True)
-            if _wait_port("127.0.0.1", port, 10.0, alive=lambda: proc.poll() is None):
+            broker = Mosquitto(tmp, program=program)
+            try:
+                broker.start()
                 break
-            last_err = _stop_process(proc)
-            proc = None
-        if proc is None:
+            except MosquittoError as exc:
+                last_err = str(exc)
+        else:
             raise BrokerUnavailable(f"mosquitto ({program}) did not start: {last_err.strip()[:300]}")
         try:
-            yield BrokerInfo("mosquitto", "127.0.0.1", port, f"{program}, pid {proc.pid}")
+            pid = broker.proc.pid if broker.proc is not None else "?"
+            yield BrokerInfo("mosquitto", broker.host, broker.port, f"{program}, pid {pid}")
         finally:
-            _stop_process(proc)
-
-
-def _stop_process(proc: subprocess.Popen) -> str:
-    err = ""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
-    if proc.stderr is not None:
-        with contextlib.suppress(Exception):
-            err = proc.stderr.read().decode(errors="replace")
-        proc.stderr.close()
-    return err
+            broker.stop()
 
 
 # ------------------------------------------------------------------- embedded

@@ -19,14 +19,15 @@ __all__ = ["LiveView", "PlainView", "progress_text"]
 
 def progress_text(view: Any) -> str:
     svc, p = view.svc, view.progress
-    t_log = svc.metrics.last_sample_time_seconds
+    last = svc.pipeline.last
+    t_log = last.t_s if last is not None else math.nan
     t_log = 0.0 if not math.isfinite(t_log) else t_log
     el = p.elapsed()
     pct = 100.0 * t_log / p.log_total_s if p.log_total_s > 0 else 0.0
     rate = t_log / el if el > 0 else 0.0
     speed = "max" if math.isinf(p.speed) else f"{p.speed:g}x"
     return (f"replay {t_log:,.0f}/{p.log_total_s:,.0f} s of log ({pct:3.0f} %)  {rate:5.0f}x real time "
-            f"(speed {speed})  {svc.metrics.samples:,} samples  {svc.decoder.counters.frames:,} frames  "
+            f"(speed {speed})  {svc.pipeline.counters.samples:,} samples  {svc.decoder.counters.frames:,} frames  "
             f"{el:5.1f} s")
 
 

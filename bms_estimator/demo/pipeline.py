@@ -8,10 +8,10 @@
    (``Q_ref``, the simulated cells' capacities are ``Q_ref`` times their factor) is the one
    ``bms-estimator soc`` uses for the measured file: measured from its end-of-test rest when
    it ends at a relaxed rest, else the stated one.
-2. :func:`run_pipeline` starts :class:`RecordingService` (a
-   :class:`~bms_estimator.service.daemon.Service` that also keeps every sample's estimate for
-   the summary; its data path is the service's own: ``ResilientBus`` -> ``FrameDecoder`` ->
-   ``SampleAssembler`` -> ``SocEstimator`` -> ``MqttPublisher``) on a python-can ``virtual``
+2. :func:`run_pipeline` starts the real :class:`~bms_estimator.service.daemon.Service`, with an
+   ``on_snapshot`` hook (:func:`record_service`) that keeps every sample's estimate for the
+   summary (the data path is the service's own, see :mod:`bms_estimator.service.pipeline`),
+   on a python-can ``virtual``
    channel, and replays the frames onto that channel from a thread
    (:func:`~bms_estimator.replay.replay.replay_messages`, sender with
    ``preserve_timestamps=True`` so the service sees the log's time). At ``speed="max"`` the
@@ -57,7 +57,7 @@ __all__ = [
     "MqttWatcher",
     "PackSetup",
     "Record",
-    "RecordingService",
+    "record_service",
     "RunResult",
     "prepare_pack",
     "run_pipeline",
@@ -198,28 +198,16 @@ class Record:
         return out
 
 
-def _recording_service_class():
-    from ..service.daemon import Service
+def record_service(svc: Any, expected_samples: int = 16384) -> Record:
+    """Attach a :class:`Record` of every sample ``svc`` estimates (an ``on_snapshot`` hook)."""
+    record = Record(svc.n_cells, max(16, int(expected_samples) + 8))
 
-    class RecordingService(Service):
-        """The service, unchanged, plus a :class:`Record` of every sample it estimated."""
+    def hook(snap: Any) -> None:
+        if snap.current_valid and math.isfinite(snap.current_a):
+            record.add(snap.t_s, snap.current_a, snap.sample.cell_voltage_v, svc.estimator)
 
-        def __init__(self, cfg, *, expected_samples: int = 16384, **kwargs: Any) -> None:
-            super().__init__(cfg, **kwargs)
-            self.record = Record(self.n_cells, max(16, int(expected_samples) + 8))
-
-        def tick(self, sample) -> None:  # type: ignore[override]
-            super().tick(sample)
-            if sample.current_valid and math.isfinite(sample.current_a):
-                self.record.add(sample.t_s, sample.current_a, sample.cell_voltage_v, self.estimator)
-
-    return RecordingService
-
-
-def __getattr__(name: str) -> Any:  # RecordingService without importing the service at module import
-    if name == "RecordingService":
-        return _recording_service_class()
-    raise AttributeError(name)
+    svc.pipeline.add_hook(hook)
+    return record
 
 
 # ---------------------------------------------------------------------- MQTT
@@ -305,24 +293,16 @@ class MqttWatcher:
 
 def feed_state_directly(state: Any, svc: Any, now: float) -> None:
     """Without a broker: hand the dashboard the payloads the service would have published."""
-    est = svc.estimator
-    sample = svc._last_sample  # noqa: SLF001 - the demo's own view of its own service
-    if sample is None:
+    from ..service import schema
+
+    snap = svc.pipeline.last
+    if snap is None:
         return
-    base = f"bms/{PACK_ID}"
-    params = est.params
-    stale = ~np.asarray(sample.valid, dtype=bool)
-    for i in range(svc.n_cells):
-        payload = {"soc": float(est.soc[i]), **{k: float(params[k][i]) for k in PARAM_KEYS},
-                   "stale": bool(stale[i]), "t_s": sample.t_s}
-        state.apply(f"{base}/cell/{i}/state", json.dumps(payload), now)
-    finite = est.soc[np.isfinite(est.soc)]
-    state.apply(f"{base}/pack/state", json.dumps({
-        "t_s": sample.t_s, "soc_min": float(finite.min()) if finite.size else None,
-        "soc_mean": float(finite.mean()) if finite.size else None,
-        "soc_max": float(finite.max()) if finite.size else None,
-        "current_a": sample.current_a, "cells_stale": int(stale.sum())}), now)
-    state.apply(f"{base}/availability", "online", now)
+    topics = svc.publisher.topics
+    for topic, payload in zip(topics.cells, schema.snapshot_cell_payloads(snap)):
+        state.apply(topic, schema.dumps(payload), now)
+    state.apply(topics.pack, schema.dumps(schema.pack_payload(snap)), now)
+    state.apply(topics.availability, "online", now)
 
 
 # ----------------------------------------------------------------------- run
@@ -424,7 +404,10 @@ async def run_pipeline(setup: PackSetup, *, broker: Any = None, speed: float = m
     notes: list[str] = []
     with tempfile.TemporaryDirectory(prefix="bms-demo-") as tmp:
         cfg = service_config(setup, channel, Path(tmp) / "state.npz", broker)
-        svc = _recording_service_class()(cfg, expected_samples=setup.n_samples)
+        from ..service.daemon import Service
+
+        svc = Service(cfg)
+        record = record_service(svc, setup.n_samples)
         watcher = MqttWatcher(state, broker.host, broker.port, lock) if mqtt_on else None
         if watcher is not None:
             # subscribe before the service starts, so that the view sees everything it publishes
@@ -503,7 +486,7 @@ async def run_pipeline(setup: PackSetup, *, broker: Any = None, speed: float = m
             tx.shutdown()
         if "error" in out:
             raise RuntimeError(f"replay failed: {out['error']!r}") from out["error"]
-        final_t = svc.record.t_s[svc.record.rows - 1] if svc.record.rows else math.nan
+        final_t = record.t_s[record.rows - 1] if record.rows else math.nan
         if watcher is not None:
             # the service published its final states on shutdown: wait until they are all here
             deadline = time.monotonic() + 15
@@ -526,7 +509,7 @@ async def run_pipeline(setup: PackSetup, *, broker: Any = None, speed: float = m
         notes.append(f"the service decoded {dec.frames} of {total} frames")
     if svc.bus.counters.rx_dropped:
         notes.append(f"the service's receive queue dropped {svc.bus.counters.rx_dropped} frames")
-    rec = svc.record.trimmed()
+    rec = record.trimmed()
     return RunResult(
         record=rec, samples=rec.rows, frames_sent=out["stats"].sent if "stats" in out else 0,
         frames_decoded=dec.frames, decode_errors=dec.errors, rx_dropped=svc.bus.counters.rx_dropped,

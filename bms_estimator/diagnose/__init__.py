@@ -17,7 +17,6 @@ Quick use::
 
 from __future__ import annotations
 
-import time
 
 from .decide import Candidate, DiagnoseConfig, Diagnosis, diagnose
 from .extensions import CAUSES, FEATURES, Fit, Model, Series, fit_model, predict
@@ -36,9 +35,7 @@ __all__ = [
     "Model",
     "PHYSICS",
     "Series",
-    "bench_diagnose_s",
     "diagnose",
-    "diagnose_recording",
     "fit_model",
     "generate",
     "hysteresis_params",
@@ -47,14 +44,6 @@ __all__ = [
     "profile_names",
     "write_report",
 ]
-
-
-def diagnose_recording(rec, ocv, capacity_ah: float, *, initial_soc: float = 1.0, validate=None,
-                       config: DiagnoseConfig = DiagnoseConfig()) -> Diagnosis:
-    """:func:`diagnose` on :class:`~bms_estimator.data.CellRecording` objects."""
-    data = Series.from_recording(rec, ocv, capacity_ah, initial_soc)
-    val = Series.from_recording(validate, ocv, capacity_ah, initial_soc) if validate is not None else None
-    return diagnose(data, validate=val, config=config)
 
 
 def hysteresis_params(d: Diagnosis, *, significant_only: bool = True):
@@ -72,21 +61,3 @@ def hysteresis_params(d: Diagnosis, *, significant_only: bool = True):
         return None
     p = c.params
     return HysteresisParams(m_v=p["m_v"], m0_v=p["m0_v"], gamma=p["gamma"], h0=p["h0"])
-
-
-def bench_diagnose_s() -> float:
-    """Wall time [s] of ``diagnose`` (defaults: LIF warm start, pair stage) on a 4.4 h drive cycle.
-
-    The shipped LG HG2 UDDS sample (15966 s at 1 s, 25 degC), stated capacity 3.0 Ah,
-    cross-validated.  For ``bms-estimator bench``; a figure, not a test.
-    """
-    from .. import samples
-    from ..core.ocv import OcvCurve
-    from ..data import load_recording
-
-    rec = load_recording(samples.drive_cycle("lg-hg2", "udds"))
-    ocv = OcvCurve.from_csv(samples.ocv_table("lg-hg2"))
-    data = Series.from_recording(rec, ocv, 3.0)
-    t0 = time.perf_counter()
-    diagnose(data)
-    return time.perf_counter() - t0

@@ -1,12 +1,10 @@
 """Terminal dashboard of the estimator service's MQTT output (``bms-estimator dashboard``).
 
-Subscribes to the service's topics (``bms_estimator/service/mqtt.py``; ``<base>``
-defaults to ``bms``)::
+Subscribes to the service's topics (``<base>`` defaults to ``bms``; topics and payload
+keys are defined in ``bms_estimator/service/schema.py``)::
 
-    <base>/<pack>/cell/<i>/state   {"soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f",
-                                    "c0_v", "tau1_s", "tau2_s", "stale", "t_s"}
-    <base>/<pack>/pack/state       {"t_s", "soc_min", "soc_mean", "soc_max", "current_a",
-                                    "cells_stale", ...}
+    <base>/<pack>/cell/<i>/state   a cell's state (schema.CELL_FIELDS, "t_s")
+    <base>/<pack>/pack/state       the pack's state (schema.PACK_FIELDS)
     <base>/<pack>/availability     online | offline (retained)
 
 and shows, per pack, the availability, the pack summary and a live per-cell table
@@ -37,6 +35,8 @@ from rich.console import Group, RenderableType
 from rich.table import Table
 from rich.text import Text
 
+from ..service.schema import CELL_KEYS
+
 __all__ = [
     "CellView",
     "DashboardCounters",
@@ -48,7 +48,7 @@ __all__ = [
 ]
 
 #: numeric fields of a cell payload that the dashboard reads
-CELL_NUMBERS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "tau1_s", "tau2_s", "t_s")
+CELL_NUMBERS = tuple(k for k in CELL_KEYS if k != "stale") + ("t_s",)
 PACK_NUMBERS = ("t_s", "soc_min", "soc_mean", "soc_max", "current_a", "cells_stale")
 MAX_CELL_INDEX = 100_000  # a larger index in a topic is treated as garbage
 
@@ -113,6 +113,7 @@ class DashboardState:
         self.counters = DashboardCounters()
         self.now: float = 0.0
         self.connected: bool = False
+        self.ever_connected: bool = False  # the broker was reached at least once
         self.status: str = "not connected"
         self.broker: str = ""
 
@@ -383,6 +384,7 @@ async def run_dashboard(
                     for topic in state.subscriptions():
                         await client.subscribe(topic, qos=0)
                     state.connected, state.status = True, "connected"
+                    state.ever_connected = True
                     delay = reconnect_min_s
                     reader = asyncio.ensure_future(_read(client, state, on_message, clock))
                     waiter = asyncio.ensure_future(stop.wait())

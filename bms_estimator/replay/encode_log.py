@@ -77,7 +77,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -99,8 +98,10 @@ from ..analysis import (
     soc_lookup_table,
 )
 from ..can.dbc import load_project_db
+from ..can.signals import SignalCodec
 from ..core.ocv import OcvCurve
 from ..data import CellRecording, load_recording
+from ..jsonsafe import to_jsonable
 from ..samples import CELLS, ocv_table
 
 __all__ = [
@@ -426,25 +427,9 @@ def build_pack(
 
 
 # --------------------------------------------------------------------- frames
-def _na_raw(sig) -> int | None:
-    for raw, name in (sig.choices or {}).items():
-        if re.fullmatch(r"(?i)not ?available|n/?a|sna", str(name)):
-            return int(raw)
-    return None
-
-
 def _raw(sig, phys: np.ndarray) -> np.ndarray:
     """Physical -> raw int64: rounded, clamped to [minimum, maximum]; NaN -> NotAvailable."""
-    x = np.asarray(phys, dtype=float)
-    lo = sig.minimum if sig.minimum is not None else -np.inf
-    hi = sig.maximum if sig.maximum is not None else np.inf
-    nan = np.isnan(x)
-    raw = np.rint((np.clip(np.where(nan, lo if np.isfinite(lo) else 0.0, x), lo, hi) - sig.offset) / sig.scale)
-    raw = raw.astype(np.int64)
-    if nan.any():
-        na = _na_raw(sig)
-        raw[nan] = na if na is not None else int(round(((lo if np.isfinite(lo) else 0.0) - sig.offset) / sig.scale))
-    return raw
+    return SignalCodec.from_signal(sig).raw(phys)
 
 
 def _pack(db_msg, raws: dict[str, np.ndarray], n: int) -> np.ndarray:
@@ -743,25 +728,8 @@ def encode_log(
     written = write_messages(fa.iter_messages(), out, progress=cb)
     truth = truth_dict(trace, fa, out=str(out))
     tp = truth_path(out)
-    tp.write_text(json.dumps(_jsonable(truth), indent=2) + "\n")
+    tp.write_text(json.dumps(to_jsonable(truth), indent=2) + "\n")
     return EncodeResult(out, tp, written, trace.duration_s, truth, trace, fa)
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
 
 
 def truths_from_json(truth: dict[str, Any]) -> list[CellTruth]:

@@ -52,7 +52,10 @@ from typing import Any
 
 import can
 
+from ..errors import CanBusError, UsageError, one_line_error
+
 __all__ = [
+    "bus_config_from_args",
     "LOG_SUFFIXES",
     "LogTimeUdpMulticastBus",
     "ReplayStats",
@@ -175,17 +178,47 @@ def log_span(path: str | Path) -> tuple[float, float] | None:
 
 
 # ------------------------------------------------------------------- buses
+def bus_config_from_args(args: Any) -> tuple[str, str | int | None, dict[str, Any]]:
+    """``(interface, channel, other bus options)`` from python-can's command-line options
+    (``can.cli.add_bus_arguments``), completed by python-can's configuration resolution
+    (``$CAN_INTERFACE``, ``$CAN_CHANNEL``, ``$CAN_BITRATE``, ``~/.canrc``, ``can.ini``).
+    Raises :class:`~bms_estimator.errors.UsageError` when no interface is given anywhere."""
+    given: dict[str, Any] = {}
+    for key in ("interface", "channel", "bitrate", "fd", "data_bitrate", "timing"):
+        value = getattr(args, key, None)
+        if value is not None and value is not False:
+            given[key] = value
+    given.update(getattr(args, "bus_kwargs", None) or {})
+    try:
+        cfg = dict(can.util.load_config(config=given))
+    except can.CanInterfaceNotImplementedError as exc:
+        if "interface" not in given:
+            raise UsageError("no CAN interface: give -i/--interface, or set CAN_INTERFACE or ~/.canrc") from None
+        raise UsageError(f"CAN interface: {exc}") from None
+    interface = cfg.pop("interface", None)
+    if not interface:
+        raise UsageError("no CAN interface: give -i/--interface, or set CAN_INTERFACE or ~/.canrc")
+    channel = cfg.pop("channel", None)
+    cfg.pop("auto_reset", None)
+    return str(interface), channel, {k: v for k, v in cfg.items() if v is not None and k in given}
+
+
 def open_replay_bus(interface: str, channel: str | int | None = None, **kwargs: Any) -> can.BusABC:
     """The sending bus: ``virtual`` with ``preserve_timestamps=True`` (receivers see the log
     time); ``udp_multicast`` (default group when ``channel`` is None); ``socketcan`` and any
-    other python-can interface as given."""
+    other python-can interface as given. Raises :class:`~bms_estimator.errors.CanBusError`
+    (one line) when it cannot be opened."""
     kw: dict[str, Any] = {"interface": interface, "receive_own_messages": False}
     if channel is not None:
         kw["channel"] = channel
     if interface == "virtual":
         kw["preserve_timestamps"] = True
     kw.update(kwargs)
-    return can.Bus(**kw)
+    try:
+        return can.Bus(**kw)
+    except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+        where = f"{interface}:{channel}" if channel is not None else interface
+        raise CanBusError(f"cannot open CAN bus {where}: {one_line_error(exc)}") from None
 
 
 try:  # the multicast interface needs msgpack (python-can[multicast])

@@ -14,9 +14,11 @@ Secrets (the MQTT password) are :class:`pydantic.SecretStr`; use
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 import os
 import tomllib
+import typing
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
@@ -27,10 +29,18 @@ from pydantic import (
     Field,
     SecretStr,
     ValidationError,
+    PrivateAttr,
     ValidationInfo,
+    create_model,
     field_validator,
+    model_validator,
 )
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from ..core.identifier import IdentifierConfig
+from ..core.soc_ekf import SocEkfConfig
+from ..errors import ConfigError
+from ..core.soc import SocConfig
 
 __all__ = [
     "CanConfig",
@@ -45,6 +55,7 @@ __all__ = [
     "StateConfig",
     "TlsConfig",
     "load_config",
+    "soc_config_from_core",
 ]
 
 ENV_PREFIX = "BMS_"
@@ -52,20 +63,6 @@ REDACTED = "**********"
 
 _TOPIC_FORBIDDEN = set("+#\x00")
 _ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
-
-
-class ConfigError(Exception):
-    """Invalid or unreadable configuration.
-
-    ``str(err)`` is a human-readable message: a header line then one line per
-    problem (``mqtt.port: Input should be less than or equal to 65535``).
-    ``err.problems`` holds the problem lines alone.
-    """
-
-    def __init__(self, header: str, problems: list[str] | None = None) -> None:
-        self.header = header
-        self.problems = list(problems or [])
-        super().__init__("\n".join([header, *("  " + p for p in self.problems)]))
 
 
 class _Strict(BaseModel):
@@ -98,6 +95,7 @@ class CanConfig(_Strict):
     # Input mapping: preset name ("default", "foxbms"), a TOML file path, or an
     # inline table; validated by bms_estimator.can.mapping.load_mapping.
     mapping: str | dict[str, Any] = "default"
+    kernel_filters: bool = Field(True, description="receive only the mapped frame ids (kernel filters on socketcan)")
     output: CanOutputConfig = Field(default_factory=CanOutputConfig)
 
     def bus_kwargs(self) -> dict[str, Any]:
@@ -112,11 +110,117 @@ class CanConfig(_Strict):
 
 
 # ---------------------------------------------------------------------- estimator
+def _dataclass_fields(cls: type) -> dict[str, tuple[Any, Any]]:
+    """``{name: (annotation with its bounds, default)}`` of a core config dataclass."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    out: dict[str, tuple[Any, Any]] = {}
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]):
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        out[f.name] = (hints[f.name], default)
+    return out
+
+
+_IDENTIFIER_FIELDS = _dataclass_fields(IdentifierConfig)
+_SOC_FIELDS = _dataclass_fields(SocConfig)
+_EKF_FIELDS = _dataclass_fields(SocEkfConfig)
+
+#: ``[estimator.core.identifier]``: the fields of the core's IdentifierConfig, with its bounds
+IdentifierSettings = create_model("IdentifierSettings", __base__=_Strict, **_IDENTIFIER_FIELDS)  # type: ignore[call-overload]
+#: ``[estimator.core.ekf]``: the noise model of the EKF SOC method (core.soc_ekf.SocEkfConfig)
+EkfSettings = create_model("EkfSettings", __base__=_Strict, **_EKF_FIELDS)  # type: ignore[call-overload]
+
+
+class _CoreBase(_Strict):
+    _soc_config: SocConfig = PrivateAttr(default_factory=SocConfig)
+
+    @model_validator(mode="after")
+    def _build(self) -> Any:
+        given = self.model_fields_set
+        ident = {k: getattr(self, k) for k in _IDENTIFIER_FIELDS if k in given}
+        ident.update({k: getattr(self.identifier, k) for k in self.identifier.model_fields_set})
+        soc = {k: getattr(self, k) for k in _SOC_FIELDS}
+        ekf = SocEkfConfig(**{k: getattr(self.ekf, k) for k in self.ekf.model_fields_set})
+        self._soc_config = SocConfig(identifier=IdentifierConfig(**ident), ekf=ekf, **soc)  # ValueError: a cross-field rule
+        return self
+
+
+#: ``[estimator.core]``: one definition, the core's dataclasses. Every field of SocConfig,
+#: and every field of IdentifierConfig either here (flat) or in an ``identifier`` table.
+CoreSettings = create_model(  # type: ignore[call-overload]
+    "CoreSettings",
+    __base__=_CoreBase,
+    identifier=(IdentifierSettings, Field(default_factory=IdentifierSettings)),
+    ekf=(EkfSettings, Field(default_factory=EkfSettings)),
+    **_SOC_FIELDS,
+    **_IDENTIFIER_FIELDS,
+)
+
+
 class EstimatorConfig(_Strict):
     sample_period_s: float = Field(1.0, gt=0, le=60)
     staleness_s: float = Field(5.0, gt=0, le=3600)
-    # Free-form parameters handed to the numerical core (lif window, noise, ...).
-    core: dict[str, Any] = Field(default_factory=dict)
+    # The numerical core's tuning: the fields of core.soc.SocConfig and core.identifier.IdentifierConfig.
+    core: CoreSettings = Field(default_factory=CoreSettings)  # type: ignore[valid-type]
+
+    @property
+    def soc_config(self) -> SocConfig:
+        """``core`` as the core's :class:`~bms_estimator.core.soc.SocConfig`."""
+        return self.core._soc_config
+
+
+def _bounds_text(annotation: Any) -> str:
+    if typing.get_origin(annotation) is Literal:
+        return "one of " + ", ".join(str(a) for a in typing.get_args(annotation))
+    parts = []
+    for meta in getattr(annotation, "__metadata__", ()):
+        for attr, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
+            v = getattr(meta, attr, None)
+            if v is not None:
+                parts.append(f"{op} {v:g}")
+    return ", ".join(parts)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    if isinstance(v, tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def core_example_toml() -> str:
+    """The ``[estimator.core]`` section of deploy/config.example.toml, made from the core's
+    dataclasses (every field, its default and its bounds)."""
+    lines = [
+        "[estimator.core]",
+        "# The numerical core's tuning: the fields of SocConfig (core/soc.py) and IdentifierConfig",
+        "# (core/identifier.py), with their defaults and bounds; the identifier's fields may also go",
+        "# in an [estimator.core.identifier] table. Unknown names are rejected. Made by",
+        "# bms_estimator.service.config.core_example_toml(); the defaults serve both measured cells.",
+    ]
+    for name, (annotation, default) in {**_SOC_FIELDS, **_IDENTIFIER_FIELDS}.items():
+        entry = f"# {name} = {_toml_value(default)}"
+        bounds = _bounds_text(annotation)
+        lines.append(f"{entry:<38}  # {bounds}" if bounds else entry)
+    lines += ["", "[estimator.core.ekf]", "# The EKF SOC method's noise model (core/soc_ekf.py, SocEkfConfig)."]
+    for name, (annotation, default) in _EKF_FIELDS.items():
+        entry = f"# {name} = {_toml_value(default)}"
+        bounds = _bounds_text(annotation)
+        lines.append(f"{entry:<38}  # {bounds}" if bounds else entry)
+    return "\n".join(lines) + "\n"
+
+
+def soc_config_from_core(core: Mapping[str, Any]) -> SocConfig:
+    """An ``[estimator.core]`` table -> :class:`SocConfig`; raises :class:`ConfigError` naming
+    each bad field (``estimator.core.<field>: ...``)."""
+    try:
+        return EstimatorConfig(core=core).soc_config
+    except ValidationError as exc:
+        raise ConfigError("invalid configuration:", ["estimator." + p for p in _problems(exc)]) from None
 
 
 # --------------------------------------------------------------------------- mqtt
@@ -153,7 +257,10 @@ class MqttConfig(_Strict):
     username: str | None = None
     password: SecretStr | None = None
     tls: TlsConfig = Field(default_factory=TlsConfig)
-    qos: int = Field(1, ge=0, le=2, description="0, 1 or 2 for every message")
+    qos: int = Field(0, ge=0, le=2, description="QoS of the state payloads; discovery and availability are QoS 1, retained")
+    publish_period_s: float = Field(0.0, ge=0, le=3600, description="shortest time between two states of a topic (frame time); 0 = every sample")
+    soc_deadband: float = Field(0.0, ge=0, le=1, description="a cell whose SOC moved less than this (fraction) and whose stale flag is unchanged is not re-sent ...")
+    max_period_s: float = Field(60.0, gt=0, le=86400, description="... for longer than this")
     base_topic: str = "bms"
     discovery: bool = True
     discovery_prefix: str = "homeassistant"
@@ -214,6 +321,7 @@ class HealthConfig(_Strict):
     host: str = "127.0.0.1"
     port: int = Field(9108, ge=0, le=65535, description="0 = any free port")
     stale_after_periods: float = Field(3.0, gt=0, description="/healthz is 503 after this many missed ticks")
+    cell_metrics: bool = Field(False, description="per-cell gauges (SOC, R0, capacity) in /metrics: 3 series per cell")
 
     @field_validator("host")
     @classmethod
@@ -235,6 +343,48 @@ class LoggingConfig(_Strict):
 
 
 # ------------------------------------------------------------------------ service
+def secrets_dir(environ: Mapping[str, str] | None = None) -> Path | None:
+    """Where secret files are read: ``$CREDENTIALS_DIRECTORY`` (systemd's ``LoadCredential=``)."""
+    env = os.environ if environ is None else environ
+    d = env.get("CREDENTIALS_DIRECTORY", "").split(":")[0]
+    return Path(d) if d else None
+
+
+class CredentialsSource(PydanticBaseSettingsSource):
+    """Settings from secret files, one per setting: ``<secrets_dir>/<section>__<key>`` holds the
+    value (``mqtt__password``, named like ``BMS_MQTT__PASSWORD`` without the prefix; a trailing
+    newline is dropped). Files of other names are not ours and are ignored. Under systemd,
+    ``LoadCredential=mqtt__password:/etc/bms-estimator/mqtt_password`` puts the file there,
+    readable by the service alone."""
+
+    def __init__(self, settings_cls: type[BaseSettings], directory: Path | None = None) -> None:
+        super().__init__(settings_cls)
+        self.directory = directory if directory is not None else secrets_dir()
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:  # pragma: no cover
+        return None, field_name, False  # __call__ reads everything at once
+
+    def __call__(self) -> dict[str, Any]:
+        d = self.directory
+        out: dict[str, Any] = {}
+        if d is None or not d.is_dir():
+            return out
+        sections = set(self.settings_cls.model_fields)
+        for f in sorted(d.iterdir()):
+            parts = f.name.lower().split("__")
+            if len(parts) < 2 or parts[0] not in sections or not f.is_file():
+                continue
+            try:
+                value = f.read_text(encoding="utf-8").rstrip("\r\n")
+            except OSError as exc:
+                raise ConfigError(f"cannot read secret file {f}: {exc.strerror or exc}") from None
+            node = out
+            for part in parts[:-1]:
+                node = node.setdefault(part, {})
+            node[parts[-1]] = value
+        return out
+
+
 class ServiceConfig(BaseSettings):
     """The whole service configuration (see deploy/config.example.toml)."""
 
@@ -263,9 +413,9 @@ class ServiceConfig(BaseSettings):
         dotenv_settings: PydanticBaseSettingsSource,
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
-        # The TOML data arrives as init kwargs (see load_config); the
-        # environment wins over it. No dotenv / secrets-dir sources.
-        return env_settings, init_settings
+        # The TOML data arrives as init kwargs (see load_config); secret files win over it,
+        # and the environment over both. No dotenv.
+        return env_settings, CredentialsSource(settings_cls), init_settings
 
     def redacted(self) -> dict[str, Any]:
         """A JSON-safe dump with every secret replaced by ``'**********'``."""

@@ -1,10 +1,12 @@
-"""Liveness and metrics over a tiny loopback HTTP server (no dependency).
+"""Liveness and metrics over a small loopback HTTP server on the service's event loop.
 
 * ``GET /healthz`` -> ``200 ok`` while the estimator loop's :class:`Heartbeat`
   is fresh (last beat within ``stale_after_periods`` sample periods), ``503``
-  when stale and before the first beat.
-* ``GET /metrics`` -> Prometheus text exposition format rendered from a
-  :class:`Metrics` registry that the rest of the service updates.
+  when stale and before the first beat; the body adds the service's status
+  (e.g. the CAN bus state).
+* ``GET /metrics`` -> the Prometheus exposition of the service's registry
+  (:class:`~bms_estimator.service.metrics.ServiceMetrics`, prometheus_client's
+  ``generate_latest``).
 * anything else -> ``404`` (``405`` for a non-GET/HEAD on a known path,
   ``400`` for a malformed request line). Garbage, oversized or slow requests
   are answered or dropped without affecting the server.
@@ -12,8 +14,8 @@
 Usage::
 
     hb = Heartbeat(cfg.estimator.sample_period_s, cfg.health.stale_after_periods)
-    metrics = Metrics()
-    server = HealthServer.from_config(cfg.health, hb, metrics)
+    metrics = ServiceMetrics()
+    server = HealthServer.from_config(cfg.health, hb, metrics, status=lambda: "CAN can0: open")
     tg.create_task(server.run())          # until cancelled
     ...; hb.beat()                        # every estimator tick
 """
@@ -22,19 +24,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
-import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import structlog
+from prometheus_client.exposition import choose_encoder
 
 if TYPE_CHECKING:
     from .config import HealthConfig
+    from .metrics import ServiceMetrics
 
-__all__ = ["HealthServer", "Heartbeat", "Metrics"]
+__all__ = ["HealthServer", "Heartbeat"]
 
 log = structlog.get_logger("bms.health")
 
@@ -76,93 +77,8 @@ class Heartbeat:
         return age is not None and age <= self.max_age_s
 
 
-def _counter(help_: str) -> Any:
-    return field(default=0, metadata={"kind": "counter", "help": help_})
-
-
-def _gauge(help_: str, default: float = 0) -> Any:
-    return field(default=default, metadata={"kind": "gauge", "help": help_})
-
-
-@dataclass
-class Metrics:
-    """Counters and gauges of the service, rendered as Prometheus text.
-
-    Update with plain attribute access (``metrics.samples += 1``) from the
-    event loop, or with :meth:`inc` / :meth:`set` (thread-safe) from other
-    threads. Counters get a ``_total`` suffix and every name a ``bms_``
-    prefix in the exposition.
-    """
-
-    frames_decoded: int = _counter("CAN frames decoded")
-    decode_errors: int = _counter("CAN frames that failed to decode")
-    samples: int = _counter("estimator samples processed")
-    estimator_rejections: int = _counter("samples or updates rejected by the estimator")
-    mqtt_published: int = _counter("MQTT messages published")
-    mqtt_dropped: int = _counter("MQTT states dropped (superseded or buffer overflow)")
-    mqtt_connects: int = _counter("successful MQTT connections")
-    mqtt_connect_failures: int = _counter("failed MQTT connection attempts")
-    state_saves: int = _counter("estimator state files written")
-    state_save_errors: int = _counter("estimator state saves that failed")
-    loop_lag_seconds: float = _gauge("lateness of the last estimator tick against its schedule")
-    cells_stale: int = _gauge("cells whose inputs are stale")
-    mqtt_connected: int = _gauge("1 while connected to the MQTT broker")
-
-    def __post_init__(self) -> None:
-        self._lock = threading.Lock()
-
-    def inc(self, name: str, n: int | float = 1) -> None:
-        with self._lock:
-            setattr(self, name, getattr(self, name) + n)
-
-    def set(self, name: str, value: int | float) -> None:
-        with self._lock:
-            if not hasattr(self, name):
-                raise AttributeError(name)
-            setattr(self, name, value)
-
-    def snapshot(self) -> dict[str, int | float]:
-        with self._lock:
-            return {f.name: getattr(self, f.name) for f in fields(self)}
-
-    def render(self, heartbeat: Heartbeat | None = None) -> str:
-        """Prometheus text exposition format (version 0.0.4)."""
-        values = self.snapshot()
-        out: list[str] = []
-        for f in fields(self):
-            kind = f.metadata.get("kind", "gauge")
-            name = f"bms_{f.name}" + ("_total" if kind == "counter" else "")
-            out.append(f"# HELP {name} {f.metadata.get('help', f.name)}")
-            out.append(f"# TYPE {name} {kind}")
-            out.append(f"{name} {_fmt(values[f.name])}")
-        if heartbeat is not None:
-            age = heartbeat.age_s()
-            out.append("# HELP bms_heartbeat_age_seconds seconds since the last estimator tick (NaN before the first)")
-            out.append("# TYPE bms_heartbeat_age_seconds gauge")
-            out.append(f"bms_heartbeat_age_seconds {_fmt(math.nan if age is None else age)}")
-            out.append("# HELP bms_healthy 1 while the estimator heartbeat is fresh")
-            out.append("# TYPE bms_healthy gauge")
-            out.append(f"bms_healthy {1 if heartbeat.is_fresh() else 0}")
-        return "\n".join(out) + "\n"
-
-
-def _fmt(value: Any) -> str:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        return "NaN"
-    if math.isnan(v):
-        return "NaN"
-    if math.isinf(v):
-        return "+Inf" if v > 0 else "-Inf"
-    if v.is_integer() and abs(v) < 2**53:
-        return str(int(v))
-    return repr(v)
-
-
 _REASONS = {200: "OK", 400: "Bad Request", 404: "Not Found", 405: "Method Not Allowed", 503: "Service Unavailable"}
 _TEXT = "text/plain; charset=utf-8"
-_PROM = "text/plain; version=0.0.4; charset=utf-8"
 
 
 class HealthServer:
@@ -175,14 +91,16 @@ class HealthServer:
     def __init__(
         self,
         heartbeat: Heartbeat,
-        metrics: Metrics,
+        metrics: ServiceMetrics | None,
         host: str = "127.0.0.1",
         port: int = 0,
         *,
         request_timeout_s: float = 5.0,
+        status: Callable[[], str] | None = None,
     ) -> None:
         self.heartbeat = heartbeat
         self.metrics = metrics
+        self.status = status
         self.host = host
         self._port = port
         self.request_timeout_s = request_timeout_s
@@ -190,8 +108,9 @@ class HealthServer:
         self._active = 0
 
     @classmethod
-    def from_config(cls, cfg: HealthConfig, heartbeat: Heartbeat, metrics: Metrics) -> HealthServer:
-        return cls(heartbeat, metrics, cfg.host, cfg.port)
+    def from_config(cls, cfg: HealthConfig, heartbeat: Heartbeat, metrics: ServiceMetrics | None,
+                    status: Callable[[], str] | None = None) -> HealthServer:
+        return cls(heartbeat, metrics, cfg.host, cfg.port, status=status)
 
     @property
     def port(self) -> int:
@@ -231,32 +150,46 @@ class HealthServer:
         await self.close()
 
     # ------------------------------------------------------------------ request
-    def _route(self, method: str, target: str) -> tuple[int, str, str]:
+    def _route(self, method: str, target: str, headers: dict[str, str] | None = None) -> tuple[int, str, bytes]:
         path = target.split("?", 1)[0].split("#", 1)[0]
-        if path not in ("/healthz", "/metrics"):
-            return 404, _TEXT, "not found\n"
+        if path not in ("/healthz", "/metrics") or (path == "/metrics" and self.metrics is None):
+            return 404, _TEXT, b"not found\n"
         if method not in ("GET", "HEAD"):
-            return 405, _TEXT, "method not allowed\n"
+            return 405, _TEXT, b"method not allowed\n"
         if path == "/metrics":
-            return 200, _PROM, self.metrics.render(self.heartbeat)
+            assert self.metrics is not None
+            # the library's content negotiation: Prometheus text, or OpenMetrics when asked for
+            encoder, ctype = choose_encoder((headers or {}).get("accept", ""))
+            return 200, ctype, encoder(self.metrics.registry)
         age = self.heartbeat.age_s()
         if age is None:
-            return 503, _TEXT, "starting: no estimator tick yet\n"
-        if not self.heartbeat.is_fresh():
-            return 503, _TEXT, f"stale: last estimator tick {age:.1f} s ago (limit {self.heartbeat.max_age_s:.1f} s)\n"
-        return 200, _TEXT, "ok\n"
+            status, text = 503, "starting: no estimator tick yet"
+        elif not self.heartbeat.is_fresh():
+            status, text = 503, f"stale: last estimator tick {age:.1f} s ago (limit {self.heartbeat.max_age_s:.1f} s)"
+        else:
+            status, text = 200, "ok"
+        if self.status is not None:
+            try:
+                text += "\n" + self.status()
+            except Exception:  # noqa: BLE001 - the answer must not depend on it
+                log.exception("health status failed")
+        return status, _TEXT, (text + "\n").encode("utf-8")
 
-    async def _read_request(self, reader: asyncio.StreamReader) -> tuple[str, str] | None:
+    async def _read_request(self, reader: asyncio.StreamReader) -> tuple[str, str, dict[str, str]] | None:
         line = await reader.readline()
         if not line:
             return None
         parts = line.decode("latin-1").split()
         if len(parts) != 3 or not parts[2].startswith("HTTP/") or not parts[1].startswith("/"):
             raise _BadRequest
+        headers: dict[str, str] = {}
         for _ in range(self.MAX_HEADERS):
             header = await reader.readline()
             if header in (b"\r\n", b"\n", b""):
-                return parts[0], parts[1]
+                return parts[0], parts[1], headers
+            name, sep, value = header.decode("latin-1").partition(":")
+            if sep:
+                headers[name.strip().lower()] = value.strip()
         raise _BadRequest
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -268,13 +201,13 @@ class HealthServer:
             try:
                 req = await asyncio.wait_for(self._read_request(reader), self.request_timeout_s)
             except (_BadRequest, ValueError, asyncio.LimitOverrunError, UnicodeError):
-                status, ctype, body = 400, _TEXT, "bad request\n"
+                status, ctype, body = 400, _TEXT, b"bad request\n"
             else:
                 if req is None:
                     return
                 method = req[0]
                 status, ctype, body = self._route(*req)
-            payload = body.encode("utf-8")
+            payload = body
             head = (
                 f"HTTP/1.1 {status} {_REASONS.get(status, 'Error')}\r\n"
                 f"Content-Type: {ctype}\r\n"

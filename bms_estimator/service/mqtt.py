@@ -1,21 +1,11 @@
 """MQTT publishing of estimator results (aiomqtt), with Home Assistant discovery.
 
-Topics (``<base>`` = ``mqtt.base_topic``, default ``bms``; cells are indexed
-from 0 like the estimator's arrays):
+Topics, payload keys and the Home Assistant entities are defined in
+:mod:`bms_estimator.service.schema`; this module only moves them. The service
+hands each :class:`~bms_estimator.service.pipeline.Snapshot` to
+:meth:`MqttPublisher.submit_snapshot`.
 
-* ``<base>/<pack_id>/cell/<i>/state``  JSON ``{"soc", "r0_ohm", "r1_ohm",
-  "c1_f", "r2_ohm", "c2_f", "c0_v", "tau1_s", "tau2_s", "stale", "t_s"}``
-  (non-finite numbers are ``null``; ``tau*`` derived from R*C when absent)
-* ``<base>/<pack_id>/pack/state``      JSON, see :func:`pack_summary`
-* ``<base>/<pack_id>/availability``    ``online`` / ``offline``, retained;
-  ``offline`` is also the connection's last will (retained) and is published
-  by :meth:`MqttPublisher.close` on a clean shutdown.
-* ``<discovery_prefix>/sensor/<unique_id>/config``  retained Home Assistant
-  discovery configs (pack SOC min/mean/max, current, stale cells; per cell
-  SOC and R0), re-sent whenever ``<discovery_prefix>/status`` says ``online``.
-
-The estimator never waits for the network: :meth:`~MqttPublisher.submit_cells`
-and :meth:`~MqttPublisher.submit_pack` only put the newest payload per topic
+The estimator never waits for the network: the ``submit_*`` methods only put the newest payload per topic
 into a bounded buffer (an older unsent payload of the same topic is replaced
 and counted as dropped; when the buffer is full the least recently updated
 topic is evicted and counted) and never raise. :meth:`~MqttPublisher.run` is
@@ -27,12 +17,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
-import math
 import random
 import re
 import ssl
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
@@ -42,20 +31,22 @@ import aiomqtt
 import numpy as np
 import structlog
 
+from .. import package_version
+from ..jsonsafe import to_jsonable
+from . import schema
+
 if TYPE_CHECKING:
     from .config import MqttConfig
-    from .health import Metrics
+    from .metrics import ServiceMetrics
+    from .pipeline import Snapshot
 
-__all__ = ["CELL_KEYS", "MqttCounters", "MqttPublisher", "pack_summary"]
+__all__ = ["MqttCounters", "MqttPublisher"]
 
 log = structlog.get_logger("bms.mqtt")
 
-#: Keys of a cell state payload, in publishing order (``t_s`` is added last).
-CELL_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "tau1_s", "tau2_s", "stale")
-
 _PUBLISH_BATCH = 256
-# HA discovery object ids allow [a-zA-Z0-9_-] only.
-_HA_ID_BAD = re.compile(r"[^A-Za-z0-9_-]")
+#: discovery configs, their removal and the availability are retained and sent QoS 1
+_CONTROL_QOS = 1
 
 
 @dataclass
@@ -66,55 +57,6 @@ class MqttCounters:
     connect_failures: int = 0
     disconnects: int = 0  # connections lost after being established
     submit_errors: int = 0  # bad input to submit_*: logged and ignored
-
-
-def _num(x: Any) -> float | int | bool | str | None:
-    """JSON-safe scalar: numpy -> python, non-finite -> None."""
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, bool) or x is None or isinstance(x, str):
-        return x
-    if isinstance(x, int):
-        return x
-    try:
-        f = float(x)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, np.ndarray):
-        return [_jsonable(v) for v in obj.tolist()]
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    return _num(obj)
-
-
-def pack_summary(
-    t_s: float,
-    soc: Any,
-    current_a: float | None,
-    *,
-    stale: Any = None,
-    **extra: Any,
-) -> dict[str, Any]:
-    """Pack payload: ``t_s, soc_min, soc_mean, soc_max, current_a,
-    cells_stale`` (+ ``extra``, e.g. counters). NaN SOCs are ignored."""
-    s = np.asarray(soc, dtype=float).reshape(-1)
-    finite = s[np.isfinite(s)]
-    out: dict[str, Any] = {
-        "t_s": t_s,
-        "soc_min": float(finite.min()) if finite.size else None,
-        "soc_mean": float(finite.mean()) if finite.size else None,
-        "soc_max": float(finite.max()) if finite.size else None,
-        "current_a": current_a,
-        "cells_stale": int(np.count_nonzero(np.asarray(stale, dtype=bool))) if stale is not None else 0,
-    }
-    out.update(extra)
-    return out
 
 
 class _LatestBuffer:
@@ -179,22 +121,23 @@ class MqttPublisher:
         pack_id: str,
         n_cells: int,
         *,
-        metrics: Metrics | None = None,
+        metrics: ServiceMetrics | None = None,
         sw_version: str | None = None,
+        expire_after_s: float | None = None,
     ) -> None:
         self.cfg = cfg
         self.pack_id = pack_id
         self.n_cells = int(n_cells)
         self.metrics = metrics
-        self.sw_version = sw_version or _package_version()
+        self.sw_version = sw_version or package_version()
         self.counters = MqttCounters()
 
-        root = f"{cfg.base_topic}/{pack_id}"
-        self.topic_root = root
-        self.availability_topic = f"{root}/availability"
-        self.pack_topic = f"{root}/pack/state"
-        self.ha_status_topic = f"{cfg.discovery_prefix}/status"
-        self._cell_topics = [f"{root}/cell/{i}/state" for i in range(self.n_cells)]
+        self.topics = topics = schema.Topics(cfg.base_topic, pack_id, cfg.discovery_prefix, self.n_cells)
+        self.topic_root = topics.root
+        self.availability_topic = topics.availability
+        self.pack_topic = topics.pack
+        self.ha_status_topic = topics.ha_status
+        self._cell_topics = topics.cells
 
         self._buffer = _LatestBuffer(cfg.buffer_max)
         self._wakeup = asyncio.Event()
@@ -207,6 +150,13 @@ class MqttPublisher:
         self._done: asyncio.Event | None = None
         self._tls: ssl.SSLContext | None = None
         self._submit_error_logged = 0
+        self.expire_after_s = expire_after_s
+        self._last_t: np.ndarray | None = None  # per cell: frame time, SOC and stale flag last queued
+        self._last_soc: np.ndarray | None = None
+        self._last_stale: np.ndarray | None = None
+        self._pack_last_t: float | None = None
+        self._submitted: dict[str, float] = {}  # topic -> when its oldest unsent state was submitted
+        self._orphans_checked = False  # once per run: the configuration does not change in between
 
     # ------------------------------------------------------------------ topics
     def cell_topic(self, i: int) -> str:
@@ -224,58 +174,72 @@ class MqttPublisher:
         return asdict(self.counters)
 
     # ------------------------------------------------------------------ submit
+    def submit_snapshot(self, snap: Snapshot) -> None:
+        """Queue the cell and pack states of one snapshot, as ``publish_period_s`` and
+        ``soc_deadband`` allow (on the frames' time). Never raises, never blocks."""
+        if not self.cfg.enabled or self._closing:
+            return
+        try:
+            send = self._due_cells(snap)
+            items = []
+            if send.any():
+                cells = schema.snapshot_cell_payloads(snap)
+                items = [(self._cell_topics[i], schema.dumps(cells[i]), False) for i in np.flatnonzero(send)]
+            if self._pack_due(snap.t_s):
+                items.append((self.pack_topic, schema.dumps(schema.pack_payload(snap)), False))
+            if items:
+                self._put(items)
+        except Exception as exc:  # noqa: BLE001 - must never raise into the estimator
+            self._submit_failed("submit_snapshot", exc)
+
+    def _pack_due(self, t_s: float) -> bool:
+        last = self._pack_last_t
+        if last is not None and t_s >= last and t_s - last < self.cfg.publish_period_s - 1e-9:
+            return False
+        self._pack_last_t = t_s
+        return True
+
+    def _due_cells(self, snap: Snapshot) -> np.ndarray:
+        """Cells to publish now: their period is over and (with a deadband) they changed."""
+        cfg, n = self.cfg, self.n_cells
+        if self._last_t is None:
+            self._last_t = np.full(n, -np.inf)
+            self._last_soc = np.full(n, np.nan)
+            self._last_stale = np.zeros(n, dtype=bool)
+        t = snap.t_s
+        age = t - self._last_t
+        due = (age >= cfg.publish_period_s - 1e-9) | (age < 0)  # time went back: start again
+        if cfg.soc_deadband > 0:
+            soc = np.asarray(snap.cells["soc"], dtype=float)
+            stale = ~snap.valid
+            with np.errstate(invalid="ignore"):
+                moved = ~(np.abs(soc - self._last_soc) < cfg.soc_deadband)  # NaN on either side: moved
+            due &= moved | (stale != self._last_stale) | (age >= cfg.max_period_s - 1e-9) | (age < 0)
+            self._last_soc = np.where(due, soc, self._last_soc)
+            self._last_stale = np.where(due, stale, self._last_stale)
+        self._last_t = np.where(due, t, self._last_t)
+        return due
+
     def submit_cells(self, t_s: float, arrays: Mapping[str, Any]) -> None:
         """Queue one state per cell from per-cell arrays (length ``n_cells``
-        or scalars). Keys: :data:`CELL_KEYS` plus any extra numeric arrays.
+        or scalars), keys as in ``schema.CELL_FIELDS`` plus any extra numeric arrays.
         Never raises, never blocks."""
         if not self.cfg.enabled or self._closing:
             return
         try:
-            n = self.n_cells
-            cols: dict[str, list[Any]] = {}
-            keys = [k for k in CELL_KEYS if k in arrays] + [k for k in arrays if k not in CELL_KEYS]
-            for key in keys:
-                if key == "t_s":
-                    continue
-                arr = np.asarray(arrays[key])
-                if arr.ndim == 0:
-                    arr = np.broadcast_to(arr, (n,))
-                arr = arr.reshape(-1)
-                if arr.shape[0] != n:
-                    raise ValueError(f"{key!r} has {arr.shape[0]} values, expected {n}")
-                if key == "stale":
-                    cols[key] = [bool(v) for v in arr.astype(bool).tolist()]
-                else:
-                    cols[key] = [_num(v) for v in arr.astype(float).tolist()]
-            for tau, (r, c) in (("tau1_s", ("r1_ohm", "c1_f")), ("tau2_s", ("r2_ohm", "c2_f"))):
-                if tau not in cols and r in cols and c in cols:
-                    cols[tau] = [
-                        _num(rv * cv) if rv is not None and cv is not None else None
-                        for rv, cv in zip(cols[r], cols[c])
-                    ]
-            if "stale" not in cols:
-                cols["stale"] = [False] * n
-            order = [k for k in CELL_KEYS if k in cols] + [k for k in cols if k not in CELL_KEYS]
-            t = _num(t_s)
-            items = []
-            for i in range(n):
-                payload = {k: cols[k][i] for k in order}
-                payload["t_s"] = t
-                items.append((self._cell_topics[i], json.dumps(payload, allow_nan=False), False))
-            self._put(items)
+            cells = schema.cell_payloads(t_s, arrays, self.n_cells)
+            self._put([(self._cell_topics[i], schema.dumps(p), False) for i, p in enumerate(cells)])
         except Exception as exc:  # noqa: BLE001 - must never raise into the estimator
             self._submit_failed("submit_cells", exc)
 
     def submit_pack(self, payload: Mapping[str, Any]) -> None:
-        """Queue the pack state (any JSON-able mapping, see :func:`pack_summary`).
-        Never raises, never blocks."""
+        """Queue a pack state (any JSON-able mapping). Never raises, never blocks."""
         if not self.cfg.enabled or self._closing:
             return
         try:
             if not isinstance(payload, Mapping):
                 raise TypeError(f"pack payload must be a mapping, not {type(payload).__name__}")
-            text = json.dumps(_jsonable(payload), allow_nan=False)
-            self._put([(self.pack_topic, text, False)])
+            self._put([(self.pack_topic, schema.dumps(to_jsonable(payload)), False)])
         except Exception as exc:  # noqa: BLE001
             self._submit_failed("submit_pack", exc)
 
@@ -288,6 +252,10 @@ class MqttPublisher:
                 log.error("mqtt submit rejected", call=what, error=f"{type(exc).__name__}: {exc}")
 
     def _put(self, items: list[tuple[str, str, bool]]) -> None:
+        if self.metrics is not None:
+            now = time.monotonic()
+            for topic, _, _ in items:
+                self._submitted.setdefault(topic, now)
         dropped = self._buffer.put_many(items)
         if dropped:
             self._count("dropped", dropped)
@@ -304,98 +272,18 @@ class MqttPublisher:
     def _count(self, name: str, n: int = 1) -> None:
         setattr(self.counters, name, getattr(self.counters, name) + n)
         m = self.metrics
-        if m is not None:
-            mname = {
-                "published": "mqtt_published",
-                "dropped": "mqtt_dropped",
-                "connects": "mqtt_connects",
-                "connect_failures": "mqtt_connect_failures",
-            }.get(name)
-            if mname:
-                m.inc(mname, n)
+        if m is not None and name in ("published", "dropped", "connects", "connect_failures"):
+            getattr(m, f"mqtt_{name}").inc(n)
 
     def _set_connected(self, value: bool) -> None:
         self._connected = value
         if self.metrics is not None:
-            self.metrics.set("mqtt_connected", int(value))
+            self.metrics.mqtt_connected.set(int(value))
 
     # --------------------------------------------------------------- discovery
     def discovery_messages(self) -> list[tuple[str, str]]:
-        """Home Assistant discovery (topic, JSON config) pairs."""
-        pid = _HA_ID_BAD.sub("_", self.pack_id)
-        prefix = self.cfg.discovery_prefix
-        device = {
-            "identifiers": [f"bms_estimator_{pid}"],
-            "name": f"Battery pack {pid}",
-            "manufacturer": "bms-estimator",
-            "model": "ECM + SOC estimator",
-            "sw_version": self.sw_version,
-        }
-        common = {
-            "availability_topic": self.availability_topic,
-            "payload_available": "online",
-            "payload_not_available": "offline",
-            "device": device,
-        }
-
-        def pct(key: str) -> str:
-            return (
-                f"{{{{ (value_json.{key} * 100) | round(2) if value_json.{key} is number else none }}}}"
-            )
-
-        def scaled(key: str, factor: float, digits: int) -> str:
-            return (
-                f"{{{{ (value_json.{key} * {factor}) | round({digits}) "
-                f"if value_json.{key} is number else none }}}}"
-            )
-
-        out: list[tuple[str, str]] = []
-
-        def add(uid: str, name: str, state_topic: str, template: str, **extra: Any) -> None:
-            cfg = {
-                "name": name,
-                "unique_id": uid,
-                "state_topic": state_topic,
-                "value_template": template,
-                **common,
-                **extra,
-            }
-            out.append((f"{prefix}/sensor/{uid}/config", json.dumps(cfg)))
-
-        battery = {"device_class": "battery", "unit_of_measurement": "%", "state_class": "measurement"}
-        for key, label in (("soc_min", "SOC min"), ("soc_mean", "SOC mean"), ("soc_max", "SOC max")):
-            add(f"bms_{pid}_pack_{key}", label, self.pack_topic, pct(key), **battery)
-        add(
-            f"bms_{pid}_pack_current",
-            "Current",
-            self.pack_topic,
-            scaled("current_a", 1, 3),
-            device_class="current",
-            unit_of_measurement="A",
-            state_class="measurement",
-        )
-        add(
-            f"bms_{pid}_pack_cells_stale",
-            "Stale cells",
-            self.pack_topic,
-            "{{ value_json.cells_stale }}",
-            state_class="measurement",
-            entity_category="diagnostic",
-        )
-        for i in range(self.n_cells):
-            topic = self._cell_topics[i]
-            add(f"bms_{pid}_cell{i}_soc", f"Cell {i} SOC", topic, pct("soc"), **battery)
-            add(
-                f"bms_{pid}_cell{i}_r0",
-                f"Cell {i} R0",
-                topic,
-                scaled("r0_ohm", 1000, 4),
-                unit_of_measurement="mΩ",
-                state_class="measurement",
-                icon="mdi:resistor",
-                entity_category="diagnostic",
-            )
-        return out
+        """Home Assistant discovery (topic, JSON config) pairs (see ``schema.discovery_messages``)."""
+        return schema.discovery_messages(self.topics, sw_version=self.sw_version, expire_after_s=self.expire_after_s)
 
     # -------------------------------------------------------------------- run
     async def run(self) -> None:
@@ -485,7 +373,7 @@ class MqttPublisher:
             username=cfg.username,
             password=cfg.password.get_secret_value() if cfg.password is not None else None,
             identifier=cfg.client_id or f"bms-estimator-{self.pack_id}",
-            will=aiomqtt.Will(self.availability_topic, "offline", qos=cfg.qos, retain=True),
+            will=aiomqtt.Will(self.availability_topic, "offline", qos=_CONTROL_QOS, retain=True),
             keepalive=cfg.keepalive,
             timeout=cfg.timeout_s,
             tls_context=self._tls_context(),
@@ -539,6 +427,12 @@ class MqttPublisher:
             if cfg.discovery:
                 await client.subscribe(self.ha_status_topic, qos=1)
             await self._publish_one(client, self.availability_topic, "online", True)
+            if not self._orphans_checked:
+                try:
+                    await self.remove_orphans(client)
+                except asyncio.TimeoutError:  # e.g. an ACL that hides the probe: go on without
+                    log.warning("home assistant: could not scan for orphan entities (no answer in time)")
+                self._orphans_checked = True
             if cfg.discovery:
                 self._discovery_due = False
                 await self._publish_discovery(client)
@@ -571,7 +465,7 @@ class MqttPublisher:
             # Cancelled (not close()): best effort to tell the world we are gone.
             with contextlib.suppress(BaseException):
                 await asyncio.wait_for(
-                    client.publish(self.availability_topic, "offline", qos=cfg.qos, retain=True),
+                    client.publish(self.availability_topic, "offline", qos=_CONTROL_QOS, retain=True),
                     timeout=1.0,
                 )
             raise
@@ -586,28 +480,79 @@ class MqttPublisher:
     async def _listen(self, client: aiomqtt.Client) -> None:
         async for message in client.messages:
             if message.topic.matches(self.ha_status_topic):
-                payload = message.payload
-                if isinstance(payload, (bytes, bytearray)):
-                    payload = bytes(payload).decode("utf-8", "replace")
-                if str(payload).strip().lower() == "online":
+                if _text(message.payload).strip().lower() == "online":
                     log.info("home assistant online: re-sending discovery")
                     self._discovery_due = True
                     self._wakeup.set()
 
     async def _publish_one(self, client: aiomqtt.Client, topic: str, payload: str, retain: bool) -> None:
-        await client.publish(topic, payload, qos=self.cfg.qos, retain=retain, timeout=self.cfg.timeout_s)
+        await client.publish(topic, payload, qos=_CONTROL_QOS, retain=retain, timeout=self.cfg.timeout_s)
         self._count("published")
 
     async def _publish_discovery(self, client: aiomqtt.Client) -> None:
         msgs = [(t, p, True) for t, p in self.discovery_messages()]
-        failed = await self._publish_batch(client, msgs)
+        failed = await self._publish_batch(client, msgs, qos=_CONTROL_QOS)
         if failed:
             self._discovery_due = True  # try again on the next connection
             raise failed[0][1]
         log.info("home assistant discovery published", sensors=len(msgs))
 
+    def _is_ours(self, topic: str) -> bool:
+        """A discovery config topic of this pack (``<prefix>/<component>/bms_<pack>_{pack|cell<i>}_*/config``)."""
+        parts = topic.split("/")
+        if len(parts) < 4 or parts[-1] != "config":
+            return False
+        rest = parts[-2]
+        prefix = self.topics.unique_id_prefix
+        if not rest.startswith(prefix):
+            return False
+        rest = rest[len(prefix):]
+        return bool(re.match(r"^(pack|cell\d+)_", rest))
+
+    async def remove_orphans(self, client: aiomqtt.Client) -> int:
+        """Remove this pack's retained discovery configs that the current configuration does not
+        publish (a pack that had more cells, or discovery turned off): subscribe to the discovery
+        prefix, collect the retained configs up to a probe message of our own, and clear the
+        orphans with an empty retained message. Returns their number."""
+        cfg = self.cfg
+        keep = {t for t, _ in self.discovery_messages()} if cfg.discovery else set()
+        probe = self.topics.probe
+        token = f"{random.getrandbits(64):016x}"
+        flt = self.topics.discovery_filter
+        await client.subscribe(probe, qos=_CONTROL_QOS)
+        await client.subscribe(flt, qos=_CONTROL_QOS)
+        found: set[str] = set()
+        try:
+            await client.publish(probe, token, qos=_CONTROL_QOS, retain=False, timeout=cfg.timeout_s)
+            async with asyncio.timeout(cfg.timeout_s):
+                async for message in client.messages:
+                    topic = message.topic.value
+                    if topic == probe and _text(message.payload) == token:
+                        break
+                    if topic == self.ha_status_topic and _text(message.payload).strip().lower() == "online":
+                        self._discovery_due = True
+                    elif message.retain and message.payload and self._is_ours(topic):
+                        found.add(topic)
+        finally:
+            await client.unsubscribe(flt)
+            await client.unsubscribe(probe)
+        orphans = sorted(found - keep)
+        if orphans:
+            failed = await self._publish_batch(client, [(t, "", True) for t in orphans], qos=_CONTROL_QOS)
+            if failed:
+                raise failed[0][1]
+            log.info("home assistant: removed entities this configuration no longer has", removed=len(orphans))
+        return len(orphans)
+
     async def _publish_items(self, client: aiomqtt.Client, items: list[tuple[str, str, bool]]) -> None:
         failed = await self._publish_batch(client, items)
+        m = self.metrics
+        if m is not None:
+            now, lost = time.monotonic(), {t for (t, _, _), _ in failed}
+            for topic, _, _ in items:
+                since = self._submitted.pop(topic, None) if topic not in lost else None
+                if since is not None:
+                    m.mqtt_publish_latency.observe(now - since)
         if failed:
             unsent = [item for item, _ in failed]
             dropped = self._buffer.restore(unsent)
@@ -616,11 +561,12 @@ class MqttPublisher:
             raise failed[0][1]
 
     async def _publish_batch(
-        self, client: aiomqtt.Client, items: list[tuple[str, str, bool]]
+        self, client: aiomqtt.Client, items: list[tuple[str, str, bool]], qos: int | None = None
     ) -> list[tuple[tuple[str, str, bool], aiomqtt.MqttError]]:
         """Publish concurrently (QoS>0 waits for acks); return the failures."""
         failed: list[tuple[tuple[str, str, bool], aiomqtt.MqttError]] = []
-        qos, timeout = self.cfg.qos, self.cfg.timeout_s
+        qos = self.cfg.qos if qos is None else qos
+        timeout = self.cfg.timeout_s
         for start in range(0, len(items), _PUBLISH_BATCH):
             chunk = items[start : start + _PUBLISH_BATCH]
             if failed:  # connection is broken: do not even try the rest
@@ -643,16 +589,13 @@ class MqttPublisher:
         return failed
 
 
+def _text(payload: Any) -> str:
+    if isinstance(payload, (bytes, bytearray)):
+        return bytes(payload).decode("utf-8", "replace")
+    return "" if payload is None else str(payload)
+
+
 def _cancelling() -> bool:
     """True while the current task has a pending cancellation request."""
     task = asyncio.current_task()
     return bool(task is not None and getattr(task, "cancelling", lambda: 0)())
-
-
-def _package_version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("bms-estimator")
-    except Exception:  # noqa: BLE001 - not installed (source tree)
-        return "0+unknown"

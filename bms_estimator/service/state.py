@@ -35,13 +35,14 @@ from typing import Any
 import numpy as np
 import structlog
 
+from ..jsonsafe import to_jsonable
+
 __all__ = [
     "FORMAT_TAG",
     "FORMAT_VERSION",
     "StateDict",
     "load_state",
     "save_state",
-    "try_save_state",
 ]
 
 log = structlog.get_logger("bms.state")
@@ -112,7 +113,7 @@ def save_state(
     pack_id = str(meta["pack_id"])
     n_cells = int(meta["n_cells"])
     extra = {k: v for k, v in meta.items() if k not in ("pack_id", "n_cells")}
-    meta_json = json.dumps(extra, allow_nan=False, default=_json_default)
+    meta_json = json.dumps(to_jsonable(extra), allow_nan=False)
     when = time.time() if saved_at is None else float(saved_at)
 
     arrays: dict[str, np.ndarray] = {k: _to_array(k, v) for k, v in state.items()}
@@ -143,31 +144,6 @@ def save_state(
         raise
     _fsync_dir(directory)
     return path
-
-
-def try_save_state(
-    path: Path | str,
-    state: Mapping[str, Any],
-    meta: Mapping[str, Any],
-) -> bool:
-    """:func:`save_state` that logs instead of raising; True on success."""
-    try:
-        save_state(path, state, meta)
-    except Exception as exc:  # noqa: BLE001 - a failed save must not stop the service
-        log.error("state save failed", path=str(path), error=f"{type(exc).__name__}: {exc}")
-        return False
-    log.debug("state saved", path=str(path))
-    return True
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"meta value of type {type(obj).__name__} is not JSON-serialisable")
 
 
 class _Reject(Exception):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from bms_estimator.can.bench import bench, bench_frames_per_s, synth_frames
+from benchmarks.can_frames import bench, bench_frames_per_s, synth_frames
 from bms_estimator.can.decoder import FrameDecoder
 from bms_estimator.can.sampler import SampleAssembler
 

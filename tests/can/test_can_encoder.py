@@ -152,3 +152,26 @@ def test_status_from_a_dataclass(project_db, enc):
         d.update(project_db.decode_message(m.arbitration_id, m.data, decode_choices=False))
     assert d["UptimeS"] == 13 and d["Samples"] == 12 and d["DecodeErrors"] == 65535 and d["EstimatorState"] == 1
     assert d["Rejections"] == 0
+
+
+def test_a_status_signal_without_a_counter_is_refused(tmp_path):
+    """Status counters reach the CAN frame by an explicit table (service/schema.py); a DBC whose
+    status signal was renamed is refused with its name instead of silently encoding 0."""
+    import pytest
+
+    from bms_estimator.can.dbc import load_db, project_dbc_path
+    from bms_estimator.service.config import ConfigError, ServiceConfig
+    from bms_estimator.service.daemon import Service
+
+    text = project_dbc_path().read_text()
+    assert " SG_ Samples : " in text
+    renamed = tmp_path / "renamed.dbc"
+    renamed.write_text(text.replace(" SG_ Samples : ", " SG_ SampleCount : "))
+    with pytest.raises(KeyError, match="EstimatorStatus.SampleCount"):
+        StateEncoder(load_db(renamed))
+    cfg = ServiceConfig(can={"dbc": str(renamed), "interface": "virtual", "channel": "x"},
+                        state={"path": str(tmp_path / "s.npz")}, health={"enabled": False})
+    with pytest.raises(ConfigError) as exc:
+        Service(cfg)
+    assert any(p.startswith("can.dbc: status signal(s) EstimatorStatus.SampleCount carry no known counter")
+               for p in exc.value.problems), exc.value.problems

@@ -32,11 +32,8 @@ FLOW_WINDOW = 20_000
 
 
 class Broker(_ServiceBroker):
-    """Mosquitto on a free loopback port. The per-client queue is deep: a subscriber that falls
-    behind a replay at full speed must still get the service's final states."""
-
-    def __init__(self, workdir: Path) -> None:
-        super().__init__(workdir, extra_conf="max_queued_messages 1000000")
+    """Mosquitto on a free loopback port (its per-client queue is deep: a subscriber that falls
+    behind a replay at full speed still gets the service's final states)."""
 
 
 @dataclass
@@ -147,8 +144,8 @@ async def replay_through_service(log: Path, *, n_cells: int, ocv_csv: str, capac
         run.frames_decoded = svc.decoder.counters.frames
         run.decode_errors = svc.decoder.counters.errors
         run.rx_dropped = svc.bus.counters.rx_dropped
-        run.samples = int(svc.metrics.samples)
-        run.last_t_s = float(svc.metrics.last_sample_time_seconds)
+        run.samples = int(svc.pipeline.counters.samples)
+        run.last_t_s = float(svc.pipeline.last.t_s) if svc.pipeline.last is not None else float("nan")
         run.state = {k: np.array(v, copy=True) for k, v in svc.estimator.state_dict().items()}
         # the service publishes its final states on shutdown: wait for every cell's
         deadline = time.monotonic() + 30

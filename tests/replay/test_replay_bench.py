@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bms_estimator.replay.bench import bench_replay_speedup, daemon_available, prepare_frames
+from benchmarks.replay_speedup import bench_replay_speedup, daemon_available, prepare_frames
 
 
 @pytest.fixture(scope="module")

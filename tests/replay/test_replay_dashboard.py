@@ -14,24 +14,30 @@ from service_helpers import run_async, wait_until
 
 from bms_estimator.cli.__main__ import main
 from bms_estimator.replay.dashboard import DashboardState, parse_broker, render, run_dashboard
-from bms_estimator.service.mqtt import CELL_KEYS, pack_summary
+from types import SimpleNamespace
+
+import numpy as np
+
+from bms_estimator.service import schema
 
 
 def cell_payload(i: int, t_s: float = 100.0, stale: bool = False) -> str:
-    """A cell state as the service publishes it (keys of service.mqtt.CELL_KEYS, then t_s)."""
+    """A cell state as the service publishes it (service/schema.py)."""
     values = {
         "soc": 0.80 + 0.01 * i, "r0_ohm": 0.020 + 0.000125 * i, "r1_ohm": 0.010, "c1_f": 1500.0,
         "r2_ohm": 0.015, "c2_f": 20000.0, "c0_v": 0.0025, "tau1_s": 15.0, "tau2_s": 300.0, "stale": stale,
     }
-    assert tuple(values) == CELL_KEYS
-    return json.dumps({**values, "t_s": t_s})
+    (payload,) = schema.cell_payloads(t_s, values, 1)
+    return schema.dumps(payload)
 
 
 def recorded(pack: str = "p1") -> list[tuple[str, bytes, float]]:
     msgs = [(f"bms/{pack}/availability", b"online", 0.5)]
     msgs += [(f"bms/{pack}/cell/{i}/state", cell_payload(i, stale=(i == 2)).encode(), 1.0 + 0.1 * i) for i in range(4)]
-    pack_state = pack_summary(100.0, [0.80, 0.81, 0.82, 0.83], -2.5, stale=[False, False, True, False], decode_errors=0)
-    msgs.append((f"bms/{pack}/pack/state", json.dumps(pack_state).encode(), 2.0))
+    snap = SimpleNamespace(t_s=100.0, soc=schema.soc_stats([0.80, 0.81, 0.82, 0.83]), current_a=-2.5,
+                           n_cells=4, cells_valid=3, pack_voltage_v=14.8, current_valid=True,
+                           capacity_ah_mean=3.0, state=schema.EstimatorState.DEGRADED)
+    msgs.append((f"bms/{pack}/pack/state", schema.dumps(schema.pack_payload(snap)).encode(), 2.0))
     return msgs
 
 
@@ -48,7 +54,7 @@ def test_recorded_messages_make_the_table():
     out = text(state)
     assert "pack p1" in out and "online" in out
     assert "80.00 / 81.50 / 83.00 %" in out  # pack SOC min/mean/max
-    assert "current -2.500 A" in out and "stale cells 1" in out and "decode_errors=0" in out
+    assert "current -2.500 A" in out and "stale cells 1" in out
     rows = {line.split()[0]: line.split() for line in out.splitlines() if line.strip()[:1].isdigit()}
     assert rows["0"][:8] == ["0", "80.00", "20.000", "15.0", "300", "2.50", "no", "5.0"]
     assert rows["3"][:3] == ["3", "83.00", "20.375"]

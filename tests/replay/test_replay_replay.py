@@ -164,7 +164,7 @@ def test_replay_command_on_a_virtual_bus(encoded, tmp_path, capsys):
     assert rc == 0
     assert [_key(m) for m in got] == [_key(m) for m in log]
     assert f"{len(log)} frames" in capsys.readouterr().out
-    assert main(["replay", str(tmp_path / "missing.log")]) == 2
+    assert main(["replay", str(tmp_path / "missing.log")]) == 3  # a data error
 
 
 def test_udp_multicast_receiver_keeps_the_log_time(encoded):

@@ -8,8 +8,6 @@ import datetime as dt
 import ipaddress
 import os
 import shutil
-import signal
-import socket
 import ssl
 import subprocess
 import time
@@ -20,102 +18,14 @@ from typing import Any
 import aiomqtt
 
 
-MOSQUITTO = os.environ.get("MOSQUITTO", "/usr/sbin/mosquitto")
+from bms_estimator.mosquitto import Mosquitto as Broker  # noqa: E402,F401 - the project's one launcher
+from bms_estimator.mosquitto import find_mosquitto, free_port  # noqa: E402,F401
+
+MOSQUITTO = find_mosquitto() or os.environ.get("MOSQUITTO", "/usr/sbin/mosquitto")
 
 
 def mosquitto_available() -> bool:
-    return Path(MOSQUITTO).is_file() and os.access(MOSQUITTO, os.X_OK)
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class Broker:
-    """A mosquitto process with a generated config file."""
-
-    def __init__(
-        self,
-        workdir: Path,
-        port: int | None = None,
-        extra_conf: str = "",
-        *,
-        anonymous: bool = True,
-        persistence: bool = False,
-    ) -> None:
-        self.workdir = workdir
-        self.workdir.mkdir(parents=True, exist_ok=True)
-        self.host = "127.0.0.1"
-        self.port = port or free_port()
-        self.extra_conf = extra_conf
-        self.anonymous = anonymous
-        self.persistence = persistence
-        self.conf = workdir / "mosquitto.conf"
-        self.logfile = workdir / "mosquitto.log"
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def _write_conf(self) -> None:
-        lines = [
-            f"listener {self.port} 127.0.0.1",
-            f"allow_anonymous {'true' if self.anonymous else 'false'}",
-            f"persistence {'true' if self.persistence else 'false'}",
-            f"log_dest file {self.logfile}",
-            "log_type error",
-            "log_type warning",
-            "log_type notice",
-            "log_type information",
-        ]
-        if self.persistence:
-            lines.append(f"persistence_location {self.workdir}/")
-        if hasattr(os, "geteuid") and os.geteuid() == 0:
-            lines.append("user root")  # do not drop to 'mosquitto' (cannot read tmp files)
-        self.conf.write_text("\n".join(lines) + "\n" + self.extra_conf + "\n")
-
-    def start(self, timeout: float = 10.0) -> Broker:
-        assert self.proc is None or self.proc.poll() is not None, "already running"
-        self._write_conf()
-        self.proc = subprocess.Popen(
-            [MOSQUITTO, "-c", str(self.conf)],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                err = self.proc.stderr.read().decode(errors="replace") if self.proc.stderr else ""
-                log = self.logfile.read_text(errors="replace") if self.logfile.exists() else ""
-                raise RuntimeError(f"mosquitto exited with {self.proc.returncode}: {err}\n{log}")
-            try:
-                with socket.create_connection((self.host, self.port), timeout=0.2):
-                    return self
-            except OSError:
-                time.sleep(0.02)
-        self.stop()
-        raise RuntimeError(f"mosquitto did not accept connections on port {self.port} within {timeout}s")
-
-    def stop(self) -> None:
-        proc, self.proc = self.proc, None
-        if proc is None or proc.poll() is not None:
-            return
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
-        if proc.stderr:
-            proc.stderr.close()
-
-    @property
-    def running(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    def log_text(self) -> str:
-        return self.logfile.read_text(errors="replace") if self.logfile.exists() else ""
-
-
+    return find_mosquitto() is not None
 
 
 def run_async(coro: Any, timeout: float = 30.0) -> Any:

@@ -35,7 +35,7 @@ def write(tmp_path: Path, text: str) -> Path:
 
 def test_defaults_without_file():
     cfg = load_config(None)
-    assert cfg.mqtt.port == 1883 and cfg.mqtt.qos == 1 and cfg.mqtt.base_topic == "bms"
+    assert cfg.mqtt.port == 1883 and cfg.mqtt.qos == 0 and cfg.mqtt.base_topic == "bms"
     assert cfg.health.host == "127.0.0.1"
     assert cfg.estimator.sample_period_s == 1.0
     assert cfg.state.path == Path("/var/lib/bms-estimator/state.npz")
@@ -61,7 +61,7 @@ mapping = { current = { message = "PackI", signal = "I" } }
 [can.bus]
 reopen_max_s = 10.0
 [estimator.core]
-lif_window_s = 600
+window = 30
 [mqtt]
 host = "file-host"
 port = 1884
@@ -87,7 +87,7 @@ enabled = false
     assert cfg.can.bus_kwargs() == {
         "interface": "socketcan", "channel": "can1", "fd": False, "bitrate": 250000, "reopen_max_s": 10.0,
     }
-    assert cfg.estimator.core == {"lif_window_s": 600}
+    assert cfg.estimator.soc_config.identifier.window == 30
 
 
 @pytest.mark.parametrize(
@@ -234,9 +234,15 @@ def test_example_config_validates_and_documents_every_key(monkeypatch):
         body = sections.get(section, "")
         if (section, key) in {("estimator", "core"), ("can", "bus")} and f"{section}.{key}" in sections:
             continue
+        if section == "estimator.core.identifier" or (section, key) == ("estimator.core", "identifier"):
+            continue  # documented flat, under [estimator.core]
         if not re.search(rf"^#?\s*{re.escape(key)}\s*=", body, re.M):
             missing.append(f"{section}.{key}")
     assert missing == []
+    # the core's section is made from the core's dataclasses, so it cannot go stale
+    from bms_estimator.service.config import core_example_toml
+
+    assert core_example_toml() in text
     # and it is plain TOML
     tomllib.loads(text)
 
@@ -252,3 +258,64 @@ def test_the_data_location_variable_is_not_a_config_error(tmp_path, monkeypatch)
     monkeypatch.setenv("BMS_SHARDE_DATA", "typo")  # any other unknown BMS_ variable is still an error
     with pytest.raises(Exception, match="BMS_SHARDE_DATA"):
         load_config(None)
+
+
+def test_core_parameter_named_once_with_the_cores_bound(tmp_path, monkeypatch):
+    """estimator.core is validated once, against the core's own dataclass bounds (the
+    RLS needs forgetting in [0.9, 1]: the daemon once accepted (0, 1])."""
+    from bms_estimator.core.identifier import IdentifierConfig
+
+    path = tmp_path / "c.toml"
+    path.write_text("[estimator.core]\nforgetting = 0.5\n[estimator.core.identifier]\ntau_min_s = -1\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    problems = exc.value.problems
+    assert problems == [
+        "estimator.core.identifier.tau_min_s: Input should be greater than 0 (got -1)",
+        "estimator.core.forgetting: Input should be greater than or equal to 0.9 (got 0.5)",
+    ] or sorted(problems) == sorted([
+        "estimator.core.identifier.tau_min_s: Input should be greater than 0 (got -1)",
+        "estimator.core.forgetting: Input should be greater than or equal to 0.9 (got 0.5)",
+    ])
+    # the bound is the core's: the dataclass carries it
+    import typing
+
+    meta = typing.get_type_hints(IdentifierConfig, include_extras=True)["forgetting"].__metadata__
+    assert any(getattr(m, "ge", None) == 0.9 for m in meta)
+    # the environment goes through the same validation
+    monkeypatch.setenv("BMS_ESTIMATOR__CORE__WINDOW", "0")
+    with pytest.raises(ConfigError) as exc:
+        load_config(None)
+    assert exc.value.problems == ["estimator.core.window: Input should be greater than or equal to 1 (got '0')"]
+    monkeypatch.setenv("BMS_ESTIMATOR__CORE__WINDOW", "25")
+    monkeypatch.setenv("BMS_ESTIMATOR__CORE__CAPACITY_SOC_UPDATE", "line")
+    soc = load_config(None).estimator.soc_config
+    assert soc.identifier.window == 25 and soc.capacity_soc_update == "line"
+    # a rule across fields is the core's too, named under estimator.core
+    path.write_text("[estimator.core]\ntau_min_s = 600.0\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert exc.value.problems == ["estimator.core: tau_min_s must be below tau_max_s, got 600.0 and 500.0"]
+
+
+def test_secrets_come_from_systemd_credentials(tmp_path, monkeypatch):
+    """LoadCredential= puts a file per secret in $CREDENTIALS_DIRECTORY, named like the setting
+    (mqtt__password); it wins over the file, the environment wins over it; other credentials
+    are not ours and are ignored."""
+    creds = tmp_path / "creds"
+    creds.mkdir()
+    (creds / "mqtt__password").write_text("from-credential\n")
+    (creds / "something_else").write_text("x")
+    path = tmp_path / "c.toml"
+    path.write_text('[mqtt]\nusername = "bms"\npassword = "from-file"\nport = 1884\n')
+    monkeypatch.setenv("CREDENTIALS_DIRECTORY", str(creds))
+    cfg = load_config(path)
+    assert cfg.mqtt.password.get_secret_value() == "from-credential" and cfg.mqtt.port == 1884
+    assert "from-credential" not in str(cfg.redacted())
+    monkeypatch.setenv("BMS_MQTT__PASSWORD", "from-env")
+    assert load_config(path).mqtt.password.get_secret_value() == "from-env"
+    monkeypatch.delenv("BMS_MQTT__PASSWORD")
+    (creds / "mqtt__no_such_key").write_text("1")  # a credential for a setting that does not exist
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert any(p.startswith("mqtt.no_such_key:") for p in exc.value.problems)

@@ -41,8 +41,8 @@ from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.core.soc import SocEstimator
 from bms_estimator.data import load_recording
 from bms_estimator.samples import drive_cycle, ocv_table
-from bms_estimator.service.config import ConfigError, ServiceConfig
-from bms_estimator.service.daemon import Service, run_service, soc_config_from_core
+from bms_estimator.service.config import ConfigError, ServiceConfig, soc_config_from_core
+from bms_estimator.service.daemon import Service, run_service
 from bms_estimator.service.state import load_state, save_state
 
 from service_helpers import Collector, free_port, retained, run_async, wait_until
@@ -249,7 +249,7 @@ async def running(cfg: ServiceConfig, *, bus_factory=None, wait_ready: bool = Tr
 
 
 async def wait_samples(svc: Service, n: int, timeout: float = 15.0) -> None:
-    await wait_until(lambda: svc.metrics.samples >= n, timeout, f"{n} samples (have {svc.metrics.samples})")
+    await wait_until(lambda: svc.pipeline.counters.samples >= n, timeout, f"{n} samples (have {svc.pipeline.counters.samples})")
 
 
 async def http_get(port: int, path: str) -> tuple[int, str]:
@@ -263,13 +263,22 @@ async def http_get(port: int, path: str) -> tuple[int, str]:
 
 
 async def scrape(svc: Service) -> dict[str, float]:
+    """/metrics through prometheus_client's parser: ``name`` for a series without labels,
+    ``name{label="value"}`` for one with, and ``name`` = the sum over the labels of a counter."""
+    from prometheus_client.parser import text_string_to_metric_families
+
     status, body = await http_get(svc.health_port, "/metrics")
     assert status == 200
-    out = {}
-    for line in body.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            out[name] = float(value)
+    out: dict[str, float] = {}
+    for family in text_string_to_metric_families(body):
+        for s in family.samples:
+            if s.labels:
+                labels = ",".join(f'{k}="{v}"' for k, v in sorted(s.labels.items()))
+                out[f"{s.name}{{{labels}}}"] = s.value
+                if family.type == "counter":
+                    out[s.name] = out.get(s.name, 0.0) + s.value
+            else:
+                out[s.name] = s.value
     return out
 
 
@@ -308,7 +317,7 @@ def run_bad_input(tmp_path: Path, frames: list[can.Message], n_samples: int, *, 
         return metrics, svc, final_soc
 
     metrics, svc, final_soc = run_async(main(), 40)
-    assert svc.metrics.tick_errors == 0
+    assert svc.pipeline.counters.tick_errors == 0
     assert np.isfinite(final_soc).all()
     assert_state_file_valid(Path(cfg.state.path), soc=final_soc)
     return metrics, ref, svc
@@ -408,14 +417,17 @@ def test_service_matches_offline_estimator_on_can_and_mqtt(mosquitto, tmp_path):
     disco = {m.topic.value: json.loads(bytes(m.payload)) for m in messages if m.topic.value.startswith("homeassistant/")}
     for i in range(N):
         c = disco[f"homeassistant/sensor/bms_{PACK}_cell{i}_soc/config"]
-        assert c["state_topic"] == f"{root}/cell/{i}/state" and c["availability_topic"] == f"{root}/availability"
+        assert c["state_topic"] == f"{root}/cell/{i}/state" and c["enabled_by_default"] is False
+        # unavailable while the service is offline or the cell is stale
+        assert {"topic": f"{root}/availability"} in c["availability"] and c["availability_mode"] == "all"
+        assert any(a["topic"] == c["state_topic"] and "stale" in a["value_template"] for a in c["availability"])
     assert f"homeassistant/sensor/bms_{PACK}_pack_soc_mean/config" in disco
 
     # health and metrics while it ran
     assert health[0] == 200
     assert metrics["bms_samples_total"] == n_rows
-    assert metrics["bms_frames_decoded_total"] == len(frames)
-    assert metrics["bms_decode_errors_total"] == 0
+    assert metrics["bms_can_frames_decoded_total"] == len(frames)
+    assert metrics["bms_decode_problems_total"] == 0
     assert metrics["bms_mqtt_published_total"] > N
     assert metrics["bms_can_tx_frames_total"] >= (2 * N + 4) * n_rows
     assert metrics["bms_healthy"] == 1
@@ -436,11 +448,22 @@ def test_unknown_ids_are_ignored_and_counted(tmp_path):
             frames.append(can.Message(timestamp=f.timestamp, arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))
             frames.append(can.Message(timestamp=f.timestamp, arbitration_id=0x1ABCDEF, data=bytes(8)))
     n_unknown = len(frames) - len(clean)
-    metrics, ref, _ = run_bad_input(tmp_path, frames, 30)
-    assert metrics["bms_can_frames_unknown_id_total"] == n_unknown
-    assert metrics["bms_decode_errors_total"] == 0
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    metrics, ref, _ = run_bad_input(tmp_path / "a", frames, 30, can={"kernel_filters": False})
+    assert metrics['bms_can_frames_ignored_total{reason="unknown_id"}'] == n_unknown
+    assert metrics["bms_decode_problems_total"] == 0
     # no effect at all: the same estimate as the clean stream
     np.testing.assert_array_equal(ref.est.soc, Offline().feed(clean).est.soc)
+
+    # by default the bus is filtered down to the mapped ids (by the kernel on socketcan):
+    # the other frames never reach the decoder
+    metrics, ref, svc = run_bad_input(tmp_path / "b", frames, 30)
+    assert metrics["bms_can_frames_received_total"] == len(clean)
+    assert metrics['bms_can_frames_ignored_total{reason="unknown_id"}'] == 0
+    mapped = {(MSG[name].frame_id, True) for name in ("PackMeasurement", "CellVoltages", "CellTemperatures")}
+    filters = {(f["can_id"], f["extended"]) for f in svc.bus_cfg.can_filters}
+    assert mapped <= filters and (0x123, False) not in filters
+    assert all(f["can_mask"] == 0x1FFFFFFF for f in svc.bus_cfg.can_filters if f["extended"])
 
 
 def test_short_frames_are_counted(tmp_path):
@@ -453,8 +476,8 @@ def test_short_frames_are_counted(tmp_path):
                                       is_extended_id=True, data=bytes(f.data[:5])))
     n_short = len(frames) - len(clean)
     metrics, ref, _ = run_bad_input(tmp_path, frames, 30)
-    assert metrics["bms_decode_short_frames_total"] == n_short
-    assert metrics["bms_decode_errors_total"] == n_short
+    assert metrics['bms_decode_problems_total{reason="short_frame"}'] == n_short
+    assert metrics["bms_decode_problems_total"] == n_short
     np.testing.assert_array_equal(ref.est.soc, Offline().feed(clean).est.soc)
 
 
@@ -468,8 +491,8 @@ def test_undecodable_and_unmapped_mux_values_are_counted(tmp_path):
     frames.append(voltage_frame(t, 1500, [3.9, 3.9, 3.9]))  # legal, but no cell of this pack
     frames.sort(key=lambda m: m.timestamp)
     metrics, ref, _ = run_bad_input(tmp_path, frames, 30)
-    assert metrics["bms_decode_bad_mux_total"] == 1
-    assert metrics["bms_can_frames_unmapped_total"] == 1
+    assert metrics['bms_decode_problems_total{reason="bad_mux"}'] == 1
+    assert metrics['bms_can_frames_ignored_total{reason="unmapped"}'] == 1
     np.testing.assert_array_equal(ref.est.soc, Offline().feed(clean).est.soc)
 
 
@@ -492,9 +515,9 @@ def test_not_available_out_of_range_and_invalid_values(tmp_path):
             frames += row_frames(k)
     frames.append(current_frame(T0 + 40, float(cycle().current_a[40])))
     metrics, ref, svc = run_bad_input(tmp_path, frames, 40)
-    assert metrics["bms_decode_not_available_total"] == 10 + 60
-    assert metrics["bms_decode_flagged_invalid_total"] == 10
-    assert metrics["bms_decode_out_of_range_total"] == 60
+    assert metrics['bms_decode_problems_total{reason="not_available"}'] == 10 + 60
+    assert metrics['bms_decode_problems_total{reason="flagged_invalid"}'] == 10
+    assert metrics['bms_decode_problems_total{reason="out_of_range"}'] == 60
     # the samples of rows 10 and 11 have no current: the estimator update is skipped and counted
     assert metrics["bms_samples_current_invalid_total"] == 2
     # cells 1 and 4 went stale while they sent nothing usable (staleness 2.5 s)
@@ -511,9 +534,9 @@ def test_gaps_backward_and_rewound_time(tmp_path):
     frames.insert(at, current_frame(frames[at - 1].timestamp - 1.0, 5.0))  # 1 s in the past: ignored
     frames += rows(40, 20, t_shift=-5000.0)  # a new log from an older time: sampler reset
     metrics, ref, _ = run_bad_input(tmp_path, frames, len(Offline().feed(frames).steps))
-    assert metrics["bms_sample_time_jumps_total"] == 1
-    assert metrics["bms_sample_backward_frames_total"] == 1
-    assert metrics["bms_sample_rewinds_total"] == 1
+    assert metrics['bms_sample_anomalies_total{kind="time_jump"}'] == 1
+    assert metrics['bms_sample_anomalies_total{kind="backward_frame"}'] == 1
+    assert metrics['bms_sample_anomalies_total{kind="rewind"}'] == 1
     assert metrics["bms_samples_total"] >= 55
 
 
@@ -563,10 +586,10 @@ def test_bus_errors_and_a_bus_that_goes_away_and_returns(tmp_path):
             async with running(cfg, bus_factory=factory) as svc:
                 assert calls["n"] == 3  # ready only once the bus was open
                 feeder = asyncio.create_task(feed())
-                await wait_until(lambda: svc.metrics.samples >= 10, 10, "samples before the failure")
+                await wait_until(lambda: svc.pipeline.counters.samples >= 10, 10, "samples before the failure")
                 await wait_until(lambda: svc.bus.counters.bus_errors >= 1, 10, "the bus failure")
-                after = svc.metrics.samples
-                await wait_until(lambda: svc.metrics.samples >= after + 20, 10, "samples after the reopen")
+                after = svc.pipeline.counters.samples
+                await wait_until(lambda: svc.pipeline.counters.samples >= after + 20, 10, "samples after the reopen")
                 stop_feed.set()
                 await feeder
                 metrics = await scrape(svc)
@@ -577,9 +600,9 @@ def test_bus_errors_and_a_bus_that_goes_away_and_returns(tmp_path):
         return metrics, soc
 
     metrics, soc = run_async(main(), 40)
-    assert metrics["bms_can_bus_open_failures_total"] == 2
-    assert metrics["bms_can_bus_errors_total"] >= 1
-    assert metrics["bms_can_bus_opens_total"] >= 2
+    assert metrics['bms_can_bus_events_total{event="open_failure"}'] == 2
+    assert metrics['bms_can_bus_events_total{event="error"}'] >= 1
+    assert metrics['bms_can_bus_events_total{event="open"}'] >= 2
     assert metrics["bms_tick_errors_total"] == 0
     assert np.isfinite(soc).all()
     assert_state_file_valid(Path(cfg.state.path), soc=soc)
@@ -599,8 +622,8 @@ def test_broker_down_at_start_then_up(broker_factory, tmp_path):
                 await wait_samples(svc, 20)
                 # CAN output does not wait for the broker
                 await vb.wait_outputs(CELL_STATE_IDS, 2 * N * 20)
-                await wait_until(lambda: svc.metrics.mqtt_connect_failures >= 1, 5, "connect failures")
-                assert svc.metrics.mqtt_published == 0
+                await wait_until(lambda: svc.publisher.counters.connect_failures >= 1, 5, "connect failures")
+                assert svc.publisher.counters.published == 0
                 broker = broker_factory(port=port)
                 async with Collector(port, (f"{root}/#",)) as col:
                     await wait_until(lambda: svc.publisher.connected, 10, "mqtt connected")
@@ -678,8 +701,9 @@ def test_bad_config_exits_2_naming_each_field(tmp_path, capsys):
     assert cli_main(["run", "--config", str(bad)]) == 2
     err = capsys.readouterr().err.splitlines()
     assert any(line.strip().startswith("mqtt.port:") for line in err)
-    assert any(line.strip().startswith("estimator.core.windw: unknown estimator parameter") for line in err)
-    assert any(line.strip().startswith("estimator.core.forgetting:") for line in err)
+    assert any(line.strip().startswith("estimator.core.windw: Extra inputs are not permitted") for line in err)
+    assert sum(line.strip().startswith("estimator.core.forgetting: Input should be less than or equal to 1")
+               for line in err) == 1
 
     bad.write_text(f"[pack]\nn_cells = 4\nocv_csv = '{tmp_path / 'missing.csv'}'\n"
                    "[can]\nmapping = 'no-such-preset'\n"
@@ -786,10 +810,14 @@ def test_healthz_follows_the_samples_and_metrics_move(tmp_path):
     ok, stale, again, m1, m2 = run_async(main(), 30)
     assert ok[0] == 200 and stale[0] == 503 and "stale" in stale[1] and again[0] == 200
     assert m1["bms_samples_total"] == 10 and m2["bms_samples_total"] == 20
-    assert m2["bms_frames_decoded_total"] > m1["bms_frames_decoded_total"] > 0
+    assert m2["bms_can_frames_decoded_total"] > m1["bms_can_frames_decoded_total"] > 0
     assert m2["bms_can_tx_frames_total"] > m1["bms_can_tx_frames_total"]
     assert m2["bms_last_sample_time_seconds"] == T0 + 20
-    assert "bms_loop_lag_seconds" in m2 and m2["bms_loop_lag_seconds"] < 1.0
+    assert m2["bms_loop_lag_seconds_count"] > 0 and m2['bms_loop_lag_seconds_bucket{le="1.0"}'] == m2["bms_loop_lag_seconds_count"]
+    assert m2["bms_tick_seconds_count"] == 20  # a histogram, not the last value
+    assert m2['bms_estimator_state{bms_estimator_state="running"}'] == 1
+    assert 0.5 < m2['bms_pack_soc{stat="mean"}'] < 1 and m2["bms_pack_capacity_ah"] == CAPACITY_AH
+    assert m2["bms_can_bus_up"] == 1 and "CAN " in ok[1] and ": open" in ok[1]  # the bus state in /healthz
     assert m1["bms_healthy"] == 1
 
 
@@ -868,7 +896,8 @@ def test_systemd_ready_watchdog_and_stopping(tmp_path, monkeypatch):
     monkeypatch.setenv("WATCHDOG_USEC", "100000")  # ping every 50 ms
     monkeypatch.delenv("WATCHDOG_PID", raising=False)
     ch = channel()
-    cfg = make_cfg(tmp_path, ch, health={"stale_after_periods": 0.3})
+    # kernel filters off: the frames that arrive without completing a sample are of an unmapped id
+    cfg = make_cfg(tmp_path, ch, health={"stale_after_periods": 0.3}, can={"kernel_filters": False})
     got: list[tuple[float, str]] = []
 
     def drain() -> list[tuple[float, str]]:
@@ -922,9 +951,76 @@ def test_systemd_ready_watchdog_and_stopping(tmp_path, monkeypatch):
 
 
 def test_publish_latency_bench_runs(tmp_path):
-    from bms_estimator.service.bench import bench_publish_latency, find_mosquitto
+    from benchmarks.publish_latency import bench_publish_latency, find_mosquitto
 
     if find_mosquitto() is None:
         pytest.skip("mosquitto not installed: the bench reports None")
     res = bench_publish_latency(n_cells=12, samples=3, warmup=1, freeze_gc=False)
     assert res is not None and res["samples"] == 3 and 0 < res["p50_ms"] <= res["p99_ms"] <= res["max_ms"] < 5000
+
+
+def test_ready_at_once_with_the_bus_absent_then_receiving_when_it_appears(tmp_path, monkeypatch):
+    """READY=1 does not wait for the CAN interface (an absent can0 used to keep the unit
+    'activating' until TimeoutStartSec, then restart it forever): the service is ready at once,
+    shows the bus as down in STATUS, /healthz and /metrics, and receives once the bus appears."""
+    import socket as _socket
+    import threading
+
+    from bms_estimator.can.bus import open_bus
+
+    sock_path = tmp_path / "notify.sock"
+    srv = _socket.socket(_socket.AF_UNIX, _socket.SOCK_DGRAM)
+    srv.bind(str(sock_path))
+    srv.setblocking(False)
+    monkeypatch.setenv("NOTIFY_SOCKET", str(sock_path))
+    monkeypatch.delenv("WATCHDOG_USEC", raising=False)
+    got: list[str] = []
+
+    def drain() -> list[str]:
+        while True:
+            try:
+                got.append(srv.recv(4096).decode())
+            except BlockingIOError:
+                return got
+
+    ch = channel()
+    cfg = make_cfg(tmp_path, ch)
+    present = threading.Event()
+    attempts = []
+
+    def factory(bus_cfg):
+        attempts.append(time.monotonic())
+        if not present.is_set():
+            raise OSError(19, "No such device")  # what socketcan says for a missing interface
+        return open_bus(bus_cfg)
+
+    async def main():
+        vb = VBus(ch)
+        try:
+            async with running(cfg, bus_factory=factory, wait_ready=False) as svc:
+                await wait_until(lambda: any("READY=1" in m for m in drain()), 5, "READY=1 with the bus absent")
+                ready = next(m for m in got if "READY=1" in m)
+                assert "CAN " in ready and "down" in ready
+                await wait_until(lambda: len(attempts) >= 3, 5, "open retried in the background")
+                assert not svc.bus.is_open and not svc.ready.is_set()
+                status, body = await http_get(svc.health_port, "/healthz")
+                assert status == 503 and ": down (OSError: [Errno 19] No such device)" in body
+                m = await scrape(svc)
+                assert m["bms_can_bus_up"] == 0 and m['bms_can_bus_events_total{event="open_failure"}'] >= 3
+                assert "down" in svc._status_line()
+
+                present.set()  # the interface appears
+                await wait_until(svc.ready.is_set, 5, "bus open")
+                vb.send(rows(0, 5))
+                await wait_samples(svc, 5)
+                status, body = await http_get(svc.health_port, "/healthz")
+                assert status == 200 and ": open" in body
+                m = await scrape(svc)
+                assert m["bms_can_bus_up"] == 1 and m['bms_can_bus_events_total{event="open"}'] == 1
+                await wait_until(lambda: any(m.startswith("STATUS=") and ": open" in m for m in drain()), 5,
+                                 "STATUS shows the bus open")
+        finally:
+            vb.shutdown()
+            srv.close()
+
+    run_async(main(), 30)

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import platform
+import sys
 import re
 
 import pytest
 from service_helpers import run_async
 
 from bms_estimator.service.config import HealthConfig
-from bms_estimator.service.health import HealthServer, Heartbeat, Metrics
+from bms_estimator.service.health import HealthServer, Heartbeat
+from bms_estimator.service.metrics import ServiceMetrics, package_version
 
 
 class FakeClock:
@@ -33,8 +36,9 @@ async def http(port: int, raw: bytes, timeout: float = 5.0) -> tuple[int, dict[s
     return status, headers, body
 
 
-def get(port: int, path: str):
-    return http(port, f"GET {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+def get(port: int, path: str, headers: dict[str, str] | None = None):
+    extra = "".join(f"{k}: {v}\r\n" for k, v in (headers or {}).items())
+    return http(port, f"GET {path} HTTP/1.1\r\nHost: x\r\n{extra}\r\n".encode())
 
 
 def test_healthz_follows_heartbeat():
@@ -42,7 +46,7 @@ def test_healthz_follows_heartbeat():
     hb = Heartbeat(period_s=1.0, stale_after_periods=3.0, clock=clock)
 
     async def main():
-        async with HealthServer(hb, Metrics(), "127.0.0.1", 0) as srv:
+        async with HealthServer(hb, ServiceMetrics(), "127.0.0.1", 0) as srv:
             assert srv.port > 0
             status, _, body = await get(srv.port, "/healthz")
             assert status == 503 and b"no estimator tick" in body  # before the first tick
@@ -68,7 +72,7 @@ def test_healthz_with_real_clock_and_stalled_loop():
     hb = Heartbeat(period_s=0.1, stale_after_periods=3.0)  # stale after 0.3 s without a tick
 
     async def main():
-        async with HealthServer(hb, Metrics(), "127.0.0.1", 0) as srv:
+        async with HealthServer(hb, ServiceMetrics(), "127.0.0.1", 0) as srv:
             async def loop(ticks: int):
                 for _ in range(ticks):
                     hb.beat()
@@ -105,43 +109,49 @@ def parse_metrics(text: str) -> dict[str, float]:
 
 
 def test_metrics_exposition():
+    """/metrics is prometheus_client's exposition of the service's registry: counters, the
+    state as an Enum, histograms, process and build info; parsed by the library's parser."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from bms_estimator.service.schema import EstimatorState
+
     hb = Heartbeat(1.0)
-    metrics = Metrics()
-    metrics.frames_decoded = 10
-    metrics.inc("frames_decoded", 5)
-    metrics.inc("decode_errors")
-    metrics.samples += 3
-    metrics.estimator_rejections = 2
-    metrics.mqtt_published = 42
-    metrics.mqtt_dropped = 7
-    metrics.set("loop_lag_seconds", 0.0125)
-    metrics.set("cells_stale", 3)
-    with pytest.raises(AttributeError):
-        metrics.set("no_such_metric", 1)
+    metrics = ServiceMetrics()
+    metrics.mqtt_published.inc(42)
+    metrics.mqtt_dropped.inc(7)
+    for dt in (0.0002, 0.0004, 0.03):
+        metrics.observe_tick(dt)
+    metrics.loop_lag_seconds.observe(0.0125)
+    metrics.set_state(EstimatorState.DEGRADED)
 
     async def main():
         async with HealthServer(hb, metrics, "127.0.0.1", 0) as srv:
             status, headers, body = await get(srv.port, "/metrics")
             assert status == 200
-            assert headers["content-type"].startswith("text/plain; version=0.0.4")
-            text = body.decode()
-            assert text.endswith("\n")
-            values = parse_metrics(text)
-            assert values["bms_frames_decoded_total"] == 15
-            assert values["bms_decode_errors_total"] == 1
-            assert values["bms_samples_total"] == 3
-            assert values["bms_estimator_rejections_total"] == 2
-            assert values["bms_mqtt_published_total"] == 42
-            assert values["bms_mqtt_dropped_total"] == 7
-            assert values["bms_loop_lag_seconds"] == 0.0125
-            assert values["bms_cells_stale"] == 3
-            assert values["bms_healthy"] == 0 and str(values["bms_heartbeat_age_seconds"]) == "nan"
-            assert "# TYPE bms_frames_decoded_total counter" in text
-            assert "# TYPE bms_loop_lag_seconds gauge" in text
-            assert "# HELP bms_mqtt_dropped_total " in text
-            hb.beat()
-            values = parse_metrics((await get(srv.port, "/metrics"))[2].decode())
-            assert values["bms_healthy"] == 1 and 0 <= values["bms_heartbeat_age_seconds"] < 1
+            assert headers["content-type"].startswith("text/plain; version=")
+            families = {f.name: f for f in text_string_to_metric_families(body.decode())}
+            samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+                       for f in families.values() for s in f.samples}
+            assert families["bms_mqtt_published"].type == "counter"
+            assert samples[("bms_mqtt_published_total", ())] == 42
+            assert samples[("bms_mqtt_dropped_total", ())] == 7
+            assert families["bms_tick_seconds"].type == "histogram"
+            assert samples[("bms_tick_seconds_count", ())] == 3
+            assert samples[("bms_tick_seconds_bucket", (("le", "0.0005"),))] == 2
+            assert samples[("bms_loop_lag_seconds_count", ())] == 1
+            states = {dict(k)["bms_estimator_state"]: v for (n, k), v in samples.items() if n == "bms_estimator_state"}
+            assert states == {"init": 0, "running": 0, "degraded": 1, "no_input": 0}
+            assert samples[("bms_build_info", (("python", platform.python_version()),
+                                               ("version", package_version())))] == 1
+            assert ("process_cpu_seconds_total", ()) in samples or sys.platform != "linux"
+            # the library's content negotiation: OpenMetrics when the scraper asks for it
+            status, headers, body = await get(srv.port, "/metrics",
+                                              headers={"Accept": "application/openmetrics-text; version=1.0.0"})
+            assert status == 200 and headers["content-type"].startswith("application/openmetrics-text")
+            assert body.rstrip().endswith(b"# EOF") and b"bms_mqtt_published_total 42.0" in body
+            # liveness stays plain text
+            status, _, body = await get(srv.port, "/healthz")
+            assert status == 503 and body.startswith(b"starting")
 
     run_async(main())
 
@@ -151,7 +161,7 @@ def test_other_paths_methods_and_garbage():
     hb.beat()
 
     async def main():
-        async with HealthServer(hb, Metrics(), "127.0.0.1", 0, request_timeout_s=0.5) as srv:
+        async with HealthServer(hb, ServiceMetrics(), "127.0.0.1", 0, request_timeout_s=0.5) as srv:
             port = srv.port
             assert (await get(port, "/"))[0] == 404
             assert (await get(port, "/healthz/../etc/passwd"))[0] == 404
@@ -181,7 +191,7 @@ def test_from_config_and_run_task_is_cancellable():
     hb = Heartbeat(1.0)
 
     async def main():
-        srv = HealthServer.from_config(cfg, hb, Metrics())
+        srv = HealthServer.from_config(cfg, hb, ServiceMetrics())
         task = asyncio.create_task(srv.run())
         for _ in range(100):
             if srv.port:

@@ -27,8 +27,8 @@ from service_helpers import (
 )
 
 from bms_estimator.service.config import MqttConfig
-from bms_estimator.service.health import Metrics
-from bms_estimator.service.mqtt import MqttPublisher, pack_summary
+from bms_estimator.service.metrics import ServiceMetrics
+from bms_estimator.service.mqtt import MqttPublisher
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -79,7 +79,7 @@ def test_states_arrive_as_json_with_availability(mosquitto, qos):
     n = 3
 
     async def main():
-        metrics = Metrics()
+        metrics = ServiceMetrics()
         pub = MqttPublisher(mqtt_cfg(port, qos=qos, discovery=False), f"p{qos}", n, metrics=metrics)
         async with Collector(port, ("bms/#",), qos=2) as col:
             async with running(pub):
@@ -87,7 +87,8 @@ def test_states_arrive_as_json_with_availability(mosquitto, qos):
                 arrays = cell_arrays(n, 1.0)
                 arrays["r0_ohm"][2] = math.nan
                 pub.submit_cells(12.5, arrays)
-                pub.submit_pack(pack_summary(12.5, arrays["soc"], -3.25, stale=arrays["stale"], samples=np.int64(7)))
+                pub.submit_pack({"t_s": 12.5, "soc_min": np.float64(0.5), "soc_max": 0.52, "soc_mean": 0.51,
+                                 "current_a": -3.25, "cells_stale": 1, "samples": np.int64(7)})
                 await col.wait(
                     lambda c: all(c.on(pub.cell_topic(i)) for i in range(n)) and c.on(pub.pack_topic),
                     what="cell and pack states",
@@ -114,7 +115,7 @@ def test_states_arrive_as_json_with_availability(mosquitto, qos):
 
                 online = await retained(port, f"bms/p{qos}/availability")
                 assert online is not None and online.payload == b"online" and online.retain
-                assert online.qos == qos
+                assert online.qos == 1  # availability is QoS 1 whatever the telemetry's QoS
 
             # close() published "offline" itself (retained) and disconnected cleanly.
             offline = await retained(port, f"bms/p{qos}/availability")
@@ -123,8 +124,10 @@ def test_states_arrive_as_json_with_availability(mosquitto, qos):
         c = pub.counters
         assert c.connects == 1 and c.connect_failures == 0 and c.dropped == 0
         assert c.published == n + 1 + 2  # states + pack + online + offline
-        assert metrics.mqtt_published == c.published and metrics.mqtt_connects == 1
-        assert metrics.mqtt_connected == 0
+        value = metrics.registry.get_sample_value
+        assert value("bms_mqtt_published_total") == c.published and value("bms_mqtt_connects_total") == 1
+        assert value("bms_mqtt_connected") == 0
+        assert value("bms_mqtt_publish_latency_seconds_count") == n + 1  # the states, not availability
 
     run_async(main())
 
@@ -132,28 +135,42 @@ def test_states_arrive_as_json_with_availability(mosquitto, qos):
 def test_home_assistant_discovery_retained_and_resent(mosquitto):
     port = mosquitto.port
     n = 2
-    n_configs = 5 + 2 * n  # pack: soc min/mean/max, current, stale cells; per cell: soc, r0
+    # pack: SOC min/mean/max, current, stale cells, voltage, capacity, state; per cell: SOC, R0, voltage,
+    # temperature, capacity
+    n_configs = 8 + 5 * n
 
     async def main():
-        pub = MqttPublisher(mqtt_cfg(port, qos=1), "hapack", n)
+        pub = MqttPublisher(mqtt_cfg(port, qos=0), "hapack", n, expire_after_s=30)
         async with running(pub):
             await wait_until(lambda: pub.counters.published >= 1 + n_configs, 5, "discovery published")
             async with Collector(port, ("homeassistant/sensor/#",), qos=1) as col:
                 await col.wait(lambda c: len(c.messages) >= n_configs, what="retained discovery")
-                assert all(m.retain for m in col.messages)
+                assert all(m.retain and m.qos == 1 for m in col.messages)
                 configs = {m.topic.value: json.loads(m.payload) for m in col.messages}
                 assert len(configs) == n_configs
                 soc = configs["homeassistant/sensor/bms_hapack_cell1_soc/config"]
                 assert soc["state_topic"] == "bms/hapack/cell/1/state"
-                assert soc["availability_topic"] == "bms/hapack/availability"
                 assert soc["unique_id"] == "bms_hapack_cell1_soc"
                 assert soc["unit_of_measurement"] == "%" and soc["device_class"] == "battery"
-                assert "value_json.soc" in soc["value_template"]
+                assert "value_json.soc" in soc["value_template"] and "round" not in soc["value_template"]
+                assert soc["suggested_display_precision"] == 1
                 assert soc["device"]["identifiers"] == ["bms_estimator_hapack"]
+                assert soc["origin"]["name"] == "bms-estimator"
+                # per cell: disabled by default, unavailable while stale or offline, expiring
+                assert soc["enabled_by_default"] is False and soc["expire_after"] == 30
+                assert soc["availability_mode"] == "all"
+                assert {"topic": "bms/hapack/availability"} in soc["availability"]
                 r0 = configs["homeassistant/sensor/bms_hapack_cell0_r0/config"]
                 assert "value_json.r0_ohm" in r0["value_template"] and r0["unit_of_measurement"] == "mΩ"
+                for key in ("voltage", "temperature", "capacity"):
+                    assert f"homeassistant/sensor/bms_hapack_cell0_{key}/config" in configs
                 cur = configs["homeassistant/sensor/bms_hapack_pack_current/config"]
                 assert cur["state_topic"] == "bms/hapack/pack/state" and cur["device_class"] == "current"
+                assert cur["availability_topic"] == "bms/hapack/availability" and "enabled_by_default" not in cur
+                volt = configs["homeassistant/sensor/bms_hapack_pack_voltage/config"]
+                assert volt["device_class"] == "voltage" and "value_json.pack_voltage_v" in volt["value_template"]
+                state = configs["homeassistant/sensor/bms_hapack_pack_state/config"]
+                assert state["device_class"] == "enum" and "running" in state["options"]
                 assert {c["device"]["identifiers"][0] for c in configs.values()} == {"bms_estimator_hapack"}
 
                 # Home Assistant restarts: every config is sent again (live, not retained copies).
@@ -167,6 +184,79 @@ def test_home_assistant_discovery_retained_and_resent(mosquitto):
                 assert not any(m.retain for m in col.messages)  # fresh publishes to a live subscriber
 
     run_async(main())
+
+
+async def _retained_configs(port: int) -> dict[str, dict]:
+    """Every retained discovery config on the broker (collected up to a probe of our own)."""
+    async with Collector(port, ("homeassistant/#", "probe/#"), qos=1) as col:
+        await col.client.publish("probe/x", "p", qos=1)
+        await col.wait(lambda c: bool(c.on("probe/x")), what="probe")
+        return {m.topic.value: json.loads(m.payload) for m in col.messages
+                if m.retain and m.topic.value.startswith("homeassistant/") and m.payload}
+
+
+def test_orphan_entities_are_removed(mosquitto):
+    """A restart with fewer cells removes the entities of the cells that are gone; discovery
+    turned off removes them all; another pack's entities (even one whose id starts alike) stay."""
+    port = mosquitto.port
+
+    async def publish_once(pack: str, n: int, **kw) -> MqttPublisher:
+        pub = MqttPublisher(mqtt_cfg(port, **kw), pack, n)
+        async with running(pub):
+            await wait_until(lambda: pub._orphans_checked and pub.counters.published >= 1, 5, "connected")
+            if kw.get("discovery", True):
+                await wait_until(lambda: pub.counters.published >= 1 + len(pub.discovery_messages()), 5, "discovery")
+        return pub
+
+    async def main():
+        await publish_once("hapack_x", 1)
+        await publish_once("hapack", 4)
+        before = await _retained_configs(port)
+        assert "homeassistant/sensor/bms_hapack_cell3_soc/config" in before
+        await publish_once("hapack", 2)
+        after = await _retained_configs(port)
+        ours = {t for t in after if "/bms_hapack_" in t and "/bms_hapack_x_" not in t}
+        assert not any(f"_cell{i}_" in t for t in ours for i in (2, 3))
+        assert "homeassistant/sensor/bms_hapack_cell1_soc/config" in ours
+        assert len(ours) == 8 + 5 * 2
+        await publish_once("hapack", 2, discovery=False)
+        after = await _retained_configs(port)
+        assert not any("/bms_hapack_" in t and "/bms_hapack_x_" not in t for t in after)
+        assert len([t for t in after if "/bms_hapack_x_" in t]) == 8 + 5  # the other pack kept
+
+    run_async(main())
+
+
+def test_publish_period_and_soc_deadband():
+    """Telemetry thinning on the frames' time: a period per topic, and a SOC deadband with a
+    longest silence; a stale flag that changes is always sent."""
+    from types import SimpleNamespace
+
+    n = 3
+    pub = MqttPublisher(mqtt_cfg(1, publish_period_s=5.0, soc_deadband=0.01, max_period_s=20.0), "thin", n)
+    sent: list[list[str]] = []
+    pub._put = lambda items: sent.append([t for t, _, _ in items])
+
+    def snap(t: float, soc: list[float], valid: list[bool] | None = None):
+        from bms_estimator.service import schema
+
+        v = np.array(valid if valid is not None else [True] * n)
+        return SimpleNamespace(t_s=t, cells={"soc": np.array(soc)}, valid=v, n_cells=n, cells_valid=int(v.sum()),
+                               soc=schema.soc_stats(soc), current_a=1.0, current_valid=True, pack_voltage_v=12.0,
+                               capacity_ah_mean=3.0, state=schema.EstimatorState.RUNNING)
+
+    pub.submit_snapshot(snap(0.0, [0.5, 0.5, 0.5]))
+    assert sent[-1] == [*pub.topics.cells, pub.pack_topic]
+    sent.clear()
+    for t in (1.0, 2.0, 3.0, 4.0):  # within the period: nothing
+        pub.submit_snapshot(snap(t, [0.6, 0.6, 0.6]))
+    assert sent == []
+    pub.submit_snapshot(snap(5.0, [0.505, 0.52, 0.5], [True, True, False]))
+    # cell 0 moved less than the deadband; cell 1 moved; cell 2 went stale
+    assert sent[-1] == [pub.topics.cells[1], pub.topics.cells[2], pub.pack_topic]
+    pub.submit_snapshot(snap(20.0, [0.505, 0.52, 0.5], [True, True, False]))
+    assert sent[-1] == [pub.topics.cells[0], pub.pack_topic]  # cell 0: silent for max_period_s
+    assert pub.counters.submit_errors == 0
 
 
 def test_last_will_when_publisher_process_is_killed(mosquitto, tmp_path):
@@ -340,7 +430,7 @@ def test_broker_down_mid_run_and_back(broker_factory):
     n = 2
 
     async def main():
-        metrics = Metrics()
+        metrics = ServiceMetrics()
         pub = MqttPublisher(mqtt_cfg(port, qos=1, discovery=False), "midrun", n, metrics=metrics)
         clock = {"t": 0.0}
 
@@ -379,8 +469,9 @@ def test_broker_down_mid_run_and_back(broker_factory):
                 tick.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await tick
-        assert metrics.mqtt_connect_failures == pub.counters.connect_failures >= 2
-        assert metrics.mqtt_dropped == pub.counters.dropped
+        value = metrics.registry.get_sample_value
+        assert value("bms_mqtt_connect_failures_total") == pub.counters.connect_failures >= 2
+        assert value("bms_mqtt_dropped_total") == pub.counters.dropped
 
     run_async(main(), timeout=40)
 

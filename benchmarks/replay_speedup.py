@@ -23,7 +23,7 @@ estimated:
 ``via="inline"``
     no bus and no second thread: ``replay_messages`` hands every frame to a
     sink whose ``send`` decodes, assembles and estimates at once (what an
-    in-process demo can do with ``Service.process_frame``; the results are the
+    in-process demo can do with ``Service.pipeline.process_frame``; the results are the
     same because everything runs on frame time). The upper bound of this
     pipeline in CPython.
 
@@ -33,7 +33,7 @@ second thread that also makes the ``can.Message`` objects from the encoded array
 simulation, encoding) is not timed. The figure is ``log seconds / wall seconds``.
 Nothing here is asserted by the tests (speed depends on the machine).
 
-Run: ``python -m bms_estimator.replay.bench [--hours H] [--cells N] [--via daemon|direct|inline|all]``.
+Run: ``python -m benchmarks.replay_speedup [--hours H] [--cells N] [--via daemon|direct|inline|all]``.
 """
 
 from __future__ import annotations
@@ -53,11 +53,11 @@ from typing import Any
 import can
 import numpy as np
 
-from ..core.ocv import OcvCurve
-from ..data import CellRecording, load_recording
-from ..samples import CELLS, drive_cycle, ocv_table
-from .encode_log import FrameArrays, build_pack, frame_arrays
-from .replay import open_replay_bus, replay_messages
+from bms_estimator.core.ocv import OcvCurve
+from bms_estimator.data import CellRecording, load_recording
+from bms_estimator.samples import CELLS, drive_cycle, ocv_table
+from bms_estimator.replay.encode_log import FrameArrays, build_pack, frame_arrays
+from bms_estimator.replay.replay import open_replay_bus, replay_messages
 
 __all__ = ["ReplayBenchResult", "bench_replay_speedup", "prepare_frames"]
 
@@ -124,10 +124,10 @@ def _sender(fa: FrameArrays, bus: can.BusABC, out: dict, gate=None) -> threading
 
 
 def _bench_direct(fa: FrameArrays, ocv: OcvCurve, q: float, n_cells: int) -> tuple[float, int, int, float, list[str]]:
-    from ..can.dbc import load_project_db
-    from ..can.decoder import FrameDecoder
-    from ..can.sampler import SampleAssembler
-    from ..core.soc import SocEstimator
+    from bms_estimator.can.dbc import load_project_db
+    from bms_estimator.can.decoder import FrameDecoder
+    from bms_estimator.can.sampler import SampleAssembler
+    from bms_estimator.core.soc import SocEstimator
 
     channel = f"bms-bench-{os.getpid()}-{time.monotonic_ns()}"
     rx = can.Bus(interface="virtual", channel=channel, rx_queue_size=20_000)
@@ -186,10 +186,10 @@ class _InlineSink:
 
 
 def _bench_inline(fa: FrameArrays, ocv: OcvCurve, q: float, n_cells: int) -> tuple[float, int, int, list[str]]:
-    from ..can.dbc import load_project_db
-    from ..can.decoder import FrameDecoder
-    from ..can.sampler import SampleAssembler
-    from ..core.soc import SocEstimator
+    from bms_estimator.can.dbc import load_project_db
+    from bms_estimator.can.decoder import FrameDecoder
+    from bms_estimator.can.sampler import SampleAssembler
+    from bms_estimator.core.soc import SocEstimator
 
     dec = FrameDecoder(load_project_db(), "default", n_cells)
     sink = _InlineSink(dec, SampleAssembler(n_cells, period_s=1.0, staleness_s=5.0),
@@ -202,7 +202,7 @@ def _bench_inline(fa: FrameArrays, ocv: OcvCurve, q: float, n_cells: int) -> tup
 
 
 def _bench_daemon(fa: FrameArrays, ocv_path: str, q: float, n_cells: int) -> tuple[float, int, int, list[str]]:
-    from ..service.config import ServiceConfig
+    from bms_estimator.service.config import ServiceConfig
 
     channel = f"bms-bench-{os.getpid()}-{time.monotonic_ns()}"
     with tempfile.TemporaryDirectory(prefix="bms-replay-bench-") as tmp:
@@ -217,7 +217,7 @@ def _bench_daemon(fa: FrameArrays, ocv_path: str, q: float, n_cells: int) -> tup
 
 
 async def _run_daemon(cfg: Any, fa: FrameArrays, channel: str) -> tuple[float, int, int, list[str]]:
-    from ..service.daemon import Service
+    from bms_estimator.service.daemon import Service
 
     svc = Service(cfg)
     stop = asyncio.Event()
@@ -267,12 +267,12 @@ async def _run_daemon(cfg: Any, fa: FrameArrays, channel: str) -> tuple[float, i
         notes.append(f"service receive queue dropped {svc.bus.counters.rx_dropped} frames")
     if svc.decoder.counters.errors:
         notes.append(f"decode errors {svc.decoder.counters.errors}")
-    return wall, frames, int(svc.metrics.samples), notes
+    return wall, frames, int(svc.pipeline.counters.samples), notes
 
 
 def daemon_available() -> bool:
     try:
-        from ..service.daemon import Service  # noqa: F401
+        from bms_estimator.service.daemon import Service  # noqa: F401
     except ImportError:
         return False
     return True
@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--one-core", action="store_true", help="pin the process to one core")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
-    from ..service.logging import configure_logging
+    from bms_estimator.service.logging import configure_logging
 
     configure_logging(level="WARNING", fmt="console")
     if args.one_core:

@@ -20,10 +20,10 @@ from dataclasses import dataclass
 import can
 from cantools.database.can import Database
 
-from .dbc import load_project_db
-from .decoder import EventKind, FrameDecoder
-from .mapping import CanMapping, load_mapping
-from .sampler import SampleAssembler
+from bms_estimator.can.dbc import load_project_db
+from bms_estimator.can.decoder import EventKind, FrameDecoder
+from bms_estimator.can.mapping import CanMapping, load_mapping
+from bms_estimator.can.sampler import SampleAssembler
 
 __all__ = ["BenchResult", "bench", "bench_frames_per_s", "synth_frames"]
 

@@ -3,7 +3,7 @@
 :func:`bench_publish_latency_ms_p99` runs the real :class:`~bms_estimator.service.daemon.Service`
 (virtual CAN bus, MQTT QoS 1 to a Mosquitto started on a free loopback port,
 CAN output on, health server off) on the synthetic bus traffic of
-:func:`bms_estimator.can.bench.synth_frames` (current every 10 ms, every cell
+:func:`benchmarks.can_frames.synth_frames` (current every 10 ms, every cell
 voltage every 100 ms). For each 1 s sample it first sends the frames inside
 the period and waits until the service has read them, then sends the frame
 that closes the period and measures the time until a subscriber has received
@@ -20,10 +20,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
-import os
-import shutil
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,6 +27,8 @@ import uuid
 from pathlib import Path
 import numpy as np
 import structlog
+
+from bms_estimator.mosquitto import Mosquitto, find_mosquitto
 
 __all__ = ["bench_publish_latency", "bench_publish_latency_ms_p99", "find_mosquitto"]
 
@@ -65,60 +63,21 @@ client.loop_forever()
 """
 
 
-def find_mosquitto() -> str | None:
-    for cand in (os.environ.get("MOSQUITTO"), shutil.which("mosquitto"), "/usr/sbin/mosquitto"):
-        if cand and Path(cand).is_file() and os.access(cand, os.X_OK):
-            return cand
-    return None
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @contextlib.contextmanager
-def _broker(binary: str, workdir: Path, timeout_s: float = 10.0):
-    port = _free_port()
-    conf = workdir / "mosquitto.conf"
-    lines = [f"listener {port} 127.0.0.1", "allow_anonymous true", "persistence false", "log_dest none"]
-    if hasattr(os, "geteuid") and os.geteuid() == 0:
-        lines.append("user root")
-    conf.write_text("\n".join(lines) + "\n")
-    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            if proc.poll() is not None:
-                raise RuntimeError(f"mosquitto exited with {proc.returncode}")
-            try:
-                with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                    break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError("mosquitto did not start") from None
-                time.sleep(0.02)
-        yield port
-    finally:
-        if proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+def _broker(workdir: Path):
+    with Mosquitto(workdir) as broker:
+        yield broker.port
 
 
 async def _measure(port: int, workdir: Path, n_cells: int, samples: int, warmup: int, freeze_gc: bool = True) -> list[float]:
     import can
 
-    from ..can.bench import synth_frames
-    from ..can.dbc import load_project_db
-    from ..can.decoder import FrameDecoder
-    from ..can.sampler import SampleAssembler
-    from .config import ServiceConfig
-    from .daemon import Service
+    from benchmarks.can_frames import synth_frames
+    from bms_estimator.can.dbc import load_project_db
+    from bms_estimator.can.decoder import FrameDecoder
+    from bms_estimator.can.sampler import SampleAssembler
+    from bms_estimator.service.config import ServiceConfig
+    from bms_estimator.service.daemon import Service
 
     db = load_project_db()
     total = samples + warmup
@@ -208,7 +167,7 @@ def bench_publish_latency(
         log.info("mosquitto not found: publish latency not measured")
         return None
     try:
-        with tempfile.TemporaryDirectory(prefix="bms-bench-") as d, _broker(binary, Path(d)) as port:
+        with tempfile.TemporaryDirectory(prefix="bms-bench-") as d, _broker(Path(d)) as port:
             lat = asyncio.run(_measure(port, Path(d), n_cells, samples, warmup, freeze_gc))
     except (RuntimeError, OSError, asyncio.TimeoutError) as exc:
         log.warning("publish latency not measured", error=f"{type(exc).__name__}: {exc}")

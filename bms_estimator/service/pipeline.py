@@ -1,0 +1,235 @@
+"""Frame -> sample -> estimate -> :class:`Snapshot`: the service's data path, synchronous and free of I/O.
+
+One hop per file::
+
+    can.Message
+      -> can/decoder.py   FrameDecoder.decode(msg)              signal events (cell voltages, current, ...)
+      -> can/sampler.py   SampleAssembler.feed_frame(events, t) Samples on the frames' own time grid
+      -> core/soc.py      SocEstimator.update(i, v, valid)      SOC + 2-RC parameters of every cell
+      -> service/pipeline.py  Snapshot                          one immutable record per sample
+      -> on_snapshot hooks, each an output adapter formatting the Snapshot with service/schema.py:
+           service/mqtt.py    MqttPublisher.submit_snapshot     cell + pack JSON (latest-value buffer)
+           can/encoder.py     StateEncoder.encode_snapshot      CellState/Pack/Status frames
+           service/metrics.py ServiceMetrics.observe_snapshot   Prometheus gauges
+         and the daemon's own (state save scheduling, heartbeat).
+
+The daemon (service/daemon.py) owns everything with I/O or a clock of its own: the bus, the
+tasks, the state file, the no-input monitor. The demo, the benchmarks and the tests attach
+hooks with :meth:`Pipeline.add_hook` instead of subclassing the daemon.
+
+Time: everything here runs on the frames' time base (``msg.timestamp``); the clocks passed
+in are read only for the snapshot's ``wall_time`` (state files) and the uptime counter.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+import can
+import numpy as np
+import structlog
+
+from ..can.decoder import FrameDecoder
+from ..can.sampler import Sample, SampleAssembler
+from ..core.soc import SocEstimator
+from .schema import CELL_FIELDS, EstimatorState, SocStats, soc_stats
+
+__all__ = ["Pipeline", "PipelineCounters", "Snapshot", "StatusCounters"]
+
+log = structlog.get_logger("bms.pipeline")
+
+_LOG_EVERY = 1000  # after the first few, log every n-th repeated error
+
+
+@dataclass(frozen=True, slots=True)
+class StatusCounters:
+    """What the CAN status frames carry (see schema.CAN_STATUS_SIGNALS)."""
+
+    uptime_s: float
+    samples: int
+    decode_errors: int
+    rejections: int
+    stale_cells: int
+    time_jumps: int
+    backward_frames: int
+    estimator_state: int
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """The estimator's result for one sample: everything an output needs, nothing it must compute.
+
+    ``cells`` maps each per-cell key of :data:`~bms_estimator.service.schema.CELL_FIELDS`
+    (except ``stale``, which is ``~valid``) to an array of ``n_cells`` values.
+    """
+
+    t_s: float  # end of the sample period, on the frames' time base
+    wall_time: float  # epoch seconds when the sample was estimated
+    current_a: float  # NaN when unknown
+    current_valid: bool
+    pack_voltage_v: float  # NaN when unknown
+    cells: Mapping[str, np.ndarray]
+    valid: np.ndarray  # (n,) bool: the cell's inputs were fresh
+    soc: SocStats
+    capacity_ah_mean: float
+    state: EstimatorState
+    counters: StatusCounters
+    sample: Sample = field(repr=False)
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.valid.shape[0])
+
+    @property
+    def cells_valid(self) -> int:
+        return int(np.count_nonzero(self.valid))
+
+
+@dataclass
+class PipelineCounters:
+    samples: int = 0  # samples estimated
+    samples_current_invalid: int = 0  # samples without a valid current: estimator update skipped
+    tick_errors: int = 0  # exceptions in a frame, a tick or a hook (logged, skipped)
+
+
+class Pipeline:
+    """Decoder + sampler + estimator, calling ``on_snapshot`` hooks once per sample.
+
+    Never raises from :meth:`process_frame` or :meth:`tick`: an exception is logged (rate
+    limited) and counted in ``counters.tick_errors``; one failing hook does not stop the others.
+    """
+
+    def __init__(
+        self,
+        decoder: FrameDecoder,
+        sampler: SampleAssembler,
+        estimator: SocEstimator,
+        *,
+        on_snapshot: Callable[[Snapshot], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.decoder = decoder
+        self.sampler = sampler
+        self.estimator = estimator
+        self.n_cells = int(estimator.n_cells)
+        self.hooks: list[Callable[[Snapshot], None]] = [] if on_snapshot is None else [on_snapshot]
+        self.counters = PipelineCounters()
+        self.state = EstimatorState.INIT
+        self.last: Snapshot | None = None
+        self.tick_seconds = 0.0  # processing time of the last tick, hooks included
+        self.observe_tick: Callable[[float], None] | None = None
+        self._clock = clock
+        self._wall_clock = wall_clock
+        self._started = clock()
+        self._errors_logged = 0
+
+    def add_hook(self, hook: Callable[[Snapshot], None]) -> None:
+        self.hooks.append(hook)
+
+    # ----------------------------------------------------------------- frames
+    def process_frame(self, msg: can.Message) -> int:
+        """Decode one frame, assemble, and tick every completed sample; returns their number."""
+        try:
+            events = self.decoder.decode(msg)
+            samples = self.sampler.feed_frame(events, msg.timestamp)
+        except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the service
+            self.failed("frame", exc)
+            return 0
+        for sample in samples:
+            self.tick(sample)
+        return len(samples)
+
+    def tick(self, sample: Sample) -> Snapshot | None:
+        """One estimator step on ``sample``, then the hooks; returns the snapshot (None on error)."""
+        t0 = time.perf_counter()
+        snap = None
+        try:
+            c = self.counters
+            c.samples += 1
+            est = self.estimator
+            if sample.current_valid and math.isfinite(sample.current_a):
+                est.update(sample.current_a, sample.cell_voltage_v, sample.valid)
+            else:
+                c.samples_current_invalid += 1
+            snap = self._snapshot(sample)
+            self.last = snap
+            for hook in self.hooks:
+                try:
+                    hook(snap)
+                except Exception as exc:  # noqa: BLE001
+                    self.failed(getattr(hook, "__qualname__", "hook"), exc)
+        except Exception as exc:  # noqa: BLE001
+            self.failed("tick", exc)
+        finally:
+            self.tick_seconds = dt = time.perf_counter() - t0
+            if self.observe_tick is not None:
+                self.observe_tick(dt)
+        return snap
+
+    def _snapshot(self, sample: Sample) -> Snapshot:
+        est = self.estimator
+        valid = np.array(sample.valid, dtype=bool, copy=True)
+        n_valid = int(np.count_nonzero(valid))
+        soc = np.array(est.soc, dtype=float, copy=True)
+        params = est.params
+        if not np.isfinite(soc).any():
+            self.state = EstimatorState.INIT
+        elif n_valid < self.n_cells or not sample.current_valid:
+            self.state = EstimatorState.DEGRADED
+        else:
+            self.state = EstimatorState.RUNNING
+        capacity = np.array(est.capacity_ah, dtype=float, copy=True)
+        with np.errstate(all="ignore"):
+            cells = {
+                "soc": soc,
+                **params,
+                "tau1_s": params["r1_ohm"] * params["c1_f"],
+                "tau2_s": params["r2_ohm"] * params["c2_f"],
+                "voltage_v": sample.cell_voltage_v,
+                "temperature_c": sample.cell_temperature_c,
+                "capacity_ah": np.broadcast_to(capacity, (self.n_cells,)),
+            }
+        for f in CELL_FIELDS:  # further per-cell outputs the estimator offers (schema.CellField.estimator)
+            if f.estimator is not None and f.key not in cells and hasattr(est, f.estimator):
+                value = np.array(getattr(est, f.estimator), dtype=float, copy=True)
+                cells[f.key] = np.broadcast_to(value, (self.n_cells,))
+        return Snapshot(
+            t_s=sample.t_s,
+            wall_time=self._wall_clock(),
+            current_a=sample.current_a,
+            current_valid=bool(sample.current_valid),
+            pack_voltage_v=sample.pack_voltage_v,
+            cells=cells,
+            valid=valid,
+            soc=soc_stats(soc),
+            capacity_ah_mean=float(np.mean(capacity)),
+            state=self.state,
+            counters=self.status_counters(self.state, self.n_cells - n_valid),
+            sample=sample,
+        )
+
+    def status_counters(self, state: EstimatorState, stale_cells: int) -> StatusCounters:
+        dc, sc = self.decoder.counters, self.sampler.counters
+        return StatusCounters(
+            uptime_s=self._clock() - self._started,
+            samples=sc.samples,
+            decode_errors=dc.errors,
+            rejections=int(np.sum(self.estimator.identifier.rejections)),
+            stale_cells=int(stale_cells),
+            time_jumps=sc.time_jumps + sc.rewinds,
+            backward_frames=sc.backward_frames,
+            estimator_state=int(state),
+        )
+
+    def failed(self, where: str, exc: BaseException) -> None:
+        """Count and log (rate limited) an exception caught in the data path."""
+        self.counters.tick_errors += 1
+        n = self.counters.tick_errors
+        if self._errors_logged < 5 or n % _LOG_EVERY == 0:
+            self._errors_logged += 1
+            log.error("estimator tick failed", where=where, error=f"{type(exc).__name__}: {exc}",
+                      errors=n, exc_info=exc)
+

@@ -1,0 +1,106 @@
+"""Command-line conventions: --version, python-can's bus options and configuration, one-line
+errors, and exit codes that tell usage, data and runtime errors apart."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import can
+import pytest
+
+from bms_estimator import package_version
+from bms_estimator.cli.__main__ import main
+from bms_estimator.errors import EXIT_DATA, EXIT_RUNTIME, EXIT_USAGE
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "bms_estimator.cli", *args], capture_output=True, text=True,
+                          timeout=120, cwd=REPO, env=env)
+
+
+def _small_log(tmp_path: Path) -> Path:
+    path = tmp_path / "x.log"
+    with can.Logger(str(path)) as w:
+        for k in range(20):
+            w.on_message_received(can.Message(timestamp=1.0 + 0.01 * k, arbitration_id=0x100 + k, data=bytes([k])))
+    return path
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"bms-estimator {package_version()}"
+
+
+def test_replay_takes_python_cans_bus_options_and_configuration(tmp_path, monkeypatch):
+    log = _small_log(tmp_path)
+    ch = f"cli-{tmp_path.name}"
+    rx = can.Bus(interface="virtual", channel=ch)
+    try:
+        # -i/-c as python-can's own tools spell them
+        assert main(["replay", str(log), "-i", "virtual", "-c", ch, "--speed", "max", "--no-progress"]) == 0
+        got = [rx.recv(1.0) for _ in range(20)]
+        assert [m.arbitration_id for m in got] == [0x100 + k for k in range(20)]
+        # nothing on the command line: python-can's configuration ($CAN_INTERFACE, $CAN_CHANNEL, ~/.canrc)
+        monkeypatch.setenv("CAN_INTERFACE", "virtual")
+        monkeypatch.setenv("CAN_CHANNEL", ch)
+        assert main(["replay", str(log), "--speed", "max", "--no-progress"]) == 0
+        assert rx.recv(1.0).arbitration_id == 0x100
+    finally:
+        rx.shutdown()
+
+
+def test_can_errors_are_one_line_with_their_exit_codes(tmp_path):
+    log = _small_log(tmp_path)
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}  # no ~/.canrc, no CAN_* variables
+    # an interface python-can does not know: a usage error (argparse lists the choices)
+    res = _cli("replay", str(log), "-i", "nosuchinterface", env=env)
+    assert res.returncode == EXIT_USAGE and "Traceback" not in res.stderr
+    assert "invalid choice: 'nosuchinterface'" in res.stderr
+    # no interface anywhere
+    res = _cli("replay", str(log), env=env)
+    assert res.returncode == EXIT_USAGE and "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines()[-1].startswith("bms-estimator replay: error: no CAN interface")
+    # a bus that cannot be opened: one line, a runtime error
+    res = _cli("replay", str(log), "-i", "socketcan", "-c", "nosuchif0", env=env)
+    assert res.returncode == EXIT_RUNTIME and "Traceback" not in res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("bms-estimator replay: error: cannot open CAN bus socketcan:nosuchif0: ")
+
+
+def test_exit_codes_tell_usage_data_and_runtime_apart(tmp_path, capsys):
+    # usage: a bad option value
+    with pytest.raises(SystemExit) as exc:
+        main(["replay", "x.log", "--no-such-option"])
+    assert exc.value.code == EXIT_USAGE
+    # data: an input file that is missing or malformed
+    assert main(["replay", str(tmp_path / "missing.log"), "-i", "virtual"]) == EXIT_DATA
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time_s,current_a\n0,1\n")
+    assert main(["fit", str(bad), "--ocv", str(bad), "--capacity-ah", "3"]) == EXIT_DATA
+    # usage: a configuration that is wrong
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[mqtt]\nport = 0\n")
+    assert main(["run", "--config", str(cfg), "--check-config"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "mqtt.port" in err and "Traceback" not in err
+
+
+def test_dashboard_that_never_connected_fails(tmp_path, capsys):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens here
+    rc = main(["dashboard", "--broker", f"127.0.0.1:{port}", "--duration-s", "1"])
+    assert rc == EXIT_RUNTIME
+    assert "never connected to the broker" in capsys.readouterr().err
+
+
+def test_unit_does_not_restart_on_configuration_or_data_errors():
+    unit = (REPO / "deploy" / "bms-estimator.service").read_text()
+    assert f"RestartPreventExitStatus={EXIT_USAGE} {EXIT_DATA}" in unit
