@@ -100,14 +100,33 @@ def test_soc_and_fit_json(tmp_path):
     assert main(["soc", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--initial-soc-error", "0.2",
                  "--json", str(out), "--plot", str(tmp_path / "soc.png")]) == 0
     s = json.loads(out.read_text())
-    assert set(s) >= {"soc_rmse_pct", "soc_rmse_pct_after_3600s", "soc_max_abs_error_pct_after_3600s", "capacity_ah_estimated"}
-    assert s["reference_capacity_source"] == "end-of-test rest (OCV)"  # LG files end with 600 s rest
-    assert s["soc_rmse_pct_after_3600s"] < s["soc_rmse_pct"] < 20
+    assert set(s) >= {"rmse_all_pct", "rmse_30min_pct", "rmse_1h_pct", "max_abs_pct", "capacity_ah_estimated",
+                      "counting_stated_capacity", "soc_sigma_end"}
+    assert s["reference_scored"] and "relaxed end rest" in s["reference"]  # LG files end with 600 s rest
+    assert 2.78 < s["capacity_ah_reference"] < 2.86  # read on the C/20 discharge branch, not fitted
+    assert s["rmse_1h_pct"] < s["rmse_all_pct"] < 20
+    assert s["rmse_30min_pct"] < s["counting_stated_capacity"]["rmse_30min_pct"]  # 20 % low and never corrected
+    assert 0 < s["soc_sigma_end"] < 0.1
     assert (tmp_path / "soc.png").stat().st_size > 10_000
     mean_curve = tmp_path / "soc_mean_curve.json"
     assert main(["soc", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--no-hysteresis", "--json", str(mean_curve)]) == 0
     m = json.loads(mean_curve.read_text())
-    assert m["soc_rmse_pct"] != s["soc_rmse_pct"]  # the switch reaches the estimator
+    assert m["rmse_all_pct"] != s["rmse_all_pct"]  # the switch reaches the estimator
+    # any start: 25 % into the file from its OCV, with a trace on the file's time base; the paper's c0 method
+    trace = tmp_path / "trace.csv"
+    later = tmp_path / "later.json"
+    assert main(["soc", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--start-s", "2500", "--start-soc", "ocv",
+                 "--soc-method", "c0", "--trace", str(trace), "--json", str(later)]) == 0
+    later_s = json.loads(later.read_text())
+    assert later_s["start_s"] == 2500 and later_s["soc_method"] == "c0" and later_s["soc_sigma_end"] is None
+    rows = np.genfromtxt(trace, delimiter=",", names=True)
+    assert rows.dtype.names[:4] == ("time_s", "soc", "soc_sigma", "soc_reference")
+    assert np.isnan(rows["soc"][:2500]).all() and np.isfinite(rows["soc"][2500:]).all()
+    assert abs(rows["soc"][2500] - rows["soc_reference"][2500]) < 0.1  # read from the voltage at the start
+    assert rows["time_s"][-1] == pytest.approx(len(rows) - 1)
+    with pytest.raises(SystemExit) as exc:  # a usage error, named: exit 2, no traceback
+        main(["soc", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--start-soc", "1.5"])
+    assert exc.value.code == 2
     out = tmp_path / "fit.json"
     assert main(["fit", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--method", "arx", "--json", str(out)]) == 0
     f = json.loads(out.read_text())

@@ -74,7 +74,9 @@ class PackConfig(_Strict):
     pack_id: str = Field("pack0", pattern=_ID_PATTERN, description="used in MQTT topics and HA ids")
     n_cells: int = Field(16, ge=1, le=1024)
     capacity_ah: float = Field(50.0, gt=0, le=1e5)
-    ocv_csv: Path | None = Field(None, description="OCV(SOC) table; None = built-in sample curve")
+    ocv_csv: Path | list[Path] | None = Field(
+        None, description="OCV(SOC) table, or a list of tables at several temperatures (each with its temperature_c "
+                          "column, from 'bms-estimator ocv'), read at each cell's temperature; None = built-in sample curve")
 
 
 # ---------------------------------------------------------------------------- can

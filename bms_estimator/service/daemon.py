@@ -61,6 +61,7 @@ from ..can.encoder import StateEncoder
 from ..can.mapping import MappingError
 from ..can.sampler import SampleAssembler
 from ..core.ocv import OcvCurve
+from ..core.ocv_surface import OcvSurface
 from ..core.soc import SocEstimator
 from . import systemd
 from .config import ConfigError, ServiceConfig
@@ -136,9 +137,14 @@ class Service:
                 from ..samples import ocv_table
 
                 self.ocv_source = str(ocv_table(DEFAULT_OCV_CELL))
+                self.ocv = OcvCurve.from_csv(self.ocv_source)
             else:
-                self.ocv_source = str(cfg.pack.ocv_csv)
-            self.ocv = OcvCurve.from_csv(self.ocv_source)
+                paths = cfg.pack.ocv_csv if isinstance(cfg.pack.ocv_csv, list) else [cfg.pack.ocv_csv]
+                if not paths:
+                    raise ValueError("an empty list: give one table, or one per temperature")
+                self.ocv_source = ", ".join(str(p) for p in paths)
+                # several tables: OCV(soc, T), read at each cell's temperature from CAN
+                self.ocv = OcvCurve.from_csv(paths[0]) if len(paths) == 1 else OcvSurface.from_csvs(paths)
         except (OSError, ValueError) as exc:
             problems.append(f"pack.ocv_csv: {exc}")
         self.soc_config = cfg.estimator.soc_config

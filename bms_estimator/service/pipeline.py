@@ -5,7 +5,7 @@ One hop per file::
     can.Message
       -> can/decoder.py   FrameDecoder.decode(msg)              signal events (cell voltages, current, ...)
       -> can/sampler.py   SampleAssembler.feed_frame(events, t) Samples on the frames' own time grid
-      -> core/soc.py      SocEstimator.update(i, v, valid)      SOC + 2-RC parameters of every cell
+      -> core/soc.py      SocEstimator.update(i, v, valid, T)   SOC, its sigma + 2-RC parameters of every cell
       -> service/pipeline.py  Snapshot                          one immutable record per sample
       -> on_snapshot hooks, each an output adapter formatting the Snapshot with service/schema.py:
            service/mqtt.py    MqttPublisher.submit_snapshot     cell + pack JSON (latest-value buffer)
@@ -151,7 +151,8 @@ class Pipeline:
             c.samples += 1
             est = self.estimator
             if sample.current_valid and math.isfinite(sample.current_a):
-                est.update(sample.current_a, sample.cell_voltage_v, sample.valid)
+                est.update(sample.current_a, sample.cell_voltage_v, sample.valid,
+                           temperature_c=sample.cell_temperature_c)
             else:
                 c.samples_current_invalid += 1
             snap = self._snapshot(sample)

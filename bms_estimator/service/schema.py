@@ -83,6 +83,8 @@ _DIAG = {"state_class": "measurement", "entity_category": "diagnostic"}
 #: per-cell payload keys, in payload order ("t_s" comes last)
 CELL_FIELDS: tuple[CellField, ...] = (
     CellField("soc", "SOC", _SOC_HA, 100.0, 1),
+    CellField("soc_sigma", "SOC uncertainty", {**_DIAG, "unit_of_measurement": "%", "icon": "mdi:plus-minus"}, 100.0, 1,
+              estimator="soc_sigma"),
     CellField("r0_ohm", "R0", {**_DIAG, "unit_of_measurement": "mΩ", "icon": "mdi:resistor"}, 1000.0, 2, "r0"),
     CellField("r1_ohm", "R1"),
     CellField("c1_f", "C1"),

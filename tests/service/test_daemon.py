@@ -158,7 +158,7 @@ class Offline:
         for m in frames:
             for s in self.smp.feed_frame(self.dec.decode(m), m.timestamp):
                 if s.current_valid and math.isfinite(s.current_a):
-                    est.update(s.current_a, s.cell_voltage_v, s.valid)
+                    est.update(s.current_a, s.cell_voltage_v, s.valid, temperature_c=s.cell_temperature_c)
                 p = {k: v.copy() for k, v in est.params.items()}
                 fr = self.enc.encode_cells(np.arange(N), est.soc, p["r0_ohm"], p["r1_ohm"], p["c1_f"], p["r2_ohm"],
                                            p["c2_f"], p["c0_v"])
@@ -437,6 +437,33 @@ def test_service_matches_offline_estimator_on_can_and_mqtt(mosquitto, tmp_path):
     assert metrics["bms_estimator_corrections_total"] == int(ref.est.corrections.sum())
     # and the state saved at shutdown is the final estimate
     assert_state_file_valid(Path(cfg.state.path), soc=ref.est.soc)
+
+
+def test_ocv_tables_at_several_temperatures_are_read_at_each_cells_temperature(tmp_path):
+    """pack.ocv_csv takes a list of tables; the estimator reads them at each cell's temperature from CAN
+    (25-30 degC here), and every cell's SOC uncertainty leaves the service with its state."""
+    warm = ocv()
+    cold = OcvCurve(warm.soc, warm.ocv_v + 0.02, warm.hysteresis_v, temperature_c=0.0,
+                    capacity_discharge_ah=2.6)
+    paths = [str(warm.to_csv(tmp_path / "warm.csv")) if warm.temperature_c is not None else None,
+             str(cold.to_csv(tmp_path / "cold.csv"))]
+    assert paths[0] is not None, "the shipped table carries its temperature"
+    frames = rows(0, 30)
+    metrics, _, svc = run_bad_input(tmp_path, frames, 30, expect_equal=False, pack={"ocv_csv": paths})
+    est = svc.estimator
+    assert list(est.ocv.temperatures_c) == [0.0, warm.temperature_c]
+    np.testing.assert_array_equal(est.temperature_c, 25.0 + np.arange(N))  # CellTemperature0..5 of row_frames
+    # the same frames offline with the same tables and temperatures give the same SOC
+    from bms_estimator.core.ocv_surface import OcvSurface
+
+    offline = Offline(estimator=SocEstimator(N, OcvSurface.from_csvs(paths), CAPACITY_AH, 1.0)).feed(frames)
+    np.testing.assert_array_equal(est.soc, offline.est.soc)
+    snap = svc.pipeline.last
+    sigma = np.asarray(snap.cells["soc_sigma"])
+    assert sigma.shape == (N,) and np.all((sigma > 0) & (sigma < 0.2))
+    bad = config_data(tmp_path, channel(), pack={"ocv_csv": [paths[0], str(tmp_path / "missing.csv")]})
+    with pytest.raises(ConfigError, match="pack.ocv_csv"):
+        Service(ServiceConfig(**bad))
 
 
 def test_unknown_ids_are_ignored_and_counted(tmp_path):
