@@ -69,7 +69,6 @@ __all__ = [
     "validate_methods",
     "reference_soc",
     "reference_capacity",
-    "measured_capacity",
 ]
 
 
@@ -511,29 +510,6 @@ def reference_capacity(
             if 0.5 * stated_ah < q < 1.5 * stated_ah:
                 return q, "end-of-test rest (OCV)"
     return float(stated_ah), "stated"
-
-
-def measured_capacity(
-    current_a: np.ndarray,
-    voltage_v: np.ndarray,
-    dt_s: float,
-    ocv: OcvCurve,
-    stated_ah: float,
-    soc0: float = 1.0,
-    config: IdentifierConfig = IdentifierConfig(),
-) -> tuple[float, str]:
-    """The effective capacity of a recording that starts at a known SOC, never the stated one.
-
-    A relaxed end-of-test rest measures it (:func:`reference_capacity`); without
-    one, the output-error capacity of the model fitted along the known-start
-    SOC path (:func:`output_error_capacity`, with the known-SOC c0 prior).
-    """
-    q, source = reference_capacity(current_a, voltage_v, dt_s, ocv, stated_ah, soc0)
-    if not source.startswith("stated"):
-        return q, source
-    q, _ = output_error_capacity(current_a, voltage_v, ocv, stated_ah, soc0, dt_s,
-                                 config.with_(c0_prior_weight=KNOWN_SOC_C0_PRIOR_WEIGHT))
-    return q, "output error of the model from the known start"
 
 
 def soc_errors(
