@@ -298,13 +298,16 @@ class SocEstimator:
         i_ok = np.isfinite(i)
         i_use = np.where(i_ok, i, 0.0)
         unset = ~np.isfinite(self.soc)
+        read_now = unset & ok  # SOC read from this sample's voltage: not to be used a second time
         if unset.any():
-            start = unset & ok
+            start = read_now
             if start.any():
                 self.soc = np.where(start, np.clip(self._soc_at(np.where(start, v, 3.7)), 0.0, 1.0), self.soc)
                 self._soc_fix = np.where(start, self.soc, self._soc_fix)
                 self._q_fix = np.where(start, self._charge_ref_ah, self._q_fix)
                 self._start_hysteresis(start)
+                if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
+                    self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, start)
         # 1. coulomb counting (the previous sample's current moved the SOC to now)
         q_now = self.capacity_ah * self._rel_q
         dq = self._i_prev * (self.dt_s / 3600.0)
@@ -333,7 +336,7 @@ class SocEstimator:
             # (gating the correction on an identified model, or on rest, was measured worse on the
             # 25 degC matrix, 40 against 47 of 56 runs within 2 %: the strong early evidence of a
             # wrong start is read through the prior impedance)
-            self._ekf_step(i_prev, i_use, dz, soc_mid, use & have_soc)
+            self._ekf_step(i_prev, i_use, dz, soc_mid, use & have_soc & ~read_now)
         self._compensate(use)
         self.samples += 1
 

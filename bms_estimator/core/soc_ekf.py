@@ -89,6 +89,7 @@ class SocEkfConfig:
     """Noise model of the SOC EKF (module docstring); the defaults serve both cells in ../shared/data."""
 
     initial_soc_sigma: Annotated[float, Gt(0)] = 0.10  # 1-sigma of a start SOC that is given, not measured
+    ocv_start_soc_sigma: Annotated[float, Gt(0)] = 0.03  # 1-sigma of a start SOC read from the OCV at rest
     capacity_sigma: Annotated[float, Gt(0)] = 0.05  # relative uncertainty of the counting capacity at a start
     capacity_drift_per_h: Annotated[float, Ge(0)] = 0.002  # its random walk per sqrt(hour)
     # the capacity learns only while the SOC is this sure: before, a start error still being
@@ -114,7 +115,7 @@ class SocEkfConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        for name in ("initial_soc_sigma", "capacity_sigma", "capacity_learn_max_soc_sigma", "capacity_learn_max_slope_v",
+        for name in ("initial_soc_sigma", "ocv_start_soc_sigma", "capacity_sigma", "capacity_learn_max_soc_sigma", "capacity_learn_max_slope_v",
                      "current_sigma_c", "rc_sigma_v", "voltage_sigma_v",
                      "correlation_s", "diffusion_tau_s", "diffusion_r_sigma_ohm_ah", "diffusion_v_sigma_v",
                      "max_soc_step"):

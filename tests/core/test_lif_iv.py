@@ -122,7 +122,7 @@ def test_no_nan_and_no_inadmissible_parameters_leave_it(seed, amp, noise_v, nois
 
 
 def test_the_service_config_takes_lif_iv_and_names_a_bad_method():
-    from bms_estimator.service.daemon import ConfigError, soc_config_from_core
+    from bms_estimator.service.config import ConfigError, soc_config_from_core
 
     cfg = soc_config_from_core({"method": "lif-iv", "identifier": {"iv_model_every": 5}})
     assert cfg.identifier.method == "lif-iv" and cfg.identifier.iv_model_every == 5

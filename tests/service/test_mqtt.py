@@ -137,7 +137,7 @@ def test_home_assistant_discovery_retained_and_resent(mosquitto):
     n = 2
     # pack: SOC min/mean/max, current, stale cells, voltage, capacity, state; per cell: SOC, R0, voltage,
     # temperature, capacity
-    n_configs = 8 + 5 * n
+    n_configs = 8 + 6 * n  # per cell: SOC, its uncertainty, R0, voltage, temperature, capacity
 
     async def main():
         pub = MqttPublisher(mqtt_cfg(port, qos=0), "hapack", n, expire_after_s=30)
@@ -218,11 +218,11 @@ def test_orphan_entities_are_removed(mosquitto):
         ours = {t for t in after if "/bms_hapack_" in t and "/bms_hapack_x_" not in t}
         assert not any(f"_cell{i}_" in t for t in ours for i in (2, 3))
         assert "homeassistant/sensor/bms_hapack_cell1_soc/config" in ours
-        assert len(ours) == 8 + 5 * 2
+        assert len(ours) == 8 + 6 * 2
         await publish_once("hapack", 2, discovery=False)
         after = await _retained_configs(port)
         assert not any("/bms_hapack_" in t and "/bms_hapack_x_" not in t for t in after)
-        assert len([t for t in after if "/bms_hapack_x_" in t]) == 8 + 5  # the other pack kept
+        assert len([t for t in after if "/bms_hapack_x_" in t]) == 8 + 6  # the other pack kept
 
     run_async(main())
 
