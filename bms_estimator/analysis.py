@@ -30,11 +30,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .core.ecm import EcmParams, simulate_ecm, soc_from_current
+from .core.ecm import EcmParams, simulate_ecm
 from .core.identifier import IdentifierConfig, make_identifier
 from .core.ocv import OcvCurve
 from .core.params import dt_theta_from_physical
 from .core.soc import SocConfig, SocEstimator
+from .scoring import counted_soc
 
 # weight of the prior c0 = 0 when the SOC path is given (fit, compare): per sample, relative
 # to one data sample; c0 is then an OCV-model error, not an SOC error, and the prior keeps
@@ -93,10 +94,8 @@ class SocRun:
     soc_sigma: np.ndarray | None = None  # the EKF's 1-sigma SOC uncertainty (NaN for the c0 method)
 
 
-def reference_soc(current_a: np.ndarray, dt_s: float, capacity_ah: float, soc0: float = 1.0) -> np.ndarray:
-    """Coulomb counting from a known start (the data's drive cycles start full), mid-sample."""
-    s = soc_from_current(current_a, dt_s, capacity_ah, soc0)
-    return s + np.asarray(current_a) * (0.5 * dt_s / 3600.0) / capacity_ah
+#: coulomb counting from a known start (the data's drive cycles start full), read at mid-sample
+reference_soc = counted_soc
 
 
 def _record(traj: dict[str, np.ndarray], k: int, params: dict[str, np.ndarray]) -> None:

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .core.ecm import soc_from_current
+
 __all__ = ["SocReference", "soc_reference", "counted_soc", "soc_error_figures"]
 
 #: A rest is relaxed when the log-time recovery moves the SOC reading less than this per doubling.
@@ -55,11 +57,11 @@ class SocReference:
                 f"of the rest): reported, not scored")
 
 
-def counted_soc(current_a: np.ndarray, dt_s: float, capacity_ah: float, soc0: float = 1.0) -> np.ndarray:
-    """Coulomb counting read at mid-sample (the sample's voltage is a period mean)."""
-    i = np.asarray(current_a, dtype=float)
-    q = np.concatenate(([0.0], np.cumsum(i[:-1]))) * (dt_s / 3600.0)
-    return soc0 + (q + 0.5 * i * dt_s / 3600.0) / capacity_ah
+def counted_soc(current_a: np.ndarray, dt_s: float, capacity_ah, soc0=1.0) -> np.ndarray:
+    """Coulomb counting (:func:`~bms_estimator.core.ecm.soc_from_current`) read at mid-sample:
+    the sample's voltage is a period mean."""
+    s = soc_from_current(current_a, dt_s, capacity_ah, soc0)
+    return s + np.asarray(current_a, dtype=float) * (0.5 * dt_s / 3600.0) / np.asarray(capacity_ah, dtype=float)
 
 
 def _discharge_branch_soc(v: float, ocv, temperature_c: float | None) -> tuple[float, float]:

@@ -42,12 +42,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _synthetic_curve() -> OcvCurve:
-    soc = np.linspace(0, 1, 101)
-    # with a hysteresis column, as a C/20 table has: the SOC estimator then tracks the branch
-    return OcvCurve(soc, 3.0 + 1.2 * soc - 0.15 * np.sin(3 * soc), 0.015 + 0.01 * (1 - soc))
-
-
 def _synthetic_surface() -> OcvSurface:
     """Three tables (-10, 0 and 25 degC) with hysteresis and C/20 capacities, as a cell's tests give."""
     soc = np.linspace(0, 1, 101)
