@@ -118,11 +118,17 @@ class WeightedRls:
         P = self.P
         pphi = np.einsum("nij,nj->ni", P, phi)
         denom = lam + np.einsum("ni,ni->n", phi, pphi)
-        gain = np.where(w[:, None], pphi / denom[:, None], 0.0)
+        gain = pphi / denom[:, None]
+        every = bool(w.all())  # the usual case: no per-cell selects over (N, p, p)
+        if not every:
+            gain[~w] = 0.0
         self.theta += gain * e[:, None]
-        lam_eff = np.where(w, lam, 1.0)
-        P -= gain[:, :, None] * pphi[:, None, :]
-        P /= lam_eff[:, None, None]
+        outer = np.multiply(gain[:, :, None], pphi[:, None, :])
+        P -= outer
+        if every:
+            P /= lam
+        else:
+            P /= np.where(w, lam, 1.0)[:, None, None]
         # keep P symmetric and bounded
         tr = np.einsum("nii->n", P)
         over = tr > self.config.trace_max

@@ -347,11 +347,14 @@ class SocEstimator:
         tau = np.stack([p.tau1_s, p.tau2_s], axis=1)
         live = np.isfinite(self.soc)
         self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q, r, tau, live)
-        v_hat = p.r0_ohm * i_now + self.ekf.v_model
-        innovation = self.v_o - v_hat
+        overpotential = p.r0_ohm * i_now + self.ekf.v_rc[:, 0] + self.ekf.v_rc[:, 1]  # the identified model's
+        innovation = self.v_o - (overpotential + self.ekf.v_diffusion)
         slope = self._slope(soc_mid)
         unsure = (1.0 - np.abs(self.hysteresis_state)) * self._h_gap if self._hyst is not None else 0.0
-        d_soc, d_q = self.ekf.correct(innovation, slope, np.broadcast_to(unsure, (self.n_cells,)), use)
+        ec = self.config.ekf
+        rho = np.where(self.identifier.identified, ec.overpotential_sigma, ec.overpotential_sigma_prior)
+        d_soc, d_q = self.ekf.correct(innovation, slope, np.broadcast_to(unsure, (self.n_cells,)), use,
+                                      rho * np.abs(overpotential))
         if self.config.estimate_capacity:
             self.capacity_ah = self.capacity_ah * (1.0 + d_q)
             lo, hi = self.config.capacity_bounds

@@ -60,11 +60,16 @@ Noise, stated in the cell's terms rather than tuned per file:
 * ``r_d`` starts at 0 with sigma ``diffusion_r_sigma_ohm_ah / Q`` (resistances
   per C-rate, so the same numbers fit any cell size); ``v_d`` starts at 0 with
   sigma ``diffusion_v_sigma_v`` (the cell may not be at rest).
-* ``Rv`` = ``voltage_sigma_v``^2 ``correlation_s / Ts`` + (``(1 - |h|) H``)^2.  The
-  model's voltage error is not white: it stays for a minute or more, so one
-  sample carries only ``Ts / correlation_s`` of an independent reading's
-  information.  Inside a hysteresis transition (``|h| < 1``) the branch is
-  uncertain by up to ``H``, so the filter trusts the voltage less there.
+* ``Rv`` = (``voltage_sigma_v``^2 + (rho |R0 i + v1 + v2|)^2) ``correlation_s / Ts``
+  + (``(1 - |h|) H``)^2.  The model's voltage error is not white: it stays for a
+  minute or more, so one sample carries only ``Ts / correlation_s`` of an
+  independent reading's information.  It grows with the load: the predicted
+  overpotential is uncertain by a fraction rho of itself, ``overpotential_sigma_prior``
+  while the identifier still runs on its prior (whose resistance is 1.5-2x low on
+  a cold cell) and ``overpotential_sigma`` once it has identified the cell.  So the
+  filter reads the SOC mostly where the OCV shows through: at low current and
+  after the RC voltages have decayed.  Inside a hysteresis transition (``|h| < 1``)
+  the branch is uncertain by up to ``H``, so the filter trusts the voltage less there.
 
 The 1-sigma SOC uncertainty is ``sqrt(P[0, 0])`` (:attr:`soc_sigma`).
 Everything is vectorised over cells: ``P`` is ``(N, 4, 4)``, the update is a
@@ -102,16 +107,20 @@ class SocEkfConfig:
     drift_sigma_per_h: Annotated[float, Ge(0)] = 0.003  # SOC random walk the count cannot see, per sqrt(hour)
     current_sigma_c: Annotated[float, Gt(0)] = 0.01  # current-sensor noise as a C-rate (0.03 A on a 3 Ah cell)
     rc_sigma_v: Annotated[float, Gt(0)] = 0.001  # process noise of the diffusion voltage per sample, times sqrt(Ts / tau_d)
-    voltage_sigma_v: Annotated[float, Gt(0)] = 0.020  # model voltage error (OCV table, slow dynamics, ...)
+    voltage_sigma_v: Annotated[float, Gt(0)] = 0.015  # model voltage error at no load (OCV table, slow dynamics, ...)
     correlation_s: Annotated[float, Gt(0)] = 300.0  # how long that error stays correlated
+    # relative uncertainty of the predicted overpotential (R0 i + v1 + v2): before the identifier
+    # has a model of its own (the prior's resistance is 1.5-2x low on a cell at 0 degC) and after
+    overpotential_sigma_prior: Annotated[float, Ge(0)] = 1.0
+    overpotential_sigma: Annotated[float, Ge(0)] = 0.4
     diffusion_tau_s: Annotated[float, Gt(0)] = 1200.0  # time constant of the diffusion branch
     diffusion_r_sigma_ohm_ah: Annotated[float, Gt(0)] = 0.05  # prior sigma of its resistance, ohm * Ah (per C-rate)
     diffusion_r_drift_ohm_ah: Annotated[float, Ge(0)] = 0.01  # its random walk per sqrt(hour), ohm * Ah
-    diffusion_v_sigma_v: Annotated[float, Gt(0)] = 0.02  # sigma of its voltage at a start
+    diffusion_v_sigma_v: Annotated[float, Gt(0)] = 0.005  # sigma of its voltage at a start (a larger one soaks up a start error)
     max_soc_step: Annotated[float, Gt(0)] = 0.01  # at most this SOC correction per sample (a bad sample cannot jump it)
 
     def __post_init__(self) -> None:
-        for name in ("drift_sigma_per_h", "diffusion_r_drift_ohm_ah", "capacity_drift_per_h"):
+        for name in ("drift_sigma_per_h", "overpotential_sigma_prior", "overpotential_sigma", "diffusion_r_drift_ohm_ah", "capacity_drift_per_h"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -139,21 +148,31 @@ class SocEkf:
         self.q_ref_ah = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
         self.x = np.zeros((self.n_cells, _N))  # x[:, 0] unused: the caller owns the SOC
         self.v_rc = np.zeros((self.n_cells, 2))  # the identified RC pairs' voltages
-        self.p = np.zeros((self.n_cells, _N, _N))
-        self.p[:, 0, 0] = config.initial_soc_sigma**2
-        self.p[:, 1, 1] = config.diffusion_v_sigma_v**2
-        self.p[:, 2, 2] = (config.diffusion_r_sigma_ohm_ah / self.q_ref_ah) ** 2
-        self.p[:, 3, 3] = config.capacity_sigma**2
-        self._eye = np.eye(_N)
+        # the covariance is stored element-major, (4, 4, N): every element is a contiguous vector
+        # over the cells, so the row and column operations below run at memory speed
+        self._pt = np.zeros((_N, _N, self.n_cells))
+        self._pt[0, 0] = config.initial_soc_sigma**2
+        self._pt[1, 1] = config.diffusion_v_sigma_v**2
+        self._pt[2, 2] = (config.diffusion_r_sigma_ohm_ah / self.q_ref_ah) ** 2
+        self._pt[3, 3] = config.capacity_sigma**2
+
+    @property
+    def p(self) -> np.ndarray:
+        """The covariance, ``(N, 4, 4)`` (a view of the element-major store)."""
+        return np.moveaxis(self._pt, 2, 0)
+
+    @p.setter
+    def p(self, value: np.ndarray) -> None:
+        self._pt = np.ascontiguousarray(np.moveaxis(np.asarray(value, dtype=float), 0, 2))
 
     @property
     def soc_sigma(self) -> np.ndarray:
-        return np.sqrt(np.maximum(self.p[:, 0, 0], 0.0))
+        return np.sqrt(np.maximum(self._pt[0, 0], 0.0))
 
     @property
-    def v_model(self) -> np.ndarray:
-        """RC and diffusion voltages: what the model adds to OCV + R0 i."""
-        return self.v_rc[:, 0] + self.v_rc[:, 1] + self.x[:, 1]
+    def v_diffusion(self) -> np.ndarray:
+        """The diffusion branch's voltage."""
+        return self.x[:, 1]
 
     @property
     def r_diffusion_ohm(self) -> np.ndarray:
@@ -163,9 +182,9 @@ class SocEkf:
         """Restart the SOC variance (a new start SOC) of some cells; its cross terms dropped."""
         sel = np.ones(self.n_cells, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
         s2 = np.broadcast_to(np.asarray(sigma, dtype=float) ** 2, (self.n_cells,))
-        self.p[sel, 0, :] = 0.0
-        self.p[sel, :, 0] = 0.0
-        self.p[sel, 0, 0] = s2[sel]
+        self._pt[0, :, sel] = 0.0
+        self._pt[:, 0, sel] = 0.0
+        self._pt[0, 0, sel] = s2[sel]
 
     def predict(self, current_a: np.ndarray, dz: np.ndarray, capacity_ah: np.ndarray,
                 r_ohm: np.ndarray, tau_s: np.ndarray, live: np.ndarray) -> None:
@@ -181,51 +200,53 @@ class SocEkf:
         x[:, 1] = a_d * self.x[:, 1] + self.x[:, 2] * (1.0 - a_d) * current_a
         # P- = F P F' with F the identity but for F[1,1] = ad, F[1,2] and F[0,3]: rows, then
         # columns, in place of two dense (N, 4, 4) products
-        f12 = ((1.0 - a_d) * current_a)[:, None]
-        f03 = (-dz)[:, None]
-        p = self.p.copy()
+        f12 = (1.0 - a_d) * current_a
+        f03 = -dz
+        every = bool(live.all())  # the usual case: in place, no (4, 4, N) select
+        p = self._pt if every else self._pt.copy()
         for rows in (True, False):
-            q = p if rows else np.swapaxes(p, 1, 2)
-            q[:, 0, :] += f03 * q[:, 3, :]
-            q[:, 1, :] = a_d * q[:, 1, :] + f12 * q[:, 2, :]
+            q = p if rows else p.swapaxes(0, 1)
+            q[0] += f03 * q[3]
+            q[1] *= a_d
+            q[1] += f12 * q[2]
         h_frac = self.dt_s / 3600.0
-        p[:, 0, 0] += (cfg.current_sigma_c * h_frac) ** 2 + cfg.drift_sigma_per_h**2 * h_frac
-        p[:, 1, 1] += cfg.rc_sigma_v**2 * (self.dt_s / cfg.diffusion_tau_s)  # driven by r_d, not free
-        p[:, 2, 2] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * h_frac
-        p[:, 3, 3] += cfg.capacity_drift_per_h**2 * h_frac
-        if live.all():  # the usual case: no (N, 4, 4) select
-            self.x, self.p, self.v_rc = x, p, v_rc
+        p[0, 0] += (cfg.current_sigma_c * h_frac) ** 2 + cfg.drift_sigma_per_h**2 * h_frac
+        p[1, 1] += cfg.rc_sigma_v**2 * (self.dt_s / cfg.diffusion_tau_s)  # driven by r_d, not free
+        p[2, 2] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * h_frac
+        p[3, 3] += cfg.capacity_drift_per_h**2 * h_frac
+        if every:
+            self.x, self.v_rc = x, v_rc
         else:
             self.x = np.where(live[:, None], x, self.x)
-            self.p = np.where(live[:, None, None], p, self.p)
+            self._pt = np.where(live, p, self._pt)
             self.v_rc = np.where(live[:, None], v_rc, self.v_rc)
 
     def correct(self, innovation_v: np.ndarray, slope_v: np.ndarray, hyst_uncertain_v: np.ndarray,
-                use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                use: np.ndarray, model_uncertain_v: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Measurement update; returns the SOC correction and the relative capacity correction per cell.
 
-        ``innovation_v`` = measured - predicted voltage (with :attr:`v_model`),
-        ``slope_v`` = dOCV/dz, ``hyst_uncertain_v`` = (1 - |h|) H.
+        ``innovation_v`` = measured - predicted voltage (with :attr:`v_rc` and :attr:`v_diffusion`),
+        ``slope_v`` = dOCV/dz, ``hyst_uncertain_v`` = (1 - |h|) H, ``model_uncertain_v`` = rho |R0 i + v1 + v2|.
         """
         cfg = self.config
-        p = self.p
-        # P C' with C = [slope, 1, 0, 0]: columns, not a product
-        pc = p[:, :, 0] * slope_v[:, None] + p[:, :, 1]
-        r_v = cfg.voltage_sigma_v**2 * max(cfg.correlation_s / self.dt_s, 1.0) + hyst_uncertain_v**2
-        s = pc[:, 0] * slope_v + pc[:, 1] + r_v
-        k = pc / s[:, None]
+        p = self._pt
+        # P C' with C = [slope, 1, 0, 0]: columns, not a product; (4, N)
+        pc = p[:, 0] * slope_v + p[:, 1]
+        r_v = (cfg.voltage_sigma_v**2 + np.square(model_uncertain_v)) * max(cfg.correlation_s / self.dt_s, 1.0) + hyst_uncertain_v**2
+        s = pc[0] * slope_v + pc[1] + r_v
+        k = pc / s
         held = (self.soc_sigma > cfg.capacity_learn_max_soc_sigma) | (slope_v > cfg.capacity_learn_max_slope_v)
-        k[:, 3] = np.where(held, 0.0, k[:, 3])
+        k[3] = np.where(held, 0.0, k[3])
         e = np.where(use, innovation_v, 0.0)
-        dx = k * e[:, None]
+        dx = (k * e).T
         dz = np.clip(dx[:, 0], -cfg.max_soc_step, cfg.max_soc_step)
         # Joseph form, (I - K C) P (I - K C)' + K R K', for K = pc / S - d e3 (d = pc3 / S where the
         # capacity row is held, else 0) expands to  P - pc pc' / S + S d^2 e3 e3':  one outer product
-        pp = np.multiply(pc[:, :, None], k[:, None, :], out=np.empty_like(p))  # pc pc' / S (k = pc / S here)
-        pp[:, :, 3] = pc * (pc[:, 3] / s)[:, None]  # the held capacity row of k is not pc / S
+        pp = np.multiply(pc[:, None, :], k[None, :, :], out=np.empty_like(p))  # pc pc' / S (k = pc / S here)
+        pp[:, 3] = pc * (pc[3] / s)  # the held capacity row of k is not pc / S
         p_new = np.subtract(p, pp, out=pp)
-        p_new[:, 3, 3] += np.where(held, pc[:, 3] ** 2 / s, 0.0)
-        self.p = p_new if use.all() else np.where(use[:, None, None], p_new, self.p)
+        p_new[3, 3] += np.where(held, pc[3] ** 2 / s, 0.0)
+        self._pt = p_new if use.all() else np.where(use, p_new, p)
         x = self.x + dx
         x[:, 2] = np.maximum(x[:, 2], 0.0)  # a resistance is never negative
         dq = np.where(use, np.clip(x[:, 3], -0.01, 0.01), 0.0)  # the caller's capacity takes it in
@@ -244,6 +265,6 @@ class SocEkf:
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(p))):
             raise ValueError("EKF state holds non-finite values")
         self.x = x.copy()
-        self.p = p.copy()
+        self.p = p
         if "v_rc" in s:
             self.v_rc = np.asarray(s["v_rc"], dtype=float).copy()
