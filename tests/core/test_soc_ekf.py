@@ -208,3 +208,29 @@ def test_the_filter_equals_the_dense_textbook_ekf(capacity_learns):
         np.testing.assert_allclose(ekf.p[j], p_ref, rtol=1e-9, atol=1e-18)
         assert d_soc[j] == pytest.approx(k[0] * e[j])
         assert d_q[j] == pytest.approx(np.clip(x0[j, 3] + k[3] * e[j], -0.01, 0.01))
+
+
+def test_a_cold_cell_on_the_identifiers_prior_does_not_read_as_soc():
+    """A cold cell: its resistances are twice the identifier's prior (20 mOhm on 3 Ah), and a correct start.
+    Until the identifier has a model of its own the prior's overpotential is wrong by 100 %; the filter's
+    voltage noise grows with that overpotential, so the start stays correct.  Without the load-scaled noise
+    (rho = 0) the same cells are pulled off by the resistive error in the first minutes."""
+    n = 1800
+    ocv = _ocv()
+    cur, vol = [], []
+    for seed in (5, 6):
+        i = pulse_current(n, seed, amp_a=6.0) - 1.5  # about C/2 net discharge with 2C pulses
+        p = EcmParams.from_rc(0.04, [0.02, 0.03], [10.0, 150.0])  # 2x the prior's 20/10/10 mOhm
+        cur.append(i)
+        vol.append(simulate_ecm(i, 1.0, p, ocv.ocv, soc0=0.9, capacity_ah=STATED_AH, output="mean").voltage_v)
+    cur, vol = np.array(cur).T, np.array(vol).T
+    ref = _true_soc(cur, [STATED_AH, STATED_AH])
+    ref = ref - ref[0] + 0.9
+    worst = {}
+    for rho in (0.0, 1.0):
+        cfg = SocConfig(estimate_capacity=False, ekf=SocEkfConfig(overpotential_sigma_prior=rho))
+        soc, _, _ = _run(cur, vol, 0.9, ocv, cfg)
+        worst[rho] = float(np.max(np.abs(soc[:600] - ref[:600])) * 100)
+    # the first 10 minutes, where the prior is in use: measured 2.4 % with, 11.6 % without
+    assert worst[1.0] < 3.0, worst
+    assert worst[0.0] > 3.0 * worst[1.0], worst
