@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from bms_estimator.cli.__main__ import main
-from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import CellRecording, save_recording
 from bms_estimator.samples import drive_cycle, ocv_table

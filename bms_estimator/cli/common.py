@@ -6,9 +6,8 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Sequence
 
-import numpy as np
 
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c

@@ -23,7 +23,7 @@ serves a 2 Ah cell and a 200 Ah cell, and any window length.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Annotated, Literal
 
 import numpy as np

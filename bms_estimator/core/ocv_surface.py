@@ -82,7 +82,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .ocv import GRID_POINTS, MIN_SLOPE_V, OcvCurve, _as_float_array, _strictly_increasing, _UniformTable
+from .ocv import GRID_POINTS, MIN_SLOPE_V, OcvCurve, _as_float_array, _strictly_increasing
 
 __all__ = ["OcvSurface", "REFERENCE_TEMPERATURE_C"]
 

@@ -16,7 +16,6 @@ from bms_estimator.cli.__main__ import main
 from bms_estimator.replay.dashboard import DashboardState, parse_broker, render, run_dashboard
 from types import SimpleNamespace
 
-import numpy as np
 
 from bms_estimator.service import schema
 
