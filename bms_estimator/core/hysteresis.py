@@ -21,20 +21,14 @@ sample ``k`` (before sample ``k``'s current moved it) and the sign of sample
 Offline (:func:`hysteresis_trajectory`) one cell over time; online
 (:class:`HysteresisState`) N cells, one sample per call, vectorised over cells.
 
-Hook into the SOC estimator (optional, nothing in ``core/soc.py`` depends on
-this module): the estimator forms ``v_o = v - OCV(soc)``; a hysteresis-aware
-estimator forms ``v_o = v - OCV(soc) - H``.  :class:`HysteresisCompensatedSoc`
-does exactly that without touching :class:`~bms_estimator.core.soc.SocEstimator`
-(it hands ``v - H`` to the estimator, which is the same thing, since the
-estimator subtracts the OCV itself) and shows the gain online: it keeps the
-exponentially weighted mean square of the one-step-ahead voltage prediction
-error of the compensated estimator and of an uncompensated shadow estimator
-(optional, twice the cost) and reports ``gain_pct = 100 (1 - rms_with / rms_without)``.
+The SOC estimator (:mod:`bms_estimator.core.soc`) runs :class:`HysteresisState`
+for each cell and reads the OCV on the branch it gives (``OCV(soc) + h H(soc)``,
+with ``H`` the table's half gap); ``diagnose`` fits ``M``, ``M0`` and ``gamma``
+offline to show what the hysteresis explains in a recording.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +38,6 @@ __all__ = [
     "hysteresis_trajectory",
     "hysteresis_voltage",
     "HysteresisState",
-    "HysteresisCompensatedSoc",
 ]
 
 
@@ -191,117 +184,3 @@ class HysteresisState:
                 raise ValueError(f"state field {key!r} has shape {np.shape(s[key])}, expected ({self.n_cells},)")
         self.h = np.asarray(s["h"], dtype=float).copy()
         self.s = np.asarray(s["s"], dtype=float).copy()
-
-
-class HysteresisCompensatedSoc:
-    """Optional wrapper: a :class:`~bms_estimator.core.soc.SocEstimator` that sees ``v - H``.
-
-    The estimator forms ``v_o = v - OCV(soc)``; feeding it ``v - H`` makes that
-    ``v_o = v - OCV(soc) - H``, the hysteresis-aware overpotential, with no change to
-    the estimator.  The identified parameters, c0 compensation and capacity then
-    refer to the hysteresis-free cell.
-
-    Online gain: the model identified so far is simulated alongside (RC states
-    advanced every sample with the identifier's current R0, R1, tau1, R2, tau2, c0,
-    exact ZOH with step-mean output as in :func:`~bms_estimator.core.ecm.simulate_ecm`),
-    and the squared difference between its voltage (``OCV(soc) + H + ...``) and the
-    measured one is averaged over an exponential window of ``gain_window_s``
-    (``rms_with_mv``).  With ``shadow=`` an uncompensated estimator (a second
-    ``SocEstimator`` on the raw voltage, twice the cost) is simulated the same way
-    (``rms_without_mv``) and ``gain_pct = 100 (1 - rms_with / rms_without)`` per cell
-    (NaN without a shadow).
-    """
-
-    def __init__(self, estimator, hysteresis: HysteresisState, *, shadow=None, gain_window_s: float = 600.0):
-        self.estimator = estimator
-        self.hysteresis = hysteresis
-        self.shadow = shadow
-        n = estimator.n_cells
-        self._alpha = min(1.0, estimator.dt_s / float(gain_window_s))
-        self._sim = _RunningSimulation(n, estimator.dt_s)
-        self._sim_shadow = _RunningSimulation(n, estimator.dt_s) if shadow is not None else None
-        self.mse_with = np.full(n, np.nan)
-        self.mse_without = np.full(n, np.nan)
-
-    def _track(self, mse: np.ndarray, err: np.ndarray) -> np.ndarray:
-        e2 = err * err
-        fresh = ~np.isfinite(mse)
-        upd = np.where(fresh, e2, (1.0 - self._alpha) * mse + self._alpha * e2)
-        return np.where(np.isfinite(e2), upd, mse)
-
-    def update(self, current_a, voltage_v, valid=None) -> None:
-        est = self.estimator
-        n = est.n_cells
-        i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
-        v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
-        hv = self.hysteresis.update(i)
-        est.update(current_a, v - hv, valid)
-        self.mse_with = self._track(self.mse_with, est.v_o - self._sim.step(est, i))
-        if self.shadow is not None:
-            self.shadow.update(current_a, voltage_v, valid)
-            self.mse_without = self._track(self.mse_without, self.shadow.v_o - self._sim_shadow.step(self.shadow, i))
-
-    @property
-    def rms_with_mv(self) -> np.ndarray:
-        return 1e3 * np.sqrt(self.mse_with)
-
-    @property
-    def rms_without_mv(self) -> np.ndarray:
-        return 1e3 * np.sqrt(self.mse_without)
-
-    @property
-    def gain_pct(self) -> np.ndarray:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return 100.0 * (1.0 - np.sqrt(self.mse_with / self.mse_without))
-
-    # pass-throughs the service reads
-    @property
-    def soc(self) -> np.ndarray:
-        return self.estimator.soc
-
-    @property
-    def params(self) -> dict[str, np.ndarray]:
-        return self.estimator.params
-
-    @property
-    def hysteresis_v(self) -> np.ndarray:
-        return self.hysteresis.voltage_v
-
-
-class _RunningSimulation:
-    """Free-running simulation of an estimator's current 2-RC model (N cells), step by step.
-
-    ``step`` returns the simulated overpotential of this sample
-    ``R0 i + sum_j mean_j + c0`` with the parameters the estimator holds after its
-    update; the estimator's ``v_o`` is the measured voltage less the OCV it used
-    (and less ``H`` for the compensated one), so the simulation error of the
-    voltage is ``v_o - sim``.
-    """
-
-    def __init__(self, n_cells: int, dt_s: float):
-        self.dt_s = float(dt_s)
-        self.x = np.zeros((n_cells, 2))
-
-    def step(self, est, current_a: np.ndarray) -> np.ndarray:
-        p = est.params
-        r = np.stack([p["r1_ohm"], p["r2_ohm"]], axis=1)
-        tau = np.stack([p["tau1_s"], p["tau2_s"]], axis=1)
-        ok = np.all(np.isfinite(r) & np.isfinite(tau) & (tau > 0), axis=1)
-        tau = np.where(ok[:, None], tau, 1.0)
-        r = np.where(ok[:, None], r, 0.0)
-        pole = np.exp(-self.dt_s / tau)
-        g = tau * (1.0 - pole) / self.dt_s
-        ii = current_a[:, None]
-        mean = self.x * g + r * ii * (1.0 - g)
-        self.x = pole * self.x + r * (1.0 - pole) * ii
-        return p["r0_ohm"] * current_a + mean.sum(axis=1) + p["c0_v"]
-
-
-def _scalar_reference(current_a, dt_s, capacity_ah, gamma, h0=0.0) -> np.ndarray:
-    """Plain loop of the recursion (tests compare the vectorised solution with it)."""
-    h, out = float(h0), []
-    for x in np.asarray(current_a, dtype=float):
-        out.append(h)
-        a = math.exp(-abs(x) * gamma * dt_s / (3600.0 * capacity_ah))
-        h = a * h + (1.0 - a) * (1.0 if x > 0 else (-1.0 if x < 0 else 0.0))
-    return np.asarray(out)
