@@ -84,6 +84,13 @@ def test_exit_codes_tell_usage_data_and_runtime_apart(tmp_path, capsys):
     bad = tmp_path / "bad.csv"
     bad.write_text("time_s,current_a\n0,1\n")
     assert main(["fit", str(bad), "--ocv", str(bad), "--capacity-ah", "3"]) == EXIT_DATA
+    # a good recording with a malformed OCV table: the table is the data at fault
+    from bms_estimator.samples import drive_cycle
+
+    table = tmp_path / "ocv.csv"
+    table.write_text("soc,ocv_v\n0,abc\n1,4.1\n")
+    assert main(["soc", str(drive_cycle("lg-hg2", "la92")), "--ocv", str(table), "--capacity-ah", "3"]) == EXIT_DATA
+    assert "ocv.csv: line 2: non-numeric value 'abc' in column 'ocv_v'" in capsys.readouterr().err
     # usage: a configuration that is wrong
     cfg = tmp_path / "c.toml"
     cfg.write_text("[mqtt]\nport = 0\n")

@@ -14,6 +14,7 @@ from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
 from ..core.soc import SocConfig
 from ..data import CellRecording, load_recording
+from ..errors import DataError
 from ..jsonsafe import to_jsonable
 
 _ID = IdentifierConfig()
@@ -119,8 +120,11 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None) -> 
     identify on a whole file (fit, compare, diagnose) use one OCV per file.
     """
     t = median_temperature_c(rec.temperature_c) if rec is not None else None
-    return OcvSurface.from_csvs([paths] if isinstance(paths, (str, Path)) else paths,
-                                default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
+    try:
+        return OcvSurface.from_csvs([paths] if isinstance(paths, (str, Path)) else paths,
+                                    default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
+    except ValueError as exc:  # a malformed table is a data error (exit 3); the message names the file
+        raise DataError(f"OCV table: {exc}") from None
 
 
 def write_json(data: dict, path: Path | None) -> None:

@@ -63,6 +63,7 @@ from ..can.sampler import SampleAssembler
 from ..core.ocv import OcvCurve
 from ..core.ocv_surface import OcvSurface
 from ..core.soc import SocEstimator
+from ..errors import DataError
 from . import systemd
 from .config import ConfigError, ServiceConfig
 from .health import HealthServer, Heartbeat
@@ -102,6 +103,7 @@ class Service:
         self.n_cells = n = cfg.pack.n_cells
         self.period_s = cfg.estimator.sample_period_s
         problems: list[str] = []
+        data_problems: list[str] = []  # a file the configuration names is itself malformed
 
         self.db = None
         try:
@@ -141,12 +143,13 @@ class Service:
             else:
                 paths = cfg.pack.ocv_csv if isinstance(cfg.pack.ocv_csv, list) else [cfg.pack.ocv_csv]
                 if not paths:
-                    raise ValueError("an empty list: give one table, or one per temperature")
-                self.ocv_source = ", ".join(str(p) for p in paths)
-                # several tables: OCV(soc, T), read at each cell's temperature from CAN
-                self.ocv = OcvCurve.from_csv(paths[0]) if len(paths) == 1 else OcvSurface.from_csvs(paths)
-        except (OSError, ValueError) as exc:
-            problems.append(f"pack.ocv_csv: {exc}")
+                    problems.append("pack.ocv_csv: an empty list: give one table, or one per temperature")
+                else:
+                    self.ocv_source = ", ".join(str(p) for p in paths)
+                    # several tables: OCV(soc, T), read at each cell's temperature from CAN
+                    self.ocv = OcvCurve.from_csv(paths[0]) if len(paths) == 1 else OcvSurface.from_csvs(paths)
+        except (OSError, ValueError) as exc:  # the table itself: a data error, not the configuration's
+            data_problems.append(f"pack.ocv_csv: {exc}")
         self.soc_config = cfg.estimator.soc_config
         try:
             self.sampler = SampleAssembler(
@@ -157,7 +160,9 @@ class Service:
         except ValueError as exc:
             problems.append(f"estimator: {exc}")
         if problems:
-            raise ConfigError("invalid configuration:", problems)
+            raise ConfigError("invalid configuration:", problems + data_problems)
+        if data_problems:
+            raise DataError("unreadable or malformed input data:", data_problems)
         try:  # anything the core still rejects (it validates more than the checks above)
             estimator = self._new_estimator()
         except ValueError as exc:

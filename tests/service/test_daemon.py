@@ -42,6 +42,7 @@ from bms_estimator.core.soc import SocEstimator
 from bms_estimator.data import load_recording
 from bms_estimator.samples import drive_cycle, ocv_table
 from bms_estimator.service.config import ConfigError, ServiceConfig, soc_config_from_core
+from bms_estimator.errors import DataError
 from bms_estimator.service.daemon import Service, run_service
 from bms_estimator.service.state import load_state, save_state
 
@@ -465,7 +466,7 @@ def test_ocv_tables_at_several_temperatures_are_read_at_each_cells_temperature(t
     sigma = np.asarray(snap.cells["soc_sigma"])
     assert sigma.shape == (N,) and np.all((sigma > 0) & (sigma < 0.2))
     bad = config_data(tmp_path, channel(), pack={"ocv_csv": [paths[0], str(tmp_path / "missing.csv")]})
-    with pytest.raises(ConfigError, match="pack.ocv_csv"):
+    with pytest.raises(DataError, match="pack.ocv_csv"):  # the file, not the configuration, is at fault
         Service(ServiceConfig(**bad))
 
 
@@ -741,6 +742,13 @@ def test_bad_config_exits_2_naming_each_field(tmp_path, capsys):
     assert cli_main(["run", "--config", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "pack.ocv_csv:" in err and "can.mapping:" in err
+    # a malformed OCV table alone is a data error: exit 3, naming the file, line and column
+    table = tmp_path / "bad_ocv.csv"
+    table.write_text("soc,ocv_v\n0,abc\n1,4.1\n")
+    bad.write_text(f"[pack]\nn_cells = 4\nocv_csv = '{table}'\n[state]\npath = '{state}'\n")
+    assert cli_main(["run", "--config", str(bad)]) == 3
+    err = capsys.readouterr().err
+    assert "pack.ocv_csv:" in err and "bad_ocv.csv: line 2" in err and "Traceback" not in err
     assert cli_main(["run", "--config", str(tmp_path / "nope.toml")]) == 2
     assert "not found" in capsys.readouterr().err
     assert not state.exists()  # nothing was started
