@@ -35,7 +35,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic_settings import BaseSettings, NestedSecretsSettingsSource, PydanticBaseSettingsSource, SettingsConfigDict
 
 from ..core.identifier import IdentifierConfig
 from ..core.soc_ekf import SocEkfConfig
@@ -352,41 +352,6 @@ def secrets_dir(environ: Mapping[str, str] | None = None) -> Path | None:
     return Path(d) if d else None
 
 
-class CredentialsSource(PydanticBaseSettingsSource):
-    """Settings from secret files, one per setting: ``<secrets_dir>/<section>__<key>`` holds the
-    value (``mqtt__password``, named like ``BMS_MQTT__PASSWORD`` without the prefix; a trailing
-    newline is dropped). Files of other names are not ours and are ignored. Under systemd,
-    ``LoadCredential=mqtt__password:/etc/bms-estimator/mqtt_password`` puts the file there,
-    readable by the service alone."""
-
-    def __init__(self, settings_cls: type[BaseSettings], directory: Path | None = None) -> None:
-        super().__init__(settings_cls)
-        self.directory = directory if directory is not None else secrets_dir()
-
-    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:  # pragma: no cover
-        return None, field_name, False  # __call__ reads everything at once
-
-    def __call__(self) -> dict[str, Any]:
-        d = self.directory
-        out: dict[str, Any] = {}
-        if d is None or not d.is_dir():
-            return out
-        sections = set(self.settings_cls.model_fields)
-        for f in sorted(d.iterdir()):
-            parts = f.name.lower().split("__")
-            if len(parts) < 2 or parts[0] not in sections or not f.is_file():
-                continue
-            try:
-                value = f.read_text(encoding="utf-8").rstrip("\r\n")
-            except OSError as exc:
-                raise ConfigError(f"cannot read secret file {f}: {exc.strerror or exc}") from None
-            node = out
-            for part in parts[:-1]:
-                node = node.setdefault(part, {})
-            node[parts[-1]] = value
-        return out
-
-
 class ServiceConfig(BaseSettings):
     """The whole service configuration (see deploy/config.example.toml)."""
 
@@ -416,8 +381,16 @@ class ServiceConfig(BaseSettings):
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         # The TOML data arrives as init kwargs (see load_config); secret files win over it,
-        # and the environment over both. No dotenv.
-        return env_settings, CredentialsSource(settings_cls), init_settings
+        # and the environment over both. No dotenv. A secret file holds one setting and is
+        # named ``<section>__<key>`` (``mqtt__password``: ``BMS_MQTT__PASSWORD`` without the
+        # prefix; a trailing newline is dropped). Under systemd, ``LoadCredential=
+        # mqtt__password:/etc/bms-estimator/mqtt_password`` puts it in $CREDENTIALS_DIRECTORY,
+        # readable by the service alone.
+        secrets = NestedSecretsSettingsSource(
+            file_secret_settings, secrets_dir=secrets_dir(), secrets_dir_missing="ok", secrets_prefix="",
+            secrets_nested_delimiter="__",
+        )
+        return env_settings, secrets, init_settings
 
     def redacted(self) -> dict[str, Any]:
         """A JSON-safe dump with every secret replaced by ``'**********'``."""
