@@ -509,6 +509,22 @@ class SocEstimator:
             s["ekf.shift_v"] = self._ekf_shift_v.copy()
         return s
 
+    def _check_state(self, s: dict[str, np.ndarray]) -> None:
+        """A well-formed state whose values no cell can have (a poisoned or hand-edited file) is refused:
+        resumed, a zero capacity reads every SOC as 0 and a negative one counts backwards, for good."""
+        lo, hi = self.config.capacity_bounds
+        q = np.asarray(s["capacity_ah"], dtype=float)
+        ok = np.isfinite(q) & (q >= lo * self.capacity_stated_ah) & (q <= hi * self.capacity_stated_ah)
+        if not ok.all():
+            raise ValueError(f"state field 'capacity_ah' holds {q[~ok][:3].tolist()} Ah, outside {lo:g}..{hi:g} "
+                             f"times the stated capacity")
+        soc = np.asarray(s["soc"], dtype=float)
+        if np.any(np.isinf(soc) | (soc < 0.0) | (soc > 1.0)):  # NaN is a cell without a start SOC yet
+            raise ValueError("state field 'soc' holds values outside [0, 1]")
+        for key in ("charge_ah", "i_prev", "c0_buf"):
+            if not np.all(np.isfinite(np.asarray(s[key], dtype=float))):
+                raise ValueError(f"state field {key!r} holds non-finite values")
+
     def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
         """Restore a saved state; raises ValueError (naming the field) when it does not fit."""
         n = self.n_cells
@@ -517,6 +533,7 @@ class SocEstimator:
                 raise ValueError(f"state field {key!r} has shape {np.shape(s[key])}, expected ({n},)")
         if np.shape(s["c0_buf"]) != self._c0_buf.shape:
             raise ValueError("state field 'c0_buf' does not match the c0 window of this configuration")
+        self._check_state(s)
         self.identifier.load_state_dict({k[3:]: v for k, v in s.items() if k.startswith("id.")})
         self.soc = np.asarray(s["soc"], dtype=float).copy()
         self.capacity_ah = np.asarray(s["capacity_ah"], dtype=float).copy()

@@ -1064,3 +1064,26 @@ def test_ready_at_once_with_the_bus_absent_then_receiving_when_it_appears(tmp_pa
             srv.close()
 
     run_async(main(), 30)
+
+
+@pytest.mark.parametrize("poison", [{"capacity_ah": 0.0}, {"capacity_ah": -2.9}, {"capacity_ah": float("nan")},
+                                    {"soc": 7.0}, {"charge_ah": float("inf")}])
+def test_poisoned_state_is_set_aside_not_resumed(tmp_path, poison):
+    """A well-formed state file of this very pack and configuration whose values no cell can have (a zero or
+    negative capacity, an SOC of 700 %, an infinite charge): resumed, it would survive every restart. It is
+    refused with a log line naming the field, kept aside, and the service starts fresh."""
+    cfg = make_cfg(tmp_path, channel())
+    svc = Service(cfg)
+    est = SocEstimator(N, ocv(), CAPACITY_AH, 1.0, initial_soc=0.6, config=svc.soc_config)
+    state = est.state_dict()
+    for key, value in poison.items():
+        state[key] = np.full(N, value)
+    save_state(Path(cfg.state.path), state, {"pack_id": PACK, "n_cells": N, "fingerprint": svc.fingerprint})
+    good = Service(cfg)
+    assert good.restore() is False and not good.restored
+    assert not Path(cfg.state.path).exists()
+    assert len(list(tmp_path.glob("state.npz.foreign-*"))) == 1  # kept for a look, never overwritten
+    fresh = good.estimator
+    assert np.all(fresh.capacity_ah > 0) and not np.isfinite(fresh.soc).any()  # SOC comes from the first sample
+    with pytest.raises(ValueError, match=f"state field '{next(iter(poison))}'"):
+        SocEstimator(N, ocv(), CAPACITY_AH, 1.0, config=svc.soc_config).load_state_dict(state)
