@@ -48,8 +48,9 @@ Time anomalies (counted in :class:`SamplerCounters`, logged)
   (``backward_frames``).
 * Backward by more than ``rewind_s``: a new log or a clock reset; all state is
   dropped and the grid re-anchored at that frame (``rewinds``).
-* Non-finite timestamps, non-finite values and cell indices outside
-  ``[0, n_cells)`` are ignored and counted.
+* Non-finite timestamps, timestamps so large that a double no longer resolves a
+  thousandth of the period (beyond about 1e13 s: the grid could not advance),
+  non-finite values and cell indices outside ``[0, n_cells)`` are ignored and counted.
 :meth:`SampleAssembler.feed` never raises.
 """
 
@@ -151,6 +152,8 @@ class SampleAssembler:
         self.min_current_coverage = float(min_current_coverage)
         self.voltage_mode = voltage_mode
         self.max_gap_s = float(max_gap_s)
+        self._time_resolution_s = 1e-3 * float(period_s)  # timestamps coarser than this are refused
+        self._max_closes = int(math.ceil(self.max_gap_s / float(period_s))) + 2
         self.rewind_s = float(rewind_s)
         self.counters = SamplerCounters()
         self._reset()
@@ -260,7 +263,9 @@ class SampleAssembler:
         out: list[Sample] = []
         try:
             t = float(timestamp)
-            if not math.isfinite(t):
+            if not math.isfinite(t) or math.ulp(t) > self._time_resolution_s:
+                # beyond about 1e13 s (300,000 years) a double cannot tell the sample grid apart:
+                # t + period == t, and the grid would never advance (a sender's garbage clock)
                 self.counters.bad_timestamps += 1
                 return out
             if self._k is None:
@@ -282,7 +287,9 @@ class SampleAssembler:
                     log.warning("can.sampler.time_jump", gap_s=t - self._t_last, t=t)
                     self._anchor(t)
                 else:
-                    while t >= self._t_next:
+                    for _ in range(self._max_closes):  # bounded: the gap is at most max_gap_s
+                        if t < self._t_next:
+                            break
                         out.append(self._close())
             self._apply(events, t)
             self._t_last = t

@@ -272,3 +272,23 @@ def test_random_streams_never_raise(frames, mode):
             if o.current_valid:
                 assert math.isfinite(o.current_a)
     assert s.counters.internal_errors == 0
+
+
+@pytest.mark.parametrize("huge", [1e300, 1e21, 2.0**60])
+def test_huge_sender_timestamps_are_refused_not_looped_on(huge):
+    """A sender's garbage clock (virtual bus, log time, hardware stamps): at 1e300 a double cannot tell
+    t from t + period, and the grid never advanced (a livelock; at 1e21 one frame made 65,536 samples).
+    Such frames are counted and ignored; the stream around them is untouched."""
+    s = SampleAssembler(2, period_s=1.0, staleness_s=2.5, max_gap_s=5.0, rewind_s=5.0)
+    ref = SampleAssembler(2, period_s=1.0, staleness_s=2.5, max_gap_s=5.0, rewind_s=5.0)
+    out, want = [], []
+    for k in range(40):
+        t = 100.0 + 0.5 * k
+        frame = [Event(I, -1, 1.0), Event(V, 0, 3.6), Event(V, 1, 3.7)]
+        out += s.feed_frame(frame, t)
+        want += ref.feed_frame(frame, t)
+        if k in (10, 11, 30):
+            assert s.feed_frame(frame, huge) == [] and s.feed_frame(frame, -huge) == []
+    assert s.counters.bad_timestamps == 6
+    assert len(out) == len(want) == 19
+    same(out, want)
