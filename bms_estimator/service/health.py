@@ -1,4 +1,4 @@
-"""Liveness and metrics over a small loopback HTTP server on the service's event loop.
+"""Liveness and metrics over prometheus_client's WSGI server, on loopback by default.
 
 * ``GET /healthz`` -> ``200 ok`` while the estimator loop's :class:`Heartbeat`
   is fresh (last beat within ``stale_after_periods`` sample periods), ``503``
@@ -7,9 +7,11 @@
 * ``GET /metrics`` -> the Prometheus exposition of the service's registry
   (:class:`~bms_estimator.service.metrics.ServiceMetrics`, prometheus_client's
   ``generate_latest``).
-* anything else -> ``404`` (``405`` for a non-GET/HEAD on a known path,
-  ``400`` for a malformed request line). Garbage, oversized or slow requests
-  are answered or dropped without affecting the server.
+* anything else -> ``404`` (``405`` for a non-GET/HEAD on a known path;
+  the standard library's HTTP parser answers a malformed request with ``400``,
+  too many headers with ``431``, an oversized request line with ``414``). Slow
+  or silent clients are dropped after ``request_timeout_s``; none affects the
+  service, whose event loop the server does not share.
 
 Usage::
 
@@ -23,13 +25,17 @@ Usage::
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import socket
+import threading
 import time
 from collections.abc import Callable
+from http import HTTPStatus
 from typing import TYPE_CHECKING
+from wsgiref.simple_server import WSGIRequestHandler, make_server
 
 import structlog
-from prometheus_client.exposition import choose_encoder
+from prometheus_client import make_wsgi_app
+from prometheus_client.exposition import ThreadingWSGIServer
 
 if TYPE_CHECKING:
     from .config import HealthConfig
@@ -77,15 +83,31 @@ class Heartbeat:
         return age is not None and age <= self.max_age_s
 
 
-_REASONS = {200: "OK", 400: "Bad Request", 404: "Not Found", 405: "Method Not Allowed", 503: "Service Unavailable"}
 _TEXT = "text/plain; charset=utf-8"
 
 
-class HealthServer:
-    """asyncio HTTP/1.x server for ``/healthz`` and ``/metrics``."""
+class _Handler(WSGIRequestHandler):
+    """wsgiref's handler, bounded in time and quiet (its access log goes to debug)."""
 
-    MAX_LINE = 8192
-    MAX_HEADERS = 100
+    timeout = 5.0  # socket timeout: a client that says nothing is dropped (set per server)
+
+    def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - the library's name
+        log.debug("health request", client=self.client_address[0], message=format % args)
+
+
+class HealthServer:
+    """``/healthz`` and ``/metrics``, served the library's way in a thread beside the event loop.
+
+    ``/metrics`` is :func:`prometheus_client.make_wsgi_app` on the service's registry
+    (its content negotiation, gzip and ``name[]`` filters included); ``/healthz`` is a
+    small WSGI app beside it; :class:`prometheus_client.exposition.ThreadingWSGIServer`
+    serves both, as :func:`prometheus_client.start_http_server` does.  In its own
+    thread the server answers while the event loop is busy or wedged, so a scraper
+    still sees the metrics of a stalled loop, and ``/healthz`` says 503 instead of
+    timing out.  Bounded: ``request_timeout_s`` per connection, ``MAX_CONNECTIONS``
+    at once (more are closed unanswered).
+    """
+
     MAX_CONNECTIONS = 32
 
     def __init__(
@@ -104,8 +126,9 @@ class HealthServer:
         self.host = host
         self._port = port
         self.request_timeout_s = request_timeout_s
-        self._server: asyncio.base_events.Server | None = None
-        self._active = 0
+        self._metrics_app = make_wsgi_app(metrics.registry) if metrics is not None else None
+        self._httpd: ThreadingWSGIServer | None = None
+        self._thread: threading.Thread | None = None
 
     @classmethod
     def from_config(cls, cfg: HealthConfig, heartbeat: Heartbeat, metrics: ServiceMetrics | None,
@@ -115,24 +138,54 @@ class HealthServer:
     @property
     def port(self) -> int:
         """The bound port (the real one when configured as 0)."""
-        if self._server is not None and self._server.sockets:
-            return int(self._server.sockets[0].getsockname()[1])
+        if self._httpd is not None:
+            return int(self._httpd.server_address[1])
         return self._port
 
-    async def start(self) -> None:
-        if self._server is not None:
+    def start_sync(self) -> None:
+        """Bind and start serving in a daemon thread (OSError if the address is taken)."""
+        if self._httpd is not None:
             return
-        self._server = await asyncio.start_server(
-            self._handle, self.host, self._port, limit=self.MAX_LINE, reuse_address=True
-        )
+        family = socket.getaddrinfo(self.host, self._port, type=socket.SOCK_STREAM)[0][0]
+        limit = threading.BoundedSemaphore(self.MAX_CONNECTIONS)
+
+        class Server(ThreadingWSGIServer):
+            address_family = family
+
+            def process_request(self, request, client_address):  # type: ignore[no-untyped-def]
+                if not limit.acquire(blocking=False):
+                    self.shutdown_request(request)  # too many at once: closed unanswered
+                    return
+                super().process_request(request, client_address)
+
+            def process_request_thread(self, request, client_address):  # type: ignore[no-untyped-def]
+                try:
+                    super().process_request_thread(request, client_address)
+                finally:
+                    limit.release()
+
+        handler = type("Handler", (_Handler,), {"timeout": self.request_timeout_s})
+        httpd = make_server(self.host, self._port, self._app, Server, handler)
+        self._httpd = httpd
+        self._thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.2},
+                                        name="bms-health", daemon=True)
+        self._thread.start()
         log.info("health server listening", host=self.host, port=self.port)
 
+    def close_sync(self) -> None:
+        httpd, self._httpd = self._httpd, None
+        if httpd is not None:
+            httpd.shutdown()
+            httpd.server_close()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+    async def start(self) -> None:
+        self.start_sync()
+
     async def close(self) -> None:
-        server, self._server = self._server, None
-        if server is not None:
-            server.close()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(server.wait_closed(), timeout=2.0)
+        await asyncio.to_thread(self.close_sync)
 
     async def run(self) -> None:
         """Serve until cancelled (then close the listening socket)."""
@@ -149,18 +202,24 @@ class HealthServer:
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
-    # ------------------------------------------------------------------ request
-    def _route(self, method: str, target: str, headers: dict[str, str] | None = None) -> tuple[int, str, bytes]:
-        path = target.split("?", 1)[0].split("#", 1)[0]
-        if path not in ("/healthz", "/metrics") or (path == "/metrics" and self.metrics is None):
-            return 404, _TEXT, b"not found\n"
+    # ------------------------------------------------------------------ WSGI
+    def _app(self, environ: dict, start_response: Callable) -> list[bytes]:
+        path = environ.get("PATH_INFO", "")
+        method = environ.get("REQUEST_METHOD", "GET")
+        if path == "/metrics" and self._metrics_app is not None:
+            if method not in ("GET", "HEAD"):
+                return self._reply(start_response, 405, b"method not allowed\n", method)
+            body = b"".join(self._metrics_app(environ, start_response))
+            return [b""] if method == "HEAD" else [body]
+        if path != "/healthz":
+            return self._reply(start_response, 404, b"not found\n", method)
         if method not in ("GET", "HEAD"):
-            return 405, _TEXT, b"method not allowed\n"
-        if path == "/metrics":
-            assert self.metrics is not None
-            # the library's content negotiation: Prometheus text, or OpenMetrics when asked for
-            encoder, ctype = choose_encoder((headers or {}).get("accept", ""))
-            return 200, ctype, encoder(self.metrics.registry)
+            return self._reply(start_response, 405, b"method not allowed\n", method)
+        status, text = self.health()
+        return self._reply(start_response, status, (text + "\n").encode("utf-8"), method)
+
+    def health(self) -> tuple[int, str]:
+        """``(HTTP status, text)`` of ``/healthz`` now."""
         age = self.heartbeat.age_s()
         if age is None:
             status, text = 503, "starting: no estimator tick yet"
@@ -173,62 +232,12 @@ class HealthServer:
                 text += "\n" + self.status()
             except Exception:  # noqa: BLE001 - the answer must not depend on it
                 log.exception("health status failed")
-        return status, _TEXT, (text + "\n").encode("utf-8")
+        return status, text
 
-    async def _read_request(self, reader: asyncio.StreamReader) -> tuple[str, str, dict[str, str]] | None:
-        line = await reader.readline()
-        if not line:
-            return None
-        parts = line.decode("latin-1").split()
-        if len(parts) != 3 or not parts[2].startswith("HTTP/") or not parts[1].startswith("/"):
-            raise _BadRequest
-        headers: dict[str, str] = {}
-        for _ in range(self.MAX_HEADERS):
-            header = await reader.readline()
-            if header in (b"\r\n", b"\n", b""):
-                return parts[0], parts[1], headers
-            name, sep, value = header.decode("latin-1").partition(":")
-            if sep:
-                headers[name.strip().lower()] = value.strip()
-        raise _BadRequest
-
-    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self._active += 1
-        try:
-            if self._active > self.MAX_CONNECTIONS:
-                return
-            method = "GET"
-            try:
-                req = await asyncio.wait_for(self._read_request(reader), self.request_timeout_s)
-            except (_BadRequest, ValueError, asyncio.LimitOverrunError, UnicodeError):
-                status, ctype, body = 400, _TEXT, b"bad request\n"
-            else:
-                if req is None:
-                    return
-                method = req[0]
-                status, ctype, body = self._route(*req)
-            payload = body
-            head = (
-                f"HTTP/1.1 {status} {_REASONS.get(status, 'Error')}\r\n"
-                f"Content-Type: {ctype}\r\n"
-                f"Content-Length: {len(payload)}\r\n"
-                "Cache-Control: no-store\r\n"
-                "Connection: close\r\n"
-                + ("Allow: GET, HEAD\r\n" if status == 405 else "")
-                + "\r\n"
-            ).encode("ascii")
-            writer.write(head if method == "HEAD" else head + payload)
-            await asyncio.wait_for(writer.drain(), self.request_timeout_s)
-        except (asyncio.TimeoutError, ConnectionError, OSError):
-            pass
-        except Exception:  # never let one request take the server down
-            log.exception("health request failed")
-        finally:
-            self._active -= 1
-            writer.close()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(writer.wait_closed(), 1.0)
-
-
-class _BadRequest(Exception):
-    pass
+    @staticmethod
+    def _reply(start_response: Callable, status: int, body: bytes, method: str) -> list[bytes]:
+        headers = [("Content-Type", _TEXT), ("Content-Length", str(len(body))), ("Cache-Control", "no-store")]
+        if status == 405:
+            headers.append(("Allow", "GET, HEAD"))
+        start_response(f"{status} {HTTPStatus(status).phrase}", headers)
+        return [b""] if method == "HEAD" else [body]
