@@ -80,6 +80,7 @@ class BusCounters:
     rx_frames: int = 0
     rx_error_frames: int = 0
     rx_dropped: int = 0  # receive queue overflow
+    rx_malformed: int = 0  # datagrams that were no CAN frame (udp_multicast): skipped, the bus kept
     tx_frames: int = 0
     tx_errors: int = 0
     tx_dropped: int = 0  # queue full or no bus
@@ -88,8 +89,26 @@ class BusCounters:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-def open_bus(cfg: BusConfig) -> can.BusABC:
-    """Open a python-can bus as configured. Raises ``can.CanError``/``OSError``/``ValueError``."""
+def open_bus(cfg: BusConfig, *, log_time: bool = False) -> can.BusABC:
+    """Open a python-can bus as configured. Raises ``can.CanError``/``OSError``/``ValueError``.
+
+    ``udp_multicast`` opens :class:`~bms_estimator.can.udp.UdpMulticastReceiver`
+    (malformed datagrams skipped and counted, a large socket buffer; ``log_time``
+    keeps the sender's timestamps).
+    """
+    if cfg.interface == "udp_multicast":
+        from .udp import UdpMulticastReceiver
+
+        if UdpMulticastReceiver is None:  # pragma: no cover
+            raise ImportError("udp_multicast needs msgpack: pip install 'python-can[multicast]'")
+        kw: dict[str, Any] = {"channel": cfg.channel, "receive_own_messages": cfg.receive_own_messages,
+                              "log_time": log_time}
+        if cfg.fd:
+            kw["fd"] = True
+        if cfg.can_filters is not None:
+            kw["can_filters"] = cfg.can_filters
+        kw.update(cfg.options)
+        return UdpMulticastReceiver(**kw)
     kwargs: dict[str, Any] = {
         "interface": cfg.interface,
         "channel": cfg.channel,
@@ -328,6 +347,8 @@ class ResilientBus:
                 await asyncio.sleep(self._backoff)
                 self._backoff = min(self._backoff * 2.0, self.cfg.reopen_max_s)
                 continue
+            if hasattr(bus, "on_malformed"):
+                bus.on_malformed = self._count_malformed
             with self._bus_lock:
                 self._bus = bus
             self._reader, self._notifier = reader, notifier
@@ -337,6 +358,12 @@ class ResilientBus:
             self._opened.set()
             log.info("can.bus.open", interface=self.cfg.interface, channel=self.cfg.channel, opens=self.counters.opens)
             return
+
+    def _count_malformed(self) -> None:
+        self.counters.rx_malformed += 1
+        if self.counters.rx_malformed in (1, 10, 100, 1000) or self.counters.rx_malformed % 10000 == 0:
+            log.warning("can.bus.malformed", interface=self.cfg.interface, channel=self.cfg.channel,
+                        malformed=self.counters.rx_malformed)
 
     async def _fail(self, exc: BaseException) -> None:
         self.counters.bus_errors += 1

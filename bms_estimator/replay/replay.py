@@ -221,70 +221,20 @@ def open_replay_bus(interface: str, channel: str | int | None = None, **kwargs: 
         raise CanBusError(f"cannot open CAN bus {where}: {one_line_error(exc)}") from None
 
 
-try:  # the multicast interface needs msgpack (python-can[multicast])
-    from can.interfaces.udp_multicast import UdpMulticastBus as _UdpMulticastBus
-    from can.interfaces.udp_multicast.utils import unpack_message as _unpack_message
-except ImportError:  # pragma: no cover
-    _UdpMulticastBus = None  # type: ignore[assignment,misc]
+from ..can.udp import UdpMulticastReceiver
 
-
-if _UdpMulticastBus is not None:
-
-    class LogTimeUdpMulticastBus(_UdpMulticastBus):  # type: ignore[misc,valid-type]
-        """``udp_multicast`` receiver that keeps the SENDER's ``timestamp`` (the log time on a
-        replay) instead of the socket's receive time. Same arguments as ``UdpMulticastBus``, plus
-        ``receive_buffer_bytes`` (default 4 MiB; the kernel caps it at ``net.core.rmem_max``): a
-        replay sends bursts, and a datagram that does not fit the socket buffer is lost."""
-
-        def __init__(self, *args: Any, receive_buffer_bytes: int | None = 4 << 20, **kwargs: Any) -> None:
-            super().__init__(*args, **kwargs)
-            if receive_buffer_bytes:
-                import socket
-
-                sock = getattr(self._multicast, "_socket", None)
-                if sock is not None:
-                    try:
-                        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(receive_buffer_bytes))
-                    except OSError:  # pragma: no cover - best effort
-                        pass
-
-        def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-            result = self._multicast.recv(timeout)
-            if not result:
-                return None, False
-            data, _sender, rx_time = result
-            try:
-                msg = _unpack_message(data, check=True)
-            except Exception as exc:  # noqa: BLE001
-                raise can.CanOperationError("could not unpack received message") from exc
-            if msg.timestamp is None or not isinstance(msg.timestamp, (int, float)):
-                msg.timestamp = rx_time
-            if msg.is_fd and getattr(self, "_can_protocol", None) is not can.CanProtocol.CAN_FD:
-                return None, False
-            return msg, False
-
-else:  # pragma: no cover
-    LogTimeUdpMulticastBus = None  # type: ignore[assignment,misc]
+#: the log-time receiver, kept under its old name
+LogTimeUdpMulticastBus = UdpMulticastReceiver
 
 
 def open_bus_log_time(cfg: Any) -> can.BusABC:
     """``bus_factory`` for :class:`bms_estimator.can.bus.ResilientBus` (``cfg``: its ``BusConfig``)
     that receives with the log's timestamps where the interface can carry them: ``udp_multicast``
-    opens :class:`LogTimeUdpMulticastBus`; everything else is ``bms_estimator.can.bus.open_bus``
+    opens :class:`~bms_estimator.can.udp.UdpMulticastReceiver` with ``log_time=True``; everything else is ``bms_estimator.can.bus.open_bus``
     (``virtual`` already delivers the sender's timestamps when the sender preserves them)."""
     from ..can.bus import open_bus
 
-    if cfg.interface != "udp_multicast":
-        return open_bus(cfg)
-    if LogTimeUdpMulticastBus is None:  # pragma: no cover
-        raise ImportError("udp_multicast needs msgpack: pip install 'python-can[multicast]'")
-    kw: dict[str, Any] = {"channel": cfg.channel, "receive_own_messages": cfg.receive_own_messages}
-    if cfg.fd:
-        kw["fd"] = True
-    if cfg.can_filters is not None:
-        kw["can_filters"] = cfg.can_filters
-    kw.update(cfg.options)
-    return LogTimeUdpMulticastBus(**kw)
+    return open_bus(cfg, log_time=True)
 
 
 # ------------------------------------------------------------------- replay

@@ -11,7 +11,7 @@ Families (``bms_`` prefix; counters end in ``_total``):
 * input: ``can_frames_received``, ``can_frames_decoded``, ``can_frames_ignored{reason}``,
   ``decode_problems{reason}``, ``samples``, ``samples_current_invalid``,
   ``sample_anomalies{kind}``, ``cell_samples_stale``, ``tick_errors``
-* CAN bus: ``can_bus_up``, ``can_bus_events{event}``, ``can_rx_dropped``, ``can_rx_error_frames``,
+* CAN bus: ``can_bus_up``, ``can_bus_events{event}``, ``can_rx_dropped{reason}``, ``can_rx_error_frames``,
   ``can_tx_frames``, ``can_tx_dropped``, ``can_tx_errors``, ``can_encode_problems{kind}``
 * estimator: ``estimator_state{bms_estimator_state}`` (Enum), ``estimator_rejections``,
   ``estimator_corrections``, ``estimator_restarts``, ``state_restored``, ``tick_seconds``
@@ -174,7 +174,9 @@ class _ServiceCollector(Collector):
             bc = bus.counters
             yield _counter("bms_can_bus_events", "CAN bus opens, failed opens and failures that caused a reopen", None,
                            {"open": bc.opens, "open_failure": bc.open_failures, "error": bc.bus_errors}, "event")
-            yield _counter("bms_can_rx_dropped", "received CAN frames dropped (receive queue full)", bc.rx_dropped)
+            yield _counter("bms_can_rx_dropped", "received CAN frames lost: receive queue full, or a datagram that was "
+                           "no CAN frame (udp_multicast)", None,
+                           {"queue_full": bc.rx_dropped, "malformed": bc.rx_malformed}, "reason")
             yield _counter("bms_can_rx_error_frames", "CAN error frames received", bc.rx_error_frames)
             yield _counter("bms_can_tx_frames", "CAN frames sent", bc.tx_frames)
             yield _counter("bms_can_tx_dropped", "CAN frames not sent (bus down or send queue full)", bc.tx_dropped)
