@@ -20,8 +20,13 @@ systemd-networkd - and is not passed).
   reopens it with exponential back-off (``reopen_initial_s`` doubling up to
   ``reopen_max_s``; back-off resets once the new bus delivered a frame). An
   interface that disappears and comes back (USB adapter, ``ip link set can0
-  down/up``) is survived without restarting the service. Everything is
-  counted in :class:`BusCounters` and logged.
+  down/up``) is survived without restarting the service.
+* silence: no frame for ``silence_reopen_s`` (default 5 s) reopens the bus the
+  same way. A socketcan socket whose interface was deleted and re-created
+  reports no error; it just stays deaf. A bus that is really quiet is reopened
+  with the same back-off, growing to ``reopen_max_s``.
+
+Everything is counted in :class:`BusCounters` and logged.
 """
 
 from __future__ import annotations
@@ -70,6 +75,9 @@ class BusConfig(BaseModel):
     tx_queue_size: int = Field(20_000, ge=1)
     tx_timeout_s: float = Field(0.05, ge=0)
     notifier_timeout_s: float = Field(0.1, gt=0, description="python-can reader-thread poll period")
+    silence_reopen_s: float | None = Field(
+        5.0, gt=0, description="reopen the bus after this long without a frame (an interface deleted and "
+                               "re-created leaves an open socket deaf); None = never")
 
 
 @dataclass
@@ -77,6 +85,7 @@ class BusCounters:
     opens: int = 0  # successful opens
     open_failures: int = 0
     bus_errors: int = 0  # receive-side failures that caused a reopen
+    silence_reopens: int = 0  # reopens after silence_reopen_s without a frame
     rx_frames: int = 0
     rx_error_frames: int = 0
     rx_dropped: int = 0  # receive queue overflow
@@ -291,6 +300,8 @@ class ResilientBus:
         text = f"{self.cfg.channel} ({self.cfg.interface}): {self.state}"
         if self.state == "down" and self.last_error:
             text += f" ({self.last_error})"
+        if self.counters.silence_reopens:
+            text += f"; reopened {self.counters.silence_reopens}x after {self.cfg.silence_reopen_s:g} s without a frame"
         return text
 
     async def wait_open(self, timeout: float | None = None) -> bool:
@@ -365,10 +376,16 @@ class ResilientBus:
             log.warning("can.bus.malformed", interface=self.cfg.interface, channel=self.cfg.channel,
                         malformed=self.counters.rx_malformed)
 
-    async def _fail(self, exc: BaseException) -> None:
-        self.counters.bus_errors += 1
+    async def _fail(self, exc: BaseException, *, silence: bool = False) -> None:
         self.last_error = one_line_error(exc)
-        log.warning("can.bus.error", error=repr(exc), reopen_in_s=self._backoff)
+        if silence:
+            n = self.counters.silence_reopens
+            if n <= 3 or n % 100 == 0:  # a parked vehicle is silent for hours: a few lines, then one per 100
+                log.warning("can.bus.silent", silent_s=self.cfg.silence_reopen_s, reopen_in_s=self._backoff,
+                            silence_reopens=n)
+        else:
+            self.counters.bus_errors += 1
+            log.warning("can.bus.error", error=repr(exc), reopen_in_s=self._backoff)
         self._teardown()
         if not self._closed:
             await asyncio.sleep(self._backoff)
@@ -402,7 +419,18 @@ class ResilientBus:
                         raise RuntimeError("bus closed") from None
                     raise
                 continue
-            item = await self._reader.get_message()
+            silence = self.cfg.silence_reopen_s
+            if silence is None:
+                item = await self._reader.get_message()
+            else:
+                try:
+                    item = await asyncio.wait_for(self._reader.get_message(), silence)
+                except asyncio.TimeoutError:
+                    # Silence is a fault: a socket bound to an interface that was deleted and
+                    # re-created stays open and deaf; reopening binds to the new one.
+                    self.counters.silence_reopens += 1
+                    await self._fail(TimeoutError(f"no frame for {silence:g} s"), silence=True)
+                    continue
             if item is _CLOSED or self._closed:
                 raise RuntimeError("bus closed")
             if isinstance(item, _Failure):

@@ -172,8 +172,9 @@ class _ServiceCollector(Collector):
         yield _gauge("bms_can_bus_up", "1 while the CAN bus is open", int(bus is not None and bus.is_open))
         if bus is not None:
             bc = bus.counters
-            yield _counter("bms_can_bus_events", "CAN bus opens, failed opens and failures that caused a reopen", None,
-                           {"open": bc.opens, "open_failure": bc.open_failures, "error": bc.bus_errors}, "event")
+            yield _counter("bms_can_bus_events", "CAN bus opens, failed opens, and failures or silences that caused a reopen", None,
+                           {"open": bc.opens, "open_failure": bc.open_failures, "error": bc.bus_errors,
+                            "silence": bc.silence_reopens}, "event")
             yield _counter("bms_can_rx_dropped", "received CAN frames lost: receive queue full, or a datagram that was "
                            "no CAN frame (udp_multicast)", None,
                            {"queue_full": bc.rx_dropped, "malformed": bc.rx_malformed}, "reason")

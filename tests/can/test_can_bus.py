@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import time
 import uuid
 from pathlib import Path
 
@@ -226,6 +227,69 @@ def test_bus_that_goes_away_and_returns_is_survived():
     assert counters.bus_errors >= 1
     assert counters.opens >= 2
     assert counters.tx_dropped >= 1
+
+
+def test_a_deaf_bus_is_reopened_after_silence():
+    """An interface deleted and re-created leaves the open socket deaf, with no error (issue 16:
+    nothing was received for 60 s). Here the first bus hears an old channel while the sender moves
+    to a new one; after silence_reopen_s without a frame the bus is reopened, counted, and hears
+    again within the silence limit plus the back-off."""
+    old, new = channel(), channel()
+    opened: list[str] = []
+
+    def factory(cfg: BusConfig) -> can.BusABC:
+        ch = old if not opened else new  # the first open binds to the interface about to vanish
+        opened.append(ch)
+        return VirtualBus(channel=ch)
+
+    silence = 0.3
+    cfg = fast(BusConfig(interface="virtual", channel=old), silence_reopen_s=silence)
+
+    async def main():
+        sender = can.Bus(interface="virtual", channel=old)
+        async with ResilientBus(cfg, bus_factory=factory) as rx:
+            assert await rx.wait_open(5)
+            sender.send(own_current_frame(DB, 1.0))
+            first = await asyncio.wait_for(rx.recv(), 5)
+            sender.shutdown()
+            sender = can.Bus(interface="virtual", channel=new)  # the interface "re-created"
+            t_gone = time.monotonic()
+
+            async def produce():
+                while True:
+                    sender.send(own_current_frame(DB, 2.0))
+                    await asyncio.sleep(0.01)
+
+            prod = asyncio.create_task(produce())
+            try:
+                second = await asyncio.wait_for(rx.recv(), 5)
+            finally:
+                prod.cancel()
+            waited = time.monotonic() - t_gone
+            status = rx.describe()
+            sender.shutdown()
+            return first, second, waited, rx.counters, status
+
+    first, second, waited, counters, status = run(main(), timeout=20)
+    assert FrameDecoder(DB, "default", 3).decode(second)[0].value == pytest.approx(2.0)
+    assert opened[:2] == [old, new]
+    assert counters.silence_reopens == 1 and counters.bus_errors == 0 and counters.opens == 2
+    assert waited < silence + cfg.reopen_initial_s + 1.0, waited
+    assert "reopened 1x after 0.3 s without a frame" in status
+
+
+def test_silence_reopen_can_be_turned_off():
+    ch = channel()
+
+    async def main():
+        async with ResilientBus(fast(BusConfig(interface="virtual", channel=ch), silence_reopen_s=None)) as rx:
+            assert await rx.wait_open(5)
+            with pytest.raises(asyncio.TimeoutError):
+                await asyncio.wait_for(rx.recv(), 0.5)
+            return rx.counters
+
+    counters = run(main())
+    assert counters.silence_reopens == 0 and counters.opens == 1
 
 
 class _FdBus(VirtualBus):
@@ -583,3 +647,41 @@ def test_socketcan_vcan_receive_decode_and_survive_link_down():
     finally:
         if created:
             subprocess.run(["ip", "link", "del", name], capture_output=True)
+
+
+def test_socketcan_vcan_deleted_and_recreated_is_heard_again():
+    """The real case behind silence_reopen_s: `ip link del` + `ip link add` of the interface leaves
+    the old socket open and deaf; the service hears again within the silence limit plus back-off."""
+    name, created = _vcan_channel()
+    if not created:
+        subprocess.run(["ip", "link", "del", name], capture_output=True)
+        pytest.skip(f"vcan {name} exists already: not ours to delete")
+    silence = 1.0
+    cfg = fast(BusConfig(interface="socketcan", channel=name), silence_reopen_s=silence)
+    try:
+        async def main():
+            async with ResilientBus(cfg) as rx:
+                assert await rx.wait_open(5)
+                with can.Bus(interface="socketcan", channel=name) as sender:
+                    sender.send(own_current_frame(DB, 1.0))
+                    await asyncio.wait_for(rx.recv(), 5)
+                subprocess.run(["ip", "link", "del", name], check=True)
+                subprocess.run(["ip", "link", "add", "dev", name, "type", "vcan"], check=True)
+                subprocess.run(["ip", "link", "set", "up", name], check=True)
+                t0 = time.monotonic()
+                with can.Bus(interface="socketcan", channel=name) as sender:
+                    for _ in range(400):
+                        sender.send(own_current_frame(DB, 2.0))
+                        try:
+                            await asyncio.wait_for(rx.recv(), 0.02)
+                            return time.monotonic() - t0, rx.counters
+                        except asyncio.TimeoutError:
+                            continue
+                return None, rx.counters
+
+        waited, counters = run(main())
+        assert waited is not None, f"deaf after the interface was re-created: {counters}"
+        assert waited < silence + cfg.reopen_max_s + 1.0
+        assert counters.silence_reopens + counters.bus_errors >= 1
+    finally:
+        subprocess.run(["ip", "link", "del", name], capture_output=True)
