@@ -20,6 +20,7 @@ are kept per kind.
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import math
 import os
@@ -185,6 +186,30 @@ def _move_aside(path: Path, kind: str) -> Path | None:
     return target
 
 
+def remove_stale_temp_files(path: Path | str) -> int:
+    """Remove the temp files of saves that never finished (``.<name>.*.tmp`` beside ``path``).
+
+    A process killed during :func:`save_state` leaves its temp file behind, up
+    to the full state size each; called at start, before any save of this
+    process can be in flight. Returns how many were removed (never raises).
+    """
+    path = Path(path)
+    removed = 0
+    try:
+        stale = list(path.parent.glob(f".{glob.escape(path.name)}.*.tmp"))
+    except OSError:
+        return 0
+    for tmp in stale:
+        try:
+            tmp.unlink()
+            removed += 1
+        except OSError as exc:
+            log.warning("cannot remove a stale state temp file", path=str(tmp), error=str(exc))
+    if removed:
+        log.info("removed temp files of unfinished state saves", directory=str(path.parent), files=removed)
+    return removed
+
+
 def load_state(
     path: Path | str,
     *,
@@ -195,6 +220,7 @@ def load_state(
 ) -> StateDict | None:
     """Load state saved by :func:`save_state`, or ``None`` (never raises).
 
+    Temp files of unfinished saves are removed first (:func:`remove_stale_temp_files`).
     ``None`` when the file is missing, older than ``max_age_s`` (None = no
     limit) or saved more than 5 min in the future (clock skew), foreign
     (other format, version, ``pack_id`` or ``n_cells``) or corrupt; every
@@ -202,6 +228,7 @@ def load_state(
     is for tests.
     """
     path = Path(path)
+    remove_stale_temp_files(path)
     try:
         return _load(path, pack_id=pack_id, n_cells=n_cells, max_age_s=max_age_s, now=now)
     except _Reject as rej:
