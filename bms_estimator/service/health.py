@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -108,7 +109,7 @@ class HealthServer:
     at once (more are closed unanswered).
     """
 
-    MAX_CONNECTIONS = 32
+    MAX_CONNECTIONS = 256  # one thread each, for at most request_timeout_s: idle clients cannot lock a scraper out
 
     def __init__(
         self,
@@ -151,6 +152,11 @@ class HealthServer:
 
         class Server(ThreadingWSGIServer):
             address_family = family
+            request_queue_size = 128  # socketserver's 5 drops SYNs of a burst of clients: 1-3 s retries
+
+            def handle_error(self, request, client_address):  # type: ignore[no-untyped-def]
+                # a client that timed out or hung up: one debug line, not a traceback on stderr
+                log.debug("health connection dropped", client=client_address[0], error=repr(sys.exc_info()[1]))
 
             def process_request(self, request, client_address):  # type: ignore[no-untyped-def]
                 if not limit.acquire(blocking=False):

@@ -228,6 +228,25 @@ def test_answers_while_the_event_loop_is_blocked():
     run_async(main())
 
 
+def test_idle_connections_do_not_lock_out_healthz():
+    """40 idle local connections (issue 16: /healthz was refused from 32 on) and it still answers."""
+    hb = Heartbeat(1.0)
+    hb.beat()
+
+    async def main():
+        async with HealthServer(hb, ServiceMetrics(), "127.0.0.1", 0, request_timeout_s=3.0) as srv:
+            idle = [await asyncio.open_connection("127.0.0.1", srv.port) for _ in range(40)]
+            try:
+                await asyncio.sleep(0.2)
+                status, _, body = await get(srv.port, "/healthz")
+                assert (status, body) == (200, b"ok\n")
+            finally:
+                for _, w in idle:
+                    w.close()
+
+    run_async(main())
+
+
 def test_from_config_and_run_task_is_cancellable():
     cfg = HealthConfig(port=0)
     hb = Heartbeat(1.0)
