@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import random
 import re
 import ssl
@@ -143,6 +144,8 @@ class MqttPublisher:
         self._wakeup = asyncio.Event()
         self._closing = False
         self._discovery_due = False
+        self._ha_online_at = -math.inf  # monotonic time of the last discovery re-send for Home Assistant
+        self._ha_online_timer: asyncio.TimerHandle | None = None
         self._connected = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread: int | None = None
@@ -477,13 +480,31 @@ class MqttPublisher:
                 with contextlib.suppress(BaseException):
                     await listener
 
+    #: Home Assistant's "online" re-sends discovery at most this often; more are coalesced
+    #: into one delayed re-send (a flood of "online" must not flood the broker and the log)
+    HA_ONLINE_MIN_INTERVAL_S = 10.0
+
     async def _listen(self, client: aiomqtt.Client) -> None:
         async for message in client.messages:
             if message.topic.matches(self.ha_status_topic):
                 if _text(message.payload).strip().lower() == "online":
-                    log.info("home assistant online: re-sending discovery")
-                    self._discovery_due = True
-                    self._wakeup.set()
+                    self._ha_online()
+
+    def _ha_online(self) -> None:
+        now = time.monotonic()
+        wait = self._ha_online_at + self.HA_ONLINE_MIN_INTERVAL_S - now
+        if wait <= 0:
+            log.info("home assistant online: re-sending discovery")
+            self._ha_online_at = now
+            self._discovery_due = True
+            self._wakeup.set()
+        elif self._ha_online_timer is None:
+            log.debug("home assistant online again: discovery re-sent later", in_s=round(wait, 1))
+            self._ha_online_timer = asyncio.get_running_loop().call_later(wait, self._ha_online_later)
+
+    def _ha_online_later(self) -> None:
+        self._ha_online_timer = None
+        self._ha_online()
 
     async def _publish_one(self, client: aiomqtt.Client, topic: str, payload: str, retain: bool) -> None:
         await client.publish(topic, payload, qos=_CONTROL_QOS, retain=retain, timeout=self.cfg.timeout_s)

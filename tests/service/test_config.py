@@ -157,6 +157,15 @@ def test_env_value_type_error_names_field(monkeypatch):
     assert exc.value.problems == ["mqtt.port: Input should be less than or equal to 65535 (got '70000')"]
 
 
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_non_finite_numbers_are_called_what_they_are(tmp_path, value):
+    """A NaN capacity was reported as 'less than or equal to 100000' (issue 16)."""
+    path = write(tmp_path, f"[pack]\ncapacity_ah = {value}\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert [p.split(" (got")[0] for p in exc.value.problems] == ["pack.capacity_ah: Input should be a finite number"]
+
+
 def test_remote_health_needs_opt_in(monkeypatch):
     monkeypatch.setenv("BMS_HEALTH__HOST", "0.0.0.0")
     with pytest.raises(ConfigError):

@@ -183,6 +183,20 @@ def test_home_assistant_discovery_retained_and_resent(mosquitto):
                 assert {m.topic.value for m in col.messages} == set(configs)
                 assert not any(m.retain for m in col.messages)  # fresh publishes to a live subscriber
 
+                # A flood of "online" (issue 16: one INFO line and one discovery each) is coalesced
+                # into one delayed re-send.
+                pub.HA_ONLINE_MIN_INTERVAL_S = 1.0
+                await asyncio.sleep(1.0)
+                col.messages.clear()
+                for _ in range(20):
+                    await col.client.publish("homeassistant/status", "online", qos=1)
+                await col.wait(lambda c: len(c.messages) >= n_configs, what="discovery re-sent once")
+                await asyncio.sleep(0.3)
+                assert len(col.messages) == n_configs  # the other 19 wait for the interval
+                await col.wait(lambda c: len(c.messages) >= 2 * n_configs, what="the coalesced re-send", timeout=5)
+                await asyncio.sleep(1.5)
+                assert len(col.messages) == 2 * n_configs  # and no more
+
     run_async(main())
 
 
