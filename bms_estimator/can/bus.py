@@ -90,6 +90,7 @@ class BusCounters:
     rx_error_frames: int = 0
     rx_dropped: int = 0  # receive queue overflow
     rx_malformed: int = 0  # datagrams that were no CAN frame (udp_multicast): skipped, the bus kept
+    rx_kernel_dropped: int = 0  # lost in the kernel before we read them (socket buffer full), where it says
     tx_frames: int = 0
     tx_errors: int = 0
     tx_dropped: int = 0  # queue full or no bus
@@ -237,6 +238,7 @@ class ResilientBus:
         self._opened = asyncio.Event()
         self._open_task: asyncio.Task[None] | None = None
         self.last_error: str | None = None  # why the bus is not open (the last open failure or bus error)
+        self._kernel_drops_before = 0  # kernel drops of the sockets closed so far
 
     # ------------------------------------------------------------- lifecycle
     async def __aenter__(self) -> ResilientBus:
@@ -312,7 +314,21 @@ class ResilientBus:
         except asyncio.TimeoutError:
             return False
 
+    def refresh_kernel_drops(self) -> int:
+        """Update ``counters.rx_kernel_dropped`` from the open bus (where its transport reports
+        what the kernel dropped: udp_multicast) and return it. Cheap; called about once a second."""
+        bus = self._bus
+        probe = getattr(bus, "kernel_drops", None)
+        if probe is not None:
+            with contextlib.suppress(Exception):
+                d = probe()
+                if d is not None:
+                    self.counters.rx_kernel_dropped = self._kernel_drops_before + int(d)
+        return self.counters.rx_kernel_dropped
+
     def _teardown(self) -> None:
+        self.refresh_kernel_drops()
+        self._kernel_drops_before = self.counters.rx_kernel_dropped  # the next socket counts from 0
         notifier, reader = self._notifier, self._reader
         with self._bus_lock:
             bus, self._bus = self._bus, None

@@ -12,12 +12,16 @@ It also
 * sets ``SO_RCVBUF`` (``receive_buffer_bytes``, default 4 MiB; the kernel caps
   it at ``net.core.rmem_max``): bursts beyond the socket buffer are lost in the
   kernel, where nothing counts them;
+* reports what the kernel dropped: :meth:`UdpMulticastReceiver.kernel_drops`
+  reads the socket's ``drops`` from ``/proc/net/udp`` (datagrams that found the
+  socket buffer full), so a receiver that falls behind loses nothing uncounted;
 * keeps the SENDER's timestamp with ``log_time=True`` (the log time on a
   replay) instead of the socket's receive time.
 """
 
 from __future__ import annotations
 
+import os
 import socket
 from collections.abc import Callable
 from typing import Any
@@ -30,9 +34,30 @@ try:  # the multicast interface needs msgpack (python-can[multicast])
 except ImportError:  # pragma: no cover
     _UdpMulticastBus = None  # type: ignore[assignment,misc]
 
-__all__ = ["UdpMulticastReceiver", "DEFAULT_RECEIVE_BUFFER_BYTES"]
+__all__ = ["UdpMulticastReceiver", "DEFAULT_RECEIVE_BUFFER_BYTES", "udp_socket_drops"]
 
 DEFAULT_RECEIVE_BUFFER_BYTES = 4 << 20
+
+
+def udp_socket_drops(sock: socket.socket) -> int | None:
+    """Datagrams the kernel dropped for this UDP socket (buffer full), from ``/proc/net/udp{,6}``;
+    None where that is not available (not Linux, socket closed)."""
+    try:
+        inode = str(os.fstat(sock.fileno()).st_ino)
+    except (OSError, ValueError):
+        return None
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            with open(table, encoding="ascii") as fh:
+                next(fh, None)  # header
+                for line in fh:
+                    cols = line.split()
+                    # sl local rem st tx:rx tr:when retrnsmt uid timeout inode ref pointer drops
+                    if len(cols) >= 13 and cols[9] == inode:
+                        return int(cols[12])
+        except (OSError, ValueError):
+            continue
+    return None
 
 
 if _UdpMulticastBus is not None:
@@ -58,6 +83,11 @@ if _UdpMulticastBus is not None:
                     self.receive_buffer_bytes = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
                 except OSError:  # pragma: no cover - best effort
                     pass
+
+        def kernel_drops(self) -> int | None:
+            """Datagrams the kernel dropped on this socket since it was opened (None: unknown)."""
+            sock = getattr(self._multicast, "_socket", None)
+            return None if sock is None else udp_socket_drops(sock)
 
         def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
             result = self._multicast.recv(timeout)

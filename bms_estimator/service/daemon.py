@@ -403,6 +403,8 @@ class Service:
             await asyncio.sleep(interval)
             now = time.monotonic()
             self.metrics.loop_lag_seconds.observe(max(0.0, now - t0 - interval))
+            if self.bus is not None:
+                self.bus.refresh_kernel_drops()
             if now >= next_sd_status:  # `systemctl status` line
                 next_sd_status = now + 10.0
                 systemd.notify_status(self._status_line())

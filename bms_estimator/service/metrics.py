@@ -175,9 +175,10 @@ class _ServiceCollector(Collector):
             yield _counter("bms_can_bus_events", "CAN bus opens, failed opens, and failures or silences that caused a reopen", None,
                            {"open": bc.opens, "open_failure": bc.open_failures, "error": bc.bus_errors,
                             "silence": bc.silence_reopens}, "event")
-            yield _counter("bms_can_rx_dropped", "received CAN frames lost: receive queue full, or a datagram that was "
-                           "no CAN frame (udp_multicast)", None,
-                           {"queue_full": bc.rx_dropped, "malformed": bc.rx_malformed}, "reason")
+            yield _counter("bms_can_rx_dropped", "received CAN frames lost: receive queue full, a datagram that was no CAN "
+                           "frame, or dropped by the kernel (socket buffer full; udp_multicast)", None,
+                           {"queue_full": bc.rx_dropped, "malformed": bc.rx_malformed,
+                            "kernel": bus.refresh_kernel_drops()}, "reason")
             yield _counter("bms_can_rx_error_frames", "CAN error frames received", bc.rx_error_frames)
             yield _counter("bms_can_tx_frames", "CAN frames sent", bc.tx_frames)
             yield _counter("bms_can_tx_dropped", "CAN frames not sent (bus down or send queue full)", bc.tx_dropped)
