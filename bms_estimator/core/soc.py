@@ -364,10 +364,14 @@ class SocEstimator:
         # The OCV the identifier saw moves with the SOC, as in a c0 compensation: its history and
         # c0 shift too, once the moves add up to a millivolt (a shift every sample costs a fifth
         # of the update; a sub-millivolt step in v_o is below the noise of the regression).
+        # Per cell: whether and when a cell's history shifts never depends on the other cells
+        # of the pack (shifting all once any one passed the millivolt made a cell's estimate
+        # depend on its neighbours).
         self._ekf_shift_v += slope * d_soc
-        if np.max(np.abs(self._ekf_shift_v)) > 1e-3:
-            self.identifier.shift_bias(self._ekf_shift_v)
-            self._ekf_shift_v[:] = 0.0
+        due = np.abs(self._ekf_shift_v) > 1e-3
+        if due.any():
+            self.identifier.shift_bias(np.where(due, self._ekf_shift_v, 0.0))
+            self._ekf_shift_v[due] = 0.0
 
     def _compensate(self, use: np.ndarray) -> None:
         if self.ekf is not None:
