@@ -1,4 +1,4 @@
-"""Estimator state -> CAN frames of the project's DBC (``dbc/bms_estimator.dbc``).
+r"""Estimator state -> CAN frames of the project's DBC (``dbc/bms_estimator.dbc``).
 
 Frames (all 8-byte classic CAN, 29-bit identifiers; exact bit layouts and
 scalings are in the DBC's ``CM_`` comments):
