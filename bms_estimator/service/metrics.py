@@ -144,6 +144,7 @@ class _ServiceCollector(Collector):
                            {"short_frame": dc.short_frame, "bad_mux": dc.bad_mux, "decode_error": dc.decode_error,
                             "non_finite": dc.non_finite, "out_of_range": dc.out_of_range,
                             "not_available": dc.not_available, "flagged_invalid": dc.flagged_invalid,
+                            "e2e_counter": dc.e2e_counter, "e2e_crc": dc.e2e_crc,
                             "internal_error": dc.internal_error}, "reason")
         sc = svc.sampler.counters
         yield _counter("bms_sample_anomalies", "frames or values the sampler set aside or re-anchored on", None,
