@@ -87,7 +87,7 @@ class BusCounters:
     open_failures: int = 0
     bus_errors: int = 0  # receive-side failures that caused a reopen
     silence_reopens: int = 0  # reopens after silence_reopen_s without a frame
-    rx_frames: int = 0
+    rx_frames: int = 0  # handed to the consumer by recv()/recv_batch() (frames still queued are not counted)
     rx_error_frames: int = 0
     rx_dropped: int = 0  # receive queue overflow
     rx_malformed: int = 0  # datagrams that were no CAN frame (udp_multicast): skipped, the bus kept

@@ -7,7 +7,9 @@ control message, a ``uint32``). :class:`SocketcanReceiver` sets the option, keep
 newest count (:meth:`SocketcanReceiver.kernel_drops`, exported by the service as
 ``bms_can_rx_dropped{reason="kernel"}``) and hands everything else to python-can's own
 frame parsing unchanged (:func:`can.interfaces.socketcan.socketcan.capture_message`
-reads the socket through :class:`_OverflowTap`).
+reads the socket through :class:`_OverflowTap`). It also sets ``SO_RCVBUF``
+(``receive_buffer_bytes``, default 4 MiB, capped by the kernel at ``net.core.rmem_max``) so a
+burst waits in the kernel rather than being dropped there.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import struct
 from typing import Any
 
 import can
+
+from .udp import DEFAULT_RECEIVE_BUFFER_BYTES
 
 __all__ = ["SO_RXQ_OVFL", "SocketcanReceiver", "rxq_overflow_count"]
 
@@ -67,10 +71,19 @@ except ImportError:  # pragma: no cover - not Linux
 if _SocketcanBus is not None:
 
     class SocketcanReceiver(_SocketcanBus):  # type: ignore[misc,valid-type]
-        """``SocketcanBus`` that reads ``SO_RXQ_OVFL``; see the module docstring. Same arguments."""
+        """``SocketcanBus`` that reads ``SO_RXQ_OVFL``; see the module docstring. Same arguments,
+        plus ``receive_buffer_bytes``."""
 
-        def __init__(self, *args: Any, **kwargs: Any) -> None:
+        def __init__(self, *args: Any, receive_buffer_bytes: int | None = DEFAULT_RECEIVE_BUFFER_BYTES,
+                     **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
+            self.receive_buffer_bytes: int | None = None
+            if receive_buffer_bytes:
+                try:
+                    self.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(receive_buffer_bytes))
+                    self.receive_buffer_bytes = self.socket.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+                except OSError:  # pragma: no cover - best effort
+                    pass
             self.rxq_overflow_enabled = False
             try:
                 self.socket.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)

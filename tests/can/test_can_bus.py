@@ -818,8 +818,7 @@ def test_socketcan_kernel_drops_are_counted():
     try:
         from bms_estimator.can.socketcan import SocketcanReceiver
 
-        rx = SocketcanReceiver(channel=name)
-        rx.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        rx = SocketcanReceiver(channel=name, receive_buffer_bytes=4096)
         sent = 2000
         with can.Bus(interface="socketcan", channel=name) as tx:
             for k in range(sent):
