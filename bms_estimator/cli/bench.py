@@ -152,7 +152,8 @@ def _saturation_loss_pct() -> float | None:
         print(f"saturation_loss_pct: not measured here ({res})")
         return None
     print(f"saturation: {res.sent:,} frames at {res.frames_per_s:,.0f}/s, {res.received:,} received, "
-          f"counted lost {res.counted_lost}, uncounted {res.uncounted}, MQTT {'on' if res.mqtt else 'off'}")
+          f"counted lost {res.counted_lost}, uncounted {res.uncounted}, MQTT {'on' if res.mqtt else 'off'}, "
+          f"tick p99 <= {res.tick_p99_ms} ms, loop lag p99 <= {res.loop_lag_p99_ms} ms (histogram buckets)")
     return res.loss_pct
 
 
