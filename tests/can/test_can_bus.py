@@ -372,7 +372,7 @@ def test_receive_queue_overflow_is_counted_not_fatal():
                 assert await rx.wait_open(5)
                 for k in range(20):
                     sender.send(own_current_frame(DB, float(k)))
-                for _ in range(100):  # let the notifier deliver while nobody reads
+                for _ in range(100):  # let the receive thread queue them while nobody reads
                     await asyncio.sleep(0.01)
                     if rx.counters.rx_dropped >= 15:
                         break
