@@ -242,11 +242,13 @@ async def _run_daemon(cfg: Any, fa: FrameArrays, channel: str) -> tuple[float, i
     t0 = time.perf_counter()
     th.start()
     try:
-        while svc.bus.counters.rx_frames + svc.bus.counters.rx_dropped < total:
+        # done when the service has decoded every frame (the bus counts frames when the estimator
+        # loop takes them from the receive queue, a batch at a time, before it decodes them)
+        while svc.decoder.counters.frames + svc.bus.counters.rx_dropped < total:
             if not th.is_alive() and "error" in out:
                 break
             await asyncio.sleep(0.05)
-            if not th.is_alive() and svc.bus.counters.rx_frames + svc.bus.counters.rx_dropped < total:
+            if not th.is_alive() and svc.decoder.counters.frames + svc.bus.counters.rx_dropped < total:
                 # the sender is done: give the service a moment to drain, then stop waiting
                 await asyncio.sleep(0.05)
                 if svc.decoder.counters.frames >= total:

@@ -111,3 +111,21 @@ def test_dashboard_that_never_connected_fails(tmp_path, capsys):
 def test_unit_does_not_restart_on_configuration_or_data_errors():
     unit = (REPO / "deploy" / "bms-estimator.service").read_text()
     assert f"RestartPreventExitStatus={EXIT_USAGE} {EXIT_DATA}" in unit
+
+
+def test_check_config_names_an_interface_that_is_not_there(tmp_path, capsys):
+    """--check-config says 'configuration ok' only for a configuration that can receive: an unknown
+    python-can interface is a usage error naming the known ones, an absent socketcan channel is said."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[can]\ninterface = "nosuchif"\n')
+    assert main(["run", "--config", str(cfg), "--check-config"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "can.interface" in err and "unknown CAN interface 'nosuchif'" in err and "socketcan" in err
+    assert "configuration ok" not in err
+    cfg.write_text('[can]\ninterface = "socketcan"\nchannel = "nosuchif"\n')
+    assert main(["run", "--config", str(cfg), "--check-config"]) == 0
+    err = capsys.readouterr().err
+    assert "no network interface 'nosuchif' here" in err and "configuration ok" not in err
+    cfg.write_text('[can]\ninterface = "virtual"\nchannel = "x"\n')
+    assert main(["run", "--config", str(cfg), "--check-config"]) == 0
+    assert "configuration ok" in capsys.readouterr().err

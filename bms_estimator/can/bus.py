@@ -7,11 +7,11 @@ systemd-networkd - and is not passed).
 
 :class:`ResilientBus` owns one bus at a time and keeps it alive:
 
-* receive: a ``can.Notifier(bus, [reader], loop=loop)`` feeds a
-  :class:`can.AsyncBufferedReader` (bounded; overflow is dropped and counted).
-  Buses with a file descriptor (socketcan, udp_multicast) are read from the
-  event loop's selector, the others from python-can's reader thread; either
-  way ``await rx.recv()`` / ``async for msg in rx`` never blocks the loop.
+* receive: a thread of its own reads the bus into a bounded queue
+  (:class:`~bms_estimator.can.receiver.RxThread`; overflow is dropped and
+  counted), so frames are taken off the socket while the event loop is busy
+  with a tick and its outputs. ``await rx.recv_batch()`` takes everything
+  queued at once; ``await rx.recv()`` / ``async for msg in rx`` one frame.
 * send: :meth:`ResilientBus.send` / :meth:`send_many` only enqueue; a daemon
   thread does the (possibly blocking) ``bus.send(msg, timeout)``. A full queue
   or a down bus drops frames (counted) rather than blocking the estimator.
@@ -46,6 +46,7 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..errors import one_line_error
+from .receiver import RxFailure, RxThread
 
 __all__ = ["BusConfig", "BusCounters", "ResilientBus", "open_bus"]
 
@@ -74,7 +75,7 @@ class BusConfig(BaseModel):
     rx_queue_size: int = Field(100_000, ge=1)
     tx_queue_size: int = Field(20_000, ge=1)
     tx_timeout_s: float = Field(0.05, ge=0)
-    notifier_timeout_s: float = Field(0.1, gt=0, description="python-can reader-thread poll period")
+    notifier_timeout_s: float = Field(0.1, gt=0, description="receive thread's poll period (how soon it notices a stop)")
     silence_reopen_s: float | None = Field(
         5.0, gt=0, description="reopen the bus after this long without a frame (an interface deleted and "
                                "re-created leaves an open socket deaf); None = never")
@@ -86,7 +87,7 @@ class BusCounters:
     open_failures: int = 0
     bus_errors: int = 0  # receive-side failures that caused a reopen
     silence_reopens: int = 0  # reopens after silence_reopen_s without a frame
-    rx_frames: int = 0
+    rx_frames: int = 0  # handed to the consumer by recv()/recv_batch() (frames still queued are not counted)
     rx_error_frames: int = 0
     rx_dropped: int = 0  # receive queue overflow
     rx_malformed: int = 0  # datagrams that were no CAN frame (udp_multicast): skipped, the bus kept
@@ -104,7 +105,9 @@ def open_bus(cfg: BusConfig, *, log_time: bool = False) -> can.BusABC:
 
     ``udp_multicast`` opens :class:`~bms_estimator.can.udp.UdpMulticastReceiver`
     (malformed datagrams skipped and counted, a large socket buffer; ``log_time``
-    keeps the sender's timestamps).
+    keeps the sender's timestamps); ``socketcan`` opens
+    :class:`~bms_estimator.can.socketcan.SocketcanReceiver` (the kernel's drop count,
+    ``SO_RXQ_OVFL``). Both report it as ``kernel_drops()``.
     """
     if cfg.interface == "udp_multicast":
         from .udp import UdpMulticastReceiver
@@ -119,6 +122,20 @@ def open_bus(cfg: BusConfig, *, log_time: bool = False) -> can.BusABC:
             kw["can_filters"] = cfg.can_filters
         kw.update(cfg.options)
         return UdpMulticastReceiver(**kw)
+    if cfg.interface == "socketcan":
+        from .socketcan import SocketcanReceiver
+
+        if SocketcanReceiver is not None:
+            kw = {"channel": cfg.channel, "receive_own_messages": cfg.receive_own_messages}
+            if cfg.fd:
+                kw["fd"] = True
+            if cfg.bitrate is not None:
+                log.debug("can.bus.bitrate_by_os", channel=cfg.channel, bitrate=cfg.bitrate,
+                          hint=f"ip link set {cfg.channel} type can bitrate {cfg.bitrate}")
+            if cfg.can_filters is not None:
+                kw["can_filters"] = cfg.can_filters
+            kw.update(cfg.options)
+            return SocketcanReceiver(**kw)
     kwargs: dict[str, Any] = {
         "interface": cfg.interface,
         "channel": cfg.channel,
@@ -139,76 +156,6 @@ def open_bus(cfg: BusConfig, *, log_time: bool = False) -> can.BusABC:
     return can.Bus(**kwargs)
 
 
-class _Failure:
-    """Put into the receive queue when the notifier reports a bus error."""
-
-    __slots__ = ("exc",)
-
-    def __init__(self, exc: BaseException) -> None:
-        self.exc = exc
-
-
-_CLOSED = object()  # put into the receive queue by close(): wakes a pending recv()
-
-
-class _Reader(can.AsyncBufferedReader):
-    """AsyncBufferedReader with a bounded queue that also carries bus failures."""
-
-    def __init__(self, maxsize: int, counters: BusCounters) -> None:
-        super().__init__()
-        self.buffer = asyncio.Queue(maxsize=maxsize)
-        self._counters = counters
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if self._is_stopped:
-            return
-        try:
-            self.buffer.put_nowait(msg)
-        except asyncio.QueueFull:
-            self._counters.rx_dropped += 1
-
-    def on_error(self, exc: Exception) -> None:
-        if self._is_stopped:
-            return
-        try:
-            self.buffer.put_nowait(_Failure(exc))  # type: ignore[arg-type]
-        except asyncio.QueueFull:  # make room: the failure must be seen
-            with contextlib.suppress(asyncio.QueueEmpty):
-                self.buffer.get_nowait()
-                self._counters.rx_dropped += 1
-            self.buffer.put_nowait(_Failure(exc))  # type: ignore[arg-type]
-
-
-class _Notifier(can.Notifier):
-    """Notifier whose selector path reports recv() errors like the thread path does.
-
-    ``can.Notifier`` reads fd-capable buses (socketcan) from the event loop; an
-    exception there would only reach the loop's exception handler and the
-    reader would spin on a dead socket. Here it is routed to the listeners'
-    ``on_error`` and the fd is unregistered.
-    """
-
-    def _rx_thread(self, bus: can.BusABC) -> None:
-        try:
-            super()._rx_thread(bus)
-        except Exception:  # noqa: S110 - already handed to the listeners' on_error via the loop
-            pass
-
-    def _on_message_available(self, bus: can.BusABC) -> None:
-        try:
-            super()._on_message_available(bus)
-        except Exception as exc:
-            self.exception = exc
-            loop = self._loop
-            if loop is not None:
-                with contextlib.suppress(Exception):
-                    fd = bus.fileno()
-                    loop.remove_reader(fd)
-                    if fd in self._readers:
-                        self._readers.remove(fd)
-            self._on_error(exc)
-
-
 class ResilientBus:
     """A CAN bus that reopens itself; see the module docstring.
 
@@ -226,8 +173,7 @@ class ResilientBus:
         self._factory = bus_factory
         self._bus: can.BusABC | None = None
         self._bus_lock = threading.Lock()
-        self._notifier: can.Notifier | None = None
-        self._reader: _Reader | None = None
+        self._rx: RxThread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closed = False
         self._backoff = cfg.reopen_initial_s
@@ -268,12 +214,9 @@ class ResilientBus:
     async def close(self) -> None:
         """Stop receiving and sending; a pending :meth:`recv` raises ``RuntimeError``, ``async for`` ends."""
         self._closed = True
-        reader = self._reader
-        if reader is not None:
-            with contextlib.suppress(asyncio.QueueEmpty, asyncio.QueueFull):
-                if reader.buffer.full():
-                    reader.buffer.get_nowait()
-                reader.buffer.put_nowait(_CLOSED)  # type: ignore[arg-type]
+        rx = self._rx
+        if rx is not None:
+            rx.fail(RuntimeError("bus closed"))  # wakes a pending recv()
         task, self._open_task = self._open_task, None
         if task is not None and not task.done():
             task.cancel()
@@ -314,6 +257,12 @@ class ResilientBus:
         except asyncio.TimeoutError:
             return False
 
+    @property
+    def rx_backlog(self) -> int:
+        """Frames received by the receive thread and not yet taken by :meth:`recv_batch`."""
+        rx = self._rx
+        return 0 if rx is None else rx.backlog
+
     def refresh_kernel_drops(self) -> int:
         """Update ``counters.rx_kernel_dropped`` from the open bus (where its transport reports
         what the kernel dropped: udp_multicast) and return it. Cheap; called about once a second."""
@@ -329,16 +278,13 @@ class ResilientBus:
     def _teardown(self) -> None:
         self.refresh_kernel_drops()
         self._kernel_drops_before = self.counters.rx_kernel_dropped  # the next socket counts from 0
-        notifier, reader = self._notifier, self._reader
+        rx = self._rx
         with self._bus_lock:
             bus, self._bus = self._bus, None
-        self._notifier = self._reader = None
+        self._rx = None
         self._opened.clear()
-        if reader is not None:
-            reader.stop()
-        if notifier is not None:
-            with contextlib.suppress(Exception):
-                notifier.stop(timeout=self.cfg.notifier_timeout_s * 5)
+        if rx is not None:
+            rx.stop(timeout=self.cfg.notifier_timeout_s * 5)
         if bus is not None:
             with contextlib.suppress(Exception):
                 bus.shutdown()
@@ -363,28 +309,26 @@ class ResilientBus:
                 await asyncio.sleep(self._backoff)
                 self._backoff = min(self._backoff * 2.0, self.cfg.reopen_max_s)
                 continue
-            reader = _Reader(self.cfg.rx_queue_size, self.counters)
-            try:
-                notifier = _Notifier(bus, [reader], timeout=self.cfg.notifier_timeout_s, loop=loop)
-            except Exception as exc:
-                self.counters.open_failures += 1
-                log.warning("can.bus.notifier_failed", error=repr(exc))
-                with contextlib.suppress(Exception):
-                    bus.shutdown()
-                await asyncio.sleep(self._backoff)
-                self._backoff = min(self._backoff * 2.0, self.cfg.reopen_max_s)
-                continue
             if hasattr(bus, "on_malformed"):
                 bus.on_malformed = self._count_malformed
+            rx = RxThread(bus, self.cfg.rx_queue_size, on_drop=self._count_rx_drop,
+                          poll_s=self.cfg.notifier_timeout_s)
             with self._bus_lock:
                 self._bus = bus
-            self._reader, self._notifier = reader, notifier
+            self._rx = rx
+            rx.start()
             self._got_frame_since_open = False
             self.counters.opens += 1
             self.last_error = None
             self._opened.set()
             log.info("can.bus.open", interface=self.cfg.interface, channel=self.cfg.channel, opens=self.counters.opens)
             return
+
+    def _count_rx_drop(self) -> None:
+        self.counters.rx_dropped += 1
+        n = self.counters.rx_dropped
+        if n in (1, 10, 100, 1000) or n % 100000 == 0:
+            log.warning("can.bus.rx_queue_full", rx_queue_size=self.cfg.rx_queue_size, rx_dropped=n)
 
     def _count_malformed(self) -> None:
         self.counters.rx_malformed += 1
@@ -410,7 +354,12 @@ class ResilientBus:
 
     # --------------------------------------------------------------- receive
     async def recv(self) -> can.Message:
-        """The next received frame; reopens the bus as often as needed.
+        """The next received frame; see :meth:`recv_batch`."""
+        return (await self.recv_batch(1))[0]
+
+    async def recv_batch(self, limit: int = 4096) -> list[can.Message]:
+        """The frames received so far (at least one, at most ``limit``, oldest first);
+        reopens the bus as often as needed.
 
         Opening runs in the event loop (``can.Bus(...)`` is fast for socketcan,
         virtual and udp_multicast; a slow USB/serial adapter would stall the
@@ -425,7 +374,8 @@ class ResilientBus:
                 exc, self._fail_request = self._fail_request, None
                 await self._fail(exc)
                 continue
-            if self._reader is None:
+            rx = self._rx
+            if rx is None:
                 try:
                     await asyncio.shield(self._ensure_open_task())
                 except asyncio.CancelledError:
@@ -435,30 +385,36 @@ class ResilientBus:
                         raise RuntimeError("bus closed") from None
                     raise
                 continue
-            silence = self.cfg.silence_reopen_s
-            if silence is None:
-                item = await self._reader.get_message()
-            else:
-                try:
-                    item = await asyncio.wait_for(self._reader.get_message(), silence)
-                except asyncio.TimeoutError:
-                    # Silence is a fault: a socket bound to an interface that was deleted and
-                    # re-created stays open and deaf; reopening binds to the new one.
-                    self.counters.silence_reopens += 1
-                    await self._fail(TimeoutError(f"no frame for {silence:g} s"), silence=True)
-                    continue
-            if item is _CLOSED or self._closed:
+            try:
+                items = await rx.get_batch(limit, self.cfg.silence_reopen_s)
+            except asyncio.TimeoutError:
+                if self._closed:
+                    raise RuntimeError("bus closed") from None
+                # Silence is a fault: a socket bound to an interface that was deleted and
+                # re-created stays open and deaf; reopening binds to the new one.
+                self.counters.silence_reopens += 1
+                await self._fail(TimeoutError(f"no frame for {self.cfg.silence_reopen_s:g} s"), silence=True)
+                continue
+            if self._closed:
                 raise RuntimeError("bus closed")
-            if isinstance(item, _Failure):
-                await self._fail(item.exc)
+            frames: list[can.Message] = []
+            for item in items:
+                if isinstance(item, RxFailure):  # the last item: the thread has ended
+                    if frames:
+                        self._fail_request = item.exc  # deliver these first, reopen on the next call
+                        break
+                    await self._fail(item.exc)
+                    break
+                frames.append(item)
+            if not frames:
                 continue
             if not self._got_frame_since_open:
                 self._got_frame_since_open = True
                 self._backoff = self.cfg.reopen_initial_s
-            self.counters.rx_frames += 1
-            if item.is_error_frame:
-                self.counters.rx_error_frames += 1
-            return item
+            c = self.counters
+            c.rx_frames += len(frames)
+            c.rx_error_frames += sum(1 for m in frames if m.is_error_frame)
+            return frames
 
     def __aiter__(self) -> AsyncIterator[can.Message]:
         return self._iterate()
@@ -530,9 +486,9 @@ class ResilientBus:
             return
 
         def _set() -> None:
-            reader = self._reader
-            if reader is not None:
-                reader.on_error(exc)  # wakes a pending recv()
+            rx = self._rx
+            if rx is not None:
+                rx.fail(exc)  # wakes a pending recv()
             else:
                 self._fail_request = exc
 

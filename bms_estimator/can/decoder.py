@@ -20,13 +20,15 @@ import math
 import re
 from dataclasses import dataclass, fields
 from enum import IntEnum
+from collections.abc import Callable
 from typing import NamedTuple
 
 import can
 import structlog
 from cantools.database.can import Database, Message
 
-from .mapping import CanMapping, CellSignals, MappingError, ScalarSignal, load_mapping
+from .e2e import CRC_ALGORITHMS
+from .mapping import CanMapping, CellSignals, E2ECheck, MappingError, ScalarSignal, load_mapping
 from .signals import not_available_raws
 
 __all__ = ["DecodeCounters", "Event", "EventKind", "FrameDecoder", "MappedSignal"]
@@ -76,6 +78,8 @@ class DecodeCounters:
     out_of_range: int = 0  # outside the mapping's [valid_min, valid_max]
     not_available: int = 0  # raw value named NotAvailable (or similar) in the DBC
     flagged_invalid: int = 0  # an invalid flag of the frame was set
+    e2e_counter: int = 0  # frames dropped: the alive counter skipped or repeated a value
+    e2e_crc: int = 0  # frames dropped: CRC/checksum mismatch
     internal_error: int = 0  # a bug; logged
 
     @property
@@ -89,6 +93,8 @@ class DecodeCounters:
             + self.out_of_range
             + self.not_available
             + self.flagged_invalid
+            + self.e2e_counter
+            + self.e2e_crc
             + self.internal_error
         )
 
@@ -104,12 +110,22 @@ _Entry = tuple[EventKind, int, str, float, float, float, float, frozenset, tuple
 
 
 @dataclass(slots=True)
+class _E2EPlan:
+    counter: str | None  # alive counter signal
+    modulus: int  # counter values 0 .. modulus - 1
+    crc: str | None  # CRC signal
+    crc_byte: int  # its byte in the frame
+    crc_fn: Callable[[bytes], int] | None
+
+
+@dataclass(slots=True)
 class _MessagePlan:
     message: Message
     length: int
     mux_signal: str | None
     common: list  # entries valid for every multiplexer value
     by_mux: dict  # mux value -> entries (multiplexed messages only)
+    e2e: _E2EPlan | None = None
 
 
 def _key(frame_id: int, extended: bool) -> int:
@@ -134,6 +150,7 @@ class FrameDecoder:
         self._known = {_key(m.frame_id, m.is_extended_frame) for m in db.messages}
         self._na_rx = re.compile(self.mapping.na_choice_pattern)
         self._plans: dict[int, _MessagePlan] = {}
+        self._last_counter: dict[tuple[int, int | None], int] = {}  # (frame key, mux) -> last counter value
         self.voltage_cells: set[int] = set()
         self.temperature_cells: set[int] = set()
         problems: list[str] = []
@@ -185,6 +202,42 @@ class FrameDecoder:
             self._build_cells(EventKind.CELL_VOLTAGE, spec, problems, self.voltage_cells)
         for spec in m.cell_temperatures:
             self._build_cells(EventKind.CELL_TEMPERATURE, spec, problems, self.temperature_cells)
+        for name, check in m.e2e.items():
+            self._build_e2e(name, check, problems)
+
+    def _build_e2e(self, name: str, check: E2ECheck, problems: list[str]) -> None:
+        msg = self._message(name, problems)
+        if msg is None:
+            return
+        plan = self._plans.get(_key(msg.frame_id, msg.is_extended_frame))
+        if plan is None:
+            problems.append(f"e2e.{name}: not an input message of this mapping")
+            return
+        names = {s.name: s for s in msg.signals}
+        modulus, crc_byte = 0, -1
+        if check.counter is not None:
+            sig = names.get(check.counter)
+            if sig is None:
+                problems.append(f"e2e.{name}: counter signal {check.counter!r} not in the message")
+            elif sig.is_signed or sig.multiplexer_ids:
+                problems.append(f"e2e.{name}: counter {check.counter!r} must be unsigned and not multiplexed")
+            else:
+                top = (1 << sig.length) - 1
+                if sig.maximum is not None and sig.scale == 1 and sig.offset == 0:
+                    top = min(top, int(sig.maximum))
+                modulus = top + 1
+        if check.crc is not None:
+            sig = names.get(check.crc)
+            if sig is None:
+                problems.append(f"e2e.{name}: crc signal {check.crc!r} not in the message")
+            else:
+                lsb = sig.start if sig.byte_order == "little_endian" else sig.start - 7
+                if sig.length != 8 or lsb % 8 != 0 or sig.multiplexer_ids:
+                    problems.append(f"e2e.{name}: crc {check.crc!r} must be 8 bit, byte aligned, not multiplexed")
+                else:
+                    crc_byte = lsb // 8
+        plan.e2e = _E2EPlan(check.counter, modulus, check.crc, crc_byte,
+                            CRC_ALGORITHMS[check.crc_algorithm] if check.crc is not None else None)
 
     def _build_scalar(self, kind: EventKind, spec: ScalarSignal, problems: list[str]) -> None:
         msg = self._message(spec.message, problems)
@@ -290,6 +343,23 @@ class FrameDecoder:
         if dropped:
             log.info("can.mapping.cells_beyond_pack", group=what, n_cells=self.n_cells, signals_left_out=dropped)
 
+    def _e2e_ok(self, plan: _MessagePlan, e2e: _E2EPlan, data: bytes, raw: dict, msg: can.Message) -> bool:
+        """The frame's CRC and alive counter (see :mod:`bms_estimator.can.e2e`); counts a failure."""
+        if e2e.crc_fn is not None:
+            if e2e.crc_fn(data[: e2e.crc_byte] + data[e2e.crc_byte + 1:]) != data[e2e.crc_byte]:
+                self.counters.e2e_crc += 1
+                return False
+        if e2e.counter is not None:
+            value = raw.get(e2e.counter)
+            key = (_key(msg.arbitration_id, msg.is_extended_id),
+                   raw.get(plan.mux_signal) if plan.mux_signal is not None else None)
+            last = self._last_counter.get(key)
+            self._last_counter[key] = value
+            if last is not None and value != (last + 1) % e2e.modulus:
+                self.counters.e2e_counter += 1
+                return False
+        return True
+
     def layout(self) -> list[MappedSignal]:
         """Every mapped signal with its frame, multiplexer value, cell and raw->SI conversion."""
         out: list[MappedSignal] = []
@@ -338,6 +408,9 @@ class FrameDecoder:
                     c.bad_mux += 1
                 else:
                     c.decode_error += 1
+                return []
+            e2e = plan.e2e
+            if e2e is not None and not self._e2e_ok(plan, e2e, bytes(data[: plan.length]), raw, msg):
                 return []
             c.decoded += 1
             entries = plan.common

@@ -1,4 +1,4 @@
-"""Estimator state -> CAN frames of the project's DBC (``dbc/bms_estimator.dbc``).
+r"""Estimator state -> CAN frames of the project's DBC (``dbc/bms_estimator.dbc``).
 
 Frames (all 8-byte classic CAN, 29-bit identifiers; exact bit layouts and
 scalings are in the DBC's ``CM_`` comments):
@@ -27,6 +27,17 @@ Value policy - the encoder never raises for any float input:
 
 Cells without a usable index (NaN, negative, above the multiplexer's range)
 are skipped and counted in ``skipped_cells``.
+
+Speed: the per-cell frames (two per cell, 400 for a 200-cell pack every second) are
+packed with numpy over the cells: each signal's raw values are masked to their
+length (two's complement for signed ones) and shifted to their bit position in
+the frame's little-endian 64-bit word,
+
+.. math:: w_j = \sum_s (r_{s,j} \bmod 2^{L_s}) \cdot 2^{b_s},
+
+with the positions :math:`b_s` taken from the DBC (:class:`_FramePacker`). This gives
+the bytes ``cantools`` would (tested); a message with a big-endian signal keeps
+``cantools`` frame by frame.
 """
 
 from __future__ import annotations
@@ -86,6 +97,35 @@ def _floats(values: Any) -> np.ndarray:
         return np.array([_to_float(v) for v in arr.reshape(-1)], dtype=float).reshape(arr.shape)
 
 
+class _FramePacker:
+    """One message's data bytes for many frames at once, vectorised (see the module docstring).
+
+    ``pack(raws)`` takes raw int64 arrays (one per signal, broadcast against each other)
+    and returns an ``(n, length)`` uint8 array; signals not given are 0, as ``cantools``
+    encodes them with ``padding=False``. Only for messages of little-endian signals
+    within 64 bits (:meth:`for_message` returns None otherwise).
+    """
+
+    def __init__(self, length: int, layout: dict[str, tuple[int, int]]) -> None:
+        self.length = length
+        self.layout = layout  # signal -> (start bit, length)
+
+    @classmethod
+    def for_message(cls, msg: Message) -> _FramePacker | None:
+        if msg.length > 8 or any(s.byte_order != "little_endian" for s in msg.signals):
+            return None
+        return cls(msg.length, {s.name: (int(s.start), int(s.length)) for s in msg.signals})
+
+    def pack(self, raws: Mapping[str, np.ndarray], n: int) -> np.ndarray:
+        word = np.zeros(n, dtype=np.uint64)
+        for name, raw in raws.items():
+            start, length = self.layout[name]
+            mask = np.uint64((1 << length) - 1)
+            bits = np.asarray(raw, dtype=np.int64).astype(np.uint64) & mask  # two's complement for < 0
+            word |= bits << np.uint64(start)
+        return word.astype("<u8").view(np.uint8).reshape(n, 8)[:, : self.length]
+
+
 class StateEncoder:
     """Encode estimator outputs into :class:`can.Message` lists.
 
@@ -109,6 +149,7 @@ class StateEncoder:
             msg = db.get_message_by_name(name)
             self._msgs[name] = msg
             self._codecs[name] = {s.name: self._codec(s) for s in msg.signals}
+        self._packers = {name: _FramePacker.for_message(self._msgs[name]) for name in (self.CELL_A, self.CELL_B)}
         unknown = [f"{m}.{sig}" for m in (self.STATUS, self.COUNTERS) for sig in self._codecs[m]
                    if sig not in CAN_STATUS_SIGNALS]
         if unknown:
@@ -185,25 +226,41 @@ class StateEncoder:
             }
             raw_b = {"C1": b["C1"].raw(cols["c1"]), "R2": b["R2"].raw(cols["r2"]), "C2": b["C2"].raw(cols["c2"])}
             mux_max = min(a["CellIndex"].raw_max, b["CellIndex"].raw_max)
-            lists_a = {k: v.tolist() for k, v in raw_a.items()}
-            lists_b = {k: v.tolist() for k, v in raw_b.items()}
+            with np.errstate(invalid="ignore"):
+                usable = np.isfinite(idx) & (idx == np.floor(idx)) & (idx >= 0) & (idx <= mux_max)
+            self.skipped_cells += int(n - np.count_nonzero(usable))
+            keep = np.flatnonzero(usable)
+            ci = idx[keep].astype(np.int64)
+            raw_a = {"CellIndex": ci, **{k: v[keep] for k, v in raw_a.items()}}
+            raw_b = {"CellIndex": ci, **{k: v[keep] for k, v in raw_b.items()}}
+            if self._packers[self.CELL_A] is None or self._packers[self.CELL_B] is None:
+                return self._cells_one_by_one(raw_a, raw_b, keep.size, timestamp)
+            data_a = self._packers[self.CELL_A].pack(raw_a, keep.size)
+            data_b = self._packers[self.CELL_B].pack(raw_b, keep.size)
         except Exception:  # pragma: no cover - defensive
             self.encode_failures += 1
             log.exception("can.encode_cells.failed")
             return []
+        ma, mb = self._msgs[self.CELL_A], self._msgs[self.CELL_B]
+        id_a, ext_a, id_b, ext_b = ma.frame_id, ma.is_extended_frame, mb.frame_id, mb.is_extended_frame
+        ts = 0.0 if timestamp is None else float(timestamp)
+        out: list[can.Message] = []
+        for da, db in zip(data_a.tolist(), data_b.tolist()):  # interleaved: A then B of each cell
+            out.append(can.Message(arbitration_id=id_a, is_extended_id=ext_a, data=da, is_fd=False, timestamp=ts))
+            out.append(can.Message(arbitration_id=id_b, is_extended_id=ext_b, data=db, is_fd=False, timestamp=ts))
+        return out
+
+    def _cells_one_by_one(self, raw_a: dict[str, np.ndarray], raw_b: dict[str, np.ndarray], n: int,
+                          timestamp: float | None) -> list[can.Message]:
+        """``cantools`` frame by frame: a DBC whose cell frames the packer cannot build."""
+        lists_a = {k: v.tolist() for k, v in raw_a.items()}
+        lists_b = {k: v.tolist() for k, v in raw_b.items()}
         out: list[can.Message] = []
         for j in range(n):
-            ci = idx[j]
-            if not (math.isfinite(ci) and ci == int(ci) and 0 <= ci <= mux_max):
-                self.skipped_cells += 1
-                continue
-            ci = int(ci)
-            fa = self._frame(self.CELL_A, {"CellIndex": ci, **{k: v[j] for k, v in lists_a.items()}}, timestamp)
-            fb = self._frame(self.CELL_B, {"CellIndex": ci, **{k: v[j] for k, v in lists_b.items()}}, timestamp)
-            if fa is not None:
-                out.append(fa)
-            if fb is not None:
-                out.append(fb)
+            for name, lists in ((self.CELL_A, lists_a), (self.CELL_B, lists_b)):
+                frame = self._frame(name, {k: v[j] for k, v in lists.items()}, timestamp)
+                if frame is not None:
+                    out.append(frame)
         return out
 
     # ------------------------------------------------------------------ pack

@@ -56,6 +56,16 @@ lookup ``mux value -> [(signal, cell index), ...]``; nothing is parsed per frame
 firmware treats a set bit as invalid even though the DBC's value table says
 ``0 "Invalid" 1 "Valid"``).
 
+End-to-end checks (optional)
+----------------------------
+``[e2e.<message>]`` names, for an input message, an alive counter signal
+(``counter``) and/or a CRC or checksum signal (``crc``, 8 bit, byte aligned,
+with ``crc_algorithm``: ``crc8_sae_j1850`` (default), ``crc8_autosar``,
+``xor8``, ``sum8``). A frame whose counter skips or repeats a value, or whose
+CRC does not match, is dropped and counted (``e2e_counter``, ``e2e_crc``); see
+:mod:`bms_estimator.can.e2e`. foxBMS: the IVT-S current and voltage frames carry a 4-bit
+message counter (``IVT_MsgCount_Result_*``) and no CRC.
+
 Not-available raw values
 ------------------------
 A raw value whose DBC value-table name matches ``na_choice_pattern``
@@ -82,6 +92,7 @@ __all__ = [
     "CellTemperatureSignals",
     "CellVoltageSignals",
     "CurrentSignal",
+    "E2ECheck",
     "MappingError",
     "MuxTableEntry",
     "PackVoltageSignal",
@@ -203,6 +214,20 @@ class CellTemperatureSignals(CellSignals):
     valid_max: float = 150.0
 
 
+class E2ECheck(_Model):
+    """End-to-end checks of one input message (see the module docstring)."""
+
+    counter: str | None = Field(None, min_length=1, description="alive counter signal, +1 per frame")
+    crc: str | None = Field(None, min_length=1, description="CRC/checksum signal: 8 bit, byte aligned")
+    crc_algorithm: Literal["crc8_sae_j1850", "crc8_autosar", "xor8", "sum8"] = "crc8_sae_j1850"
+
+    @model_validator(mode="after")
+    def _something(self) -> E2ECheck:
+        if self.counter is None and self.crc is None:
+            raise ValueError("name a counter, a crc, or both")
+        return self
+
+
 class CanMapping(_Model):
     """The complete input mapping for one DBC."""
 
@@ -215,6 +240,7 @@ class CanMapping(_Model):
     pack_voltage: PackVoltageSignal | None = None
     cell_voltages: list[CellVoltageSignals] = Field(min_length=1)
     cell_temperatures: list[CellTemperatureSignals] = Field(default_factory=list)
+    e2e: dict[str, E2ECheck] = Field(default_factory=dict, description="message name -> its end-to-end checks")
 
     @field_validator("na_choice_pattern")
     @classmethod

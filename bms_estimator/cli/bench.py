@@ -143,6 +143,20 @@ def _diagnose_s() -> float | None:
     return float(bench_diagnose_s())
 
 
+def _saturation_loss_pct() -> float | None:
+    _benchmarks()
+    from benchmarks.saturation import SaturationResult, bench_saturation
+
+    res = bench_saturation(n_cells=200, seconds=30.0)
+    if not isinstance(res, SaturationResult):
+        print(f"saturation_loss_pct: not measured here ({res})")
+        return None
+    print(f"saturation: {res.sent:,} frames at {res.frames_per_s:,.0f}/s, {res.received:,} received, "
+          f"counted lost {res.counted_lost}, uncounted {res.uncounted}, MQTT {'on' if res.mqtt else 'off'}, "
+          f"tick p99 <= {res.tick_p99_ms} ms, loop lag p99 <= {res.loop_lag_p99_ms} ms (histogram buckets)")
+    return res.loss_pct
+
+
 #: figure name -> how to measure it (each prints on its own; slow ones can be left out)
 FIGURES = {
     "cell_updates_per_s": lambda args: bench_cell_updates(2000, args.seconds),
@@ -153,6 +167,7 @@ FIGURES = {
     "publish_latency_ms_p99": lambda args: _publish_latency(),
     "replay_speedup": lambda args: _replay_speedup(),
     "diagnose_4h_s": lambda args: _diagnose_s(),
+    "saturation_loss_pct": lambda args: _saturation_loss_pct(),
 }
 
 

@@ -100,6 +100,24 @@ class CanConfig(_Strict):
     kernel_filters: bool = Field(True, description="receive only the mapped frame ids (kernel filters on socketcan)")
     output: CanOutputConfig = Field(default_factory=CanOutputConfig)
 
+    @field_validator("interface")
+    @classmethod
+    def _known_interface(cls, v: str) -> str:
+        import can
+
+        if v not in can.VALID_INTERFACES:
+            raise ValueError(f"unknown CAN interface {v!r}; python-can knows "
+                             f"{', '.join(sorted(can.VALID_INTERFACES))}")
+        return v
+
+    def channel_problem(self) -> str | None:
+        """Why the channel cannot be opened here, where that can be told without opening it
+        (a socketcan network interface that does not exist); None otherwise."""
+        if self.interface == "socketcan" and isinstance(self.channel, str) and self.channel:
+            if not os.path.exists(os.path.join("/sys/class/net", self.channel)):
+                return f"no network interface {self.channel!r} here (ip link show {self.channel})"
+        return None
+
     def bus_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for ``bms_estimator.can.bus.BusConfig``."""
         kw: dict[str, Any] = {"interface": self.interface, "channel": self.channel, "fd": self.fd}

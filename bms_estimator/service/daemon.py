@@ -3,7 +3,7 @@
 The data path is :mod:`bms_estimator.service.pipeline` (its docstring names every hop);
 the daemon feeds it frames and attaches the outputs as ``on_snapshot`` hooks::
 
-    ResilientBus.recv() -> Pipeline.process_frame(msg) -> Snapshot per sample
+    receive thread -> bounded queue -> ResilientBus.recv_batch() -> Pipeline.process_frame(msg) -> Snapshot per sample
         -> MqttPublisher.submit_snapshot        (never blocks)
         -> StateEncoder.encode_snapshot -> ResilientBus.send_many   (on the can.output.period_s grid)
         -> state save in a worker thread        (every state.save_interval_s of sample time)
@@ -342,12 +342,16 @@ class Service:
         return self.health.port if self.health is not None else None
 
     async def _consume(self) -> None:
+        """Frames from the bus's receive thread, a batch at a time, through the pipeline.
+
+        The thread keeps reading while a tick runs here; this loop yields after every
+        sample and every 256 frames, so a burst does not starve MQTT, health and the watchdog.
+        """
         bus = self.bus
         assert bus is not None
-        since_yield = 0
         while True:
             try:
-                msg = await bus.recv()
+                batch = await bus.recv_batch()
             except RuntimeError:  # closed
                 return
             except asyncio.CancelledError:
@@ -357,12 +361,13 @@ class Service:
                 await asyncio.sleep(0.1)
                 continue
             self._last_frame_mono = time.monotonic()
-            produced = self.pipeline.process_frame(msg)
-            since_yield += 1
-            if produced or since_yield >= 256:
-                # a replayed burst must not starve MQTT, health and the watchdog
-                since_yield = 0
-                await asyncio.sleep(0)
+            since_yield = 0
+            for msg in batch:
+                produced = self.pipeline.process_frame(msg)
+                since_yield += 1
+                if produced or since_yield >= 256:
+                    since_yield = 0
+                    await asyncio.sleep(0)
 
     def _status_line(self) -> str:
         """The ``systemctl status`` line: samples, SOC, CAN bus and MQTT state."""

@@ -11,7 +11,9 @@ Families (``bms_`` prefix; counters end in ``_total``):
 * input: ``can_frames_received``, ``can_frames_decoded``, ``can_frames_ignored{reason}``,
   ``decode_problems{reason}``, ``samples``, ``samples_current_invalid``,
   ``sample_anomalies{kind}``, ``cell_samples_stale``, ``tick_errors``
-* CAN bus: ``can_bus_up``, ``can_bus_events{event}``, ``can_rx_dropped{reason}``, ``can_rx_error_frames``,
+* CAN bus: ``can_bus_up``, ``can_bus_events{event}``, ``can_rx_dropped{reason}`` (``queue_full``: the
+  receive thread's bounded queue; ``malformed``; ``kernel``: the socket buffer, from ``SO_RXQ_OVFL`` on
+  socketcan and ``/proc/net/udp`` on udp_multicast), ``can_rx_backlog``, ``can_rx_error_frames``,
   ``can_tx_frames``, ``can_tx_dropped``, ``can_tx_errors``, ``can_encode_problems{kind}``
 * estimator: ``estimator_state{bms_estimator_state}`` (Enum), ``estimator_rejections``,
   ``estimator_corrections``, ``estimator_restarts``, ``state_restored``, ``tick_seconds``
@@ -142,6 +144,7 @@ class _ServiceCollector(Collector):
                            {"short_frame": dc.short_frame, "bad_mux": dc.bad_mux, "decode_error": dc.decode_error,
                             "non_finite": dc.non_finite, "out_of_range": dc.out_of_range,
                             "not_available": dc.not_available, "flagged_invalid": dc.flagged_invalid,
+                            "e2e_counter": dc.e2e_counter, "e2e_crc": dc.e2e_crc,
                             "internal_error": dc.internal_error}, "reason")
         sc = svc.sampler.counters
         yield _counter("bms_sample_anomalies", "frames or values the sampler set aside or re-anchored on", None,
@@ -179,6 +182,8 @@ class _ServiceCollector(Collector):
                            "frame, or dropped by the kernel (socket buffer full; udp_multicast)", None,
                            {"queue_full": bc.rx_dropped, "malformed": bc.rx_malformed,
                             "kernel": bus.refresh_kernel_drops()}, "reason")
+            yield _gauge("bms_can_rx_backlog", "frames the receive thread queued that the estimator has not taken yet",
+                         bus.rx_backlog)
             yield _counter("bms_can_rx_error_frames", "CAN error frames received", bc.rx_error_frames)
             yield _counter("bms_can_tx_frames", "CAN frames sent", bc.tx_frames)
             yield _counter("bms_can_tx_dropped", "CAN frames not sent (bus down or send queue full)", bc.tx_dropped)

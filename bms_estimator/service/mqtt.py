@@ -35,6 +35,7 @@ import structlog
 from .. import package_version
 from ..jsonsafe import to_jsonable
 from . import schema
+from .mqtt_client import MqttClient
 
 if TYPE_CHECKING:
     from .config import MqttConfig
@@ -370,7 +371,7 @@ class MqttPublisher:
 
     def _make_client(self) -> aiomqtt.Client:
         cfg = self.cfg
-        client = aiomqtt.Client(
+        client = MqttClient(
             cfg.host,
             cfg.port,
             username=cfg.username,

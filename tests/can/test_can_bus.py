@@ -293,7 +293,7 @@ def test_silence_reopen_can_be_turned_off():
 
 
 class _FdBus(VirtualBus):
-    """A virtual bus with a file descriptor, so can.Notifier reads it from the event loop (like socketcan)."""
+    """A virtual bus with a file descriptor (like socketcan) whose recv() can be made to fail."""
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
@@ -325,7 +325,7 @@ class _FdBus(VirtualBus):
 
 
 def test_selector_path_errors_reopen_instead_of_spinning():
-    """socketcan-style buses are read by the event loop; a recv() error there must lead to a reopen."""
+    """A recv() error on a socketcan-style bus (in the receive thread) leads to a reopen, not a spin."""
     ch = channel()
     buses: list[_FdBus] = []
 
@@ -372,7 +372,7 @@ def test_receive_queue_overflow_is_counted_not_fatal():
                 assert await rx.wait_open(5)
                 for k in range(20):
                     sender.send(own_current_frame(DB, float(k)))
-                for _ in range(100):  # let the notifier deliver while nobody reads
+                for _ in range(100):  # let the receive thread queue them while nobody reads
                     await asyncio.sleep(0.01)
                     if rx.counters.rx_dropped >= 15:
                         break
@@ -385,6 +385,38 @@ def test_receive_queue_overflow_is_counted_not_fatal():
     assert counters.rx_dropped == 15
     dec = FrameDecoder(DB, "default", 1)
     assert [dec.decode(m)[0].value for m in got] == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
+def test_frames_are_read_while_the_event_loop_is_blocked():
+    """Reception never waits for a tick: while the loop is held (a long tick), the receive
+    thread takes every frame off the bus into the queue; one recv_batch then returns them
+    all, in order, and nothing was dropped."""
+    ch = channel()
+    n = 500
+
+    async def main():
+        sender = can.Bus(interface="virtual", channel=ch)
+        try:
+            async with ResilientBus(BusConfig(interface="virtual", channel=ch)) as rx:
+                assert await rx.wait_open(5)
+                for k in range(n):
+                    sender.send(own_current_frame(DB, float(k)))
+                deadline = time.monotonic() + 20.0
+                while rx.rx_backlog < n and time.monotonic() < deadline:
+                    time.sleep(0.01)  # blocks the event loop on purpose: nothing here reads the bus
+                backlog_while_blocked = rx.rx_backlog
+                got = []
+                while len(got) < n:
+                    got += await rx.recv_batch()
+                return backlog_while_blocked, got, rx.counters
+        finally:
+            sender.shutdown()
+
+    backlog, got, counters = run(main())
+    assert backlog == n
+    dec = FrameDecoder(DB, "default", 1)
+    assert [dec.decode(m)[0].value for m in got] == [float(k) for k in range(n)]
+    assert counters.rx_dropped == 0 and counters.rx_frames == n
 
 
 def test_close_ends_a_pending_receive():
@@ -430,7 +462,9 @@ RECEIVER = textwrap.dedent(
     from bms_estimator.can.sampler import SampleAssembler
 
     async def main():
-        cfg = BusConfig(interface="udp_multicast", channel="239.74.163.2", fd=False, options={{"port": {port}}})
+        # no silence reopen: on a loaded machine the sender process may take longer than 5 s to start
+        cfg = BusConfig(interface="udp_multicast", channel="239.74.163.2", fd=False, options={{"port": {port}}},
+                        silence_reopen_s=None)
         dec = FrameDecoder(load_project_db(), "default", {n})
         smp = SampleAssembler({n})
         samples, frames = [], 0
@@ -604,7 +638,7 @@ def _vcan_channel() -> tuple[str, bool]:
 
 
 def test_socketcan_vcan_receive_decode_and_survive_link_down():
-    """The real socketcan path (event-loop reader): receive, decode, and keep going after link down/up."""
+    """The real socketcan path (receive thread): receive, decode, and keep going after link down/up."""
     name, created = _vcan_channel()
     try:
         cfg = fast(BusConfig(interface="socketcan", channel=name))
@@ -747,3 +781,60 @@ def test_kernel_drops_add_up_across_reopens():
             return rx.refresh_kernel_drops()
 
     assert run(main()) == 10
+
+
+def test_rxq_overflow_control_message_is_read_and_the_rest_passed_on():
+    """SO_RXQ_OVFL: the kernel's cumulative drop count rides on a control message; the
+    timestamp message python-can parses is passed on untouched, in its place."""
+    from bms_estimator.can.socketcan import SO_RXQ_OVFL, _OverflowTap, rxq_overflow_count
+
+    ts = (socket.SOL_SOCKET, 35, b"\x01" * 16)  # SO_TIMESTAMPNS
+    ovfl = (socket.SOL_SOCKET, SO_RXQ_OVFL, (1234).to_bytes(4, sys.byteorder))
+    assert rxq_overflow_count([ts, ovfl]) == (1234, [ts])
+    assert rxq_overflow_count([ts]) == (None, [ts])  # nothing dropped yet: the kernel sends none
+
+    class FakeSock:
+        def __init__(self):
+            self.replies = [(b"f1", [ts], 0, ("vcan0",)), (b"f2", [ts, ovfl], 0, ("vcan0",)),
+                            (b"f3", [ts], 0, ("vcan0",))]
+            self.asked = []
+
+        def recvmsg(self, bufsize, ancbufsize, flags=0):
+            self.asked.append(ancbufsize)
+            return self.replies.pop(0)
+
+    sock = FakeSock()
+    tap = _OverflowTap(sock)
+    got = [tap.recvmsg(72, 32) for _ in range(3)]
+    assert [g[1] for g in got] == [[ts], [ts], [ts]]
+    assert tap.drops == 1234  # kept after a frame without the message
+    assert all(a > 32 for a in sock.asked)  # room for the overflow message too
+
+
+def test_socketcan_kernel_drops_are_counted():
+    """On vcan: a receive queue that overflows while nobody reads reports its drops through
+    SO_RXQ_OVFL, and received + dropped == sent."""
+    name, created = _vcan_channel()
+    try:
+        from bms_estimator.can.socketcan import SocketcanReceiver
+
+        rx = SocketcanReceiver(channel=name, receive_buffer_bytes=4096)
+        sent = 2000
+        with can.Bus(interface="socketcan", channel=name) as tx:
+            for k in range(sent):
+                while True:
+                    try:
+                        tx.send(own_current_frame(DB, float(k)), timeout=1.0)
+                        break
+                    except can.CanError:
+                        time.sleep(0.001)
+        received = 0
+        while rx.recv(timeout=0.2) is not None:
+            received += 1
+        drops = rx.kernel_drops()
+        rx.shutdown()
+        assert drops is not None and drops > 0
+        assert received + drops == sent
+    finally:
+        if created:
+            subprocess.run(["ip", "link", "del", name], capture_output=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -175,3 +176,36 @@ def test_a_status_signal_without_a_counter_is_refused(tmp_path):
         Service(cfg)
     assert any(p.startswith("can.dbc: status signal(s) EstimatorStatus.SampleCount carry no known counter")
                for p in exc.value.problems), exc.value.problems
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    idx=st.lists(st.one_of(st.integers(-5, 2100), any_float), min_size=1, max_size=8),
+    values=st.lists(st.one_of(any_float, st.floats(-1e6, 1e6)), min_size=7, max_size=7),
+)
+def test_vectorised_cell_frames_are_the_bytes_cantools_builds(idx, values):
+    """The numpy packer and cantools frame by frame give the same frames, byte for byte
+    (NaN -> NotAvailable, clamping, signed C0, skipped indices)."""
+    vec = StateEncoder(DB)
+    ref = StateEncoder(DB)
+    ref._packers = {name: None for name in ref._packers}  # force cantools, frame by frame
+    got, want = vec.encode_cells(idx, *values, timestamp=2.0), ref.encode_cells(idx, *values, timestamp=2.0)
+    assert [(m.arbitration_id, m.is_extended_id, bytes(m.data), m.timestamp) for m in got] == \
+        [(m.arbitration_id, m.is_extended_id, bytes(m.data), m.timestamp) for m in want]
+    assert vec.skipped_cells == ref.skipped_cells
+
+
+def test_a_big_endian_cell_message_keeps_cantools(tmp_path):
+    """A DBC whose cell frames have a Motorola signal is not packed by numpy (it would be wrong)."""
+    text = (Path(__file__).resolve().parents[2] / "dbc" / "bms_estimator.dbc").read_text()
+    text = text.replace(" SG_ R2 m0 : 32|16@1+", " SG_ R2 m0 : 39|16@0+")
+    path = tmp_path / "be.dbc"
+    path.write_text(text)
+    from bms_estimator.can.dbc import load_db
+
+    db = load_db(path)
+    enc = StateEncoder(db)
+    assert enc._packers["CellStateB"] is None
+    frames = enc.encode_cells([0, 1], 0.5, 0.01, 0.01, 1000.0, 0.004, 5000.0, 0.0)
+    decoded = db.get_message_by_name("CellStateB").decode(frames[3].data)
+    assert decoded["CellIndex"] == 1 and decoded["R2"] == pytest.approx(4.0, abs=0.002)

@@ -545,3 +545,45 @@ def test_disabled_publisher_is_inert():
         await pub.close()
 
     run_async(main())
+
+
+def test_a_socket_closed_before_its_registration_logs_no_asyncio_error():
+    """The spurious 'add_writer ... Bad file descriptor' on a reconnect (issue 16): paho reports
+    its socket from the connecting thread, aiomqtt defers the selector registration, and the
+    connection breaks (socket closed) before the loop runs it. aiomqtt's own client makes asyncio
+    log that at ERROR; the service's client skips the registration of a socket that is gone, and
+    still registers a live one."""
+    import asyncio
+    import socket as socketlib
+
+    import aiomqtt
+
+    from bms_estimator.service.mqtt_client import MqttClient
+
+    async def closed_before_registration(cls):
+        loop = asyncio.get_running_loop()
+        errors = []
+        loop.set_exception_handler(lambda _loop, ctx: errors.append(f"{ctx.get('message')} {ctx.get('exception')!r}"))
+        client = cls("127.0.0.1", 1)
+        for register in (client._on_socket_register_write, client._on_socket_open):
+            a, b = socketlib.socketpair()
+            register(client._client, None, a)
+            a.close()  # the connection broke before the loop ran the registration
+            b.close()
+            await asyncio.sleep(0.05)
+        live, peer = socketlib.socketpair()
+        client._on_socket_register_write(client._client, None, live)
+        await asyncio.sleep(0.05)
+        registered = loop._selector.get_key(live.fileno()) is not None  # the live one is watched
+        loop.remove_writer(live.fileno())
+        live.close()
+        peer.close()
+        if client._misc_task is not None:
+            client._misc_task.cancel()
+        return errors, registered
+
+    errors, _ = asyncio.run(closed_before_registration(aiomqtt.Client))
+    # the library's behaviour, the cause (should this fail, aiomqtt fixed it and MqttClient can go)
+    assert any("Bad file descriptor" in e for e in errors)
+    errors, registered = asyncio.run(closed_before_registration(MqttClient))
+    assert errors == [] and registered

@@ -1,0 +1,70 @@
+"""aiomqtt's client with socket registrations that survive a socket closed in the meantime.
+
+paho-mqtt tells aiomqtt about its socket from the thread that connects, and aiomqtt
+schedules ``loop.add_reader``/``loop.add_writer(sock.fileno(), ...)`` with
+``call_soon_threadsafe``. When the connection breaks on a reconnect, paho closes the
+socket before the loop runs the scheduled call; asyncio then logs
+``Exception in callback BaseSelectorEventLoop.add_writer(...)``,
+``OSError: [Errno 9] Bad file descriptor`` at ERROR, for a connection that is already
+being re-established. (Had the descriptor number been reused by then, say by the CAN
+socket, the callback would have been registered on that.)
+
+:class:`MqttClient` registers only if the socket still has the descriptor it had when
+paho reported it, and treats ``OSError`` from the selector as "closed meanwhile".
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from typing import Any
+
+import aiomqtt
+
+__all__ = ["MqttClient"]
+
+
+def _register_if_open(add: Callable[[int, Callable[[], None]], None], sock: Any, fd: int,
+                      callback: Callable[[], None]) -> None:
+    if fd < 0 or sock.fileno() != fd:  # closed (or replaced) before the loop got here
+        return
+    with contextlib.suppress(OSError):
+        add(fd, callback)
+
+
+class MqttClient(aiomqtt.Client):
+    """``aiomqtt.Client`` whose deferred socket registrations are guarded; see the module docstring.
+
+    The two callbacks are aiomqtt 2.x's own (read or write until the socket fails, then
+    mark the connection lost), registered through :func:`_register_if_open`."""
+
+    def _lost(self, exc: BaseException) -> None:
+        if not self._disconnected.done():
+            self._disconnected.set_exception(exc)
+
+    def _on_socket_open(self, client: Any, userdata: Any, sock: Any) -> None:
+        def on_readable() -> None:
+            try:
+                while True:
+                    client.loop_read()
+                    # loop_read() does not always consume the bytes an SSL socket has decoded
+                    pending = getattr(client._sock, "pending", None)  # noqa: SLF001
+                    if pending is None or pending() <= 0:
+                        break
+            except Exception as exc:  # noqa: BLE001 - a broken connection: reconnect
+                self._lost(exc)
+
+        def create_misc_task() -> None:
+            self._misc_task = self._loop.create_task(self._misc_loop())
+
+        self._loop.call_soon_threadsafe(_register_if_open, self._loop.add_reader, sock, sock.fileno(), on_readable)
+        self._loop.call_soon_threadsafe(create_misc_task)
+
+    def _on_socket_register_write(self, client: Any, userdata: Any, sock: Any) -> None:
+        def on_writable() -> None:
+            try:
+                client.loop_write()
+            except Exception as exc:  # noqa: BLE001
+                self._lost(exc)
+
+        self._loop.call_soon_threadsafe(_register_if_open, self._loop.add_writer, sock, sock.fileno(), on_writable)
