@@ -1,0 +1,229 @@
+"""One drive (or one vehicle's drives, chained) from log file to per-drive Parquet and summary rows.
+
+This is the unit of work :mod:`.batch` hands to Dask: plain arguments in (paths, the
+configuration file, the output directory), small picklable results out; the Parquet is
+written by the worker. The data path is the service's, in bulk form::
+
+    read_frames (frames.py) -> decode_frames (decode.py) -> assemble_samples (assemble.py)
+      -> estimate_drive (estimate.py, the service's Pipeline.tick) -> Parquet
+
+Decoder, sampler and estimator are built by :class:`~bms_estimator.service.daemon.Service`
+from the same configuration the service runs with (so its checks and defaults apply), once
+per worker process and configuration file.
+
+A drive is reported and skipped (never fatal to the batch) when its log is unreadable or
+corrupt, empty, holds no frame the configured DBC and mapping decode (another DBC), or
+its timestamps go back by more than the sampler's rewind limit (a reset; a chained state
+would be wrong). Timestamps going back by less are the service's ``backward_frames``:
+counted and shown, the drive is used.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import BmsEstimatorError, DataError, one_line_error
+from .assemble import assemble_samples
+from .decode import decode_frames
+from .estimate import DriveEstimate, carry_state, estimate_drive
+from .frames import read_frames
+
+__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_vehicle", "parquet_path"]
+
+#: per-cell series written to each drive's Parquet (besides t_s, cell, valid, current_a)
+PARQUET_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s", "c0_v", "capacity_ah",
+                "temperature_c", "voltage_v")
+
+_SETUPS: dict[tuple[str, float], Any] = {}
+
+
+@dataclass
+class DriveResult:
+    """What the summary needs of one drive (small: goes back from the worker)."""
+
+    vehicle: str
+    path: str
+    status: str  # "ok" or "skipped"
+    error: str = ""
+    parquet: str = ""
+    samples: int = 0
+    frames: int = 0
+    duration_s: float = 0.0  # of the log (sample grid)
+    seconds: dict[str, float] = field(default_factory=dict)  # read, decode, assemble, estimate, write
+    counters: dict[str, int] = field(default_factory=dict)
+    cells: dict[str, list[float]] = field(default_factory=dict)  # per-cell summary values
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _service(config: str | None):
+    """The service built from ``config`` (cached per process and file version)."""
+    key = (str(config), Path(config).stat().st_mtime if config else 0.0)
+    svc = _SETUPS.get(key)
+    if svc is None:
+        from ..service.config import load_config
+        from ..service.daemon import Service
+
+        svc = _SETUPS[key] = Service(load_config(config))
+    return svc
+
+
+def parquet_path(out_dir: str | Path, vehicle: str, log: str | Path) -> Path:
+    return Path(out_dir) / "drives" / vehicle / (Path(log).name + ".parquet")
+
+
+def drive_order_key(path: str | Path) -> tuple[float, str]:
+    """Chaining order: the log's first timestamp (as ``replay`` reports it), then the name."""
+    from ..replay.replay import log_span
+
+    span = log_span(path)
+    return (span[0] if span else math.inf, Path(path).name)
+
+
+def _reference(log: Path, n_cells: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(soc0, capacity_ah) per cell from ``<log>.truth.json`` (written by encode-log), if there is one."""
+    from ..replay.encode_log import truth_path
+
+    path = truth_path(log)
+    if not path.is_file():
+        return None
+    try:
+        cells = json.loads(path.read_text())["cells"]
+        soc0 = np.array([float(c["soc0"]) for c in cells])
+        cap = np.array([float(c["capacity_ah"]) for c in cells])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return (soc0, cap) if soc0.shape == (n_cells,) else None
+
+
+def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[float]]:
+    n = est.valid.shape[1] if est.valid.ndim == 2 else 0
+    out: dict[str, list[float]] = {}
+    if len(est) == 0:
+        return out
+    last = {k: est.cells[k][-1] for k in ("soc", "capacity_ah", "r0_ohm", "temperature_c") if k in est.cells}
+    out["soc_final"] = last["soc"].tolist()
+    out["capacity_ah_final"] = last["capacity_ah"].tolist()
+    out["r0_ohm_final"] = last["r0_ohm"].tolist()
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out["r0_ohm_median"] = np.nanmedian(est.cells["r0_ohm"], axis=0).tolist()
+            out["temperature_c_mean"] = np.nanmean(est.cells["temperature_c"], axis=0).tolist()
+    ref = _reference(log, n)
+    if ref is not None:
+        soc0, cap = ref
+        i = np.where(np.isfinite(est.current_a), est.current_a, 0.0)
+        q_ah = np.cumsum(i) * period_s / 3600.0
+        soc_ref = soc0[None, :] + q_ah[:, None] / cap[None, :]
+        err = est.cells["soc"] - soc_ref
+        with np.errstate(all="ignore"):
+            out["soc_error_final"] = err[-1].tolist()
+            ok = np.isfinite(err)
+            out["soc_rmse"] = np.sqrt(np.where(ok, err, 0.0).__pow__(2).sum(0) / np.maximum(ok.sum(0), 1)).tolist()
+    return out
+
+
+def _write_parquet(path: Path, est: DriveEstimate) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    k, n = est.valid.shape
+    cols: dict[str, Any] = {
+        "t_s": np.repeat(est.t_s, n),
+        "cell": np.tile(np.arange(n, dtype=np.int32), k),
+        "valid": est.valid.reshape(-1),
+        "current_a": np.repeat(est.current_a, n),
+    }
+    for key in PARQUET_KEYS:
+        if key in est.cells:
+            cols[key] = est.cells[key].reshape(-1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".parquet.tmp")
+    pq.write_table(pa.table(cols), tmp, compression="zstd")
+    tmp.replace(path)
+
+
+def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle: str,
+              state: dict[str, np.ndarray] | None = None, *, write: bool = True,
+              ) -> tuple[DriveResult, dict[str, np.ndarray] | None, DriveEstimate | None]:
+    """One drive; never raises for a bad log (the result says what was wrong).
+
+    Returns the result, the estimator state at the end (``state`` unchanged when the
+    drive was skipped) and the estimate itself (None when skipped).
+    """
+    log = Path(log)
+    res = DriveResult(vehicle=vehicle, path=str(log), status="skipped")
+    secs = res.seconds
+    try:
+        svc = _service(config)
+        t0 = time.perf_counter()
+        frames = read_frames(log)
+        t1 = time.perf_counter()
+        secs["read"] = t1 - t0
+        res.frames = len(frames)
+        if len(frames) == 0:
+            raise DataError(f"{log}: empty log (no frames)")
+        if svc.cfg.can.kernel_filters:  # the service then never sees other ids (kernel or python-can filters)
+            keep = np.isin(frames.key, np.array(sorted(svc.decoder._plans), dtype=np.int64))  # noqa: SLF001
+            frames = type(frames)(frames.t_s[keep], frames.key[keep], frames.length[keep], frames.data[keep],
+                                  frames.ignored[keep])
+        events, dcount = decode_frames(svc.decoder, frames)
+        t2 = time.perf_counter()
+        secs["decode"] = t2 - t1
+        if dcount.decoded == 0:
+            raise DataError(f"{log}: none of its {res.frames} frames is a message the configured DBC and mapping "
+                            "decode (recorded with another DBC?)")
+        samples = assemble_samples(frames.t_s, events, svc.sampler)  # only its settings are read
+        t3 = time.perf_counter()
+        secs["assemble"] = t3 - t2
+        res.counters = {**dcount.as_dict(), **samples.counters}
+        if samples.counters["rewinds"]:
+            raise DataError(f"{log}: timestamps go back by more than the rewind limit "
+                            f"({samples.counters['rewinds']} time(s)): not one drive")
+        if len(samples) == 0:
+            raise DataError(f"{log}: no complete sample period ({res.frames} frames)")
+        est = carry_state(svc._new_estimator, state)  # noqa: SLF001 - the service's own factory
+        out = estimate_drive(samples, est, svc.decoder, svc.sampler)
+        t4 = time.perf_counter()
+        secs["estimate"] = t4 - t3
+        res.samples = len(samples)
+        res.duration_s = len(samples) * samples.period_s
+        res.cells = _summary(out, log, samples.period_s)
+        if write:
+            p = parquet_path(out_dir, vehicle, log)
+            _write_parquet(p, out)
+            res.parquet = str(p)
+        secs["write"] = time.perf_counter() - t4
+        res.status = "ok"
+        return res, out.state, out
+    except BmsEstimatorError as exc:
+        res.error = exc.header if not exc.problems else f"{exc.header} {'; '.join(exc.problems)}"
+    except MemoryError:
+        res.error = f"{log}: out of memory"
+    except Exception as exc:  # noqa: BLE001 - one drive must never stop the batch
+        res.error = f"{log}: {one_line_error(exc)}"
+    return res, state, None
+
+
+def run_vehicle(logs: list[str], config: str | None, out_dir: str | Path, vehicle: str,
+                chain: bool = True) -> list[DriveResult]:
+    """A vehicle's drives in time order, the estimator state carried from each to the next."""
+    results = []
+    state = None
+    for log in sorted(logs, key=drive_order_key):
+        res, new_state, _ = run_drive(log, config, out_dir, vehicle, state if chain else None)
+        if chain:
+            state = new_state
+        results.append(res)
+    return results
