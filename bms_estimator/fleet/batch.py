@@ -81,7 +81,7 @@ def _client(scheduler: str | None, workers: int | None):
     from dask.distributed import Client, LocalCluster
 
     # the scheduler and nannies of a local cluster run in this process: their INFO lines are not the user's
-    logging.getLogger("distributed").setLevel(logging.WARNING)
+    logging.getLogger("distributed").setLevel(logging.ERROR)
 
     if scheduler:
         return Client(scheduler, timeout="30s"), None
@@ -116,7 +116,7 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
     try:
         n_workers = len(client.scheduler_info().get("workers", {}))
         if chain:
-            futures = [client.submit(run_vehicle, sorted(paths), config, out_dir, vehicle, True,
+            futures = [client.submit(_vehicle_task, sorted(paths), config, out_dir, vehicle,
                                      key=f"vehicle-{vehicle}-{i}", pure=False)
                        for i, (vehicle, paths) in enumerate(sorted(by_vehicle.items()))]
         else:
@@ -148,8 +148,29 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
     return BatchResult(results, n_workers, scheduler or "LocalCluster")
 
 
+def _quiet_worker() -> None:
+    """In a Dask worker process: the library's log lines at WARNING and above, on stderr (stdout is the user's)."""
+    import sys
+
+    from ..service.logging import configure_logging
+
+    try:
+        from dask.distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return  # not in a worker (a test calling the task directly): leave the caller's logging alone
+    configure_logging(level="WARNING", fmt="console", stream=sys.stderr)
+
+
 def _drive_only(log: str, config: str | None, out_dir: str, vehicle: str) -> DriveResult:
+    _quiet_worker()
     return run_drive(log, config, out_dir, vehicle)[0]
+
+
+def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: str) -> list[DriveResult]:
+    _quiet_worker()
+    return run_vehicle(logs, config, out_dir, vehicle, chain=True)
 
 
 SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final", "capacity_ah_final", "r0_ohm_final",
