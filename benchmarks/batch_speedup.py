@@ -168,13 +168,45 @@ def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
     return r
 
 
+def bench_read_cost(hours: float = 0.1, n_cells: int = 96) -> dict[str, float]:
+    """Microseconds per frame of :func:`~bms_estimator.fleet.frames.read_frames` by format (and python-can's
+    candump reader, which the bulk .log parser replaces)."""
+    import can
+
+    from benchmarks.replay_speedup import prepare_frames
+    from bms_estimator.fleet.frames import FrameTable, read_frames, write_mf4
+    from bms_estimator.replay.encode_log import write_messages
+
+    fa, *_ = prepare_frames(hours, n_cells)
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="bms-read-bench-") as tmpdir:
+        tmp = Path(tmpdir)
+        paths = {}
+        for suffix in (".log", ".asc", ".blf"):
+            paths[suffix] = tmp / f"d{suffix}"
+            write_messages(fa.iter_messages(), paths[suffix])
+        paths[".mf4"] = write_mf4(_frame_table(fa), tmp / "d.mf4")
+        for suffix, path in paths.items():
+            t0 = time.perf_counter()
+            read_frames(path)
+            out[suffix] = (time.perf_counter() - t0) / len(fa) * 1e6
+        t0 = time.perf_counter()
+        FrameTable.from_messages(can.LogReader(str(paths[".log"])))
+        out[".log python-can"] = (time.perf_counter() - t0) / len(fa) * 1e6
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hours", type=float, default=4.0)
     ap.add_argument("--cells", type=int, default=96)
     ap.add_argument("--scaling-drives", type=int, default=4)
     ap.add_argument("--scaling-hours", type=float, default=0.5)
+    ap.add_argument("--read-cost", action="store_true", help="only the per-frame read cost of each format")
     a = ap.parse_args()
+    if a.read_cost:
+        print(json.dumps(bench_read_cost(), indent=1))
+        return
     r = bench_batch(a.hours, a.cells, a.scaling_drives, a.scaling_hours)
     print(json.dumps(r.as_dict(), indent=1))
     print(estimate_text(r))
