@@ -29,7 +29,8 @@ def add_parser(sub) -> None:
                     "DBC and mapping into the service's 1 s samples and run through the service's estimator; the "
                     "results equal a replay through the service. A log's vehicle is its directory's name. Writes "
                     "OUT/drives/<vehicle>/<log>.parquet (per cell and sample: soc, r0_ohm, r1_ohm, c1_f, r2_ohm, "
-                    "c2_f, tau1_s, tau2_s, c0_v, capacity_ah, temperature_c, voltage_v, valid), OUT/summary.csv and "
+                    "c2_f, tau1_s, tau2_s, c0_v, capacity_ah, temperature_c, voltage_v, valid). A single-cell recording "
+                    "(.csv/.csv.gz, time_s,current_a,voltage_v[,temperature_c]) is a one-cell drive. OUT/summary.csv and "
                     ".parquet (per vehicle, drive and cell) and OUT/errors.csv (every skipped log and why). A corrupt, "
                     "empty, foreign-DBC or rewinding log is reported and skipped. Details: bms_estimator/fleet/.",
     )

@@ -60,7 +60,7 @@ def _is_log(path: Path) -> bool:
     name = path.name.lower()
     if name.endswith(".gz"):
         name = name[:-3]
-    return name.endswith(FRAME_SUFFIXES)
+    return name.endswith(FRAME_SUFFIXES) or name.endswith(".csv")
 
 
 @dataclass

@@ -11,6 +11,11 @@ Decoder, sampler and estimator are built by :class:`~bms_estimator.service.daemo
 from the same configuration the service runs with (so its checks and defaults apply), once
 per worker process and configuration file.
 
+A single-cell recording in the project's CSV layout (``.csv``/``.csv.gz``,
+``time_s,current_a,voltage_v[,temperature_c]``, as the offline commands read) is a drive of
+a one-cell pack: its 1 s bins are the samples (:meth:`.samples.SampleArrays.from_recording`),
+the estimator is the configuration's with ``n_cells = 1``.
+
 A drive is reported and skipped (never fatal to the batch) when its log is unreadable or
 corrupt, empty, holds no frame the configured DBC and mapping decode (another DBC), or
 its timestamps go back by more than the sampler's rewind limit (a reset; a chained state
@@ -34,6 +39,7 @@ from .assemble import assemble_samples
 from .decode import decode_frames
 from .estimate import DriveEstimate, carry_state, estimate_drive
 from .frames import read_frames
+from .samples import SampleArrays
 
 __all__ = ["DriveResult", "drive_order_key", "run_drive", "run_vehicle", "parquet_path"]
 
@@ -64,16 +70,37 @@ class DriveResult:
         return asdict(self)
 
 
-def _service(config: str | None):
-    """The service built from ``config`` (cached per process and file version)."""
-    key = (str(config), Path(config).stat().st_mtime if config else 0.0)
+def _service(config: str | None, n_cells: int | None = None):
+    """The service built from ``config`` (cached per process and file version); ``n_cells`` overrides the pack's."""
+    key = (str(config), Path(config).stat().st_mtime if config else 0.0, n_cells)
     svc = _SETUPS.get(key)
     if svc is None:
         from ..service.config import load_config
         from ..service.daemon import Service
 
-        svc = _SETUPS[key] = Service(load_config(config))
+        cfg = load_config(config)
+        if n_cells is not None:
+            cfg = cfg.model_copy(update={"pack": cfg.pack.model_copy(update={"n_cells": n_cells})})
+        svc = _SETUPS[key] = Service(cfg)
     return svc
+
+
+RECORDING_SUFFIXES = (".csv", ".csv.gz")
+
+
+def is_recording(path: str | Path) -> bool:
+    """A single-cell recording in the project's CSV layout (time_s,current_a,voltage_v[,temperature_c])."""
+    return str(path).lower().endswith(RECORDING_SUFFIXES)
+
+
+def _recording_samples(log: Path, svc) -> SampleArrays:
+    from ..data import load_recording
+
+    try:
+        rec = load_recording(log, resample_s=svc.period_s)
+        return SampleArrays.from_recording(rec, svc.period_s)
+    except ValueError as exc:  # DataError is one; the step check another
+        raise DataError(str(exc).splitlines()[0]) from None
 
 
 def parquet_path(out_dir: str | Path, vehicle: str, log: str | Path) -> Path:
@@ -166,6 +193,12 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
     res = DriveResult(vehicle=vehicle, path=str(log), status="skipped")
     secs = res.seconds
     try:
+        if is_recording(log):  # one measured cell: its samples directly, a one-cell pack
+            svc = _service(config, n_cells=1)
+            t0 = time.perf_counter()
+            samples = _recording_samples(log, svc)
+            secs["read"] = time.perf_counter() - t0
+            return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, time.perf_counter())
         svc = _service(config)
         t0 = time.perf_counter()
         frames = read_frames(log)
@@ -191,22 +224,7 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
         if samples.counters["rewinds"]:
             raise DataError(f"{log}: timestamps go back by more than the rewind limit "
                             f"({samples.counters['rewinds']} time(s)): not one drive")
-        if len(samples) == 0:
-            raise DataError(f"{log}: no complete sample period ({res.frames} frames)")
-        est = carry_state(svc._new_estimator, state)  # noqa: SLF001 - the service's own factory
-        out = estimate_drive(samples, est, svc.decoder, svc.sampler)
-        t4 = time.perf_counter()
-        secs["estimate"] = t4 - t3
-        res.samples = len(samples)
-        res.duration_s = len(samples) * samples.period_s
-        res.cells = _summary(out, log, samples.period_s)
-        if write:
-            p = parquet_path(out_dir, vehicle, log)
-            _write_parquet(p, out)
-            res.parquet = str(p)
-        secs["write"] = time.perf_counter() - t4
-        res.status = "ok"
-        return res, out.state, out
+        return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, t3)
     except BmsEstimatorError as exc:
         res.error = exc.header if not exc.problems else f"{exc.header} {'; '.join(exc.problems)}"
     except MemoryError:
@@ -214,6 +232,27 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
     except Exception as exc:  # noqa: BLE001 - one drive must never stop the batch
         res.error = f"{log}: {one_line_error(exc)}"
     return res, state, None
+
+
+def _estimate(res: DriveResult, log: Path, svc, samples: SampleArrays, state, out_dir, vehicle: str, write: bool,
+              t3: float) -> tuple[DriveResult, dict[str, np.ndarray], DriveEstimate]:
+    if len(samples) == 0:
+        raise DataError(f"{log}: no complete sample period ({res.frames} frames)")
+    res.counters = res.counters or dict(samples.counters)
+    est = carry_state(svc._new_estimator, state)  # noqa: SLF001 - the service's own factory
+    out = estimate_drive(samples, est, svc.decoder, svc.sampler)
+    t4 = time.perf_counter()
+    res.seconds["estimate"] = t4 - t3
+    res.samples = len(samples)
+    res.duration_s = len(samples) * samples.period_s
+    res.cells = _summary(out, log, samples.period_s)
+    if write:
+        p = parquet_path(out_dir, vehicle, log)
+        _write_parquet(p, out)
+        res.parquet = str(p)
+    res.seconds["write"] = time.perf_counter() - t4
+    res.status = "ok"
+    return res, out.state, out
 
 
 def run_vehicle(logs: list[str], config: str | None, out_dir: str | Path, vehicle: str,
