@@ -38,6 +38,7 @@ def vehicle_of(path: str | Path) -> str:
 def expand_inputs(items: Iterable[str]) -> tuple[list[str], list[DriveResult]]:
     """Files named or matched (globs, ``**`` allowed; a directory = its logs, recursively), and what matched nothing."""
     found: list[str] = []
+    seen: set[str] = set()
     missing: list[DriveResult] = []
     for item in items:
         p = Path(item)
@@ -51,7 +52,9 @@ def expand_inputs(items: Iterable[str]) -> tuple[list[str], list[DriveResult]]:
             missing.append(DriveResult(vehicle=vehicle_of(item), path=item, status="skipped",
                                        error=f"{item}: matches no file"))
         for h in hits:
-            if str(Path(h).resolve()) not in {str(Path(f).resolve()) for f in found}:
+            real = str(Path(h).resolve())
+            if real not in seen:
+                seen.add(real)
                 found.append(h)
     return found, missing
 
