@@ -87,7 +87,7 @@ def _client(scheduler: str | None, workers: int | None):
     logging.getLogger("distributed").setLevel(logging.ERROR)
 
     if scheduler:
-        return Client(scheduler, timeout="30s"), None
+        return Client(scheduler, timeout="10s"), None
     n = workers or os.cpu_count() or 1
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                            dashboard_address=None, silence_logs=logging.ERROR)
@@ -111,6 +111,7 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
     for log in logs:
         by_vehicle[vehicle_of(log)].append(log)
     own = None
+    own_client = client is None
     if client is None:
         try:
             client, own = _client(scheduler, workers)
@@ -144,8 +145,9 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
                 if progress is not None:
                     progress(len(results), total, r)
     finally:
-        if own is not None:
+        if own_client:
             client.close()
+        if own is not None:
             own.close()
     results.sort(key=lambda r: (r.vehicle, r.path))
     return BatchResult(results, n_workers, scheduler or "LocalCluster")

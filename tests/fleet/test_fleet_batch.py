@@ -112,3 +112,21 @@ def test_two_worker_processes_give_the_one_worker_results(fleet):
         for key in files1:
             assert np.array_equal(files1[key], files2[key], equal_nan=True), key
         assert rows1 == rows2
+
+
+def test_scheduler_address_puts_the_work_on_that_cluster(fleet, capsys):
+    """--scheduler ADDR: the drives run on the cluster behind the address (here a LocalCluster's scheduler)."""
+    from dask.distributed import LocalCluster
+
+    d, cfg = fleet
+    out = d / "out-sched"
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        rc = main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out),
+                   "--scheduler", cluster.scheduler_address, "--no-progress"])
+    assert rc == 0
+    assert "1 of 1 drives estimated" in capsys.readouterr().out
+    assert (out / "drives" / "car1" / "drive0.log.parquet").is_file()
+    assert main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out),
+                 "--scheduler", "tcp://127.0.0.1:9", "--no-progress"]) == EXIT_USAGE
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err
