@@ -12,6 +12,10 @@ Figures:
     log seconds / wall seconds of one drive (4 h, 96 cells) through bulk read, decode,
     sample assembly and the estimator on one worker (this process; Parquet writing not
     included), i.e. what one Dask task costs.
+``batch_speedup_cpu`` / ``batch_speedup_mf4_cpu``
+    the same against this process's CPU seconds (``time.process_time``): what the drive
+    costs on a core of its own; on a machine that other jobs load, wall time also holds
+    the waits for a core.
 ``batch_scaling_2_workers``
     drives per second of ``run_batch`` on a ``LocalCluster`` of 2 worker processes over
     the same with 1 worker (4 drives of ``scaling_hours`` each, cluster start-up excluded).
@@ -55,6 +59,8 @@ class BatchBenchResult:
     wall_1_worker_s: float
     wall_2_workers_s: float
     drive_s_one_worker: float  # wall time of one (hours, n_cells) drive on one worker (.log)
+    speedup_log_cpu: float = 0.0  # log seconds / CPU seconds of this process (.log): the figure on a core of its own
+    speedup_mf4_cpu: float = 0.0
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -107,7 +113,8 @@ def _one_worker(path: Path, cfg: Path) -> tuple[float, dict[str, float]]:
     if res.status != "ok":
         raise RuntimeError(res.error)
     secs = {k: v for k, v in res.seconds.items() if k != "write"}
-    return res.duration_s / sum(secs.values()), secs
+    wall = sum(v for k, v in secs.items() if k != "cpu")
+    return res.duration_s / wall, secs
 
 
 def _scaling(tmp: Path, cfg: Path, hours: float, n_cells: int, drives: int) -> tuple[float, float]:
@@ -163,7 +170,8 @@ def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
         sp_mf4, s_mf4 = _one_worker(mf4, cfg)
         w1, w2 = _scaling(tmp, cfg, scaling_hours, n_cells, scaling_drives)
     r = BatchBenchResult(hours, n_cells, frames, sp_log, sp_mf4, s_log, s_mf4, w1 / w2, scaling_drives,
-                         scaling_hours, w1, w2, hours * 3600 / sp_log)
+                         scaling_hours, w1, w2, hours * 3600 / sp_log,
+                         hours * 3600 / s_log["cpu"], hours * 3600 / s_mf4["cpu"])
     _CACHE[key] = r
     return r
 

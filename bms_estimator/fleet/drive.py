@@ -62,7 +62,9 @@ class DriveResult:
     samples: int = 0
     frames: int = 0
     duration_s: float = 0.0  # of the log (sample grid)
-    seconds: dict[str, float] = field(default_factory=dict)  # read, decode, assemble, estimate, write
+    # wall seconds of read, decode, assemble, estimate, write; "cpu": this process's CPU seconds of read..estimate
+    # (what the drive costs on a core of its own: wall time also holds the waits of a loaded machine)
+    seconds: dict[str, float] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
     cells: dict[str, list[float]] = field(default_factory=dict)  # per-cell summary values
 
@@ -192,6 +194,7 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
     log = Path(log)
     res = DriveResult(vehicle=vehicle, path=str(log), status="skipped")
     secs = res.seconds
+    secs["cpu"] = time.process_time()  # start; _estimate makes it the CPU seconds spent
     try:
         if is_recording(log):  # one measured cell: its samples directly, a one-cell pack
             svc = _service(config, n_cells=1)
@@ -231,6 +234,7 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
         res.error = f"{log}: out of memory"
     except Exception as exc:  # noqa: BLE001 - one drive must never stop the batch
         res.error = f"{log}: {one_line_error(exc)}"
+    secs.pop("cpu", None)  # a skipped drive: no cost to report
     return res, state, None
 
 
@@ -243,6 +247,7 @@ def _estimate(res: DriveResult, log: Path, svc, samples: SampleArrays, state, ou
     out = estimate_drive(samples, est, svc.decoder, svc.sampler)
     t4 = time.perf_counter()
     res.seconds["estimate"] = t4 - t3
+    res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
     res.samples = len(samples)
     res.duration_s = len(samples) * samples.period_s
     res.cells = _summary(out, log, samples.period_s)
