@@ -73,9 +73,11 @@ class BatchBenchResult:
 
 def estimate_text(r: BatchBenchResult, drives: int = 10_000) -> str:
     parts = [f"{n} worker(s) {r.hours_for(drives, n):,.1f} h" for n in (1, 2, 16, 64)]
+    cpu_h = drives * r.hours * 3600 / r.speedup_log_cpu / 3600 if r.speedup_log_cpu else float("nan")
     return (f"{drives:,} drives of {r.hours:g} h x {r.n_cells} cells: {drives * r.drive_s_one_worker / 3600:,.1f} "
-            f"worker-hours; " + ", ".join(parts) + f" (efficiency {min(1.0, r.scaling_2_workers / 2):.2f} measured "
-            "on 2 workers, assumed for more)")
+            f"worker-hours of wall time here; " + ", ".join(parts) + f" (efficiency "
+            f"{min(1.0, r.scaling_2_workers / 2):.2f} measured on 2 workers, assumed for more); {cpu_h:,.1f} "
+            f"CPU-hours (on workers with a core each: {cpu_h / 16:,.1f} h on 16, {cpu_h / 64:,.1f} h on 64)")
 
 
 def _frame_table(fa):
