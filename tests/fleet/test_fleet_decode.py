@@ -185,3 +185,49 @@ def test_mf4_bus_logging_reads_back_the_frames(tmp_path):
         out = mdf.extract_bus_logging({"CAN": [(str(project_dbc_path()), 0)]})
         names = {c.name for g in out.groups for c in g.channels}
     assert "PackCurrent" in names
+
+
+FD_DBC = '''VERSION ""
+
+BU_: BMS
+
+BO_ 2147484160 FdPack: 64 BMS
+ SG_ Current : 0|32@1- (0.001,0) [-2000|2000] "A" BMS
+ SG_ Cell0 : 32|16@1+ (0.0001,0) [0|6.5] "V" BMS
+ SG_ Cell1 : 496|16@1+ (0.0001,0) [0|6.5] "V" BMS
+
+BA_DEF_ BO_ "VFrameFormat" ENUM "StandardCAN","ExtendedCAN","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","StandardCAN_FD","ExtendedCAN_FD";
+BA_DEF_DEF_ "VFrameFormat" "StandardCAN";
+BA_ "VFrameFormat" BO_ 2147484160 15;
+'''
+
+
+def test_can_fd_messages_wider_than_8_bytes_decode_like_the_service(tmp_path):
+    """A 64-byte CAN FD message goes through the service's decoder frame by frame: same events and counters."""
+    from bms_estimator.can.dbc import load_db
+
+    path = tmp_path / "fd.dbc"
+    path.write_text(FD_DBC)
+    db = load_db(path)
+    msg = db.get_message_by_name("FdPack")
+    assert msg.length == 64
+    mapping = {"current": {"message": "FdPack", "signal": "Current"},
+               "cell_voltages": [{"message": "FdPack", "table": [{"signals": {"Cell0": 0, "Cell1": 1}}]}]}
+    rng = np.random.default_rng(5)
+    m = 300
+    data = np.zeros((m, 64), np.uint8)
+    for k in range(m):
+        data[k] = np.frombuffer(msg.encode({"Current": rng.uniform(-5, 5), "Cell0": rng.uniform(0.1, 4.2),
+                                            "Cell1": 3.7}), np.uint8)
+    lengths = np.where(rng.uniform(size=m) < 0.1, 32, 64).astype(np.int16)  # some short frames
+    frames = FrameTable(np.arange(m) * 0.01, np.full(m, msg.frame_id | EXTENDED_FLAG, np.int64), lengths, data,
+                        np.zeros(m, bool))
+    ev, dc = decode_frames(FrameDecoder(db, mapping, 2), frames)
+    ref_dec = FrameDecoder(db, mapping, 2)
+    ref_msgs = [can.Message(timestamp=float(frames.t_s[i]), arbitration_id=msg.frame_id, is_extended_id=True,
+                            is_fd=True, data=bytes(data[i, : lengths[i]])) for i in range(m)]
+    want = [(i, int(e.kind), e.cell, e.value) for i, mm in enumerate(ref_msgs) for e in ref_dec.decode(mm)]
+    got = list(zip(ev.frame.tolist(), ev.kind.tolist(), ev.cell.tolist(), ev.value.tolist()))
+    assert got == want and len(want) > 300
+    assert dc.as_dict() == ref_dec.counters.as_dict()
+    assert dc.short_frame > 0 and dc.out_of_range > 0
