@@ -22,7 +22,9 @@ Readers
     checks are the service's.
 
 A file that cannot be read raises :class:`~bms_estimator.errors.DataError` naming the
-file and the problem (an empty file gives an empty table, which the caller reports).
+file and the problem, and so does a truncated ``.blf`` (smaller than its header states) or
+``.asc`` (without its closing ``End TriggerBlock``), which python-can would read up to the
+cut without a word (an empty file gives an empty table, which the caller reports).
 """
 
 from __future__ import annotations
@@ -117,6 +119,8 @@ def read_frames(path: str | Path) -> FrameTable:
             return _read_mf4(path)
         import can
 
+        if not path.name.lower().endswith(".gz"):
+            _check_complete(path, kind)
         reader = can.LogReader(str(path))
         try:
             return FrameTable.from_messages(reader)
@@ -129,6 +133,31 @@ def read_frames(path: str | Path) -> FrameTable:
     except Exception as exc:  # noqa: BLE001 - every reader raises its own kinds on a corrupt file
         text = str(exc).strip().splitlines()
         raise DataError(f"{path}: cannot read the log: {type(exc).__name__}: {text[0] if text else ''}") from None
+
+
+def _check_complete(path: Path, kind: str) -> None:
+    """A truncated ``.blf`` or ``.asc`` reads without an error in python-can (it stops at the cut): refuse it.
+
+    BLF: the header states the file size its writer closed it with; ASC: writers close the
+    file with ``End TriggerBlock``.
+    """
+    if kind == ".blf":
+        from can.io.blf import BLFReader
+
+        reader = BLFReader(str(path))
+        try:
+            stated = int(reader.file_size)
+        finally:
+            reader.stop()
+        actual = path.stat().st_size
+        if stated and actual < stated:
+            raise DataError(f"{path}: truncated BLF file ({actual} of the {stated} bytes its header states)")
+    elif kind == ".asc":
+        with path.open("rb") as fh:
+            fh.seek(max(0, path.stat().st_size - 4096))
+            tail = fh.read()
+        if tail.strip() and b"end triggerblock" not in tail.lower():
+            raise DataError(f"{path}: truncated ASC file (no 'End TriggerBlock' at its end)")
 
 
 def _fixed_width(arr, width: int, pad_left: bool) -> np.ndarray | None:

@@ -231,3 +231,19 @@ def test_can_fd_messages_wider_than_8_bytes_decode_like_the_service(tmp_path):
     assert got == want and len(want) > 300
     assert dc.as_dict() == ref_dec.counters.as_dict()
     assert dc.short_frame > 0 and dc.out_of_range > 0
+
+
+@pytest.mark.parametrize("suffix", [".blf", ".asc"])
+def test_truncated_blf_and_asc_are_data_errors(tmp_path, suffix):
+    """python-can reads a cut BLF or ASC file up to the cut without an error; batch must not take half a drive."""
+    from bms_estimator.errors import DataError
+
+    path = tmp_path / f"x{suffix}"
+    with can.Logger(str(path)) as w:
+        for k in range(3000):
+            w(can.Message(timestamp=1.0 + 0.01 * k, arbitration_id=0x100, data=bytes(8)))
+    assert len(read_frames(path)) == 3000
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 2 + 3])
+    with pytest.raises(DataError, match="truncated"):
+        read_frames(path)
