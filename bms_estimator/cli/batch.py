@@ -45,6 +45,9 @@ def add_parser(sub) -> None:
     p.add_argument("--scheduler", default=None, metavar="ADDR",
                    help="Dask scheduler address (tcp://host:8786); default: a local cluster, one worker process per core")
     p.add_argument("--workers", type=_workers, default=None, help="local cluster size (default: the machine's cores)")
+    p.add_argument("--diagnose", action="store_true",
+                   help="also name each cell's model error with 'diagnose' (summary column 'cause'; on the cell's "
+                        "longest stretch of valid samples, at least 30 min; slow: seconds per cell-hour)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -95,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         result = run_batch(logs, str(args.config.resolve()), args.out, chain=args.chain, scheduler=args.scheduler,
-                           workers=args.workers, progress=progress) if logs else None
+                           workers=args.workers, progress=progress, diagnose=args.diagnose) if logs else None
     finally:
         if bar is not None:
             bar.stop()

@@ -97,7 +97,7 @@ def _client(scheduler: str | None, workers: int | None):
 def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain: bool = False,
               scheduler: str | None = None, workers: int | None = None,
               progress: Callable[[int, int, DriveResult | None], None] | None = None,
-              client: Any = None) -> BatchResult:
+              client: Any = None, diagnose: bool = False) -> BatchResult:
     """Every log through bulk decode and the estimator on Dask; never raises for a bad log.
 
     ``progress(done_drives, total_drives, last_result)`` is called as tasks finish.
@@ -120,11 +120,11 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
     try:
         n_workers = len(client.scheduler_info().get("workers", {}))
         if chain:
-            futures = [client.submit(_vehicle_task, sorted(paths), config, out_dir, vehicle,
+            futures = [client.submit(_vehicle_task, sorted(paths), config, out_dir, vehicle, diagnose,
                                      key=f"vehicle-{vehicle}-{i}", pure=False)
                        for i, (vehicle, paths) in enumerate(sorted(by_vehicle.items()))]
         else:
-            futures = [client.submit(_drive_only, log, config, out_dir, vehicle_of(log),
+            futures = [client.submit(_drive_only, log, config, out_dir, vehicle_of(log), diagnose,
                                      key=f"drive-{i}-{Path(log).name}", pure=False)
                        for i, log in enumerate(logs)]
         results: list[DriveResult] = []
@@ -168,18 +168,19 @@ def _quiet_worker() -> None:
     configure_logging(level="WARNING", fmt="console", stream=sys.stderr)
 
 
-def _drive_only(log: str, config: str | None, out_dir: str, vehicle: str) -> DriveResult:
+def _drive_only(log: str, config: str | None, out_dir: str, vehicle: str, diagnose: bool = False) -> DriveResult:
     _quiet_worker()
-    return run_drive(log, config, out_dir, vehicle)[0]
+    return run_drive(log, config, out_dir, vehicle, diagnose=diagnose)[0]
 
 
-def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: str) -> list[DriveResult]:
+def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: str,
+                  diagnose: bool = False) -> list[DriveResult]:
     _quiet_worker()
-    return run_vehicle(logs, config, out_dir, vehicle, chain=True)
+    return run_vehicle(logs, config, out_dir, vehicle, chain=True, diagnose=diagnose)
 
 
 SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final", "capacity_ah_final", "r0_ohm_final",
-                   "r0_ohm_median", "temperature_c_mean", "soc_error_final", "soc_rmse", "backward_frames",
+                   "r0_ohm_median", "temperature_c_mean", "soc_error_final", "soc_rmse", "cause", "backward_frames",
                    "decode_errors", "error")
 
 

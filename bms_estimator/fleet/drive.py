@@ -66,7 +66,7 @@ class DriveResult:
     # (what the drive costs on a core of its own: wall time also holds the waits of a loaded machine)
     seconds: dict[str, float] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
-    cells: dict[str, list[float]] = field(default_factory=dict)  # per-cell summary values
+    cells: dict[str, list[Any]] = field(default_factory=dict)  # per-cell summary values (and "cause")
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -163,6 +163,47 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
     return out
 
 
+def _longest_run(ok: np.ndarray) -> tuple[int, int]:
+    """[start, stop) of the longest run of True in ``ok`` ((0, 0) if none)."""
+    if not ok.any():
+        return 0, 0
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], ok.astype(np.int8), [0]))))
+    starts, stops = edges[0::2], edges[1::2]
+    k = int(np.argmax(stops - starts))
+    return int(starts[k]), int(stops[k])
+
+
+#: a cell's longest stretch of valid, evenly spaced samples must be this long for diagnose (s)
+DIAGNOSE_MIN_S = 1800.0
+
+
+def _diagnose_cells(est: DriveEstimate, svc, period_s: float) -> list[str]:
+    """``diagnose``'s named cause per cell, on the cell's longest stretch of valid, evenly spaced samples.
+
+    The stretch starts at the estimator's SOC there (diagnose counts charge from a start SOC).
+    A cell without ``DIAGNOSE_MIN_S`` of such data gets ``""``; a failure ``"error: ..."``.
+    """
+    from ..diagnose import Series, diagnose
+
+    n = est.valid.shape[1]
+    even = np.concatenate(([True], np.isclose(np.diff(est.t_s), period_s)))
+    out = []
+    for c in range(n):
+        ok = est.valid[:, c] & np.isfinite(est.current_a) & np.isfinite(est.cells["soc"][:, c]) & even
+        a, b = _longest_run(ok)
+        if (b - a) * period_s < DIAGNOSE_MIN_S:
+            out.append("")
+            continue
+        temp = est.cells["temperature_c"][a:b, c]
+        try:
+            series = Series(est.current_a[a:b], est.cells["voltage_v"][a:b, c], svc.ocv, float(svc.cfg.pack.capacity_ah),
+                            float(est.cells["soc"][a, c]), float(period_s), temp if np.isfinite(temp).all() else None)
+            out.append(str(diagnose(series).cause))
+        except Exception as exc:  # noqa: BLE001 - a diagnosis that fails is reported in its cell, not fatal
+            out.append(f"error: {one_line_error(exc)}")
+    return out
+
+
 def _write_parquet(path: Path, est: DriveEstimate) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -184,9 +225,12 @@ def _write_parquet(path: Path, est: DriveEstimate) -> None:
 
 
 def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle: str,
-              state: dict[str, np.ndarray] | None = None, *, write: bool = True,
+              state: dict[str, np.ndarray] | None = None, *, write: bool = True, diagnose: bool = False,
               ) -> tuple[DriveResult, dict[str, np.ndarray] | None, DriveEstimate | None]:
     """One drive; never raises for a bad log (the result says what was wrong).
+
+    ``diagnose``: also name each cell's model error with ``diagnose`` (:func:`_diagnose_cells`;
+    slow: seconds per cell-hour).
 
     Returns the result, the estimator state at the end (``state`` unchanged when the
     drive was skipped) and the estimate itself (None when skipped).
@@ -201,7 +245,7 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
             t0 = time.perf_counter()
             samples = _recording_samples(log, svc)
             secs["read"] = time.perf_counter() - t0
-            return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, time.perf_counter())
+            return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, time.perf_counter(), diagnose)
         svc = _service(config)
         t0 = time.perf_counter()
         frames = read_frames(log)
@@ -227,7 +271,7 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
         if samples.counters["rewinds"]:
             raise DataError(f"{log}: timestamps go back by more than the rewind limit "
                             f"({samples.counters['rewinds']} time(s)): not one drive")
-        return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, t3)
+        return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, t3, diagnose)
     except BmsEstimatorError as exc:
         res.error = exc.header if not exc.problems else f"{exc.header} {'; '.join(exc.problems)}"
     except MemoryError:
@@ -239,7 +283,7 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
 
 
 def _estimate(res: DriveResult, log: Path, svc, samples: SampleArrays, state, out_dir, vehicle: str, write: bool,
-              t3: float) -> tuple[DriveResult, dict[str, np.ndarray], DriveEstimate]:
+              t3: float, diagnose: bool = False) -> tuple[DriveResult, dict[str, np.ndarray], DriveEstimate]:
     if len(samples) == 0:
         raise DataError(f"{log}: no complete sample period ({res.frames} frames)")
     res.counters = res.counters or dict(samples.counters)
@@ -251,6 +295,11 @@ def _estimate(res: DriveResult, log: Path, svc, samples: SampleArrays, state, ou
     res.samples = len(samples)
     res.duration_s = len(samples) * samples.period_s
     res.cells = _summary(out, log, samples.period_s)
+    if diagnose:
+        t5 = time.perf_counter()
+        res.cells["cause"] = _diagnose_cells(out, svc, samples.period_s)
+        res.seconds["diagnose"] = time.perf_counter() - t5
+        t4 = time.perf_counter()
     if write:
         p = parquet_path(out_dir, vehicle, log)
         _write_parquet(p, out)
@@ -261,12 +310,12 @@ def _estimate(res: DriveResult, log: Path, svc, samples: SampleArrays, state, ou
 
 
 def run_vehicle(logs: list[str], config: str | None, out_dir: str | Path, vehicle: str,
-                chain: bool = True) -> list[DriveResult]:
+                chain: bool = True, diagnose: bool = False) -> list[DriveResult]:
     """A vehicle's drives in time order, the estimator state carried from each to the next."""
     results = []
     state = None
     for log in sorted(logs, key=drive_order_key):
-        res, new_state, _ = run_drive(log, config, out_dir, vehicle, state if chain else None)
+        res, new_state, _ = run_drive(log, config, out_dir, vehicle, state if chain else None, diagnose=diagnose)
         if chain:
             state = new_state
         results.append(res)

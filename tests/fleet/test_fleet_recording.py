@@ -48,3 +48,22 @@ def test_recording_with_another_step_is_reported(tmp_path):
     csv.write_text("time_s,current_a,voltage_v\n0,1,3.7\n2,1,3.7\n4,1,3.7\n")
     res, _, _ = run_drive(csv, str(_config(tmp_path)), tmp_path / "out", "car")
     assert res.status == "skipped" and "sample period" in res.error
+
+
+def test_diagnose_names_a_cause_per_cell(tmp_path):
+    """--diagnose: diagnose's named cause in the summary (40 min of the shipped LG UDDS sample, Kollmeyer, CC BY 4.0)."""
+    import gzip
+
+    from bms_estimator.diagnose import CAUSES
+
+    lines = gzip.open(SAMPLES / "lg-hg2_25degC_udds_1s.csv.gz", "rt").read().splitlines()
+    csv = tmp_path / "car" / "udds40.csv"
+    csv.parent.mkdir()
+    csv.write_text("\n".join(lines[:2401]) + "\n")
+    res, _, _ = run_drive(csv, str(_config(tmp_path)), tmp_path / "out", "car", diagnose=True)
+    assert res.status == "ok", res.error
+    assert len(res.cells["cause"]) == 1 and res.cells["cause"][0] in (*CAUSES, "none")
+    short = tmp_path / "car" / "short.csv"
+    short.write_text("\n".join(lines[:601]) + "\n")  # 10 min: below diagnose's 30 min minimum here
+    res, _, _ = run_drive(short, str(_config(tmp_path)), tmp_path / "out", "car", diagnose=True)
+    assert res.status == "ok" and res.cells["cause"] == [""]
