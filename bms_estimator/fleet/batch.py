@@ -180,7 +180,7 @@ def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: st
 
 
 SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final", "capacity_ah_final", "r0_ohm_final",
-                   "r0_ohm_median", "temperature_c_mean", "soc_error_final", "soc_rmse", "cause", "backward_frames",
+                   "r0_ohm_median", "temperature_c_mean", "soc_error_final_pct", "soc_rmse_pct", "cause", "backward_frames",
                    "decode_errors", "error")
 
 

@@ -134,32 +134,39 @@ def _reference(log: Path, n_cells: int) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[float]]:
+    """Per-cell summary values of one drive; the SOC error against encode-log's truth where it exists.
+
+    The reference SOC is the project's (:func:`bms_estimator.scoring.counted_soc`: coulomb
+    counting from the cell's true start SOC with its true capacity, read at mid-sample), the
+    figures :func:`bms_estimator.scoring.soc_error_figures`' ``rmse_all_pct`` and the error at
+    the last sample, both in percent.
+    """
+    import warnings
+
+    from ..scoring import counted_soc, soc_error_figures
+
     n = est.valid.shape[1] if est.valid.ndim == 2 else 0
     out: dict[str, list[float]] = {}
     if len(est) == 0:
         return out
-    last = {k: est.cells[k][-1] for k in ("soc", "capacity_ah", "r0_ohm", "temperature_c") if k in est.cells}
-    out["soc_final"] = last["soc"].tolist()
-    out["capacity_ah_final"] = last["capacity_ah"].tolist()
-    out["r0_ohm_final"] = last["r0_ohm"].tolist()
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            out["r0_ohm_median"] = np.nanmedian(est.cells["r0_ohm"], axis=0).tolist()
-            out["temperature_c_mean"] = np.nanmean(est.cells["temperature_c"], axis=0).tolist()
+    out["soc_final"] = est.cells["soc"][-1].tolist()
+    out["capacity_ah_final"] = est.cells["capacity_ah"][-1].tolist()
+    out["r0_ohm_final"] = est.cells["r0_ohm"][-1].tolist()
+    with warnings.catch_warnings():  # an all-NaN column (a cell never valid) is NaN, not a warning
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out["r0_ohm_median"] = np.nanmedian(est.cells["r0_ohm"], axis=0).tolist()
+        out["temperature_c_mean"] = np.nanmean(est.cells["temperature_c"], axis=0).tolist()
     ref = _reference(log, n)
     if ref is not None:
         soc0, cap = ref
-        i = np.where(np.isfinite(est.current_a), est.current_a, 0.0)
-        q_ah = np.cumsum(i) * period_s / 3600.0
-        soc_ref = soc0[None, :] + q_ah[:, None] / cap[None, :]
-        err = est.cells["soc"] - soc_ref
-        with np.errstate(all="ignore"):
-            out["soc_error_final"] = err[-1].tolist()
-            ok = np.isfinite(err)
-            out["soc_rmse"] = np.sqrt(np.where(ok, err, 0.0).__pow__(2).sum(0) / np.maximum(ok.sum(0), 1)).tolist()
+        current = np.where(np.isfinite(est.current_a), est.current_a, 0.0)
+        final, rmse = [], []
+        for c in range(n):
+            soc_ref = counted_soc(current, period_s, cap[c], soc0[c])
+            final.append(float(100.0 * (est.cells["soc"][-1, c] - soc_ref[-1])))
+            rmse.append(soc_error_figures(est.cells["soc"][:, c], soc_ref, est.t_s, float(est.t_s[0]))["rmse_all_pct"])
+        out["soc_error_final_pct"] = final
+        out["soc_rmse_pct"] = rmse
     return out
 
 

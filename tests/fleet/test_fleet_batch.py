@@ -74,7 +74,7 @@ def test_cli_reports_bad_logs_and_does_the_rest(fleet, capsys):
         rows = list(csv.DictReader(fh))
     ok = [r for r in rows if r["status"] == "ok"]
     assert len(ok) == 4 * N_CELLS
-    assert all(abs(float(r["soc_error_final"])) < 0.05 for r in ok)  # encode-log's truth: a reference exists
+    assert all(abs(float(r["soc_error_final_pct"])) < 5.0 and float(r["soc_rmse_pct"]) < 5.0 for r in ok)  # encode-log's truth: a reference exists
     assert all(2.0 < float(r["capacity_ah_final"]) < 4.0 and 0 < float(r["r0_ohm_final"]) < 0.1 for r in ok)
     table = pq.read_table(out / "drives" / "car1" / "drive1.log.parquet")
     assert {"soc", "r0_ohm", "tau1_s", "capacity_ah", "temperature_c", "cell", "t_s"} <= set(table.column_names)
