@@ -14,6 +14,13 @@ Figures (one core, this machine, one run):
 * ``replay_speedup``: times faster than real time that a 4-hour drive cycle of a 96-cell
   pack goes through replay + the service at ``max`` (in-process virtual bus).
 * ``diagnose_4h_s``: wall time of ``diagnose`` on the 4.4 h LG UDDS sample (goal: under 60 s).
+* ``batch_speedup`` / ``batch_speedup_mf4``: times faster than real time that a 4-hour,
+  96-cell log (candump ``.log`` / MF4) goes through ``batch``'s bulk decode and the
+  estimator on one worker (goal: 2000x); ``batch_speedup_cpu`` / ``batch_speedup_mf4_cpu``
+  the same against the process's CPU time (the figure on a core of its own).
+* ``batch_scaling_2_workers``: ``batch`` throughput on a 2-process Dask LocalCluster over
+  1 process; ``batch_10k_drives_worker_h``: the measured cost of 10,000 such 4-hour drives
+  in worker-hours (the estimate for N workers is printed on stderr).
 """
 
 from __future__ import annotations
@@ -38,7 +45,10 @@ def add_parser(sub) -> None:
     p.add_argument("--figures", default=None,
                    help="comma-separated subset (default all: " + ", ".join(
                        ["cell_updates_per_s", "cell_updates_per_s_lif_iv", "tick_ms_200_cells", "frames_per_s", "publish_latency_ms_p99",
-                        "replay_speedup", "diagnose_4h_s"]) + "); replay_speedup takes a few minutes")
+                        "replay_speedup", "diagnose_4h_s", "batch_speedup", "batch_speedup_mf4",
+                        "batch_speedup_cpu", "batch_speedup_mf4_cpu",
+                        "batch_scaling_2_workers", "batch_10k_drives_worker_h"])
+                   + "); replay_speedup and the batch figures take a few minutes each")
     p.set_defaults(func=run)
 
 
@@ -155,6 +165,20 @@ def _saturation_loss_pct() -> float | None:
           f"counted lost {res.counted_lost}, uncounted {res.uncounted}, MQTT {'on' if res.mqtt else 'off'}, "
           f"tick p99 <= {res.tick_p99_ms} ms, loop lag p99 <= {res.loop_lag_p99_ms} ms (histogram buckets)")
     return res.loss_pct
+def _batch(figure: str) -> float:
+    """The batch figures share one run (inputs are written once): see benchmarks/batch_speedup.py."""
+    import sys
+
+    _benchmarks()
+    from benchmarks.batch_speedup import bench_batch, estimate_text
+
+    r = bench_batch()
+    if figure == "batch_10k_drives_worker_h":
+        print(estimate_text(r), file=sys.stderr)
+        return 10_000 * r.drive_s_one_worker / 3600.0
+    return {"batch_speedup": r.speedup_log, "batch_speedup_mf4": r.speedup_mf4,
+            "batch_speedup_cpu": r.speedup_log_cpu, "batch_speedup_mf4_cpu": r.speedup_mf4_cpu,
+            "batch_scaling_2_workers": r.scaling_2_workers}[figure]
 
 
 #: figure name -> how to measure it (each prints on its own; slow ones can be left out)
@@ -168,6 +192,12 @@ FIGURES = {
     "replay_speedup": lambda args: _replay_speedup(),
     "diagnose_4h_s": lambda args: _diagnose_s(),
     "saturation_loss_pct": lambda args: _saturation_loss_pct(),
+    "batch_speedup": lambda args: _batch("batch_speedup"),
+    "batch_speedup_mf4": lambda args: _batch("batch_speedup_mf4"),
+    "batch_speedup_cpu": lambda args: _batch("batch_speedup_cpu"),
+    "batch_speedup_mf4_cpu": lambda args: _batch("batch_speedup_mf4_cpu"),
+    "batch_scaling_2_workers": lambda args: _batch("batch_scaling_2_workers"),
+    "batch_10k_drives_worker_h": lambda args: _batch("batch_10k_drives_worker_h"),
 }
 
 

@@ -57,6 +57,26 @@ class SampleArrays:
             counters=dict(counters or {}),
         )
 
+    @classmethod
+    def from_recording(cls, rec, period_s: float = 1.0) -> SampleArrays:
+        """A single-cell recording (the project's CSV layout, :func:`bms_estimator.data.load_recording`)
+        as one cell's samples: sample ``k`` holds the bin ``[t_k, t_k + period)`` (the bin's mean
+        current, voltage and temperature), so ``t_s = t_k + period`` (the period's end, as the sampler
+        stamps). Raises ``ValueError`` when the recording's step is not ``period_s``."""
+        t = np.asarray(rec.time_s, dtype=float)
+        if len(t) > 1 and not np.allclose(np.diff(t), period_s, rtol=0, atol=1e-9 * period_s):
+            raise ValueError(f"{rec.source}: the recording's step is not the estimator's sample period "
+                             f"{period_s:g} s")
+        k = t.shape[0]
+        v = np.asarray(rec.voltage_v, dtype=float).reshape(k, 1)
+        temp = (np.full((k, 1), np.nan) if rec.temperature_c is None
+                else np.asarray(rec.temperature_c, dtype=float).reshape(k, 1))
+        i = np.asarray(rec.current_a, dtype=float)
+        ok_i = np.isfinite(i)
+        return cls(t_s=t + period_s, current_a=i.copy(), current_valid=ok_i, current_coverage=ok_i.astype(float),
+                   cell_voltage_v=v.copy(), cell_temperature_c=temp, valid=np.isfinite(v) & ok_i[:, None],
+                   pack_voltage_v=v[:, 0].copy(), period_s=float(period_s), counters={"samples": k})
+
     def sample(self, k: int) -> Sample:
         """Row k as a :class:`Sample`."""
         return Sample(float(self.t_s[k]), float(self.current_a[k]), self.cell_voltage_v[k],

@@ -1,0 +1,226 @@
+"""How much faster than real time `batch` re-estimates recorded drives, and how it scales on Dask.
+
+Input (prepared once, untimed): the shipped LG HG2 UDDS drive cycle encoded as the CAN
+traffic of a ``n_cells`` pack (:func:`benchmarks.replay_speedup.prepare_frames`: 10 ms
+current, 100 ms cell voltages, 1 s temperatures; 436 frames/s at 96 cells), written as a
+candump ``.log`` (python-can's writer) and as an MF4 bus-logging file
+(:func:`bms_estimator.fleet.frames.write_mf4`).
+
+Figures:
+
+``batch_speedup_log`` / ``batch_speedup_mf4``
+    log seconds / wall seconds of one drive (4 h, 96 cells) through bulk read, decode,
+    sample assembly and the estimator on one worker (this process; Parquet writing not
+    included), i.e. what one Dask task costs.
+``batch_speedup_cpu`` / ``batch_speedup_mf4_cpu``
+    the same against this process's CPU seconds (``time.process_time``): what the drive
+    costs on a core of its own; on a machine that other jobs load, wall time also holds
+    the waits for a core.
+``batch_scaling_2_workers``
+    drives per second of ``run_batch`` on a ``LocalCluster`` of 2 worker processes over
+    the same with 1 worker (4 drives of ``scaling_hours`` each, cluster start-up excluded).
+``batch_10k_drives_h_per_worker``
+    a measured estimate: 10,000 drives of 4 h cost ``10,000 x`` (one drive's wall time on
+    one worker) worker-hours; on N workers divide by ``N x efficiency`` (efficiency =
+    scaling / 2, as measured here). Printed for a few N by :func:`estimate_text`.
+
+Run: ``python -m benchmarks.batch_speedup [--hours H] [--cells N]``. Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["BatchBenchResult", "bench_batch", "estimate_text"]
+
+_CACHE: dict[tuple, "BatchBenchResult"] = {}
+
+
+@dataclass
+class BatchBenchResult:
+    hours: float
+    n_cells: int
+    frames: int
+    speedup_log: float
+    speedup_mf4: float
+    seconds_log: dict[str, float]
+    seconds_mf4: dict[str, float]
+    scaling_2_workers: float
+    scaling_drives: int
+    scaling_hours: float
+    wall_1_worker_s: float
+    wall_2_workers_s: float
+    drive_s_one_worker: float  # wall time of one (hours, n_cells) drive on one worker (.log)
+    speedup_log_cpu: float = 0.0  # log seconds / CPU seconds of this process (.log): the figure on a core of its own
+    speedup_mf4_cpu: float = 0.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def hours_for(self, drives: int, workers: int) -> float:
+        """Estimated wall hours of ``drives`` such drives on ``workers`` workers (measured efficiency)."""
+        eff = min(1.0, self.scaling_2_workers / 2.0) if workers > 1 else 1.0
+        return drives * self.drive_s_one_worker / (workers * eff) / 3600.0
+
+
+def estimate_text(r: BatchBenchResult, drives: int = 10_000) -> str:
+    parts = [f"{n} worker(s) {r.hours_for(drives, n):,.1f} h" for n in (1, 2, 16, 64)]
+    cpu_h = drives * r.hours * 3600 / r.speedup_log_cpu / 3600 if r.speedup_log_cpu else float("nan")
+    return (f"{drives:,} drives of {r.hours:g} h x {r.n_cells} cells: {drives * r.drive_s_one_worker / 3600:,.1f} "
+            f"worker-hours of wall time here; " + ", ".join(parts) + f" (efficiency "
+            f"{min(1.0, r.scaling_2_workers / 2):.2f} measured on 2 workers, assumed for more); {cpu_h:,.1f} "
+            f"CPU-hours (on workers with a core each: {cpu_h / 16:,.1f} h on 16, {cpu_h / 64:,.1f} h on 64)")
+
+
+def _frame_table(fa):
+    """encode-log's FrameArrays as a FrameTable (for the MF4 writer)."""
+    from bms_estimator.fleet.frames import EXTENDED_FLAG, FrameTable
+
+    ids = fa.arbitration_id.astype(np.int64)
+    extended = [i for i in np.unique(ids).tolist() if fa.extended.get(int(i), True)]
+    key = np.where(np.isin(ids, extended), ids | EXTENDED_FLAG, ids)
+    m = len(fa)
+    data = fa.data.astype("<u8").view(np.uint8).reshape(m, 8)
+    return FrameTable(fa.timestamps, key.astype(np.int64), np.full(m, 8, np.int16), data, np.zeros(m, bool))
+
+
+def _write_inputs(tmp: Path, hours: float, n_cells: int) -> tuple[Path, Path, Path, int]:
+    from benchmarks.replay_speedup import prepare_frames
+    from bms_estimator.fleet.frames import write_mf4
+    from bms_estimator.replay.encode_log import write_messages
+
+    fa, _ocv, q, ocv_path = prepare_frames(hours, n_cells)
+    log = tmp / "bench" / "drive.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    write_messages(fa.iter_messages(), log)
+    mf4 = write_mf4(_frame_table(fa), tmp / "bench" / "drive.mf4")
+    cfg = tmp / "config.toml"
+    cfg.write_text(f'[pack]\nn_cells = {n_cells}\ncapacity_ah = {q}\nocv_csv = "{ocv_path}"\n'
+                   '[can]\ninterface = "virtual"\n[mqtt]\nenabled = false\n')
+    return log, mf4, cfg, len(fa)
+
+
+def _one_worker(path: Path, cfg: Path) -> tuple[float, dict[str, float]]:
+    from bms_estimator.fleet.drive import run_drive
+
+    res, _, _ = run_drive(path, str(cfg), path.parent, "bench", write=False)
+    if res.status != "ok":
+        raise RuntimeError(res.error)
+    secs = {k: v for k, v in res.seconds.items() if k != "write"}
+    wall = sum(v for k, v in secs.items() if k != "cpu")
+    return res.duration_s / wall, secs
+
+
+def _scaling(tmp: Path, cfg: Path, hours: float, n_cells: int, drives: int) -> tuple[float, float]:
+    """Wall seconds of ``drives`` drives on 1 and on 2 worker processes (cluster start excluded)."""
+    from dask.distributed import Client, LocalCluster
+
+    from benchmarks.replay_speedup import prepare_frames
+    from bms_estimator.fleet.batch import run_batch
+    from bms_estimator.replay.encode_log import write_messages
+
+    fa, *_ = prepare_frames(hours, n_cells)
+    logs = []
+    for i in range(drives):
+        p = tmp / "scaling" / f"car{i}" / "drive.log"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        if i == 0:
+            write_messages(fa.iter_messages(), p)
+        else:
+            p.write_bytes(logs[0].read_bytes())
+        logs.append(p)
+    walls = []
+    try:  # `bench` pins itself to one core; the workers of this figure get them all
+        saved = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, set(range(os.cpu_count() or 1)))
+    except (AttributeError, OSError):
+        saved = None
+    try:
+        for n in (1, 2):
+            with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                              dashboard_address=None) as cluster, Client(cluster) as client:
+                client.run(lambda: __import__("bms_estimator.fleet.drive"))  # imports outside the timing
+                t0 = time.perf_counter()
+                res = run_batch([str(p) for p in logs], str(cfg), tmp / f"out{n}", client=client)
+                walls.append(time.perf_counter() - t0)
+                if res.failed:
+                    raise RuntimeError(res.failed[0].error)
+    finally:
+        if saved is not None:
+            os.sched_setaffinity(0, saved)
+    return walls[0], walls[1]
+
+
+def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
+                scaling_hours: float = 0.5) -> BatchBenchResult:
+    key = (hours, n_cells, scaling_drives, scaling_hours)
+    if key in _CACHE:
+        return _CACHE[key]
+    with tempfile.TemporaryDirectory(prefix="bms-batch-bench-") as tmpdir:
+        tmp = Path(tmpdir)
+        log, mf4, cfg, frames = _write_inputs(tmp, hours, n_cells)
+        _one_worker(log, cfg)  # warm: imports, the configuration's Service (cached per process)
+        sp_log, s_log = _one_worker(log, cfg)
+        sp_mf4, s_mf4 = _one_worker(mf4, cfg)
+        w1, w2 = _scaling(tmp, cfg, scaling_hours, n_cells, scaling_drives)
+    r = BatchBenchResult(hours, n_cells, frames, sp_log, sp_mf4, s_log, s_mf4, w1 / w2, scaling_drives,
+                         scaling_hours, w1, w2, hours * 3600 / sp_log,
+                         hours * 3600 / s_log["cpu"], hours * 3600 / s_mf4["cpu"])
+    _CACHE[key] = r
+    return r
+
+
+def bench_read_cost(hours: float = 0.1, n_cells: int = 96) -> dict[str, float]:
+    """Microseconds per frame of :func:`~bms_estimator.fleet.frames.read_frames` by format (and python-can's
+    candump reader, which the bulk .log parser replaces)."""
+    import can
+
+    from benchmarks.replay_speedup import prepare_frames
+    from bms_estimator.fleet.frames import FrameTable, read_frames, write_mf4
+    from bms_estimator.replay.encode_log import write_messages
+
+    fa, *_ = prepare_frames(hours, n_cells)
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="bms-read-bench-") as tmpdir:
+        tmp = Path(tmpdir)
+        paths = {}
+        for suffix in (".log", ".asc", ".blf"):
+            paths[suffix] = tmp / f"d{suffix}"
+            write_messages(fa.iter_messages(), paths[suffix])
+        paths[".mf4"] = write_mf4(_frame_table(fa), tmp / "d.mf4")
+        for suffix, path in paths.items():
+            t0 = time.perf_counter()
+            read_frames(path)
+            out[suffix] = (time.perf_counter() - t0) / len(fa) * 1e6
+        t0 = time.perf_counter()
+        FrameTable.from_messages(can.LogReader(str(paths[".log"])))
+        out[".log python-can"] = (time.perf_counter() - t0) / len(fa) * 1e6
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hours", type=float, default=4.0)
+    ap.add_argument("--cells", type=int, default=96)
+    ap.add_argument("--scaling-drives", type=int, default=4)
+    ap.add_argument("--scaling-hours", type=float, default=0.5)
+    ap.add_argument("--read-cost", action="store_true", help="only the per-frame read cost of each format")
+    a = ap.parse_args()
+    if a.read_cost:
+        print(json.dumps(bench_read_cost(), indent=1))
+        return
+    r = bench_batch(a.hours, a.cells, a.scaling_drives, a.scaling_hours)
+    print(json.dumps(r.as_dict(), indent=1))
+    print(estimate_text(r))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,126 @@
+"""``bms-estimator batch``: recorded logs of many drives -> per-drive Parquet and a summary, on Dask."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+from ..errors import DataError, UsageError
+
+
+def _workers(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    return n
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "batch",
+        help="re-estimate recorded drives in bulk on Dask: per-drive Parquet of per-cell SOC and parameters, a summary",
+        description="Each log (.log, .asc, .blf, optionally .gz, or .mf4) is decoded in bulk with the configuration's "
+                    "DBC and mapping into the service's 1 s samples and run through the service's estimator; the "
+                    "results equal a replay through the service. A log's vehicle is its directory's name. Writes "
+                    "OUT/drives/<vehicle>/<log>.parquet (per cell and sample: soc, r0_ohm, r1_ohm, c1_f, r2_ohm, "
+                    "c2_f, tau1_s, tau2_s, c0_v, capacity_ah, temperature_c, voltage_v, valid). A single-cell recording "
+                    "(.csv/.csv.gz, time_s,current_a,voltage_v[,temperature_c]) is a one-cell drive. OUT/summary.csv and "
+                    ".parquet (per vehicle, drive and cell) and OUT/errors.csv (every skipped log and why). A corrupt, "
+                    "empty, foreign-DBC or rewinding log is reported and skipped. Details: bms_estimator/fleet/.",
+    )
+    p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB",
+                   help="log files, globs (quote them; ** recurses) or directories (their logs, recursively)")
+    p.add_argument("--config", required=True, type=Path, help="the service's configuration (TOML): pack, CAN DBC and "
+                   "mapping, estimator settings")
+    p.add_argument("--out", required=True, type=Path, help="output directory (created)")
+    p.add_argument("--chain", action="store_true",
+                   help="chain each vehicle's drives in time order (first timestamp, then name), the estimator "
+                        "state carried from one to the next; one task per vehicle")
+    p.add_argument("--scheduler", default=None, metavar="ADDR",
+                   help="Dask scheduler address (tcp://host:8786); default: a local cluster, one worker process per core")
+    p.add_argument("--workers", type=_workers, default=None, help="local cluster size (default: the machine's cores)")
+    p.add_argument("--diagnose", action="store_true",
+                   help="also name each cell's model error with 'diagnose' (summary column 'cause'; on the cell's "
+                        "longest stretch of valid samples, at least 30 min; slow: seconds per cell-hour)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def _check_config(path: Path) -> None:
+    """Everything the service would refuse, refused here before any worker starts (exit 2/3)."""
+    from ..fleet.drive import _service
+
+    if not path.is_file():
+        raise UsageError(f"--config {path}: no such file")
+    _service(str(path))
+
+
+def _write_csv(path: Path, rows: list[dict], columns) -> None:
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(columns))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..fleet.batch import SUMMARY_COLUMNS, expand_inputs, run_batch, summary_rows
+
+    if args.scheduler and args.workers:
+        raise UsageError("--workers sizes the local cluster; with --scheduler the cluster has its own workers")
+    _check_config(args.config)
+    logs, unmatched = expand_inputs(args.logs)
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"--out {args.out}: cannot create it: {exc.strerror or exc}") from None
+    show = sys.stderr.isatty() and not args.no_progress
+    bar = task = None
+    if show:
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        bar = Progress(TextColumn("batch {task.description}"), BarColumn(), MofNCompleteColumn(),
+                       TimeRemainingColumn(), console=Console(stderr=True), transient=True)
+        task = bar.add_task("drives", total=len(logs))
+        bar.start()
+
+    def progress(done: int, total: int, last) -> None:
+        if bar is not None:
+            bar.update(task, completed=done, total=total,
+                       description=f"{last.vehicle}/{Path(last.path).name}" if last is not None else "drives")
+
+    t0 = time.perf_counter()
+    try:
+        result = run_batch(logs, str(args.config.resolve()), args.out, chain=args.chain, scheduler=args.scheduler,
+                           workers=args.workers, progress=progress, diagnose=args.diagnose) if logs else None
+    finally:
+        if bar is not None:
+            bar.stop()
+    wall = time.perf_counter() - t0
+    drives = (result.drives if result is not None else []) + unmatched
+    rows = summary_rows(drives)
+    _write_csv(args.out / "summary.csv", rows, SUMMARY_COLUMNS)
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pq.write_table(pa.Table.from_pylist(rows), args.out / "summary.parquet")
+    failed = [d for d in drives if d.status != "ok"]
+    _write_csv(args.out / "errors.csv", [{"vehicle": d.vehicle, "log": d.path, "error": d.error} for d in failed],
+               ("vehicle", "log", "error"))
+    ok = [d for d in drives if d.status == "ok"]
+    hours = sum(d.duration_s for d in ok) / 3600.0
+    workers = result.workers if result is not None else 0
+    print(f"batch: {len(ok)} of {len(drives)} drives estimated ({hours:.2f} h of logs, "
+          f"{sum(len(d.cells.get('soc_final', [])) for d in ok)} cell-drives) in {wall:.1f} s on {workers} "
+          f"worker(s): {hours * 3600 / wall if wall > 0 else 0:.0f}x real time; {args.out}/summary.csv")
+    for d in failed:
+        print(f"  skipped: {d.error}")
+    if not ok:
+        raise DataError("no drive could be estimated:", [d.error for d in failed] or ["no input"])
+    return 0

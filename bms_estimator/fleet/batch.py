@@ -1,0 +1,204 @@
+"""Many drives on Dask distributed: one task per drive, or per vehicle when its drives are chained.
+
+``run_batch`` submits :func:`~.drive.run_drive` (or :func:`~.drive.run_vehicle`) to a
+``dask.distributed`` client: by default a ``LocalCluster`` of single-threaded worker
+processes, one per core (``os.cpu_count()``; the estimator holds the GIL); with
+``scheduler`` an existing cluster (then every worker must see the log files and the
+output directory at the same paths: a shared file system). No other pool is made here.
+
+Results do not depend on the number of workers: each task is a pure function of its
+files (a drive's estimate depends only on its log, the configuration and, when chained,
+the vehicle's earlier drives, which run in the same task, in order); the summary is
+sorted by vehicle, drive and cell.
+
+Vehicles: a log's vehicle is its parent directory's name (``fleet/<vehicle>/<drive>.log``).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from collections import defaultdict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import UsageError
+from .drive import DriveResult, run_drive, run_vehicle
+from .frames import FRAME_SUFFIXES
+
+__all__ = ["BatchResult", "expand_inputs", "run_batch", "summary_rows", "vehicle_of"]
+
+
+def vehicle_of(path: str | Path) -> str:
+    return Path(path).resolve().parent.name or "vehicle"
+
+
+def expand_inputs(items: Iterable[str]) -> tuple[list[str], list[DriveResult]]:
+    """Files named or matched (globs, ``**`` allowed; a directory = its logs, recursively), and what matched nothing."""
+    found: list[str] = []
+    seen: set[str] = set()
+    missing: list[DriveResult] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            hits = [str(f) for f in sorted(p.rglob("*")) if f.is_file() and _is_log(f)]
+        elif any(ch in item for ch in "*?["):
+            hits = [h for h in sorted(glob.glob(item, recursive=True)) if Path(h).is_file()]
+        else:
+            hits = [item]
+        if not hits:
+            missing.append(DriveResult(vehicle=vehicle_of(item), path=item, status="skipped",
+                                       error=f"{item}: matches no file"))
+        for h in hits:
+            real = str(Path(h).resolve())
+            if real not in seen:
+                seen.add(real)
+                found.append(h)
+    return found, missing
+
+
+def _is_log(path: Path) -> bool:
+    name = path.name.lower()
+    if name.endswith(".gz"):
+        name = name[:-3]
+    return name.endswith(FRAME_SUFFIXES) or name.endswith(".csv")
+
+
+@dataclass
+class BatchResult:
+    drives: list[DriveResult]
+    workers: int
+    scheduler: str
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def failed(self) -> list[DriveResult]:
+        return [d for d in self.drives if d.status != "ok"]
+
+
+def _client(scheduler: str | None, workers: int | None):
+    import logging
+
+    from dask.distributed import Client, LocalCluster
+
+    # the scheduler and nannies of a local cluster run in this process: their INFO lines are not the user's
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+
+    if scheduler:
+        return Client(scheduler, timeout="10s"), None
+    n = workers or os.cpu_count() or 1
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                           dashboard_address=None, silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain: bool = False,
+              scheduler: str | None = None, workers: int | None = None,
+              progress: Callable[[int, int, DriveResult | None], None] | None = None,
+              client: Any = None, diagnose: bool = False) -> BatchResult:
+    """Every log through bulk decode and the estimator on Dask; never raises for a bad log.
+
+    ``progress(done_drives, total_drives, last_result)`` is called as tasks finish.
+    ``client``: an existing ``dask.distributed.Client`` (then ``scheduler``/``workers`` are unused).
+    """
+    from dask.distributed import as_completed
+
+    out_dir = str(Path(out_dir).resolve())
+    logs = [str(Path(p).resolve()) for p in logs]
+    by_vehicle: dict[str, list[str]] = defaultdict(list)
+    for log in logs:
+        by_vehicle[vehicle_of(log)].append(log)
+    own = None
+    own_client = client is None
+    if client is None:
+        try:
+            client, own = _client(scheduler, workers)
+        except OSError as exc:
+            raise UsageError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}") from None
+    try:
+        n_workers = len(client.scheduler_info().get("workers", {}))
+        if chain:
+            futures = [client.submit(_vehicle_task, sorted(paths), config, out_dir, vehicle, diagnose,
+                                     key=f"vehicle-{vehicle}-{i}", pure=False)
+                       for i, (vehicle, paths) in enumerate(sorted(by_vehicle.items()))]
+        else:
+            futures = [client.submit(_drive_only, log, config, out_dir, vehicle_of(log), diagnose,
+                                     key=f"drive-{i}-{Path(log).name}", pure=False)
+                       for i, log in enumerate(logs)]
+        results: list[DriveResult] = []
+        total = len(logs)
+        if progress is not None:
+            progress(0, total, None)
+        for fut in as_completed(futures):
+            try:
+                got = fut.result()
+            except Exception as exc:  # noqa: BLE001 - a worker died (out of memory, killed): report the task
+                from ..errors import one_line_error
+
+                got = [DriveResult(vehicle="?", path=str(fut.key), status="skipped",
+                                   error=f"task {fut.key} failed: {one_line_error(exc)}")]
+            got = got if isinstance(got, list) else [got]
+            for r in got:
+                results.append(r)
+                if progress is not None:
+                    progress(len(results), total, r)
+    finally:
+        if own_client:
+            client.close()
+        if own is not None:
+            own.close()
+    results.sort(key=lambda r: (r.vehicle, r.path))
+    return BatchResult(results, n_workers, scheduler or "LocalCluster")
+
+
+def _quiet_worker() -> None:
+    """In a Dask worker process: the library's log lines at WARNING and above, on stderr (stdout is the user's)."""
+    import sys
+
+    from ..service.logging import configure_logging
+
+    try:
+        from dask.distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return  # not in a worker (a test calling the task directly): leave the caller's logging alone
+    configure_logging(level="WARNING", fmt="console", stream=sys.stderr)
+
+
+def _drive_only(log: str, config: str | None, out_dir: str, vehicle: str, diagnose: bool = False) -> DriveResult:
+    _quiet_worker()
+    return run_drive(log, config, out_dir, vehicle, diagnose=diagnose)[0]
+
+
+def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: str,
+                  diagnose: bool = False) -> list[DriveResult]:
+    _quiet_worker()
+    return run_vehicle(logs, config, out_dir, vehicle, chain=True, diagnose=diagnose)
+
+
+SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final", "capacity_ah_final", "r0_ohm_final",
+                   "r0_ohm_median", "temperature_c_mean", "soc_error_final_pct", "soc_rmse_pct", "cause", "backward_frames",
+                   "decode_errors", "error")
+
+
+def summary_rows(drives: list[DriveResult]) -> list[dict[str, Any]]:
+    """One row per drive and cell (one row per skipped drive, cell = -1, with its error)."""
+    rows: list[dict[str, Any]] = []
+    for d in drives:
+        base = {"vehicle": d.vehicle, "drive": Path(d.path).name, "status": d.status, "samples": d.samples,
+                "backward_frames": d.counters.get("backward_frames", 0), "decode_errors": d.counters.get("errors", 0),
+                "error": d.error}
+        n = len(d.cells.get("soc_final", []))
+        if d.status != "ok" or n == 0:
+            rows.append({**base, "cell": -1})
+            continue
+        for c in range(n):
+            row = {**base, "cell": c}
+            for key in SUMMARY_COLUMNS:
+                if key in d.cells:
+                    row[key] = d.cells[key][c]
+            rows.append(row)
+    return [{k: r.get(k) for k in SUMMARY_COLUMNS} for r in rows]

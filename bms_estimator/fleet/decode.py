@@ -1,0 +1,194 @@
+"""Frames as arrays -> signal events as arrays, with vectorised bit extraction (bulk form of can/decoder.py).
+
+The plan is :class:`~bms_estimator.can.decoder.FrameDecoder`'s own (built from the same
+DBC and mapping, so the two cannot disagree on which signal is which cell and on the
+conversion ``si = a * raw + b``). Per mapped frame id, on all its frames at once:
+
+* the payload's first 8 bytes as one little-endian and one big-endian ``uint64``;
+* a signal's raw value: Intel (little endian), LSB at ``start``:
+  ``raw = (u_le >> start) & (2^len - 1)``; Motorola (big endian), cantools' ``start``
+  is the MSB in the DBC's sawtooth numbering, at linear position
+  ``m = 8 floor(start/8) + 7 - start mod 8`` counted from the first byte's MSB:
+  ``raw = (u_be >> (64 - m - len)) & (2^len - 1)``; two's complement for signed
+  signals, an IEEE view for float signals;
+* then the decoder's rules, in its order: unknown id / unmapped, error and remote
+  frames ignored, short frame, multiplexer value the DBC does not define (bad_mux),
+  invalid flag, NotAvailable raw value, non-finite, outside ``[valid_min, valid_max]``.
+
+Messages longer than 8 bytes (CAN FD) are decoded frame by frame with the service's
+decoder (the same result, at its speed). The counters equal
+:class:`~bms_estimator.can.decoder.DecodeCounters` for the same frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..can.decoder import DecodeCounters, FrameDecoder
+from .frames import FrameTable
+
+__all__ = ["EventArrays", "decode_frames", "signal_raw"]
+
+
+@dataclass(frozen=True, eq=False)
+class EventArrays:
+    """E events in frame order (within one frame: the decoder's order)."""
+
+    frame: np.ndarray  # (E,) int64 index of the frame in the FrameTable
+    kind: np.ndarray  # (E,) int8 EventKind
+    cell: np.ndarray  # (E,) int32, -1 for pack-level values
+    value: np.ndarray  # (E,) float64, SI
+
+
+def _words(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    b8 = np.ascontiguousarray(data[:, :8])
+    return b8.view("<u8").ravel(), b8.view(">u8").ravel()
+
+
+def signal_raw(sig, u_le: np.ndarray, u_be: np.ndarray) -> np.ndarray:
+    """Raw values of cantools signal ``sig`` (int64, or float64 for float signals) from the payload words."""
+    n = int(sig.length)
+    mask = np.uint64((1 << n) - 1) if n < 64 else np.uint64(0xFFFF_FFFF_FFFF_FFFF)
+    if sig.byte_order == "little_endian":
+        raw = (u_le >> np.uint64(sig.start)) & mask
+    else:
+        msb = 8 * (sig.start // 8) + 7 - sig.start % 8
+        raw = (u_be >> np.uint64(64 - msb - n)) & mask
+    if sig.is_float:
+        if n == 32:
+            return raw.astype(np.uint32).view(np.float32).astype(np.float64)
+        return raw.view(np.float64)
+    if sig.is_signed:
+        out = raw.astype(np.int64)
+        if n < 64:
+            out = np.where(out >= (1 << (n - 1)), out - (1 << n), out)
+        return out
+    return raw.astype(np.int64)
+
+
+def _fits_words(msg) -> bool:
+    return msg.length <= 8
+
+
+def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArrays, DecodeCounters]:
+    """All events of ``frames`` and the decoder counters, as ``decoder.decode`` would give frame by frame.
+
+    ``decoder`` is only read (its plan); its own counters are not touched.
+    """
+    c = DecodeCounters()
+    m = len(frames)
+    c.frames = m
+    plans = decoder._plans  # noqa: SLF001 - the plan is the decoder's; this is its bulk form
+    known = np.array(sorted(decoder._known), dtype=np.int64)  # noqa: SLF001
+    planned = np.array(sorted(plans), dtype=np.int64)
+    in_plan = np.isin(frames.key, planned)
+    in_db = np.isin(frames.key, known)
+    c.unknown_id = int(np.count_nonzero(~in_plan & ~in_db))
+    c.unmapped = int(np.count_nonzero(~in_plan & in_db))
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # frame, order, kind, cell, value
+    for key, plan in plans.items():
+        idx = np.flatnonzero(frames.key == key)
+        if idx.size == 0:
+            continue
+        ign = frames.ignored[idx]
+        c.ignored += int(np.count_nonzero(ign))
+        idx = idx[~ign]
+        short = frames.length[idx] < plan.length
+        c.short_frame += int(np.count_nonzero(short))
+        idx = idx[~short]
+        if idx.size == 0:
+            continue
+        if not _fits_words(plan.message):
+            _decode_per_frame(decoder, frames, idx, c, parts)
+            continue
+        u_le, u_be = _words(frames.data[idx])
+        sigs = {s.name: s for s in plan.message.signals}
+        mux = None
+        if plan.mux_signal is not None:
+            mux = signal_raw(sigs[plan.mux_signal], u_le, u_be)
+            defined = np.array(sorted(plan.message._codecs["multiplexers"][plan.mux_signal]), dtype=np.int64)  # noqa: SLF001
+            ok = np.isin(mux, defined)
+            c.bad_mux += int(np.count_nonzero(~ok))
+            idx, u_le, u_be, mux = idx[ok], u_le[ok], u_be[ok], mux[ok]
+        c.decoded += int(idx.size)
+        has_entries = np.zeros(idx.size, dtype=bool)
+        groups: list[tuple[np.ndarray, list]] = []
+        if plan.common:
+            has_entries[:] = True
+            groups.append((np.ones(idx.size, dtype=bool), plan.common))
+        if mux is not None:
+            for mux_value, entries in plan.by_mux.items():
+                sel = mux == mux_value
+                if sel.any() and entries:
+                    has_entries |= sel
+                    groups.append((sel, entries))
+        c.unmapped += int(np.count_nonzero(~has_entries))
+        order_base = 0
+        for sel, entries in groups:
+            rows = np.flatnonzero(sel)
+            le, be = u_le[rows], u_be[rows]
+            mux_rows = mux[rows] if mux is not None else None
+            for j, (kind, cell, sname, a, b, lo, hi, na_raws, flags) in enumerate(entries):
+                raw = signal_raw(sigs[sname], le, be)
+                keep = np.ones(rows.size, dtype=bool)
+                if flags:
+                    bad = np.zeros(rows.size, dtype=bool)
+                    for fname, fval in flags:
+                        fsig = sigs[fname]
+                        f = signal_raw(fsig, le, be)
+                        if fsig.multiplexer_ids and mux_rows is not None:  # not decoded with this mux value: 0
+                            f = np.where(np.isin(mux_rows, fsig.multiplexer_ids), f, 0)
+                        bad |= (f != 0) if fval is None else (f == fval)
+                    c.flagged_invalid += int(np.count_nonzero(bad))
+                    keep &= ~bad
+                if na_raws:
+                    na = keep & np.isin(raw, np.array(sorted(na_raws)))
+                    c.not_available += int(np.count_nonzero(na))
+                    keep &= ~na
+                with np.errstate(all="ignore"):
+                    si = a * raw.astype(np.float64) + b
+                fin = np.isfinite(si)
+                c.non_finite += int(np.count_nonzero(keep & ~fin))
+                keep &= fin
+                rng = keep & ((si < lo) | (si > hi))
+                c.out_of_range += int(np.count_nonzero(rng))
+                keep &= ~rng
+                k = np.flatnonzero(keep)
+                parts.append((idx[rows[k]], np.full(k.size, order_base + j, np.int64),
+                              np.full(k.size, int(kind), np.int8), np.full(k.size, cell, np.int32), si[k]))
+            order_base += len(entries)
+    if parts:
+        frame = np.concatenate([p[0] for p in parts])
+        order = np.concatenate([p[1] for p in parts])
+        perm = np.lexsort((order, frame))
+        ev = EventArrays(frame[perm], np.concatenate([p[2] for p in parts])[perm],
+                         np.concatenate([p[3] for p in parts])[perm], np.concatenate([p[4] for p in parts])[perm])
+    else:
+        ev = EventArrays(np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0, np.int32), np.zeros(0))
+    c.events = int(ev.frame.size)
+    return ev, c
+
+
+def _decode_per_frame(decoder: FrameDecoder, frames: FrameTable, idx: np.ndarray, c: DecodeCounters,
+                      parts: list) -> None:
+    """Frames of a message wider than 8 bytes: the service's decoder, one frame at a time."""
+    import can
+
+    saved, decoder.counters = decoder.counters, DecodeCounters()
+    try:
+        for i in idx.tolist():
+            key = int(frames.key[i])
+            msg = can.Message(timestamp=float(frames.t_s[i]), arbitration_id=key & 0x1FFFFFFF,
+                              is_extended_id=bool(key & 0x8000_0000), is_fd=True,
+                              data=bytes(frames.data[i, : int(frames.length[i])]))
+            for j, (kind, cell, value) in enumerate(decoder.decode(msg)):
+                parts.append((np.array([i]), np.array([j]), np.array([int(kind)], np.int8),
+                              np.array([cell], np.int32), np.array([value])))
+        per = decoder.counters
+    finally:
+        decoder.counters = saved
+    for name in ("decoded", "unmapped", "bad_mux", "decode_error", "non_finite", "out_of_range",
+                 "not_available", "flagged_invalid", "internal_error"):
+        setattr(c, name, getattr(c, name) + getattr(per, name))

@@ -1,0 +1,329 @@
+"""One drive (or one vehicle's drives, chained) from log file to per-drive Parquet and summary rows.
+
+This is the unit of work :mod:`.batch` hands to Dask: plain arguments in (paths, the
+configuration file, the output directory), small picklable results out; the Parquet is
+written by the worker. The data path is the service's, in bulk form::
+
+    read_frames (frames.py) -> decode_frames (decode.py) -> assemble_samples (assemble.py)
+      -> estimate_drive (estimate.py, the service's Pipeline.tick) -> Parquet
+
+Decoder, sampler and estimator are built by :class:`~bms_estimator.service.daemon.Service`
+from the same configuration the service runs with (so its checks and defaults apply), once
+per worker process and configuration file.
+
+A single-cell recording in the project's CSV layout (``.csv``/``.csv.gz``,
+``time_s,current_a,voltage_v[,temperature_c]``, as the offline commands read) is a drive of
+a one-cell pack: its 1 s bins are the samples (:meth:`.samples.SampleArrays.from_recording`),
+the estimator is the configuration's with ``n_cells = 1``.
+
+A drive is reported and skipped (never fatal to the batch) when its log is unreadable or
+corrupt, empty, holds no frame the configured DBC and mapping decode (another DBC), or
+its timestamps go back by more than the sampler's rewind limit (a reset; a chained state
+would be wrong). Timestamps going back by less are the service's ``backward_frames``:
+counted and shown, the drive is used.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import BmsEstimatorError, DataError, one_line_error
+from .assemble import assemble_samples
+from .decode import decode_frames
+from .estimate import DriveEstimate, carry_state, estimate_drive
+from .frames import read_frames
+from .samples import SampleArrays
+
+__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_vehicle", "parquet_path"]
+
+#: per-cell series written to each drive's Parquet (besides t_s, cell, valid, current_a)
+PARQUET_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s", "c0_v", "capacity_ah",
+                "temperature_c", "voltage_v")
+
+_SETUPS: dict[tuple[str, float], Any] = {}
+
+
+@dataclass
+class DriveResult:
+    """What the summary needs of one drive (small: goes back from the worker)."""
+
+    vehicle: str
+    path: str
+    status: str  # "ok" or "skipped"
+    error: str = ""
+    parquet: str = ""
+    samples: int = 0
+    frames: int = 0
+    duration_s: float = 0.0  # of the log (sample grid)
+    # wall seconds of read, decode, assemble, estimate, write; "cpu": this process's CPU seconds of read..estimate
+    # (what the drive costs on a core of its own: wall time also holds the waits of a loaded machine)
+    seconds: dict[str, float] = field(default_factory=dict)
+    counters: dict[str, int] = field(default_factory=dict)
+    cells: dict[str, list[Any]] = field(default_factory=dict)  # per-cell summary values (and "cause")
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _service(config: str | None, n_cells: int | None = None):
+    """The service built from ``config`` (cached per process and file version); ``n_cells`` overrides the pack's."""
+    key = (str(config), Path(config).stat().st_mtime if config else 0.0, n_cells)
+    svc = _SETUPS.get(key)
+    if svc is None:
+        from ..service.config import load_config
+        from ..service.daemon import Service
+
+        cfg = load_config(config)
+        if n_cells is not None:
+            cfg = cfg.model_copy(update={"pack": cfg.pack.model_copy(update={"n_cells": n_cells})})
+        svc = _SETUPS[key] = Service(cfg)
+    return svc
+
+
+RECORDING_SUFFIXES = (".csv", ".csv.gz")
+
+
+def is_recording(path: str | Path) -> bool:
+    """A single-cell recording in the project's CSV layout (time_s,current_a,voltage_v[,temperature_c])."""
+    return str(path).lower().endswith(RECORDING_SUFFIXES)
+
+
+def _recording_samples(log: Path, svc) -> SampleArrays:
+    from ..data import load_recording
+
+    try:
+        rec = load_recording(log, resample_s=svc.period_s)
+        return SampleArrays.from_recording(rec, svc.period_s)
+    except ValueError as exc:  # DataError is one; the step check another
+        raise DataError(str(exc).splitlines()[0]) from None
+
+
+def parquet_path(out_dir: str | Path, vehicle: str, log: str | Path) -> Path:
+    return Path(out_dir) / "drives" / vehicle / (Path(log).name + ".parquet")
+
+
+def drive_order_key(path: str | Path) -> tuple[float, str]:
+    """Chaining order: the log's first timestamp (as ``replay`` reports it), then the name."""
+    from ..replay.replay import log_span
+
+    span = log_span(path)
+    return (span[0] if span else math.inf, Path(path).name)
+
+
+def _reference(log: Path, n_cells: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(soc0, capacity_ah) per cell from ``<log>.truth.json`` (written by encode-log), if there is one."""
+    from ..replay.encode_log import truth_path
+
+    path = truth_path(log)
+    if not path.is_file():
+        return None
+    try:
+        cells = json.loads(path.read_text())["cells"]
+        soc0 = np.array([float(c["soc0"]) for c in cells])
+        cap = np.array([float(c["capacity_ah"]) for c in cells])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return (soc0, cap) if soc0.shape == (n_cells,) else None
+
+
+def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[float]]:
+    """Per-cell summary values of one drive; the SOC error against encode-log's truth where it exists.
+
+    The reference SOC is the project's (:func:`bms_estimator.scoring.counted_soc`: coulomb
+    counting from the cell's true start SOC with its true capacity, read at mid-sample), the
+    figures :func:`bms_estimator.scoring.soc_error_figures`' ``rmse_all_pct`` and the error at
+    the last sample, both in percent.
+    """
+    import warnings
+
+    from ..scoring import counted_soc, soc_error_figures
+
+    n = est.valid.shape[1] if est.valid.ndim == 2 else 0
+    out: dict[str, list[float]] = {}
+    if len(est) == 0:
+        return out
+    out["soc_final"] = est.cells["soc"][-1].tolist()
+    out["capacity_ah_final"] = est.cells["capacity_ah"][-1].tolist()
+    out["r0_ohm_final"] = est.cells["r0_ohm"][-1].tolist()
+    with warnings.catch_warnings():  # an all-NaN column (a cell never valid) is NaN, not a warning
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out["r0_ohm_median"] = np.nanmedian(est.cells["r0_ohm"], axis=0).tolist()
+        out["temperature_c_mean"] = np.nanmean(est.cells["temperature_c"], axis=0).tolist()
+    ref = _reference(log, n)
+    if ref is not None:
+        soc0, cap = ref
+        current = np.where(np.isfinite(est.current_a), est.current_a, 0.0)
+        final, rmse = [], []
+        for c in range(n):
+            soc_ref = counted_soc(current, period_s, cap[c], soc0[c])
+            final.append(float(100.0 * (est.cells["soc"][-1, c] - soc_ref[-1])))
+            rmse.append(soc_error_figures(est.cells["soc"][:, c], soc_ref, est.t_s, float(est.t_s[0]))["rmse_all_pct"])
+        out["soc_error_final_pct"] = final
+        out["soc_rmse_pct"] = rmse
+    return out
+
+
+def _longest_run(ok: np.ndarray) -> tuple[int, int]:
+    """[start, stop) of the longest run of True in ``ok`` ((0, 0) if none)."""
+    if not ok.any():
+        return 0, 0
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], ok.astype(np.int8), [0]))))
+    starts, stops = edges[0::2], edges[1::2]
+    k = int(np.argmax(stops - starts))
+    return int(starts[k]), int(stops[k])
+
+
+#: a cell's longest stretch of valid, evenly spaced samples must be this long for diagnose (s)
+DIAGNOSE_MIN_S = 1800.0
+
+
+def _diagnose_cells(est: DriveEstimate, svc, period_s: float) -> list[str]:
+    """``diagnose``'s named cause per cell, on the cell's longest stretch of valid, evenly spaced samples.
+
+    The stretch starts at the estimator's SOC there (diagnose counts charge from a start SOC).
+    A cell without ``DIAGNOSE_MIN_S`` of such data gets ``""``; a failure ``"error: ..."``.
+    """
+    from ..diagnose import Series, diagnose
+
+    n = est.valid.shape[1]
+    even = np.concatenate(([True], np.isclose(np.diff(est.t_s), period_s)))
+    out = []
+    for c in range(n):
+        ok = est.valid[:, c] & np.isfinite(est.current_a) & np.isfinite(est.cells["soc"][:, c]) & even
+        a, b = _longest_run(ok)
+        if (b - a) * period_s < DIAGNOSE_MIN_S:
+            out.append("")
+            continue
+        temp = est.cells["temperature_c"][a:b, c]
+        try:
+            series = Series(est.current_a[a:b], est.cells["voltage_v"][a:b, c], svc.ocv, float(svc.cfg.pack.capacity_ah),
+                            float(est.cells["soc"][a, c]), float(period_s), temp if np.isfinite(temp).all() else None)
+            out.append(str(diagnose(series).cause))
+        except Exception as exc:  # noqa: BLE001 - a diagnosis that fails is reported in its cell, not fatal
+            out.append(f"error: {one_line_error(exc)}")
+    return out
+
+
+def _write_parquet(path: Path, est: DriveEstimate) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    k, n = est.valid.shape
+    cols: dict[str, Any] = {
+        "t_s": np.repeat(est.t_s, n),
+        "cell": np.tile(np.arange(n, dtype=np.int32), k),
+        "valid": est.valid.reshape(-1),
+        "current_a": np.repeat(est.current_a, n),
+    }
+    for key in PARQUET_KEYS:
+        if key in est.cells:
+            cols[key] = est.cells[key].reshape(-1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".parquet.tmp")
+    pq.write_table(pa.table(cols), tmp, compression="zstd")
+    tmp.replace(path)
+
+
+def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle: str,
+              state: dict[str, np.ndarray] | None = None, *, write: bool = True, diagnose: bool = False,
+              ) -> tuple[DriveResult, dict[str, np.ndarray] | None, DriveEstimate | None]:
+    """One drive; never raises for a bad log (the result says what was wrong).
+
+    ``diagnose``: also name each cell's model error with ``diagnose`` (:func:`_diagnose_cells`;
+    slow: seconds per cell-hour).
+
+    Returns the result, the estimator state at the end (``state`` unchanged when the
+    drive was skipped) and the estimate itself (None when skipped).
+    """
+    log = Path(log)
+    res = DriveResult(vehicle=vehicle, path=str(log), status="skipped")
+    secs = res.seconds
+    secs["cpu"] = time.process_time()  # start; _estimate makes it the CPU seconds spent
+    try:
+        if is_recording(log):  # one measured cell: its samples directly, a one-cell pack
+            svc = _service(config, n_cells=1)
+            t0 = time.perf_counter()
+            samples = _recording_samples(log, svc)
+            secs["read"] = time.perf_counter() - t0
+            return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, time.perf_counter(), diagnose)
+        svc = _service(config)
+        t0 = time.perf_counter()
+        frames = read_frames(log)
+        t1 = time.perf_counter()
+        secs["read"] = t1 - t0
+        res.frames = len(frames)
+        if len(frames) == 0:
+            raise DataError(f"{log}: empty log (no frames)")
+        if svc.cfg.can.kernel_filters:  # the service then never sees other ids (kernel or python-can filters)
+            keep = np.isin(frames.key, np.array(sorted(svc.decoder._plans), dtype=np.int64))  # noqa: SLF001
+            frames = type(frames)(frames.t_s[keep], frames.key[keep], frames.length[keep], frames.data[keep],
+                                  frames.ignored[keep])
+        events, dcount = decode_frames(svc.decoder, frames)
+        t2 = time.perf_counter()
+        secs["decode"] = t2 - t1
+        if dcount.decoded == 0:
+            raise DataError(f"{log}: none of its {res.frames} frames is a message the configured DBC and mapping "
+                            "decode (recorded with another DBC?)")
+        samples = assemble_samples(frames.t_s, events, svc.sampler)  # only its settings are read
+        t3 = time.perf_counter()
+        secs["assemble"] = t3 - t2
+        res.counters = {**dcount.as_dict(), **samples.counters}
+        if samples.counters["rewinds"]:
+            raise DataError(f"{log}: timestamps go back by more than the rewind limit "
+                            f"({samples.counters['rewinds']} time(s)): not one drive")
+        return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, t3, diagnose)
+    except BmsEstimatorError as exc:
+        res.error = exc.header if not exc.problems else f"{exc.header} {'; '.join(exc.problems)}"
+    except MemoryError:
+        res.error = f"{log}: out of memory"
+    except Exception as exc:  # noqa: BLE001 - one drive must never stop the batch
+        res.error = f"{log}: {one_line_error(exc)}"
+    secs.pop("cpu", None)  # a skipped drive: no cost to report
+    return res, state, None
+
+
+def _estimate(res: DriveResult, log: Path, svc, samples: SampleArrays, state, out_dir, vehicle: str, write: bool,
+              t3: float, diagnose: bool = False) -> tuple[DriveResult, dict[str, np.ndarray], DriveEstimate]:
+    if len(samples) == 0:
+        raise DataError(f"{log}: no complete sample period ({res.frames} frames)")
+    res.counters = res.counters or dict(samples.counters)
+    est = carry_state(svc._new_estimator, state)  # noqa: SLF001 - the service's own factory
+    out = estimate_drive(samples, est, svc.decoder, svc.sampler)
+    t4 = time.perf_counter()
+    res.seconds["estimate"] = t4 - t3
+    res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
+    res.samples = len(samples)
+    res.duration_s = len(samples) * samples.period_s
+    res.cells = _summary(out, log, samples.period_s)
+    if diagnose:
+        t5 = time.perf_counter()
+        res.cells["cause"] = _diagnose_cells(out, svc, samples.period_s)
+        res.seconds["diagnose"] = time.perf_counter() - t5
+        t4 = time.perf_counter()
+    if write:
+        p = parquet_path(out_dir, vehicle, log)
+        _write_parquet(p, out)
+        res.parquet = str(p)
+    res.seconds["write"] = time.perf_counter() - t4
+    res.status = "ok"
+    return res, out.state, out
+
+
+def run_vehicle(logs: list[str], config: str | None, out_dir: str | Path, vehicle: str,
+                chain: bool = True, diagnose: bool = False) -> list[DriveResult]:
+    """A vehicle's drives in time order, the estimator state carried from each to the next."""
+    results = []
+    state = None
+    for log in sorted(logs, key=drive_order_key):
+        res, new_state, _ = run_drive(log, config, out_dir, vehicle, state if chain else None, diagnose=diagnose)
+        if chain:
+            state = new_state
+        results.append(res)
+    return results

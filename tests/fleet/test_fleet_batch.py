@@ -1,0 +1,132 @@
+"""`bms-estimator batch`: the CLI, the per-drive error list, and Dask distributed with 1 and 2 worker processes."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from bms_estimator.cli.__main__ import main
+from bms_estimator.errors import EXIT_DATA, EXIT_USAGE
+from bms_estimator.fleet.batch import run_batch, summary_rows
+from bms_estimator.replay.encode_log import encode_log
+
+N_CELLS = 3
+SAMPLES = Path(__file__).parents[2] / "bms_estimator" / "samples"
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet")
+    src = SAMPLES / "lg-hg2_25degC_udds_1s.csv.gz"
+    for vehicle, seed in (("car1", 0), ("car2", 1)):
+        for i, dur in enumerate((200.0, 150.0)):
+            out = d / "logs" / vehicle / f"drive{i}.log"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            encode_log(src, out, N_CELLS, initial_soc=1.0 - 0.05 * i, duration_s=dur, reference_capacity_ah=3.0,
+                       seed=seed + i)
+    bad = d / "logs" / "car3"
+    bad.mkdir()
+    (bad / "empty.log").write_bytes(b"")
+    (bad / "corrupt.log").write_bytes(b"(0.000000) can0 1B5E0010#A7FF\n(0.01) can0 zz#\x00\xff\n")
+    (bad / "foreign.log").write_text("".join(f"({k * 0.01:.6f}) can0 123#0011223344556677\n" for k in range(500)))
+    good = (d / "logs" / "car1" / "drive0.log").read_text().splitlines(keepends=True)
+    (bad / "backwards.log").write_text("".join(good[:20000] + good[:20000]))  # a second log appended: time rewinds
+    cfg = d / "config.toml"
+    cfg.write_text(f"""
+[pack]
+n_cells = {N_CELLS}
+capacity_ah = 3.0
+ocv_csv = "{SAMPLES / 'lg-hg2_25degC_ocv.csv'}"
+[can]
+interface = "virtual"
+[mqtt]
+enabled = false
+""")
+    return d, cfg
+
+
+def _read(out: Path) -> dict[str, np.ndarray]:
+    return {str(p.relative_to(out)): pq.read_table(p).to_pandas().to_numpy(dtype=float)
+            for p in sorted((out / "drives").rglob("*.parquet"))}
+
+
+def test_cli_reports_bad_logs_and_does_the_rest(fleet, capsys):
+    d, cfg = fleet
+    out = d / "out-cli"
+    rc = main(["batch", str(d / "logs"), "--config", str(cfg), "--out", str(out), "--workers", "1", "--chain",
+               "--no-progress"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "4 of 8 drives estimated" in text
+    with (out / "errors.csv").open() as fh:
+        errors = {Path(r["log"]).name: r["error"] for r in csv.DictReader(fh)}
+    assert set(errors) == {"empty.log", "corrupt.log", "foreign.log", "backwards.log"}
+    assert "empty log" in errors["empty.log"]
+    assert "cannot read the log" in errors["corrupt.log"]
+    assert "another DBC" in errors["foreign.log"]
+    assert "go back" in errors["backwards.log"]
+    with (out / "summary.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    ok = [r for r in rows if r["status"] == "ok"]
+    assert len(ok) == 4 * N_CELLS
+    assert all(abs(float(r["soc_error_final_pct"])) < 5.0 and float(r["soc_rmse_pct"]) < 5.0 for r in ok)  # encode-log's truth: a reference exists
+    assert all(2.0 < float(r["capacity_ah_final"]) < 4.0 and 0 < float(r["r0_ohm_final"]) < 0.1 for r in ok)
+    table = pq.read_table(out / "drives" / "car1" / "drive1.log.parquet")
+    assert {"soc", "r0_ohm", "tau1_s", "capacity_ah", "temperature_c", "cell", "t_s"} <= set(table.column_names)
+
+
+def test_cli_errors_name_the_problem(fleet, tmp_path, capsys):
+    d, cfg = fleet
+    assert main(["batch", str(d / "logs" / "car3" / "empty.log"), "--config", str(cfg), "--out", str(tmp_path),
+                 "--workers", "1", "--no-progress"]) == EXIT_DATA
+    assert main(["batch", "x.log", "--config", str(tmp_path / "nope.toml"), "--out", str(tmp_path)]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "empty log" in err and "nope.toml: no such file" in err
+
+
+def test_two_worker_processes_give_the_one_worker_results(fleet):
+    """A real LocalCluster on loopback, 2 worker processes, drives unchained and chained."""
+    from dask.distributed import Client, LocalCluster
+
+    d, cfg = fleet
+    logs = sorted(str(p) for p in (d / "logs").rglob("*.log") if p.parent.name != "car3")
+    for chain in (False, True):
+        results = {}
+        for n in (1, 2):
+            out = d / f"out-{n}-{chain}"
+            shutil.rmtree(out, ignore_errors=True)
+            with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                              dashboard_address=None) as cluster, Client(cluster) as client:
+                assert len(client.scheduler_info()["workers"]) == n
+                res = run_batch(logs, str(cfg), out, chain=chain, client=client)
+            assert res.workers == n and not res.failed
+            results[n] = (_read(out), summary_rows(res.drives))
+        files1, rows1 = results[1]
+        files2, rows2 = results[2]
+        assert len(files1) == 4 and files1.keys() == files2.keys()
+        for key in files1:
+            assert np.array_equal(files1[key], files2[key], equal_nan=True), key
+        assert rows1 == rows2
+
+
+def test_scheduler_address_puts_the_work_on_that_cluster(fleet, capsys):
+    """--scheduler ADDR: the drives run on the cluster behind the address (here a LocalCluster's scheduler)."""
+    from dask.distributed import LocalCluster
+
+    d, cfg = fleet
+    out = d / "out-sched"
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        rc = main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out),
+                   "--scheduler", cluster.scheduler_address, "--no-progress"])
+    assert rc == 0
+    assert "1 of 1 drives estimated" in capsys.readouterr().out
+    assert (out / "drives" / "car1" / "drive0.log.parquet").is_file()
+    assert main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out),
+                 "--scheduler", "tcp://127.0.0.1:9", "--no-progress"]) == EXIT_USAGE
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err

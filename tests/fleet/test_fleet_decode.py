@@ -1,0 +1,249 @@
+"""Bulk decode (fleet/frames.py, decode.py, assemble.py) against the service's per-frame path.
+
+The reference is FrameDecoder.decode + SampleAssembler.feed_frame, frame by frame, with the
+service's sampler settings. Equality is bit-for-bit (NaN = NaN) on every sample field and on
+every decoder and sampler counter, including time jumps, rewinds, backward frames, bad
+timestamps, invalid flags, bad multiplexer values, short frames and unknown ids.
+"""
+
+from __future__ import annotations
+
+import math
+
+import can
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from bms_estimator.can.dbc import load_project_db
+from bms_estimator.can.decoder import FrameDecoder
+from bms_estimator.fleet.assemble import assemble_samples
+from bms_estimator.fleet.decode import decode_frames
+from bms_estimator.fleet.frames import EXTENDED_FLAG, FrameTable, read_frames
+
+from .fleet_helpers import assert_same_samples, messages, service_sampler, service_samples
+
+N_CELLS = 4
+DB = load_project_db()
+PACK = DB.get_message_by_name("PackMeasurement")
+VOLTS = DB.get_message_by_name("CellVoltages")
+TEMPS = DB.get_message_by_name("CellTemperatures")
+
+
+def _payload(kind: int, draw_int, rnd_bytes: bytes) -> tuple[int, bytes]:
+    if kind == 0:
+        return PACK.frame_id | EXTENDED_FLAG, PACK.encode(
+            {"PackCurrent": draw_int(-3000, 3000) / 1000.0, "PackVoltage": 14.8 + draw_int(0, 100) / 100,
+             "MeasurementCounter": 0, "CurrentInvalid": int(draw_int(0, 20) == 0),
+             "VoltageInvalid": int(draw_int(0, 20) == 0)}, scaling=True)
+    if kind == 1:
+        base = (0, 3, 6)[draw_int(0, 2)]  # 6: cells beyond the pack (unmapped)
+        return VOLTS.frame_id | EXTENDED_FLAG, VOLTS.encode(
+            {"CellIndexBase": base, "CellVoltage0": 3.0 + draw_int(0, 12000) / 10000,
+             "CellVoltage1": 3.1, "CellVoltage2": (0.2, 3.6)[draw_int(0, 1)]}, strict=False)
+    if kind == 2:
+        return TEMPS.frame_id | EXTENDED_FLAG, TEMPS.encode(
+            {"CellIndexBase": 0, **{f"CellTemperature{j}": 20 + draw_int(0, 20) / 2 for j in range(6)}})
+    if kind == 3:  # random bytes on a mapped id: bad mux, out of range, flags
+        key = (PACK.frame_id, VOLTS.frame_id, TEMPS.frame_id)[draw_int(0, 2)] | EXTENDED_FLAG
+        return key, rnd_bytes
+    if kind == 4:
+        return 0x123, rnd_bytes  # unknown id
+    return VOLTS.frame_id | EXTENDED_FLAG, rnd_bytes[: draw_int(0, 7)]  # short frame
+
+
+@st.composite
+def frame_tables(draw) -> FrameTable:
+    n = draw(st.integers(1, 400))
+    t = draw(st.floats(-3.0, 1e6, allow_nan=False)) if draw(st.booleans()) else 0.0
+    ts, keys, payloads = [], [], []
+
+    def draw_int(lo, hi):
+        return draw(st.integers(lo, hi))
+
+    steps = st.sampled_from([0.0, 0.001, 0.01, 0.01, 0.01, 0.05, 0.1, 0.3, 0.6, 1.0, 2.7, -0.004, -0.5, -4.9,
+                             5.0, 5.0000001, 6.0, 40.0, -6.0, -100.0])
+    for _ in range(n):
+        step = draw(steps)
+        t = t + step
+        if draw(st.integers(0, 60)) == 0:
+            ts.append(draw(st.sampled_from([math.nan, math.inf, 1e20])))
+        else:
+            ts.append(t)
+        kind = draw(st.sampled_from([0, 0, 0, 1, 1, 1, 2, 3, 4, 5]))
+        key, data = _payload(kind, draw_int, draw(st.binary(min_size=8, max_size=8)))
+        keys.append(key)
+        payloads.append(bytes(data))
+    return FrameTable._build(ts, keys, [len(p) for p in payloads], [False] * n, payloads)
+
+
+def bulk(decoder: FrameDecoder, frames: FrameTable, sampler):
+    ev, dc = decode_frames(decoder, frames)
+    sa = assemble_samples(frames.t_s, ev, sampler)
+    return sa, dc
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(frames=frame_tables(), period=st.sampled_from([1.0, 1.0, 0.5, 2.0]))
+def test_bulk_equals_service_on_crafted_frames(frames, period):
+    ref_dec = FrameDecoder(DB, "default", N_CELLS)
+    ref = service_samples(ref_dec, service_sampler(N_CELLS, period), messages(frames))
+    sa, dc = bulk(FrameDecoder(DB, "default", N_CELLS), frames, service_sampler(N_CELLS, period))
+    assert_same_samples(sa, ref)
+    assert {**dc.as_dict(), **sa.counters} == ref.counters
+
+
+def test_anomalies_are_counted_like_the_service():
+    """A hand-made sequence with each anomaly once: the counters name it, as the service's do."""
+    def frame(t, cur=1.0):
+        return t, PACK.frame_id | EXTENDED_FLAG, PACK.encode({"PackCurrent": cur, "PackVoltage": 15.0,
+                                                              "MeasurementCounter": 0, "CurrentInvalid": 0,
+                                                              "VoltageInvalid": 0})
+    rows = [frame(0.01 * k) for k in range(300)]  # 0 .. 2.99 s
+    rows += [frame(2.5)]  # backward by 0.49 s: ignored
+    rows += [frame(3.0 + 0.01 * k) for k in range(100)]
+    rows += [frame(20.0 + 0.01 * k) for k in range(100)]  # time jump
+    rows += [frame(1.0 + 0.01 * k) for k in range(200)]  # rewind: a new log
+    rows += [frame(math.nan)]
+    ts, keys, data = zip(*rows)
+    frames = FrameTable._build(list(ts), list(keys), [8] * len(ts), [False] * len(ts), list(data))
+    ref = service_samples(FrameDecoder(DB, "default", N_CELLS), service_sampler(N_CELLS), messages(frames))
+    sa, dc = bulk(FrameDecoder(DB, "default", N_CELLS), frames, service_sampler(N_CELLS))
+    assert_same_samples(sa, ref)
+    c = sa.counters
+    assert (c["backward_frames"], c["time_jumps"], c["rewinds"], c["bad_timestamps"]) == (1, 1, 1, 1)
+    assert {**dc.as_dict(), **c} == ref.counters
+    assert np.all(~sa.valid)  # no cell voltage ever: every cell stale
+
+
+def test_candump_bulk_reader_equals_python_can(tmp_path):
+    """The bulk .log parser gives python-can's frames bit for bit (timestamps included)."""
+    rng = np.random.default_rng(1)
+    path = tmp_path / "x.log"
+    t = 1_700_000_000.123456
+    with can.Logger(str(path)) as w:
+        for k in range(2000):
+            t += float(rng.choice([0.000001, 0.0137, 0.5, -0.25]))
+            ext = bool(rng.integers(0, 2))
+            w(can.Message(timestamp=t, arbitration_id=int(rng.integers(0, 0x1FFFFFFF if ext else 0x7FF)),
+                          is_extended_id=ext, data=rng.integers(0, 256, int(rng.integers(0, 9)), dtype=np.uint8).tobytes()))
+    bulk_t = read_frames(path)
+    ref = FrameTable.from_messages(can.LogReader(str(path)))
+    for f in ("t_s", "key", "length", "data", "ignored"):
+        assert np.array_equal(getattr(bulk_t, f), getattr(ref, f)), f
+
+
+def test_foxbms_big_endian_signals_decode_like_cantools(foxbms_db):
+    """Motorola signals, per-cell invalid flags and a negative current scale, on random payloads."""
+    dec = FrameDecoder(foxbms_db, "foxbms", 18)
+    ids = [p.message.frame_id for p in dec._plans.values()]
+    rng = np.random.default_rng(7)
+    m = 3000
+    keys = rng.choice(ids, m)
+    data = rng.integers(0, 256, (m, 8), dtype=np.uint8)
+    data[: m // 2, 0] = rng.integers(0, 8, m // 2)  # mostly defined multiplexer values
+    frames = FrameTable(np.arange(m) * 0.01, keys.astype(np.int64), np.full(m, 8, np.int16), data,
+                        np.zeros(m, bool))
+    ev, dc = decode_frames(dec, frames)
+    ref_dec = FrameDecoder(foxbms_db, "foxbms", 18)
+    want = [(i, int(e.kind), e.cell, e.value) for i, msg in enumerate(messages(frames)) for e in ref_dec.decode(msg)]
+    got = list(zip(ev.frame.tolist(), ev.kind.tolist(), ev.cell.tolist(), ev.value.tolist()))
+    assert got == want
+    assert dc.as_dict() == ref_dec.counters.as_dict()
+    assert len(want) > 100 and dc.flagged_invalid > 0 and dc.bad_mux > 0
+
+
+@pytest.mark.parametrize("content, problem", [(b"(0.0) can0 12G#00\n", "cannot read"), (b"\x00\xff garbage", "cannot read")])
+def test_corrupt_log_is_a_data_error(tmp_path, content, problem):
+    from bms_estimator.errors import DataError
+
+    path = tmp_path / "bad.log"
+    path.write_bytes(content)
+    with pytest.raises(DataError, match=problem):
+        read_frames(path)
+
+
+def test_mf4_bus_logging_reads_back_the_frames(tmp_path):
+    """An MF4 bus-logging file (asammdf's CAN_DataFrame layout) gives the frames it was written from."""
+    from asammdf import MDF
+
+    from bms_estimator.fleet.frames import write_mf4
+
+    rng = np.random.default_rng(3)
+    m = 500
+    keys = rng.choice([PACK.frame_id | EXTENDED_FLAG, VOLTS.frame_id | EXTENDED_FLAG, 0x123], m).astype(np.int64)
+    frames = FrameTable(np.cumsum(rng.uniform(0, 0.02, m)) + 1e5, keys, np.full(m, 8, np.int16),
+                        rng.integers(0, 256, (m, 8), dtype=np.uint8), np.zeros(m, bool))
+    path = write_mf4(frames, tmp_path / "x.mf4")
+    back = read_frames(path)
+    for f in ("t_s", "key", "length", "data", "ignored"):
+        assert np.array_equal(getattr(back, f), getattr(frames, f)), f
+    with MDF(str(path)) as mdf:  # a real bus-logging file: asammdf decodes it with the DBC
+        from bms_estimator.can.dbc import project_dbc_path
+
+        out = mdf.extract_bus_logging({"CAN": [(str(project_dbc_path()), 0)]})
+        names = {c.name for g in out.groups for c in g.channels}
+    assert "PackCurrent" in names
+
+
+FD_DBC = '''VERSION ""
+
+BU_: BMS
+
+BO_ 2147484160 FdPack: 64 BMS
+ SG_ Current : 0|32@1- (0.001,0) [-2000|2000] "A" BMS
+ SG_ Cell0 : 32|16@1+ (0.0001,0) [0|6.5] "V" BMS
+ SG_ Cell1 : 496|16@1+ (0.0001,0) [0|6.5] "V" BMS
+
+BA_DEF_ BO_ "VFrameFormat" ENUM "StandardCAN","ExtendedCAN","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","reserved","StandardCAN_FD","ExtendedCAN_FD";
+BA_DEF_DEF_ "VFrameFormat" "StandardCAN";
+BA_ "VFrameFormat" BO_ 2147484160 15;
+'''
+
+
+def test_can_fd_messages_wider_than_8_bytes_decode_like_the_service(tmp_path):
+    """A 64-byte CAN FD message goes through the service's decoder frame by frame: same events and counters."""
+    from bms_estimator.can.dbc import load_db
+
+    path = tmp_path / "fd.dbc"
+    path.write_text(FD_DBC)
+    db = load_db(path)
+    msg = db.get_message_by_name("FdPack")
+    assert msg.length == 64
+    mapping = {"current": {"message": "FdPack", "signal": "Current"},
+               "cell_voltages": [{"message": "FdPack", "table": [{"signals": {"Cell0": 0, "Cell1": 1}}]}]}
+    rng = np.random.default_rng(5)
+    m = 300
+    data = np.zeros((m, 64), np.uint8)
+    for k in range(m):
+        data[k] = np.frombuffer(msg.encode({"Current": rng.uniform(-5, 5), "Cell0": rng.uniform(0.1, 4.2),
+                                            "Cell1": 3.7}), np.uint8)
+    lengths = np.where(rng.uniform(size=m) < 0.1, 32, 64).astype(np.int16)  # some short frames
+    frames = FrameTable(np.arange(m) * 0.01, np.full(m, msg.frame_id | EXTENDED_FLAG, np.int64), lengths, data,
+                        np.zeros(m, bool))
+    ev, dc = decode_frames(FrameDecoder(db, mapping, 2), frames)
+    ref_dec = FrameDecoder(db, mapping, 2)
+    ref_msgs = [can.Message(timestamp=float(frames.t_s[i]), arbitration_id=msg.frame_id, is_extended_id=True,
+                            is_fd=True, data=bytes(data[i, : lengths[i]])) for i in range(m)]
+    want = [(i, int(e.kind), e.cell, e.value) for i, mm in enumerate(ref_msgs) for e in ref_dec.decode(mm)]
+    got = list(zip(ev.frame.tolist(), ev.kind.tolist(), ev.cell.tolist(), ev.value.tolist()))
+    assert got == want and len(want) > 300
+    assert dc.as_dict() == ref_dec.counters.as_dict()
+    assert dc.short_frame > 0 and dc.out_of_range > 0
+
+
+@pytest.mark.parametrize("suffix", [".blf", ".asc"])
+def test_truncated_blf_and_asc_are_data_errors(tmp_path, suffix):
+    """python-can reads a cut BLF or ASC file up to the cut without an error; batch must not take half a drive."""
+    from bms_estimator.errors import DataError
+
+    path = tmp_path / f"x{suffix}"
+    with can.Logger(str(path)) as w:
+        for k in range(3000):
+            w(can.Message(timestamp=1.0 + 0.01 * k, arbitration_id=0x100, data=bytes(8)))
+    assert len(read_frames(path)) == 3000
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 2 + 3])
+    with pytest.raises(DataError, match="truncated"):
+        read_frames(path)
