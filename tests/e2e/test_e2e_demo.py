@@ -23,9 +23,12 @@ def _embedded_available() -> bool:
     return embedded_available()
 
 
-def _run_demo(tmp_path, capsys, broker: str, duration_s: int) -> tuple[str, dict]:
+def _run_demo(tmp_path, capsys, broker: str, duration_s: int | None) -> tuple[str, dict]:
+    """``bms-estimator demo`` over the first ``duration_s`` of the cycle (None: the README's
+    command, the whole cycle); checks the summary, the figure and the JSON."""
     out_dir = tmp_path / "demo"
-    rc = main(["demo", "--output", str(out_dir), "--duration-s", str(duration_s), "--broker", broker])
+    cut = [] if duration_s is None else ["--duration-s", str(duration_s)]
+    rc = main(["demo", "--output", str(out_dir), *cut, "--broker", broker])
     assert rc == 0
     text = capsys.readouterr().out
     png = out_dir / "pack.png"
@@ -33,7 +36,7 @@ def _run_demo(tmp_path, capsys, broker: str, duration_s: int) -> tuple[str, dict
     assert f"Figure: {png}" in text
     summary = json.loads((out_dir / "pack_summary.json").read_text())
     truth = json.loads((out_dir / "pack.truth.json").read_text())
-    assert summary["samples"] == duration_s and summary["n_cells"] == 16 == len(truth["cells"])
+    assert summary["samples"] == (duration_s or round(truth["duration_s"])) and summary["n_cells"] == 16 == len(truth["cells"])
     assert summary["decode_errors"] == 0 and summary["frames_decoded"] == summary["frames"]
     # the summary: a row per cell with the SOC error, the voltage RMSE and the parameters
     assert "Summary: 16-cell pack from lg-hg2 la92" in text
@@ -67,9 +70,18 @@ def test_demo_with_its_own_mosquitto(tmp_path, capsys):
 
 @pytest.mark.skipif(not _embedded_available(), reason="the embedded broker needs amqtt")
 def test_demo_with_the_embedded_broker(tmp_path, capsys):
-    text, summary = _run_demo(tmp_path, capsys, "embedded", 900)
-    assert "MQTT: embedded amqtt broker (pure Python) at 127.0.0.1:" in text
+    """The README's command as on a fresh machine (no Mosquitto: the embedded broker), over the
+    whole cycle. Its wall time is printed for CI's log (a figure, never asserted: the goal is
+    under 60 s on an idle machine)."""
+    text, summary = _run_demo(tmp_path, capsys, "embedded", None)
+    assert "MQTT: embedded amqtt broker (pure Python" in text
     assert summary["mqtt_final_states_match_service"] is True
+    # MQTT at mqtt.publish_period_s = 10 s of log time per topic: about 17 topics per 10 s, plus the finals
+    assert summary["mqtt_received"] >= 17 * (summary["samples"] // 10)
+    with capsys.disabled():
+        print(f"\n[demo timing] bms-estimator demo --broker embedded, whole cycle "
+              f"({summary['samples']} s, {summary['frames']:,} frames): {summary['wall_s']:.1f} s wall, "
+              f"service {summary['replay_wall_s']:.1f} s ({summary['times_real_time']:.0f}x real time)")
 
 
 def test_demo_without_mqtt(tmp_path, capsys):
