@@ -457,6 +457,7 @@ class FrameDecoder:
                 return []
             out: list[Event] = []
             isfinite = math.isfinite
+            new_tuple = tuple.__new__
             for kind, cell, sname, a, b, lo, hi, na_raws, flags in entries:
                 value = raw.get(sname)
                 if value is None:
@@ -481,7 +482,7 @@ class FrameDecoder:
                 if si < lo or si > hi:
                     c.out_of_range += 1
                     continue
-                out.append(Event(kind, cell, si))
+                out.append(new_tuple(Event, (kind, cell, si)))  # Event(...) without its Python-level __new__
             c.events += len(out)
             return out
         except Exception:  # pragma: no cover - defensive: decode must never raise
