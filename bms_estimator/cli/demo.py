@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import math
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from ..analysis import compare_methods, reference_capacity, reference_soc, run_soc, soc_errors
@@ -86,16 +88,20 @@ def run_pack(args: argparse.Namespace) -> int:
     out_dir: Path = args.output
     out_dir.mkdir(parents=True, exist_ok=True)
     out = sys.stdout
-    setup = prepare_pack(cell, args.cycle, args.cells, seed=args.seed, duration_s=args.duration_s)
-    ref = setup.truth["reference"]
-    print(f"bms-estimator demo: {setup.cell} {setup.cycle} ({setup.duration_s:.0f} s, 1 s samples) as the CAN "
-          f"traffic of a {setup.n_cells}-cell pack: {len(setup.frames):,} frames (current 10 ms, cell voltages "
-          f"100 ms, temperatures 1 s; project DBC), seed {setup.seed}; cell model identified on the measured cell "
-          f"(simulation RMSE {ref['model_rmse_mv']:.1f} mV) in {setup.prepare_s:.1f} s", file=out, flush=True)
-    truth_file = out_dir / "pack.truth.json"
-    write_json(setup.truth, truth_file)
-    live = sys.stdout.isatty() and not args.plain
-    with open_broker(args.broker) as broker:
+    # the broker (a process of its own, or Mosquitto) starts while the pack is prepared
+    with contextlib.ExitStack() as stack:
+        pool = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="bms-demo-prepare"))
+        prepared = pool.submit(prepare_pack, cell, args.cycle, args.cells, seed=args.seed, duration_s=args.duration_s)
+        broker = stack.enter_context(open_broker(args.broker))
+        setup = prepared.result()
+        ref = setup.truth["reference"]
+        print(f"bms-estimator demo: {setup.cell} {setup.cycle} ({setup.duration_s:.0f} s, 1 s samples) as the CAN "
+              f"traffic of a {setup.n_cells}-cell pack: {len(setup.frames):,} frames (current 10 ms, cell voltages "
+              f"100 ms, temperatures 1 s; project DBC), seed {setup.seed}; cell model identified on the measured cell "
+              f"(simulation RMSE {ref['model_rmse_mv']:.1f} mV) in {setup.prepare_s:.1f} s", file=out, flush=True)
+        truth_file = out_dir / "pack.truth.json"
+        write_json(setup.truth, truth_file)
+        live = sys.stdout.isatty() and not args.plain
         print(f"MQTT: {broker.describe()}", file=out, flush=True)
         if not broker.enabled:
             print("MQTT is disabled for this run: the service runs without publishing and the view reads its "
