@@ -3,7 +3,7 @@
 Default: a shipped drive cycle (LG HG2 LA92, 1 s) becomes the CAN traffic of a 16-cell pack
 (cell 0 the measured cell, the others simulated with a seeded spread), is fed at full speed
 frame by frame through the real estimator service (in process, without a CAN bus object:
-decoder, sampler, estimator, MQTT every 10 s of log time per topic), which publishes
+decoder, sampler, estimator, MQTT every 30 s of log time per topic), which publishes
 to MQTT (the broker given by ``--broker``, else a Mosquitto it starts, else an embedded
 pure-Python broker, else MQTT off); a live view of the pack runs meanwhile, and a summary
 (SOC error per cell against the reference, voltage RMSE, identified parameters, R0 ranking

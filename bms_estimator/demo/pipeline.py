@@ -71,9 +71,9 @@ __all__ = [
 DEFAULT_CYCLE = {"lg-hg2": "la92", "panasonic-18650pf": "cycle_2"}
 #: frames handed to the service per slice at ``speed="max"`` (the live view ticks in between)
 FEED_SLICE = 4096
-#: ``mqtt.publish_period_s`` of the demo's service: each topic at most once per 10 s of log time
+#: ``mqtt.publish_period_s`` of the demo's service: each topic at most once per 30 s of log time
 #: (the final states at the stop regardless); the figure and summary read every sample
-MQTT_PUBLISH_PERIOD_S = 10.0
+MQTT_PUBLISH_PERIOD_S = 30.0
 PACK_ID = "demo"
 
 

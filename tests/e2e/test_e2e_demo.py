@@ -76,9 +76,11 @@ def test_demo_with_the_embedded_broker(tmp_path, capsys):
     text, summary = _run_demo(tmp_path, capsys, "embedded", None)
     assert "MQTT: embedded amqtt broker (pure Python" in text
     assert summary["mqtt_final_states_match_service"] is True
-    # MQTT at mqtt.publish_period_s = 10 s of log time per topic: 17 topics per 10 s and the finals
-    # (a state superseded in the publisher's latest-value buffer before it went out is not sent)
-    per_period = 17 * (summary["samples"] // 10)
+    # MQTT at the demo's mqtt.publish_period_s of log time per topic: 17 topics per period and the
+    # finals (a state superseded in the publisher's latest-value buffer before it went out is not sent)
+    from bms_estimator.demo.pipeline import MQTT_PUBLISH_PERIOD_S
+
+    per_period = 17 * int(summary["samples"] // MQTT_PUBLISH_PERIOD_S)
     assert 0.9 * per_period <= summary["mqtt_received"] <= per_period + 2 * 17
     with capsys.disabled():
         print(f"\n[demo timing] bms-estimator demo --broker embedded, whole cycle "
