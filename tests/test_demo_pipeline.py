@@ -53,3 +53,10 @@ def test_frames_carry_the_log_time_id_and_payload():
             m.timestamp, m.arbitration_id, m.is_extended_id, bytes(m.data))
         assert not f.is_error_frame and not f.is_remote_frame
     assert feed_slices(FrameArrays(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint64)), 10.0) == []
+
+
+def test_a_slow_speed_makes_no_more_slices_than_frames():
+    fa = _frames(1000, step_us=1_000_000)  # 1000 s of log, a frame a second
+    slices = feed_slices(fa, 0.001, wall_step_s=0.02)  # a step of 20 us of log: one frame each
+    assert _covers(slices, len(fa)) and len(slices) == len(fa)
+    assert slices[-1][2] == pytest.approx(999 / 0.001)

@@ -425,9 +425,9 @@ def feed_slices(fa: FrameArrays, speed: float, wall_step_s: float = 0.02) -> lis
         return [(a, min(n, a + FEED_SLICE), 0.0) for a in range(0, n, FEED_SLICE)]
     step_us = max(1, int(round(speed * wall_step_s * 1e6)))
     rel = fa.t_us - fa.t_us[0]
-    edges = np.searchsorted(rel, np.arange(step_us, int(rel[-1]) + step_us + 1, step_us), side="left")
-    bounds = np.unique(np.concatenate([[0], edges, [n]]))
-    return [(int(a), int(b), float(rel[a]) / 1e6 / speed) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    step = rel // step_us  # the wall step each frame falls in (frames are in time order)
+    bounds = np.concatenate([[0], np.flatnonzero(np.diff(step)) + 1, [n]])
+    return [(int(a), int(b), float(rel[a]) / 1e6 / speed) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 async def run_pipeline(setup: PackSetup, *, broker: Any = None, speed: float = math.inf,
