@@ -1,8 +1,9 @@
 """``bms-estimator demo``: the main job on a fresh machine, on measured data shipped in the package.
 
 Default: a shipped drive cycle (LG HG2 LA92, 1 s) becomes the CAN traffic of a 16-cell pack
-(cell 0 the measured cell, the others simulated with a seeded spread), is replayed at full
-speed over an in-process virtual CAN bus through the real estimator service, which publishes
+(cell 0 the measured cell, the others simulated with a seeded spread), is fed at full speed
+frame by frame through the real estimator service (in process, without a CAN bus object:
+decoder, sampler, estimator, MQTT every 30 s of log time per topic), which publishes
 to MQTT (the broker given by ``--broker``, else a Mosquitto it starts, else an embedded
 pure-Python broker, else MQTT off); a live view of the pack runs meanwhile, and a summary
 (SOC error per cell against the reference, voltage RMSE, identified parameters, R0 ranking
@@ -17,9 +18,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import math
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from ..analysis import compare_methods, reference_capacity, reference_soc, run_soc, soc_errors
@@ -36,8 +39,8 @@ def add_parser(sub) -> None:
     p = sub.add_parser(
         "demo", help="a shipped drive cycle as a pack's CAN traffic through the estimator service (MQTT, live view)",
         description="Encodes a measured drive cycle shipped in the package as the CAN traffic of a pack "
-                    "(cell 0 measured, the others simulated with a seeded spread), replays it over an in-process "
-                    "virtual CAN bus through the estimator service, publishes to MQTT, shows the pack live and "
+                    "(cell 0 measured, the others simulated with a seeded spread), feeds it frame by frame through the "
+                    "estimator service in process, publishes to MQTT, shows the pack live and "
                     "ends with a summary and a figure. --paper runs the offline paper comparison instead.",
     )
     p.add_argument("--output", type=Path, default=Path("bms-estimator-demo"), help="folder for the figure and JSON")
@@ -50,7 +53,7 @@ def add_parser(sub) -> None:
     p.add_argument("--cells", type=int, default=16, help="cells in the pack (default 16)")
     p.add_argument("--seed", type=int, default=0, help="seed of the cell-to-cell spread (default 0)")
     p.add_argument("--speed", default="max",
-                   help="replay speed: 'max' (default, flow-controlled) or a factor on real time (50 = 50x)")
+                   help="replay speed: 'max' (default, as fast as the service goes) or a factor on real time (50 = 50x)")
     p.add_argument("--duration-s", type=positive_float, default=None,
                    help="replay only the first S seconds of the cycle (default: all of it)")
     p.add_argument("--broker", default="auto",
@@ -70,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
 def run_pack(args: argparse.Namespace) -> int:
     """The service on a replayed pack (the default)."""
     from ..demo.broker import open_broker
-    from ..demo.pipeline import prepare_pack, run_pipeline
+    from ..demo.pipeline import MQTT_PUBLISH_PERIOD_S, prepare_pack, run_pipeline
     from ..demo.summary import analyse, format_summary, plot_run
     from ..replay.replay import parse_speed
 
@@ -85,16 +88,20 @@ def run_pack(args: argparse.Namespace) -> int:
     out_dir: Path = args.output
     out_dir.mkdir(parents=True, exist_ok=True)
     out = sys.stdout
-    setup = prepare_pack(cell, args.cycle, args.cells, seed=args.seed, duration_s=args.duration_s)
-    ref = setup.truth["reference"]
-    print(f"bms-estimator demo: {setup.cell} {setup.cycle} ({setup.duration_s:.0f} s, 1 s samples) as the CAN "
-          f"traffic of a {setup.n_cells}-cell pack: {len(setup.frames):,} frames (current 10 ms, cell voltages "
-          f"100 ms, temperatures 1 s; project DBC), seed {setup.seed}; cell model identified on the measured cell "
-          f"(simulation RMSE {ref['model_rmse_mv']:.1f} mV) in {setup.prepare_s:.1f} s", file=out, flush=True)
-    truth_file = out_dir / "pack.truth.json"
-    write_json(setup.truth, truth_file)
-    live = sys.stdout.isatty() and not args.plain
-    with open_broker(args.broker) as broker:
+    # the broker (a process of its own, or Mosquitto) starts while the pack is prepared
+    with contextlib.ExitStack() as stack:
+        pool = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="bms-demo-prepare"))
+        prepared = pool.submit(prepare_pack, cell, args.cycle, args.cells, seed=args.seed, duration_s=args.duration_s)
+        broker = stack.enter_context(open_broker(args.broker))
+        setup = prepared.result()
+        ref = setup.truth["reference"]
+        print(f"bms-estimator demo: {setup.cell} {setup.cycle} ({setup.duration_s:.0f} s, 1 s samples) as the CAN "
+              f"traffic of a {setup.n_cells}-cell pack: {len(setup.frames):,} frames (current 10 ms, cell voltages "
+              f"100 ms, temperatures 1 s; project DBC), seed {setup.seed}; cell model identified on the measured cell "
+              f"(simulation RMSE {ref['model_rmse_mv']:.1f} mV) in {setup.prepare_s:.1f} s", file=out, flush=True)
+        truth_file = out_dir / "pack.truth.json"
+        write_json(setup.truth, truth_file)
+        live = sys.stdout.isatty() and not args.plain
         print(f"MQTT: {broker.describe()}", file=out, flush=True)
         if not broker.enabled:
             print("MQTT is disabled for this run: the service runs without publishing and the view reads its "
@@ -102,9 +109,10 @@ def run_pack(args: argparse.Namespace) -> int:
         else:
             print(f"  topics: bms/demo/cell/<i>/state, bms/demo/pack/state, bms/demo/availability "
                   f"(watch with: bms-estimator dashboard --broker {broker.host}:{broker.port})", file=out, flush=True)
-        print("Service: virtual CAN bus -> decoder -> 1 s samples -> SOC + 2-RC estimator"
-              + (" -> MQTT" if broker.enabled else "") + " "
-              f"(replay speed {'max, flow-controlled' if math.isinf(speed) else f'{speed:g}x'}; CAN output "
+        print("Service: frames in process -> decoder -> 1 s samples -> SOC + 2-RC estimator"
+              + (f" -> MQTT (each topic every {MQTT_PUBLISH_PERIOD_S:g} s of log time, mqtt.publish_period_s, "
+                 "and the final states; the summary reads every sample)" if broker.enabled else "") + " "
+              f"(replay speed {'max' if math.isinf(speed) else f'{speed:g}x'}; CAN output "
               "and health server off)", file=out, flush=True)
         if live:
             from ..demo.live import LiveView

@@ -9,9 +9,10 @@
                  (anonymous, no persistence, a deep per-client queue, log to a file) in a
                  temporary folder; terminated
                  (SIGTERM, then SIGKILL) when the context ends
-``embedded``     amqtt's broker (pure Python, asyncio) in a thread of its own with its own
-                 event loop, on a free 127.0.0.1 port, anonymous, without its logging and
-                 ``$SYS`` plugins; shut down when the context ends
+``embedded``     amqtt's broker (pure Python, asyncio) in a child process of its own (in the
+                 demo's process it held the service back through the interpreter lock), on a
+                 free 127.0.0.1 port, anonymous, without its logging and ``$SYS`` plugins;
+                 it ends when the context closes its stdin (or the demo is gone)
 ``none``         no broker: the service runs with MQTT disabled
 
 A choice that cannot be had falls through to the next one of ``auto`` and the reason is kept
@@ -23,10 +24,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
+import select
+import subprocess
+import sys
 import tempfile
-import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 from ..mosquitto import Mosquitto, MosquittoError, find_mosquitto, free_port
 
@@ -54,7 +60,7 @@ class BrokerInfo:
         if not self.enabled:
             return "none: MQTT disabled" + (f" ({self.note})" if self.note else "")
         what = {"given": "given broker", "mosquitto": "Mosquitto started by the demo",
-                "embedded": "embedded amqtt broker (pure Python)"}.get(self.kind, self.kind)
+                "embedded": "embedded amqtt broker (pure Python, own process)"}.get(self.kind, self.kind)
         return f"{what} at {self.host}:{self.port}" + (f" ({self.note})" if self.note else "")
 
 
@@ -80,72 +86,102 @@ def _mosquitto(program: str) -> Iterator[BrokerInfo]:
 
 
 # ------------------------------------------------------------------- embedded
-class _EmbeddedBroker:
-    """amqtt's broker on its own event loop in a daemon thread."""
+#: what the child process prints once its listener is bound
+_READY = "bms-demo-broker-ready"
 
-    def __init__(self, port: int) -> None:
-        self.port = port
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._broker = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._main, name="bms-demo-broker", daemon=True)
 
-    def start(self, timeout: float = 15.0) -> None:
-        self._thread.start()
-        if not self._ready.wait(timeout):
-            raise BrokerUnavailable("embedded broker did not start in time")
-        if self._error is not None:
-            raise BrokerUnavailable(f"embedded broker failed: {type(self._error).__name__}: {self._error}")
+def serve_embedded(port: int) -> None:
+    """The child process of :class:`_EmbeddedBroker`: amqtt's broker on 127.0.0.1:``port``,
+    anonymous, without its logging and ``$SYS`` plugins; prints :data:`_READY` once bound and
+    ends when its stdin closes (the demo stops it, or the demo is gone)."""
+    import sys
 
-    def _main(self) -> None:
-        loop = self._loop = asyncio.new_event_loop()
-        asyncio.set_event_loop(loop)
-        try:
-            loop.run_until_complete(self._start())
-        except BaseException as exc:  # noqa: BLE001 - reported to start()
-            self._error = exc
-            self._ready.set()
-            loop.close()
-            return
-        self._ready.set()
-        try:
-            loop.run_forever()
-        finally:
-            with contextlib.suppress(Exception):
-                loop.run_until_complete(loop.shutdown_asyncgens())
-            loop.close()
+    logging.getLogger("amqtt").setLevel(logging.CRITICAL)  # client connects/disconnects are not the demo's news
 
-    async def _start(self) -> None:
+    async def main() -> None:
         from amqtt.broker import Broker
 
         config = {
-            "listeners": {"default": {"type": "tcp", "bind": f"127.0.0.1:{self.port}"}},
+            "listeners": {"default": {"type": "tcp", "bind": f"127.0.0.1:{port}"}},
             "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
         }
-        self._broker = Broker(config)
-        await self._broker.start()
+        broker = Broker(config)
+        await broker.start()
+        print(_READY, flush=True)
+        await asyncio.to_thread(sys.stdin.read)  # returns at EOF: the parent closed it or exited
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(broker.shutdown(), 5)
+
+    asyncio.run(main())
+
+
+class _EmbeddedBroker:
+    """amqtt's broker (pure Python) in a child process of its own: in the demo's process it
+    shared one interpreter lock with the service and the subscriber, and every message it
+    routed held the estimator back."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self.proc: subprocess.Popen[str] | None = None
+        self._log = tempfile.TemporaryFile("w+")
+
+    def start(self, timeout: float = 20.0) -> None:
+        root = str(Path(__file__).resolve().parents[2])  # the folder holding bms_estimator
+        env = dict(os.environ)
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        code = f"from bms_estimator.demo.broker import serve_embedded; serve_embedded({int(self.port)})"
+        try:
+            self.proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, stderr=self._log, text=True, env=env)
+        except OSError as exc:
+            raise BrokerUnavailable(f"embedded broker did not start: {exc}") from exc
+        assert self.proc.stdout is not None
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self.stop()
+                raise BrokerUnavailable(f"embedded broker did not start within {timeout:g} s")
+            ready, _, _ = select.select([self.proc.stdout], [], [], left)
+            if not ready:
+                continue
+            line = self.proc.stdout.readline()
+            if line.strip() == _READY:
+                return
+            if not line:  # the child ended before it was ready
+                self.stop()
+                raise BrokerUnavailable(f"embedded broker failed: {self._tail()}")
+
+    def _tail(self) -> str:
+        with contextlib.suppress(Exception):
+            self._log.seek(0)
+            lines = [ln.strip() for ln in self._log.read().splitlines() if ln.strip()]
+            if lines:
+                return lines[-1][:300]
+        return f"exit code {self.proc.returncode if self.proc is not None else '?'}"
 
     def stop(self, timeout: float = 10.0) -> None:
-        loop, broker = self._loop, self._broker
-        if loop is None or loop.is_closed():
-            return
-
-        async def _shutdown() -> None:
-            if broker is not None:
+        proc = self.proc
+        if proc is not None and proc.poll() is None:
+            with contextlib.suppress(Exception):
+                assert proc.stdin is not None
+                proc.stdin.close()  # the child shuts its broker down and ends
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.terminate()
+                try:
+                    proc.wait(2)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        if proc is not None:
+            for f in (proc.stdin, proc.stdout):
                 with contextlib.suppress(Exception):
-                    await asyncio.wait_for(broker.shutdown(), timeout)
-            # anything the broker left running (client handlers) ends with the loop
-            me = asyncio.current_task()
-            for task in asyncio.all_tasks():
-                if task is not me:
-                    task.cancel()
-
-        fut = asyncio.run_coroutine_threadsafe(_shutdown(), loop)
+                    if f is not None:
+                        f.close()
         with contextlib.suppress(Exception):
-            fut.result(timeout + 2)
-        loop.call_soon_threadsafe(loop.stop)
-        self._thread.join(timeout)
+            self._log.close()
 
 
 def embedded_available() -> bool:
@@ -160,28 +196,24 @@ def embedded_available() -> bool:
 def _embedded() -> Iterator[BrokerInfo]:
     if not embedded_available():
         raise BrokerUnavailable("the embedded broker needs the 'amqtt' package (pip install amqtt)")
-    amqtt_log = logging.getLogger("amqtt")
-    old_level = amqtt_log.level
-    amqtt_log.setLevel(logging.CRITICAL)  # client connects/disconnects are not the demo's news
     broker = None
     try:
         last: BaseException | None = None
-        for _attempt in range(3):
-            port = free_port()
-            broker = _EmbeddedBroker(port)
+        for _attempt in range(3):  # a free port can be taken between the probe and the bind
+            broker = _EmbeddedBroker(free_port())
             try:
                 broker.start()
             except BrokerUnavailable as exc:
                 last, broker = exc, None
                 continue
-            break  # Broker.start() returns once its listener is bound
+            break
         if broker is None:
             raise BrokerUnavailable(str(last))
-        yield BrokerInfo("embedded", "127.0.0.1", broker.port, "amqtt")
+        pid = broker.proc.pid if broker.proc is not None else "?"
+        yield BrokerInfo("embedded", "127.0.0.1", broker.port, f"amqtt, process {pid}")
     finally:
         if broker is not None:
             broker.stop()
-        amqtt_log.setLevel(old_level)
 
 
 # ---------------------------------------------------------------------- choose

@@ -45,7 +45,7 @@ import hashlib
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +79,8 @@ log = structlog.get_logger("bms.daemon")
 
 #: sample OCV curve used when ``pack.ocv_csv`` is not set
 DEFAULT_OCV_CELL = "panasonic-18650pf"
+#: frames taken in a row before the loop is yielded to (it is anyway after each sample)
+_YIELD_EVERY = 256
 
 
 
@@ -360,14 +362,36 @@ class Service:
                 self.pipeline.failed("receive", exc)
                 await asyncio.sleep(0.1)
                 continue
-            self._last_frame_mono = time.monotonic()
             since_yield = 0
             for msg in batch:
-                produced = self.pipeline.process_frame(msg)
+                produced = self._take(msg)
                 since_yield += 1
-                if produced or since_yield >= 256:
+                if produced or since_yield >= _YIELD_EVERY:
                     since_yield = 0
                     await asyncio.sleep(0)
+
+    def _take(self, msg: can.Message) -> int:
+        """One frame into the pipeline (every frame source's path); returns the samples it completed."""
+        self._last_frame_mono = time.monotonic()
+        return self.pipeline.process_frame(msg)
+
+    async def feed(self, frames: Iterable[Any]) -> int:
+        """Frames from an in-process source instead of the bus (the demo): each takes the path
+        of a received frame after :meth:`ResilientBus.recv` (:meth:`_take`: decoder, sampler,
+        estimator, the outputs), and the loop is yielded to as the receive loop does. The
+        frames need ``arbitration_id``, ``is_extended_id``, ``is_error_frame``,
+        ``is_remote_frame``, ``data`` and ``timestamp`` (a ``can.Message`` has them). Returns
+        the number of samples completed."""
+        made = since_yield = 0
+        take = self._take
+        for msg in frames:
+            produced = take(msg)
+            made += produced
+            since_yield += 1
+            if produced or since_yield >= _YIELD_EVERY:
+                since_yield = 0
+                await asyncio.sleep(0)
+        return made
 
     def _status_line(self) -> str:
         """The ``systemctl status`` line: samples, SOC, CAN bus and MQTT state."""
@@ -483,6 +507,9 @@ class Service:
                 await consume
         ok = await self.save_now()
         log.info("estimator state saved" if ok else "final state save failed", path=str(self.cfg.state.path))
+        if self.cfg.mqtt.enabled and self.pipeline.last is not None:
+            # with publish_period_s/soc_deadband the newest state may not have gone out yet
+            self.publisher.submit_snapshot(self.pipeline.last, final=True)
         with contextlib.suppress(Exception):
             await self.publisher.close(timeout_s=5.0)
         if self.bus is not None:

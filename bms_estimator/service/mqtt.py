@@ -178,33 +178,40 @@ class MqttPublisher:
         return asdict(self.counters)
 
     # ------------------------------------------------------------------ submit
-    def submit_snapshot(self, snap: Snapshot) -> None:
+    def submit_snapshot(self, snap: Snapshot, *, final: bool = False) -> None:
         """Queue the cell and pack states of one snapshot, as ``publish_period_s`` and
-        ``soc_deadband`` allow (on the frames' time). Never raises, never blocks."""
+        ``soc_deadband`` allow (on the frames' time). ``final=True`` (the newest state when the
+        service stops): every topic not yet sent at ``snap.t_s``, whatever the period and
+        deadband, so that a thinned stream still ends on the estimator's last state.
+        Never raises, never blocks."""
         if not self.cfg.enabled or self._closing:
             return
         try:
-            send = self._due_cells(snap)
+            send = self._due_cells(snap, final=final)
             items = []
             if send.any():
                 cells = schema.snapshot_cell_payloads(snap)
                 items = [(self._cell_topics[i], schema.dumps(cells[i]), False) for i in np.flatnonzero(send)]
-            if self._pack_due(snap.t_s):
+            if self._pack_due(snap.t_s, final=final):
                 items.append((self.pack_topic, schema.dumps(schema.pack_payload(snap)), False))
             if items:
                 self._put(items)
         except Exception as exc:  # noqa: BLE001 - must never raise into the estimator
             self._submit_failed("submit_snapshot", exc)
 
-    def _pack_due(self, t_s: float) -> bool:
+    def _pack_due(self, t_s: float, *, final: bool = False) -> bool:
         last = self._pack_last_t
-        if last is not None and t_s >= last and t_s - last < self.cfg.publish_period_s - 1e-9:
+        if final:
+            if last == t_s:
+                return False
+        elif last is not None and t_s >= last and t_s - last < self.cfg.publish_period_s - 1e-9:
             return False
         self._pack_last_t = t_s
         return True
 
-    def _due_cells(self, snap: Snapshot) -> np.ndarray:
-        """Cells to publish now: their period is over and (with a deadband) they changed."""
+    def _due_cells(self, snap: Snapshot, *, final: bool = False) -> np.ndarray:
+        """Cells to publish now: their period is over and (with a deadband) they changed;
+        ``final``: every cell not sent at ``snap.t_s`` yet."""
         cfg, n = self.cfg, self.n_cells
         if self._last_t is None:
             self._last_t = np.full(n, -np.inf)
@@ -213,7 +220,9 @@ class MqttPublisher:
         t = snap.t_s
         age = t - self._last_t
         due = (age >= cfg.publish_period_s - 1e-9) | (age < 0)  # time went back: start again
-        if cfg.soc_deadband > 0:
+        if final:
+            due = self._last_t != t
+        elif cfg.soc_deadband > 0:
             soc = np.asarray(snap.cells["soc"], dtype=float)
             stale = ~snap.valid
             with np.errstate(invalid="ignore"):

@@ -34,9 +34,13 @@ def _own(db, current_a: float, counter: int) -> can.Message:
     return frame(db, "PackMeasurement", values)
 
 
-def test_a_skipped_or_repeated_counter_value_is_dropped_and_counted(project_db):
-    """The project DBC's MeasurementCounter, evaluated when the mapping names it."""
-    dec = FrameDecoder(project_db, _with_e2e("default", {"PackMeasurement": {"counter": "MeasurementCounter"}}), 1)
+@pytest.mark.parametrize("bit_fields", [True, False])
+def test_a_skipped_or_repeated_counter_value_is_dropped_and_counted(project_db, bit_fields):
+    """The project DBC's MeasurementCounter, evaluated when the mapping names it, on the decoder's
+    bit-field path (which reads the counter although no mapping entry does) and through cantools."""
+    dec = FrameDecoder(project_db, _with_e2e("default", {"PackMeasurement": {"counter": "MeasurementCounter"}}), 1,
+                       bit_fields=bit_fields)
+    assert any(p.fields is not None for p in dec._plans.values()) is bit_fields
     counters = [13, 14, 15, 0, 1, 3, 4, 4, 5]  # wraps 15 -> 0; skips 2; repeats 4
     currents = [float(k) for k in range(len(counters))]
     got = []
@@ -145,3 +149,4 @@ def test_e2e_mapping_problems_are_named(crc_db, project_db):
     with pytest.raises(MappingError) as exc:
         load_mapping(_with_e2e("default", {"PackMeasurement": {}}))
     assert "name a counter, a crc, or both" in str(exc.value.problems)
+

@@ -273,6 +273,41 @@ def test_publish_period_and_soc_deadband():
     assert pub.counters.submit_errors == 0
 
 
+def test_final_snapshot_is_sent_whatever_the_period():
+    """At a stop the newest state goes out even when publish_period_s/soc_deadband held it back
+    (a thinned stream ends on the estimator's last state), once: topics already sent at that
+    time are not repeated."""
+    from types import SimpleNamespace
+
+    from bms_estimator.service import schema
+
+    n = 3
+    pub = MqttPublisher(mqtt_cfg(1, publish_period_s=10.0, soc_deadband=0.01, max_period_s=60.0), "fin", n)
+    sent: list[list[str]] = []
+    pub._put = lambda items: sent.append([t for t, _, _ in items])
+
+    def snap(t: float, soc: list[float]):
+        v = np.ones(n, dtype=bool)
+        return SimpleNamespace(t_s=t, cells={"soc": np.array(soc)}, valid=v, n_cells=n, cells_valid=n,
+                               soc=schema.soc_stats(soc), current_a=1.0, current_valid=True, pack_voltage_v=12.0,
+                               capacity_ah_mean=3.0, state=schema.EstimatorState.RUNNING)
+
+    pub.submit_snapshot(snap(0.0, [0.5, 0.5, 0.5]))
+    pub.submit_snapshot(snap(10.0, [0.6, 0.6, 0.5]))  # cells 0 and 1 moved: sent with the pack
+    assert sent[-1] == [pub.topics.cells[0], pub.topics.cells[1], pub.pack_topic]
+    sent.clear()
+    pub.submit_snapshot(snap(13.0, [0.7, 0.7, 0.5]))  # within the period: held back
+    assert sent == []
+    pub.submit_snapshot(snap(13.0, [0.7, 0.7, 0.5]), final=True)
+    assert sent == [[*pub.topics.cells, pub.pack_topic]]  # every cell, the unchanged one too
+    pub.submit_snapshot(snap(13.0, [0.7, 0.7, 0.5]), final=True)  # already out at 13 s: nothing twice
+    assert len(sent) == 1
+    # after the final states the thinning goes on from them
+    pub.submit_snapshot(snap(20.0, [0.8, 0.8, 0.8]))
+    assert len(sent) == 1
+    assert pub.counters.submit_errors == 0
+
+
 def test_last_will_when_publisher_process_is_killed(mosquitto, tmp_path):
     port = mosquitto.port
     script = f"""
