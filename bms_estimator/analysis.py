@@ -256,18 +256,18 @@ def simulate_with_params(
 ) -> np.ndarray:
     """Free-run voltage simulation with (possibly time-varying) parameters, from rest.
 
-    With a kinetic term (``k0_ohm`` ... in ``params``, :mod:`bms_estimator.core.lif_bv`) the
+    With a kinetic term (``k1_ohm``, ``k2_ohm`` in ``params``, :mod:`bms_estimator.core.lif_bv`) the
     same RC branches carry ``K_j u`` besides ``R_j i``; the model is linear in its gains, so
     that part is simulated with the input u and gains K (split into their positive and
     negative parts, since an RC branch takes no negative resistance).
     """
     v = simulate_ecm(current_a, dt_s, _ecm_params(params), ocv.ocv, soc=soc, output="mean").voltage_v
-    if "k0_ohm" not in params:
+    if "k1_ohm" not in params:
         return v
     u = kinetic_input(np.asarray(current_a, dtype=float), params["i0_a"])
     for sign in (1.0, -1.0):
-        k = {key: np.maximum(sign * np.asarray(params[key]), 0.0) for key in ("k0_ohm", "k1_ohm", "k2_ohm")}
-        part = {"r0_ohm": k["k0_ohm"], "r1_ohm": k["k1_ohm"], "r2_ohm": k["k2_ohm"], "c0_v": 0.0,
+        k = {key: np.maximum(sign * np.asarray(params[key]), 0.0) for key in ("k1_ohm", "k2_ohm")}
+        part = {"r0_ohm": 0.0, "r1_ohm": k["k1_ohm"], "r2_ohm": k["k2_ohm"], "c0_v": 0.0,
                 "tau1_s": params["tau1_s"], "tau2_s": params["tau2_s"]}
         v = v + sign * simulate_ecm(u, dt_s, _ecm_params(part), output="mean").voltage_v
     return v
@@ -290,10 +290,10 @@ def one_step_ahead(
     pred[2:] = (
         t[:, 0] * v_o[1:-1] + t[:, 1] * v_o[:-2] + t[:, 2] * i[2:] + t[:, 3] * i[1:-1] + t[:, 4] * i[:-2] + t[:, 5]
     )
-    if "k0_ohm" in params:  # the kinetic input u through the same poles (core/lif_bv.py)
+    if "k1_ohm" in params:  # the kinetic input u through the same poles (core/lif_bv.py)
         u = kinetic_input(i, params["i0_a"])
         tk = np.broadcast_to(dt_theta_from_physical(
-            params["k0_ohm"], params["k1_ohm"], params["tau1_s"], params["k2_ohm"], params["tau2_s"], dt_s=dt_s,
+            0.0, params["k1_ohm"], params["tau1_s"], params["k2_ohm"], params["tau2_s"], dt_s=dt_s,
         ), (len(i), 6))[1:-1]
         pred[2:] += tk[:, 2] * u[2:] + tk[:, 3] * u[1:-1] + tk[:, 4] * u[:-2]
     return pred + ocv.ocv(soc)
