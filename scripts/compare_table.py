@@ -175,12 +175,16 @@ def main() -> int:
     text = table(rows, IDENTIFICATION_METHOD)
     print(text)
     if args.readme:
-        readme = ROOT / "README.md"
-        new = re.sub(f"{re.escape(BEGIN)}.*?{re.escape(END)}", f"{BEGIN}\n{text}\n{END}", readme.read_text(),
-                     flags=re.S)
-        readme.write_text(new)
-        print(f"updated {readme}")
+        write_readme_section(text, BEGIN, END)
     return 0
+
+
+def write_readme_section(text: str, begin: str, end: str) -> None:
+    """Replace what README.md holds between the markers ``begin`` and ``end`` by ``text``."""
+    readme = ROOT / "README.md"
+    new = re.sub(f"{re.escape(begin)}.*?{re.escape(end)}", f"{begin}\n{text}\n{end}", readme.read_text(), flags=re.S)
+    readme.write_text(new)
+    print(f"updated {readme}")
 
 
 if __name__ == "__main__":

@@ -14,14 +14,13 @@ by the SOC read from the OCV at the rest voltage before the pulse (that ambient'
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from compare_table import ambient_c, ocv_for  # noqa: E402
+from compare_table import ambient_c, ocv_for, write_readme_section  # noqa: E402
 
 from bms_estimator.core.pulse_resistance import pulse_resistance  # noqa: E402
 from bms_estimator.data import load_recording, shared_data_dir  # noqa: E402
@@ -30,7 +29,6 @@ CELL, STATED_AH = "panasonic-18650pf", 2.9
 AT_S = (0.2, 1.0, 9.5)
 C_RATES = (0.5, 1.0, 2.0, 4.0, 6.0)
 SOC_BINS = ((0.2, 0.5), (0.5, 0.9))
-ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- pulse-resistance:begin -->", "<!-- pulse-resistance:end -->"
 
 
@@ -90,11 +88,7 @@ def main() -> int:
     text = table(measure(data))
     print(text)
     if args.readme:
-        readme = ROOT / "README.md"
-        new = re.sub(f"{re.escape(BEGIN)}.*?{re.escape(END)}", f"{BEGIN}\n{text}\n{END}", readme.read_text(),
-                     flags=re.S)
-        readme.write_text(new)
-        print(f"updated {readme}")
+        write_readme_section(text, BEGIN, END)
     return 0
 
 
