@@ -207,7 +207,6 @@ class Identifier:
         if self.config.c0_prior_weight > 0:
             self._c0_prior(learn & was_init)
         theta = self.rls.theta
-        self._project(theta)
         new = self.rls.initialised & ~was_init
         params = self._physical(theta)
         admissible = params.admissible & (np.abs(params.c0_v) <= self.config.c0_max_v)
@@ -240,9 +239,6 @@ class Identifier:
         self.identified |= good
         self.params = params.select(good, self.params) if good.any() else self.params
         self.updates += 1
-
-    def _project(self, theta_s: np.ndarray) -> None:
-        """Map the new estimate onto a model's sign constraints, in place (none in the 2-RC model)."""
 
     def _learn(self, phi: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
         """One step of the recursive estimator; returns its a-priori error."""

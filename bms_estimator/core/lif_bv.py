@@ -40,17 +40,10 @@ Identification: :class:`~bms_estimator.core.lif_iv.LifIvEstimator`'s recursive
 IV, its auxiliary model carrying the kinetic term too (the instrument is the LIF
 of its simulated output), and the same block start, trace limit, restarts, c0
 prior and OCV-bias shift.  The admissibility guard adds ``|K_j| <= R_j`` (no
-branch resistance below zero at any current, nor more than doubled).
-
-Projection onto ``K_j >= 0``.  Butler-Volmer kinetics only lower the
-resistance with the current, and so does every measured pulse set (README).  A
-negative K_j after an update is set to zero in theta (th7, th8 recomputed from
-the clipped gains and the estimate's own poles), the rest of the estimate kept:
-a projected recursion.  Without it a gentle, discharge-only training file
-(Panasonic 0 degC la92, 1.2 A RMS) gave K < 0 and 365.9 mV on us06 (120.1 mV
-with it); rejecting K < 0 in the guard instead measured worse (median 11.7
-against 10.8 mV on 36 25 degC pairs): the guard resets the whole estimate,
-and a cell without current dependence then hardly learns.
+branch resistance below zero at any current, nor more than doubled).  Requiring
+``K_j >= 0`` (Butler-Volmer only lowers the resistance) measured worse: the
+guard then rejects every update of a cell whose data show no current
+dependence (median 11.7 against 10.8 mV on the same 36 pairs).
 """
 
 from __future__ import annotations
@@ -113,22 +106,6 @@ class LifIvBvEstimator(LifIvEstimator):
         with np.errstate(invalid="ignore"):
             ok = p.admissible & np.all(np.isfinite(k) & (np.abs(k) <= r), axis=1)
         return PhysicalParams(*p._arrays(), admissible=ok)
-
-    def _project(self, theta_s):
-        """Projection onto K_j >= 0 (module docstring): a negative kinetic gain is set to zero."""
-        k = self._kinetic(theta_s)
-        neg = np.isfinite(k) & (k < 0)
-        rows = neg.any(axis=1)
-        if not rows.any():
-            return
-        th = theta_s[rows] / self._scale[rows]
-        disc = th[:, 0] ** 2 + 4.0 * th[:, 1]
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        a_fast, a_slow = 0.5 * (-th[:, 0] + sq), 0.5 * (-th[:, 0] - sq)
-        kk = np.where(neg[rows], 0.0, k[rows])
-        th[:, 6] = kk[:, 0] * a_fast + kk[:, 1] * a_slow
-        th[:, 7] = a_fast * a_slow * kk.sum(axis=1)
-        theta_s[rows] = th * self._scale[rows]
 
     def _regress(self, i, v, ok):
         y, phi, ready = super()._regress(i, v, ok)
