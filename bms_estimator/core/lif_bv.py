@@ -43,7 +43,9 @@ prior and OCV-bias shift.  The admissibility guard adds ``|K_j| <= R_j`` (no
 branch resistance below zero at any current, nor more than doubled).  Requiring
 ``K_j >= 0`` (Butler-Volmer only lowers the resistance) measured worse: the
 guard then rejects every update of a cell whose data show no current
-dependence (median 11.7 against 10.8 mV on the same 36 pairs).
+dependence (median 11.7 against 10.8 mV on the same 36 pairs).  Projecting the
+estimate onto ``K_j >= 0`` instead (clipping K in theta, the rest kept) helped
+on measured pairs but ran R2 of one synthetic seed in four to zero (README).
 """
 
 from __future__ import annotations
