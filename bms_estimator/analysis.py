@@ -32,6 +32,7 @@ import numpy as np
 
 from .core.ecm import EcmParams, simulate_ecm
 from .core.identifier import IdentifierConfig, make_identifier
+from .core.lif_bv import kinetic_input
 from .core.ocv import OcvCurve
 from .core.params import dt_theta_from_physical
 from .core.soc import SocConfig, SocEstimator
@@ -136,18 +137,19 @@ def run_identification_paths(
     n, m = soc_paths.shape
     ident = make_identifier(m, dt_s, capacity_ah, config)
     v_o = np.asarray(voltage_v, dtype=float)[:, None] - ocv.ocv(soc_paths)
-    traj = {k: np.empty((n, m)) for k in PARAM_KEYS}
+    keys = tuple(ident.param_dict())  # PARAM_KEYS, and a model extension's (lif-iv-bv: KINETIC_KEYS)
+    traj = {k: np.empty((n, m)) for k in keys}
     identified = np.zeros((n, m), dtype=bool)
     i = np.asarray(current_a, dtype=float)
     for k in range(n):
         ident.update(i[k], v_o[k])
-        p = ident.params.as_dict()
-        for key in PARAM_KEYS:
+        p = ident.param_dict()
+        for key in keys:
             traj[key][k] = p[key]
         identified[k] = ident.identified
     t = np.arange(n) * dt_s
     return [
-        IdentificationRun(t, soc_paths[:, j], {key: traj[key][:, j].copy() for key in PARAM_KEYS},
+        IdentificationRun(t, soc_paths[:, j], {key: traj[key][:, j].copy() for key in keys},
                           identified[:, j].copy(), int(ident.rejections[j]), config.method)
         for j in range(m)
     ]
@@ -252,8 +254,23 @@ def _ecm_params(p: dict[str, np.ndarray]) -> EcmParams:
 def simulate_with_params(
     current_a: np.ndarray, soc: np.ndarray, ocv: OcvCurve, params: dict[str, np.ndarray], dt_s: float = 1.0
 ) -> np.ndarray:
-    """Free-run voltage simulation with (possibly time-varying) parameters, from rest."""
-    return simulate_ecm(current_a, dt_s, _ecm_params(params), ocv.ocv, soc=soc, output="mean").voltage_v
+    """Free-run voltage simulation with (possibly time-varying) parameters, from rest.
+
+    With a kinetic term (``k1_ohm``, ``k2_ohm`` in ``params``, :mod:`bms_estimator.core.lif_bv`) the
+    same RC branches carry ``K_j u`` besides ``R_j i``; the model is linear in its gains, so
+    that part is simulated with the input u and gains K (split into their positive and
+    negative parts, since an RC branch takes no negative resistance).
+    """
+    v = simulate_ecm(current_a, dt_s, _ecm_params(params), ocv.ocv, soc=soc, output="mean").voltage_v
+    if "k1_ohm" not in params:
+        return v
+    u = kinetic_input(np.asarray(current_a, dtype=float), params["i0_a"])
+    for sign in (1.0, -1.0):
+        k = {key: np.maximum(sign * np.asarray(params[key]), 0.0) for key in ("k1_ohm", "k2_ohm")}
+        part = {"r0_ohm": 0.0, "r1_ohm": k["k1_ohm"], "r2_ohm": k["k2_ohm"], "c0_v": 0.0,
+                "tau1_s": params["tau1_s"], "tau2_s": params["tau2_s"]}
+        v = v + sign * simulate_ecm(u, dt_s, _ecm_params(part), output="mean").voltage_v
+    return v
 
 
 def one_step_ahead(
@@ -273,6 +290,12 @@ def one_step_ahead(
     pred[2:] = (
         t[:, 0] * v_o[1:-1] + t[:, 1] * v_o[:-2] + t[:, 2] * i[2:] + t[:, 3] * i[1:-1] + t[:, 4] * i[:-2] + t[:, 5]
     )
+    if "k1_ohm" in params:  # the kinetic input u through the same poles (core/lif_bv.py)
+        u = kinetic_input(i, params["i0_a"])
+        tk = np.broadcast_to(dt_theta_from_physical(
+            0.0, params["k1_ohm"], params["tau1_s"], params["k2_ohm"], params["tau2_s"], dt_s=dt_s,
+        ), (len(i), 6))[1:-1]
+        pred[2:] += tk[:, 2] * u[2:] + tk[:, 3] * u[1:-1] + tk[:, 4] * u[:-2]
     return pred + ocv.ocv(soc)
 
 
@@ -280,18 +303,19 @@ def soc_lookup_table(run: IdentificationRun, bin_width: float = 0.02) -> dict[st
     """Median parameters per SOC bin over the identified samples of a run."""
     sel = run.identified & np.isfinite(run.soc)
     edges = np.arange(0.0, 1.0 + bin_width, bin_width)
-    centers, rows = [], {k: [] for k in PARAM_KEYS}
+    keys = tuple(run.params)
+    centers, rows = [], {k: [] for k in keys}
     for lo, hi in zip(edges[:-1], edges[1:]):
         m = sel & (run.soc >= lo) & (run.soc < hi)
         if m.sum() < 5:
             continue
         centers.append(0.5 * (lo + hi))
-        for k in PARAM_KEYS:
+        for k in keys:
             rows[k].append(float(np.median(run.params[k][m])))
     if not centers:
         # nothing identified: the last parameters are all there is
         centers = [0.5]
-        for k in PARAM_KEYS:
+        for k in keys:
             rows[k].append(float(run.params[k][-1]))
     table = {k: np.asarray(v) for k, v in rows.items()}
     table["soc"] = np.asarray(centers)
@@ -300,7 +324,7 @@ def soc_lookup_table(run: IdentificationRun, bin_width: float = 0.02) -> dict[st
 
 def lookup_params(table: dict[str, np.ndarray], soc: np.ndarray) -> dict[str, np.ndarray]:
     """Parameters along an SOC path from a lookup table (held constant beyond its ends)."""
-    out = {k: np.interp(soc, table["soc"], table[k]) for k in PARAM_KEYS if k not in ("tau1_s", "tau2_s")}
+    out = {k: np.interp(soc, table["soc"], table[k]) for k in table if k not in ("soc", "tau1_s", "tau2_s")}
     out["tau1_s"] = out["r1_ohm"] * out["c1_f"]
     out["tau2_s"] = out["r2_ohm"] * out["c2_f"]
     return out

@@ -44,3 +44,29 @@ def nmc_like_ocv() -> OcvCurve:
     soc = np.linspace(0.0, 1.0, 201)
     ocv = 3.0 + 0.75 * soc + 0.45 * soc**2 - 0.25 * np.exp(-25 * soc) + 0.05 * np.sin(4 * soc)
     return OcvCurve(soc, ocv)
+
+
+def hostile_strategies() -> dict:
+    """Hypothesis strategies for :func:`hostile_stream`'s seed, amp, noise_v, noise_a and dropout."""
+    from hypothesis import strategies as st
+
+    return dict(seed=st.integers(0, 2**31 - 1), amp=st.floats(0.0, 30.0), noise_v=st.floats(0.0, 0.05),
+                noise_a=st.floats(0.0, 0.5), dropout=st.floats(0.0, 0.5))
+
+
+def hostile_stream(seed: int, amp: float, noise_v: float, noise_a: float, dropout: float, step_v: float = 0.0,
+                   bend_ohm_per_a: float = 0.0, n: int = 600, cells: int = 3):
+    """(current, v_o, valid) per sample for the identifiers' no-NaN properties: random levels of up to
+    +-amp A held 10 s, a 1-RC cell with R0 20 mOhm (plus ``bend_ohm_per_a * i |i|``), voltage and
+    current noise, a v_o step of step_v half-way, NaN voltages, NaN currents and invalid cells."""
+    rng = np.random.default_rng(seed)
+    current = np.repeat(rng.uniform(-amp, amp, n // 10 + 1), 10)[:n]
+    state = np.zeros(cells)
+    for k in range(n):
+        state = 0.99 * state + 0.0005 * current[k]
+        v = (0.02 * current[k] + bend_ohm_per_a * current[k] * abs(current[k]) + state
+             + noise_v * rng.standard_normal(cells) + (step_v if k > n // 2 else 0.0))
+        v = np.where(rng.random(cells) < dropout / 4, np.nan, v)
+        i = current[k] + noise_a * rng.standard_normal() if rng.random() > dropout / 10 else np.nan
+        yield i, v, rng.random(cells) >= dropout
+

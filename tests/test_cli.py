@@ -181,3 +181,25 @@ def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
     prof = m["capacity_profile"]
     assert len(prof["capacity_ah"]) == len(prof["sim_rmse_mv"]) >= 10
     assert m["c0_prior_weight"] == 0.1
+
+
+def test_fit_and_compare_take_the_kinetic_term(tmp_path, capsys):
+    """lif-iv-bv: fit reports K1, K2 and i0; compare simulates the validation file with them."""
+    data = str(drive_cycle("lg-hg2", "la92"))
+    lg_ocv = str(ocv_table("lg-hg2"))
+    out = tmp_path / "fit.json"
+    assert main(["fit", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--method", "lif-iv-bv",
+                 "--json", str(out)]) == 0
+    f = json.loads(out.read_text())
+    med = f["median_soc_20_90"]
+    assert f["method"] == "lif-iv-bv" and med["i0_a"] == pytest.approx(3.0)
+    for j in (1, 2):  # the guard's bound holds in what is reported
+        assert abs(med[f"k{j}_ohm"]) <= med[f"r{j}_ohm"]
+    assert 0 < f["sim_rmse_mv"] < 30
+    cmp_out = tmp_path / "cmp.json"
+    assert main(["compare", "--train", data, "--validate", str(drive_cycle("lg-hg2", "udds")), "--ocv", lg_ocv,
+                 "--capacity-ah", "3.0", "--method", "lif-iv-bv", "--method", "lif-iv", "--json", str(cmp_out)]) == 0
+    m = json.loads(cmp_out.read_text())
+    assert set(m["validate"]) == {"lif-iv-bv", "lif-iv"}
+    assert 0 < m["validate"]["lif-iv-bv"]["sim_rmse_mv"] < 30
+    assert m["validate"]["lif-iv-bv"]["sim_rmse_mv"] != m["validate"]["lif-iv"]["sim_rmse_mv"]

@@ -7,6 +7,7 @@ Figures (one core, this machine, one run):
   interpolated between three tables by each cell's own temperature, cells x samples / s.
 * ``cell_updates_per_s_c0``: the same with the paper's c0 SOC method.
 * ``cell_updates_per_s_lif_iv``: the same as the first with the recursive-IV LIF identifier (``lif-iv``).
+* ``cell_updates_per_s_lif_iv_bv``: the same with the kinetic-term identifier (``lif-iv-bv``).
 * ``tick_ms_200_cells``: median wall time of one 1 s update of a 200-cell pack.
 * ``frames_per_s``: CAN decode + sample assembly, 200 cells.
 * ``publish_latency_ms_p99``: from the CAN frame that closes a 1 s sample to the MQTT
@@ -186,6 +187,7 @@ FIGURES = {
     "cell_updates_per_s": lambda args: bench_cell_updates(2000, args.seconds),
     "cell_updates_per_s_c0": lambda args: bench_cell_updates(2000, args.seconds, soc_method="c0"),
     "cell_updates_per_s_lif_iv": lambda args: bench_cell_updates(2000, args.seconds, "lif-iv"),
+    "cell_updates_per_s_lif_iv_bv": lambda args: bench_cell_updates(2000, args.seconds, "lif-iv-bv"),
     "tick_ms_200_cells": lambda args: bench_tick_ms(200),
     "frames_per_s": lambda args: _frames_per_s(),
     "publish_latency_ms_p99": lambda args: _publish_latency(),

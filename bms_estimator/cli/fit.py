@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis import (
-    IDENTIFICATION_METHOD, PARAM_KEYS, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
+    IDENTIFICATION_METHOD, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
     simulate_with_params, soc_lookup_table,
 )
 from .common import (
@@ -47,8 +47,8 @@ def run(args: argparse.Namespace) -> int:
     out = {
         "method": args.method,
         "capacity_ah_estimated": q_eff,
-        "final": {k: float(run_.params[k][-1]) for k in PARAM_KEYS},
-        "median_soc_20_90": {k: float(np.median(run_.params[k][mid])) if mid.any() else None for k in PARAM_KEYS},
+        "final": {k: float(v[-1]) for k, v in run_.params.items()},
+        "median_soc_20_90": {k: float(np.median(v[mid])) if mid.any() else None for k, v in run_.params.items()},
         "sim_rmse_mv": rmse_mv(sim, rec.voltage_v, inside),
         "osa_rmse_mv": rmse_mv(osa, rec.voltage_v, inside),
         "sim_rmse_mv_full_range": rmse_mv(sim, rec.voltage_v),
@@ -69,6 +69,9 @@ def run(args: argparse.Namespace) -> int:
         if f["r0_ohm"] is not None:
             print(f"{args.method.upper()}: R0 {f['r0_ohm']*1e3:.1f} mOhm, R1 {f['r1_ohm']*1e3:.1f} mOhm tau1 "
                   f"{f['tau1_s']:.1f} s, R2 {f['r2_ohm']*1e3:.1f} mOhm tau2 {f['tau2_s']:.0f} s (median over 20-90 % SOC)")
+        if f.get("k1_ohm") is not None:
+            print(f"kinetic term: K1 {f['k1_ohm']*1e3:.1f}, K2 {f['k2_ohm']*1e3:.1f} mOhm "
+                  f"at i0 {f['i0_a']:.2f} A (a resistance R_j - K_j (1 - asinh(i/i0) / (i/i0)))")
         print(f"simulation RMSE {out['sim_rmse_mv']:.1f} mV, one-step-ahead {out['osa_rmse_mv']:.1f} mV; "
               f"capacity {q_eff:.3f} Ah; {run_.rejections} non-physical updates rejected")
     return 0

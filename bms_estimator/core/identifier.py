@@ -39,8 +39,9 @@ from .params import (
 )
 from .rls import RlsConfig, WeightedRls
 
-#: identification methods: continuous time with RLS (the paper's), with recursive IV, discrete-time ARX
-METHODS = ("lif", "lif-iv", "arx")
+#: identification methods: continuous time with RLS (the paper's), with recursive IV, with recursive IV and a
+#: kinetic (Butler-Volmer) term, discrete-time ARX
+METHODS = ("lif", "lif-iv", "lif-iv-bv", "arx")
 
 __all__ = ["METHODS", "IdentifierConfig", "Identifier", "LifEstimator", "ArxEstimator", "make_identifier"]
 
@@ -53,7 +54,7 @@ class IdentifierConfig:
     C-rate, so that they fit any cell size.
     """
 
-    method: Literal["lif", "lif-iv", "arx"] = "lif"  # "lif" (continuous time, RLS), "lif-iv" (continuous time, recursive IV) or "arx" (DT baseline)
+    method: Literal["lif", "lif-iv", "lif-iv-bv", "arx"] = "lif"  # "lif" (continuous time, RLS), "lif-iv" (continuous time, recursive IV), "lif-iv-bv" (lif-iv plus a kinetic term, core/lif_bv.py) or "arx" (DT baseline)
     window: Annotated[int, Ge(1)] = 20  # LIF window L in samples
     forgetting: Annotated[float, Interval(ge=0.9, le=1.0)] = 0.9995  # RLS forgetting factor per sample (memory ~ 1/(1-lambda) samples)
     error_on_v: Annotated[float, Ge(0)] = 0.0  # turn adaptation on above this windowed RMS error (0 = always on)
@@ -80,6 +81,8 @@ class IdentifierConfig:
     # lif-iv: the auxiliary model that makes the instruments takes the last admissible
     # parameters every this many samples
     iv_model_every: Annotated[int, Ge(1)] = 10
+    # lif-iv-bv: the kinetic term's current scale i0 in C-rate, fixed (u = i0 asinh(i/i0) - i)
+    bv_current_c: Annotated[float, Gt(0)] = 1.0
     prior_r0_ohm_ah: Annotated[float, Gt(0)] = 0.06
     prior_r1_ohm_ah: Annotated[float, Gt(0)] = 0.03
     prior_tau1_s: Annotated[float, Gt(0)] = 10.0
@@ -91,6 +94,8 @@ class IdentifierConfig:
             raise ValueError(f"restart_after_rejections must be >= 0, got {self.restart_after_rejections}")
         if self.method not in METHODS:
             raise ValueError(f"unknown identification method {self.method!r}: use {', '.join(map(repr, METHODS))}")
+        if not (np.isfinite(self.bv_current_c) and self.bv_current_c > 0):
+            raise ValueError(f"bv_current_c must be a finite number > 0, got {self.bv_current_c}")
         if self.iv_model_every < 1:
             raise ValueError(f"iv_model_every must be >= 1, got {self.iv_model_every}")
         if not (np.isfinite(self.c0_prior_weight) and self.c0_prior_weight >= 0):
@@ -273,6 +278,10 @@ class Identifier:
     def c0_v(self) -> np.ndarray:
         return self.params.c0_v
 
+    def param_dict(self) -> dict[str, np.ndarray]:
+        """The current parameters by name (N,) each: the 2-RC ones, and a model extension's."""
+        return self.params.as_dict()
+
     def predict_static(self, current_a: np.ndarray) -> np.ndarray:
         """Steady-state overpotential for a constant current (R0+R1+R2) i + c0."""
         p = self.params
@@ -342,9 +351,14 @@ class LifEstimator(Identifier):
         self._v_hold = v_in
         i_c = i / self.i_ref_a
         self._taint = np.where(ok, np.maximum(self._taint - 1, 0), self.history.length)
-        y, phi = self.history.push(v_in, np.where(np.isfinite(i_c), i_c, 0.0), aux)
+        i_c = np.where(np.isfinite(i_c), i_c, 0.0)
+        y, phi = self.history.push(v_in, i_c, aux, self._extra_inputs(i_c))
         # history.push scaled the current columns by 1/T, 1/T^2 only (i_ref = 1); currents came in C-rate
         return y, phi, (self._taint == 0) & self.history.ready
+
+    def _extra_inputs(self, i_c: np.ndarray) -> np.ndarray | None:
+        """Further model inputs (m, N) from the current in C-rate (none in the 2-RC model)."""
+        return None
 
     def _c0_gain(self, theta_s):
         # c0 = -th6_s / th2_s (s2 = s6 = T^2)
@@ -454,6 +468,10 @@ def make_identifier(n_cells: int, dt_s: float, capacity_ah, config: IdentifierCo
         from .lif_iv import LifIvEstimator
 
         return LifIvEstimator(n_cells, dt_s, capacity_ah, config)
+    if config.method == "lif-iv-bv":
+        from .lif_bv import LifIvBvEstimator
+
+        return LifIvBvEstimator(n_cells, dt_s, capacity_ah, config)
     if config.method == "arx":
         return ArxEstimator(n_cells, dt_s, capacity_ah, config)
     raise ValueError(f"unknown identification method {config.method!r}: use {', '.join(map(repr, METHODS))}")

@@ -32,6 +32,11 @@ version keeps a ring buffer of the last 2L+1 samples per cell and evaluates the
 three filters as one matrix product (slots x cells, so that a new sample is
 one contiguous row), so it is exact (no running-sum drift) and
 bit-for-bit reproducible against the batch version up to summation order.
+
+Extra inputs.  A model with further known inputs u_m (functions of the
+current, say a kinetic term; see :mod:`bms_estimator.core.lif_bv`) adds, per
+input, the three columns ``[f1^2 u_m, f1f2 u_m, f2^2 u_m]`` after the six
+above, scaled like the current's (``[I_ref, T I_ref, T^2 I_ref]``).
 """
 
 from __future__ import annotations
@@ -53,10 +58,11 @@ def lif_kernels(window: int, dt_s: float) -> np.ndarray:
     return np.stack([np.convolve(f1, f1), np.convolve(f1, f2), np.convolve(f2, f2)], axis=1)
 
 
-def lif_scale(window: int, dt_s: float, i_ref_a: float) -> np.ndarray:
+def lif_scale(window: int, dt_s: float, i_ref_a: float, extra_inputs: int = 0) -> np.ndarray:
     """Column scale of the regressor (see module docstring): theta_s = theta * scale."""
     t = window * dt_s
-    return np.array([t, t * t, i_ref_a, t * i_ref_a, t * t * i_ref_a, t * t])
+    current = [i_ref_a, t * i_ref_a, t * t * i_ref_a]
+    return np.array([t, t * t, *current, t * t] + current * extra_inputs)
 
 
 def lif_regressors(
@@ -92,9 +98,14 @@ class LifHistory:
     With ``aux=True`` a third signal x (an auxiliary model's simulated v_o) is
     filtered alongside: ``push(v_o, i, x)``, and :meth:`instruments` then gives
     phi_s with its two v_o columns taken from x (the recursive IV's instrument).
+
+    With ``extra_inputs=m`` the model has m further inputs besides the current:
+    ``push(v_o, i, x, extra)`` with ``extra`` of shape (m, N), and phi_s gains
+    3 m columns (module docstring).
     """
 
-    def __init__(self, n_cells: int, window: int, dt_s: float, i_ref_a: float = 1.0, aux: bool = False):
+    def __init__(self, n_cells: int, window: int, dt_s: float, i_ref_a: float = 1.0, aux: bool = False,
+                 extra_inputs: int = 0):
         self.n_cells = int(n_cells)
         self.window = int(window)
         self.dt_s = float(dt_s)
@@ -103,11 +114,13 @@ class LifHistory:
         # rolled[h, pos, c]: kernel coefficient for buffer slot pos when the newest sample is at h
         lags = (np.arange(self.length)[:, None] - np.arange(self.length)[None, :]) % self.length
         self._rolled = np.ascontiguousarray(k[lags].transpose(0, 2, 1))  # (h, 3, pos)
-        self._scale = lif_scale(self.window, self.dt_s, i_ref_a)
+        self.extra_inputs = int(extra_inputs)
+        self._scale = lif_scale(self.window, self.dt_s, i_ref_a, self.extra_inputs)
         self._inv_scale = 1.0 / self._scale
         self._t2_s = (self.window * self.dt_s) ** 2 * self._inv_scale[5]
-        # [v_o, i(, x)] x slots x cells: a new sample is one contiguous row per signal
-        self._buf = np.zeros((3 if aux else 2, self.length, self.n_cells))
+        # [v_o, i(, x), u_1..u_m] x slots x cells: a new sample is one contiguous row per signal
+        self._aux = bool(aux)
+        self._buf = np.zeros((2 + self._aux + self.extra_inputs, self.length, self.n_cells))
         self._fx = np.zeros((self.n_cells, 3))
         self.head = -1
         self.count = 0
@@ -121,25 +134,30 @@ class LifHistory:
         """True once the window holds 2L+1 real samples."""
         return self.count >= self.length
 
-    def push(self, v_o: np.ndarray, current_a: np.ndarray, aux: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
+    def push(self, v_o: np.ndarray, current_a: np.ndarray, aux: np.ndarray | None = None,
+             extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         self.head = (self.head + 1) % self.length
         buf = self._buf
         buf[0, self.head] = v_o
         buf[1, self.head] = current_a
         if aux is not None:
             buf[2, self.head] = aux
+        if self.extra_inputs:
+            buf[2 + self._aux:, self.head] = extra
         self.count += 1
-        f = self._rolled[self.head] @ buf  # (2 or 3, 3, N)
-        if len(f) == 3:
+        f = self._rolled[self.head] @ buf  # (signals, 3, N)
+        if self._aux:
             self._fx = f[2].T
         fv, fi = f[0], f[1]
-        phi = np.empty((6, self.n_cells))
+        phi = np.empty((len(self._scale), self.n_cells))
         phi[0] = fv[1]
         phi[1] = fv[2]
         phi[2:5] = fi
-        phi[:5] *= self._inv_scale[:5, None]
         phi[5] = self._t2_s
+        if self.extra_inputs:
+            phi[6:] = f[2 + self._aux:].reshape(3 * self.extra_inputs, self.n_cells)
+            phi[6:] *= self._inv_scale[6:, None]
+        phi[:5] *= self._inv_scale[:5, None]
         return fv[0], phi.T
 
     def instruments(self, phi: np.ndarray) -> np.ndarray:
@@ -153,7 +171,7 @@ class LifHistory:
         """Subtract dv from the stored v_o (and auxiliary-model) history."""
         d = np.asarray(dv, dtype=float)
         self._buf[0] -= d
-        if len(self._buf) == 3:
+        if self._aux:
             self._buf[2] -= d
 
     @property

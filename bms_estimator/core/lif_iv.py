@@ -93,12 +93,16 @@ class LifIvEstimator(LifEstimator):
         if self._aux_age >= self.config.iv_model_every:
             self._refresh_aux()
         self._aux_age += 1
-        i_a = np.where(np.isfinite(i), i, 0.0)
-        x = self._aux_direct * i_a + (self._aux_state * self._aux_state_out).sum(axis=1) + self._aux_c0
-        self._aux_state = self._aux_pole * self._aux_state + self._aux_in * i_a[:, None]
+        x = self._aux_step(np.where(np.isfinite(i), i, 0.0))
         y, phi, ready = super()._regress(i, v, ok, x)
         self._zeta = self.history.instruments(phi)
         return y, phi, ready
+
+    def _aux_step(self, i_a: np.ndarray) -> np.ndarray:
+        """The auxiliary model's output x for current i_a (A), and its RC states one step on."""
+        x = self._aux_direct * i_a + (self._aux_state * self._aux_state_out).sum(axis=1) + self._aux_c0
+        self._aux_state = self._aux_pole * self._aux_state + self._aux_in * i_a[:, None]
+        return x
 
     def _learn(self, phi, y, learn):
         return self.rls.update(phi, y, learn, zeta=self._zeta)
