@@ -1,0 +1,265 @@
+"""State of power: the largest constant current (and power) over a horizon, per cell and for the pack.
+
+Model-based SOP (Plett, "High-performance battery-pack power estimation using a
+dynamic cell model", IEEE TVT 53(5), 2004), on the identified 2-RC model, current
+``I`` positive = charge.  Held constant for ``D`` seconds from now, the ECM
+(:mod:`bms_estimator.core.ecm`, exact for constant current) predicts::
+
+    v(D, I) = OCV(s + c I) + b + sum_j [x_j p_j + R_j (1 - p_j) I] + R0 I,
+              p_j = exp(-D / tau_j),   c = D / (3600 Q)
+
+where ``x_j`` are the RC voltages now and ``b`` all that the model holds constant
+over the horizon (the OCV bias c0, the hysteresis, a slow diffusion voltage).  ``b``
+is not modelled separately: the prediction is anchored on the voltage ``v`` measured
+now at the current ``i`` (``v = OCV(s) + b + sum_j x_j + R0 i``), so whatever the
+model does not explain stays in the prediction as measured::
+
+    v(D, I) = v_base + [OCV(s + c I) - OCV(s)] + R_D I
+    v_base  = v - R0 i - sum_j x_j (1 - p_j)          (the voltage after D s at I = 0, OCV aside)
+    R_D     = R0 + sum_j R_j (1 - p_j)                 (the D-second resistance)
+
+Limits, magnitudes in A (>= 0).  The discharge limit ``I_dis`` solves
+``v(D, -I_dis) = v_min``, the charge limit ``I_chg`` solves ``v(D, I_chg) = v_max``;
+``v(D, I)`` is strictly increasing in ``I`` (OCV increasing, ``R_D > 0``), so each
+root is unique.  It is found by safeguarded Newton on the bracket ``[0, I_cap]``
+(the Newton step where it stays inside the bracket, else bisection; exact in a
+few steps on a piecewise-linear OCV table).  Then, as in Plett's method:
+
+    SOC:         I_dis <= (s - soc_min) 3600 Q / D,   I_chg <= (soc_max - s) 3600 Q / D
+    design:      I_dis <= I_dis,max d_dis(T),          I_chg <= I_chg,max d_chg(T)
+
+with ``d(T)`` the temperature derating, piecewise linear in the cell temperature
+over ``derate_temperatures_c`` (held beyond its ends; 0 = no current).  A cell
+already past a voltage bound has a zero limit in that direction.  The power
+limits are ``P = |I| v(D, I)`` at the limit currents.
+
+Pack (cells in series, ``n_parallel`` strings of equal cells in parallel): every
+cell carries the pack current / n_parallel, so the pack current limit is the
+weakest cell's times ``n_parallel``, and the pack power is that current times the
+sum of every cell's predicted voltage at it (the series count times the mean).
+
+Baseline: the HPPC static-resistance method (FreedomCAR/USABC HPPC manual) assumes
+a cell at rest and an unchanged OCV::
+
+    I_dis = (OCV(s) - v_min) / R_D,    I_chg = (v_max - OCV(s)) / R_D
+
+with the same design limits and derating.  It ignores the RC voltages already
+built up (optimistic after a discharge pulse, pessimistic after a charge) and the
+OCV's fall over the horizon.
+
+Everything is vectorised over cells (and horizons); no I/O.  Limits are never
+negative and never NaN: a cell whose inputs or model are not finite gets 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Annotated, Callable
+
+import numpy as np
+from annotated_types import Ge, Gt
+
+__all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", "hppc_limits", "pack_limits"]
+
+OcvFn = Callable[[np.ndarray], np.ndarray]
+
+_NEWTON_STEPS = 12
+
+
+@dataclass(frozen=True)
+class SopConfig:
+    """Cell limits and derating (defaults: an 18650 NCA/NMC cell's datasheet figures)."""
+
+    horizons_s: tuple[Annotated[float, Gt(0)], ...] = (2.0, 10.0, 30.0)
+    v_min: Annotated[float, Gt(0)] = 2.5  # V, cell discharge cut-off
+    v_max: Annotated[float, Gt(0)] = 4.2  # V, cell charge cut-off
+    i_discharge_max_a: Annotated[float, Ge(0)] = 20.0  # A, the cell's continuous discharge rating
+    i_charge_max_a: Annotated[float, Ge(0)] = 6.0  # A, the cell's charge rating
+    soc_min: Annotated[float, Ge(0)] = 0.0
+    soc_max: Annotated[float, Gt(0)] = 1.0
+    n_parallel: Annotated[int, Ge(1)] = 1  # cells in parallel per series element
+    # derating: factor on the design current limits, linear between these temperatures (degC)
+    derate_temperatures_c: tuple[float, ...] = (-20.0, 0.0, 10.0, 45.0, 60.0)
+    discharge_derate: tuple[Annotated[float, Ge(0)], ...] = (0.3, 0.6, 1.0, 1.0, 0.0)
+    charge_derate: tuple[Annotated[float, Ge(0)], ...] = (0.0, 0.1, 0.5, 1.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not self.horizons_s or any(not (np.isfinite(h) and h > 0) for h in self.horizons_s):
+            raise ValueError(f"horizons_s must be positive numbers of seconds, got {list(self.horizons_s)}")
+        if not 0 < self.v_min < self.v_max:
+            raise ValueError(f"need 0 < v_min < v_max, got v_min={self.v_min}, v_max={self.v_max}")
+        if not 0 <= self.soc_min < self.soc_max <= 1:
+            raise ValueError(f"need 0 <= soc_min < soc_max <= 1, got {self.soc_min}, {self.soc_max}")
+        t = np.asarray(self.derate_temperatures_c, dtype=float)
+        if t.size < 1 or np.any(np.diff(t) <= 0) or not np.all(np.isfinite(t)):
+            raise ValueError(f"derate_temperatures_c must be increasing, got {list(self.derate_temperatures_c)}")
+        for name in ("discharge_derate", "charge_derate"):
+            d = np.asarray(getattr(self, name), dtype=float)
+            if d.shape != t.shape or np.any(d < 0) or np.any(d > 1) or not np.all(np.isfinite(d)):
+                raise ValueError(f"{name} must have one factor in [0, 1] per derate temperature "
+                                 f"({t.size}), got {list(getattr(self, name))}")
+
+
+@dataclass(frozen=True)
+class SopResult:
+    """Limits per horizon and cell, shape ``(n_horizons, n_cells)``; magnitudes, A and W."""
+
+    horizons_s: np.ndarray
+    discharge_a: np.ndarray
+    charge_a: np.ndarray
+    discharge_w: np.ndarray
+    charge_w: np.ndarray
+
+
+def derate(temperature_c: np.ndarray, temperatures_c, factors) -> np.ndarray:
+    """Derating factor at each temperature (linear, held beyond the ends; NaN -> 0)."""
+    t = np.asarray(temperature_c, dtype=float)
+    d = np.interp(np.where(np.isfinite(t), t, 0.0), np.asarray(temperatures_c, float), np.asarray(factors, float))
+    return np.where(np.isfinite(t), d, 0.0)
+
+
+def _horizon_terms(r0, r_rc, tau_rc, x_rc, horizons_s):
+    """(R_D, sum_j x_j (1 - p_j)) with shape (H, N): r_rc, tau_rc, x_rc are (N, m)."""
+    d = np.asarray(horizons_s, dtype=float)[:, None, None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        q = 1.0 - np.exp(-d / tau_rc[None])  # (H, N, m)
+    r_d = r0[None] + np.sum(r_rc[None] * q, axis=-1)
+    decay = np.sum(x_rc[None] * q, axis=-1)
+    return r_d, decay
+
+
+def predict_voltage(current_a, horizon_s, *, voltage_v, current_now_a, soc, capacity_ah, ocv: OcvFn,
+                    r0_ohm, r_ohm, tau_s, x_v) -> np.ndarray:
+    """``v(D, I)`` of the module docstring for a constant current ``I`` (per cell) over ``D`` s."""
+    r0 = np.asarray(r0_ohm, dtype=float)
+    r_d, decay = _horizon_terms(r0, np.asarray(r_ohm, float), np.asarray(tau_s, float), np.asarray(x_v, float),
+                                [float(horizon_s)])
+    i = np.asarray(current_a, dtype=float)
+    s = np.asarray(soc, dtype=float)
+    c = float(horizon_s) / (3600.0 * np.asarray(capacity_ah, dtype=float))
+    base = np.asarray(voltage_v, float) - r0 * np.asarray(current_now_a, float) - decay[0]
+    return base + (ocv(s + c * i) - ocv(s)) + r_d[0] * i
+
+
+def _solve(target, base, r_d, s, c, sign, cap, ocv: OcvFn, slope: OcvFn, ocv_s):
+    """Largest I in [0, cap] with sign * (v(sign * I) - target) <= 0 ... i.e. the bound's root.
+
+    g(I) = sign * (base + OCV(s + sign c I) - OCV(s) + sign R_D I - target), increasing in I.
+    """
+    def g(i):
+        return sign * (base + ocv(s + sign * c * i) - ocv_s - target) + r_d * i
+
+    lo = np.zeros_like(base)
+    hi = cap.copy()
+    g_lo = g(lo)
+    g_hi = g(hi)
+    at_cap = g_hi <= 0.0  # even the cap keeps the voltage inside
+    past = g_lo >= 0.0  # already at or beyond the bound
+    # first guess: the linearised root
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.clip(-g_lo / (r_d + c * slope(s)), lo, hi)
+    for _ in range(_NEWTON_STEPS):
+        gx = g(x)
+        lo = np.where(gx <= 0.0, x, lo)
+        hi = np.where(gx > 0.0, x, hi)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = x - gx / (r_d + c * slope(s + sign * c * x))
+        inside = np.isfinite(step) & (step > lo) & (step < hi)
+        x = np.where(inside, step, 0.5 * (lo + hi))
+    x = lo  # the largest current proven to stay inside
+    return np.where(past, 0.0, np.where(at_cap, cap, x))
+
+
+def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
+               r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model") -> SopResult:
+    """Discharge and charge current and power limits per horizon and cell (module docstring).
+
+    Args are per cell (``(N,)``; ``r_ohm``, ``tau_s``, ``x_v`` are ``(N, m)``); ``ocv`` and
+    ``docv_dsoc`` map an SOC array of shape ``(H, N)`` to volts (at each cell's temperature).
+    ``method`` = ``"model"`` (Plett's, the default) or ``"hppc"`` (the static-resistance baseline).
+    """
+    cfg = config
+    v = np.asarray(voltage_v, dtype=float)
+    n = v.shape[0]
+    i_now = np.broadcast_to(np.asarray(current_now_a, float), (n,))
+    s = np.broadcast_to(np.asarray(soc, float), (n,))
+    q = np.broadcast_to(np.asarray(capacity_ah, float), (n,))
+    r0 = np.broadcast_to(np.asarray(r0_ohm, float), (n,))
+    r_rc = np.asarray(r_ohm, float).reshape(n, -1)
+    tau_rc = np.asarray(tau_s, float).reshape(n, -1)
+    x_rc = np.broadcast_to(np.asarray(x_v, float), r_rc.shape)
+    hz = np.asarray(cfg.horizons_s, dtype=float)
+    ok = (np.isfinite(v) & np.isfinite(i_now) & np.isfinite(s) & np.isfinite(q) & (q > 0) & np.isfinite(r0)
+          & (r0 > 0) & np.all(np.isfinite(r_rc) & (r_rc >= 0) & np.isfinite(tau_rc) & (tau_rc > 0)
+                              & np.isfinite(x_rc), axis=1))
+    # a cell that cannot be predicted gets no current: substitute harmless numbers, zero it at the end
+    v_u = np.where(ok, v, cfg.v_min)
+    s_u = np.where(ok, s, 0.0)
+    q_u = np.where(ok, q, 1.0)
+    r0_u = np.where(ok, r0, 1.0)
+    r_u = np.where(ok[:, None], r_rc, 0.0)
+    tau_u = np.where(ok[:, None], tau_rc, 1.0)
+    x_u = np.where(ok[:, None], x_rc, 0.0)
+    i_u = np.where(ok, i_now, 0.0)
+    r_d, decay = _horizon_terms(r0_u, r_u, tau_u, x_u, hz)  # (H, N)
+    c = hz[:, None] / (3600.0 * q_u[None])  # (H, N) SOC per A
+    s_h = np.broadcast_to(s_u, r_d.shape)
+    ocv_s = np.asarray(ocv(s_h), dtype=float)
+    if method == "model":
+        base = (v_u - r0_u * i_u)[None] - decay
+        c_use = c
+    elif method == "hppc":
+        base = ocv_s  # at rest, and the OCV held
+        c_use = np.zeros_like(c)
+    else:
+        raise ValueError(f"method must be 'model' or 'hppc', got {method!r}")
+    t = np.broadcast_to(np.asarray(temperature_c, float), (n,))
+    cap_dis = cfg.i_discharge_max_a * derate(t, cfg.derate_temperatures_c, cfg.discharge_derate)
+    cap_chg = cfg.i_charge_max_a * derate(t, cfg.derate_temperatures_c, cfg.charge_derate)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        soc_dis = np.maximum(s_h - cfg.soc_min, 0.0) / c
+        soc_chg = np.maximum(cfg.soc_max - s_h, 0.0) / c
+    cap_d = np.minimum(np.broadcast_to(cap_dis, r_d.shape), soc_dis)
+    cap_c = np.minimum(np.broadcast_to(cap_chg, r_d.shape), soc_chg)
+    i_dis = _solve(cfg.v_min, base, r_d, s_h, c_use, -1.0, cap_d, ocv, docv_dsoc, ocv_s)
+    i_chg = _solve(cfg.v_max, base, r_d, s_h, c_use, 1.0, cap_c, ocv, docv_dsoc, ocv_s)
+    i_dis = np.where(ok[None] & np.isfinite(i_dis), np.maximum(i_dis, 0.0), 0.0)
+    i_chg = np.where(ok[None] & np.isfinite(i_chg), np.maximum(i_chg, 0.0), 0.0)
+    v_dis = base + ocv(s_h - c_use * i_dis) - ocv_s - r_d * i_dis
+    v_chg = base + ocv(s_h + c_use * i_chg) - ocv_s + r_d * i_chg
+    p_dis = np.where(np.isfinite(v_dis), np.maximum(i_dis * v_dis, 0.0), 0.0)
+    p_chg = np.where(np.isfinite(v_chg), np.maximum(i_chg * v_chg, 0.0), 0.0)
+    return SopResult(hz, i_dis, i_chg, p_dis, p_chg)
+
+
+def pack_limits(result: SopResult, *, voltage_v, current_now_a, soc, capacity_ah, ocv: OcvFn,
+                r0_ohm, r_ohm, tau_s, x_v, n_parallel: int = 1, valid=None) -> dict[str, np.ndarray]:
+    """Pack current and power limits per horizon (module docstring), shape ``(H,)``.
+
+    The pack current is the weakest cell's limit times ``n_parallel``; the power is that
+    current times the sum of every cell's predicted voltage at its share of it.
+    ``valid`` (N,) bool restricts the weakest-cell search (all cells when None); no valid
+    cell gives 0.
+    """
+    n = result.discharge_a.shape[1]
+    use = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    out: dict[str, np.ndarray] = {}
+    for key, lim, sign in (("discharge", result.discharge_a, -1.0), ("charge", result.charge_a, 1.0)):
+        if not use.any():
+            out[f"{key}_a"] = np.zeros(len(result.horizons_s))
+            out[f"{key}_w"] = np.zeros(len(result.horizons_s))
+            continue
+        i_cell = np.min(lim[:, use], axis=1)  # (H,)
+        p = np.zeros_like(i_cell)
+        for h, d in enumerate(result.horizons_s):
+            v = predict_voltage(sign * i_cell[h], d, voltage_v=voltage_v, current_now_a=current_now_a, soc=soc,
+                                capacity_ah=capacity_ah, ocv=ocv, r0_ohm=r0_ohm, r_ohm=r_ohm, tau_s=tau_s, x_v=x_v)
+            p[h] = i_cell[h] * n_parallel * float(np.sum(np.where(use & np.isfinite(v), v, 0.0)))
+        out[f"{key}_a"] = i_cell * n_parallel
+        out[f"{key}_w"] = np.maximum(p, 0.0)
+    return out
+
+
+def hppc_limits(**kwargs) -> SopResult:
+    """The static-resistance baseline: :func:`sop_limits` with ``method="hppc"``."""
+    return sop_limits(method="hppc", **kwargs)
