@@ -24,6 +24,7 @@ SUBCOMMANDS = {
     "replay": "replay",
     "dashboard": "dashboard",
     "run": "run",
+    "sop-backtest": "sop_backtest",
 }
 
 
