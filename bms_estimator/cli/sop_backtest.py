@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..core.identifier import IdentifierConfig
 from ..core.sop import SopConfig
 from ..sop_backtest import run_backtest, summary
-from .common import add_cell_options, add_tuning_options, load, load_ocv, positive_float, soc_config, write_json
+from .common import add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float, soc_config, write_json
 
 _SOP = SopConfig()
 
@@ -32,6 +33,7 @@ def add_parser(sub) -> None:
                    help=f"the cell's charge current rating, A (default {_SOP.i_charge_max_a:g})")
     p.add_argument("--mode", choices=("auto", "hppc", "drive"), default="auto",
                    help="windows at the pulses (hppc), every horizon (drive), or whichever the file is (default auto)")
+    add_method_option(p, IdentifierConfig().method, "(the online estimator's identification)")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here ('-' = stdout)")
     add_tuning_options(p)
     p.set_defaults(func=run)

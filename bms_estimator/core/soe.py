@@ -36,7 +36,7 @@ OcvFn = Callable[[np.ndarray], np.ndarray]
 @dataclass(frozen=True)
 class SoeConfig:
     rate_c: Annotated[float, Ge(0)] = 0.5  # the stated discharge rate of the energy left, C
-    n_points: Annotated[int, Ge(3)] = 41  # SOC grid of the integral
+    n_points: Annotated[int, Ge(3)] = 21  # SOC grid of the integral
     idle_current_c: Annotated[float, Gt(0)] = 0.01  # below this mean current (C), no time to empty/full
     mean_current_tau_s: Annotated[float, Gt(0)] = 300.0  # the "recent" mean current's time constant
 
@@ -50,15 +50,20 @@ def _grid(soc: np.ndarray, soc_min: float, n: int) -> np.ndarray:
 
 
 def _cut_soc(z: np.ndarray, v: np.ndarray, v_min: float) -> np.ndarray:
-    """The lowest grid SOC from which v stays >= v_min up to the top (per row)."""
+    """The SOC where v falls to v_min below the top, interpolated between grid points (per row);
+    the lowest grid SOC when it never does, the top when the top is already below."""
     below = v < v_min
-    # last index (from the top down) where the voltage is below v_min; the cut is one above it
     rev = below[:, ::-1]
     any_below = rev.any(axis=1)
-    first_rev = np.argmax(rev, axis=1)
-    idx = np.where(any_below, z.shape[1] - first_rev, 0)
-    idx = np.minimum(idx, z.shape[1] - 1)
-    return np.take_along_axis(z, idx[:, None], axis=1)[:, 0]
+    # the highest grid index below v_min; the crossing lies between it and the next
+    k = np.where(any_below, z.shape[1] - 1 - np.argmax(rev, axis=1), 0)
+    k1 = np.minimum(k + 1, z.shape[1] - 1)
+    za, zb = np.take_along_axis(z, k[:, None], 1)[:, 0], np.take_along_axis(z, k1[:, None], 1)[:, 0]
+    va, vb = np.take_along_axis(v, k[:, None], 1)[:, 0], np.take_along_axis(v, k1[:, None], 1)[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.clip((v_min - va) / (vb - va), 0.0, 1.0)
+    cut = np.where(k1 > k, za + f * (zb - za), zb)
+    return np.where(any_below, cut, z[:, 0])
 
 
 def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_min: float = 0.0,
@@ -76,12 +81,11 @@ def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_
     z = _grid(s_u, soc_min, int(config.n_points))
     v = np.asarray(ocv(z), dtype=float) - np.where(ok, r, 0.0)[:, None] * (config.rate_c * np.where(ok, q, 0.0))[:, None]
     z_cut = _cut_soc(z, v, v_min)
-    vv = np.where(z >= z_cut[:, None], np.maximum(v, v_min), 0.0)
-    dz = z[:, 1] - z[:, 0]
-    # trapezoid over the points at or above the cut
-    inside = z >= z_cut[:, None]
-    seg = 0.5 * (vv[:, 1:] + vv[:, :-1]) * (inside[:, 1:] & inside[:, :-1])
-    e = np.where(ok, q * dz * seg.sum(axis=1), np.nan)
+    # trapezoid over each grid interval's part above the cut (the voltage there >= v_min)
+    lo = np.maximum(z[:, :-1], z_cut[:, None])
+    width = np.maximum(z[:, 1:] - lo, 0.0)
+    seg = 0.5 * (np.maximum(v[:, 1:], v_min) + np.maximum(v[:, :-1], v_min)) * width
+    e = np.where(ok, q * seg.sum(axis=1), np.nan)
     return e, np.where(ok, z_cut, np.nan)
 
 

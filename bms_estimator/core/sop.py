@@ -21,9 +21,11 @@ model does not explain stays in the prediction as measured::
 Limits, magnitudes in A (>= 0).  The discharge limit ``I_dis`` solves
 ``v(D, -I_dis) = v_min``, the charge limit ``I_chg`` solves ``v(D, I_chg) = v_max``;
 ``v(D, I)`` is strictly increasing in ``I`` (OCV increasing, ``R_D > 0``), so each
-root is unique.  It is found by safeguarded Newton on the bracket ``[0, I_cap]``
-(the Newton step where it stays inside the bracket, else bisection; exact in a
-few steps on a piecewise-linear OCV table).  Then, as in Plett's method:
+root is unique.  It is found by safeguarded Newton from Plett's linearised root
+(``OCV(s + c I) ~ OCV(s) + OCV'(s) c I``, his closed form) with ``newton_steps``
+Newton steps on the OCV curve itself, clipped to ``[0, I_cap]``; a final overshoot
+``g > 0`` is stepped back by ``g / R_D`` (the slope of ``g`` is at least ``R_D``), so the
+predicted voltage at the limit never passes the bound.  Then, as in Plett's method:
 
     SOC:         I_dis <= (s - soc_min) 3600 Q / D,   I_chg <= (soc_max - s) 3600 Q / D
     design:      I_dis <= I_dis,max d_dis(T),          I_chg <= I_chg,max d_chg(T)
@@ -63,8 +65,6 @@ __all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", 
 
 OcvFn = Callable[[np.ndarray], np.ndarray]
 
-_NEWTON_STEPS = 12
-
 
 @dataclass(frozen=True)
 class SopConfig:
@@ -78,6 +78,7 @@ class SopConfig:
     soc_min: Annotated[float, Ge(0)] = 0.0
     soc_max: Annotated[float, Gt(0)] = 1.0
     n_parallel: Annotated[int, Ge(1)] = 1  # cells in parallel per series element
+    newton_steps: Annotated[int, Ge(0)] = 2  # refinements of the linearised root on the OCV curve
     # derating: factor on the design current limits, linear between these temperatures (degC)
     derate_temperatures_c: tuple[float, ...] = (-20.0, 0.0, 10.0, 45.0, 60.0)
     discharge_derate: tuple[Annotated[float, Ge(0)], ...] = (0.3, 0.6, 1.0, 1.0, 0.0)
@@ -141,33 +142,24 @@ def predict_voltage(current_a, horizon_s, *, voltage_v, current_now_a, soc, capa
     return base + (ocv(s + c * i) - ocv(s)) + r_d[0] * i
 
 
-def _solve(target, base, r_d, s, c, sign, cap, ocv: OcvFn, slope: OcvFn, ocv_s):
-    """Largest I in [0, cap] with sign * (v(sign * I) - target) <= 0 ... i.e. the bound's root.
+def _solve(target, base, r_d, s, c, sign, cap, ocv: OcvFn, slope: OcvFn, ocv_s, steps: int):
+    """The root ``I`` in ``[0, cap]`` of ``g(I) = sign (base + OCV(s + sign c I) - OCV(s) - target) + R_D I``.
 
-    g(I) = sign * (base + OCV(s + sign c I) - OCV(s) + sign R_D I - target), increasing in I.
+    ``g`` is increasing with ``g' >= R_D``.  Start: Plett's linearised root
+    ``-g(0) / (R_D + c OCV'(s))``; then ``steps`` Newton steps; last, if ``g(I) > 0``
+    (an overshoot), ``I -= g(I) / R_D``, which by ``g' >= R_D`` makes ``g(I) <= 0``: the
+    limit never lets the predicted voltage past the bound.
     """
-    def g(i):
-        return sign * (base + ocv(s + sign * c * i) - ocv_s - target) + r_d * i
-
-    lo = np.zeros_like(base)
-    hi = cap.copy()
-    g_lo = g(lo)
-    g_hi = g(hi)
-    at_cap = g_hi <= 0.0  # even the cap keeps the voltage inside
-    past = g_lo >= 0.0  # already at or beyond the bound
-    # first guess: the linearised root
+    g0 = sign * (base - target)
     with np.errstate(divide="ignore", invalid="ignore"):
-        x = np.clip(-g_lo / (r_d + c * slope(s)), lo, hi)
-    for _ in range(_NEWTON_STEPS):
-        gx = g(x)
-        lo = np.where(gx <= 0.0, x, lo)
-        hi = np.where(gx > 0.0, x, hi)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = x - gx / (r_d + c * slope(s + sign * c * x))
-        inside = np.isfinite(step) & (step > lo) & (step < hi)
-        x = np.where(inside, step, 0.5 * (lo + hi))
-    x = lo  # the largest current proven to stay inside
-    return np.where(past, 0.0, np.where(at_cap, cap, x))
+        x = np.clip(-g0 / (r_d + c * slope(s)), 0.0, cap)
+        for _ in range(steps):
+            z = s + sign * c * x
+            gx = g0 + sign * (ocv(z) - ocv_s) + r_d * x
+            x = np.clip(x - gx / (r_d + c * slope(z)), 0.0, cap)
+        gx = g0 + sign * (ocv(s + sign * c * x) - ocv_s) + r_d * x
+        x = np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x)
+    return np.where(g0 >= 0.0, 0.0, x)  # already at or past the bound: nothing
 
 
 def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
@@ -175,7 +167,7 @@ def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv
     """Discharge and charge current and power limits per horizon and cell (module docstring).
 
     Args are per cell (``(N,)``; ``r_ohm``, ``tau_s``, ``x_v`` are ``(N, m)``); ``ocv`` and
-    ``docv_dsoc`` map an SOC array of shape ``(H, N)`` to volts (at each cell's temperature).
+    ``docv_dsoc`` map an SOC array of shape ``(K, N)`` to volts (at each cell's temperature).
     ``method`` = ``"model"`` (Plett's, the default) or ``"hppc"`` (the static-resistance baseline).
     """
     cfg = config
@@ -189,27 +181,25 @@ def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv
     tau_rc = np.asarray(tau_s, float).reshape(n, -1)
     x_rc = np.broadcast_to(np.asarray(x_v, float), r_rc.shape)
     hz = np.asarray(cfg.horizons_s, dtype=float)
-    ok = (np.isfinite(v) & np.isfinite(i_now) & np.isfinite(s) & np.isfinite(q) & (q > 0) & np.isfinite(r0)
-          & (r0 > 0) & np.all(np.isfinite(r_rc) & (r_rc >= 0) & np.isfinite(tau_rc) & (tau_rc > 0)
-                              & np.isfinite(x_rc), axis=1))
-    # a cell that cannot be predicted gets no current: substitute harmless numbers, zero it at the end
-    v_u = np.where(ok, v, cfg.v_min)
-    s_u = np.where(ok, s, 0.0)
-    q_u = np.where(ok, q, 1.0)
-    r0_u = np.where(ok, r0, 1.0)
-    r_u = np.where(ok[:, None], r_rc, 0.0)
-    tau_u = np.where(ok[:, None], tau_rc, 1.0)
-    x_u = np.where(ok[:, None], x_rc, 0.0)
-    i_u = np.where(ok, i_now, 0.0)
-    r_d, decay = _horizon_terms(r0_u, r_u, tau_u, x_u, hz)  # (H, N)
-    c = hz[:, None] / (3600.0 * q_u[None])  # (H, N) SOC per A
-    s_h = np.broadcast_to(s_u, r_d.shape)
-    ocv_s = np.asarray(ocv(s_h), dtype=float)
+    with np.errstate(invalid="ignore"):
+        ok = (np.isfinite(v) & np.isfinite(i_now) & np.isfinite(s) & (q > 0) & np.isfinite(q) & (r0 > 0)
+              & np.isfinite(r0) & ((r_rc >= 0) & (tau_rc > 0) & np.isfinite(r_rc + tau_rc + x_rc)).all(axis=1))
+    if not ok.all():  # a cell that cannot be predicted gets no current: harmless numbers, zeroed at the end
+        v, s, q, r0, i_now = (np.where(ok, a, d) for a, d in ((v, cfg.v_min), (s, 0.0), (q, 1.0), (r0, 1.0),
+                                                               (i_now, 0.0)))
+        okc = ok[:, None]
+        r_rc, tau_rc, x_rc = np.where(okc, r_rc, 0.0), np.where(okc, tau_rc, 1.0), np.where(okc, x_rc, 0.0)
+    r_d, decay = _horizon_terms(r0, r_rc, tau_rc, x_rc, hz)  # (H, N)
+    c = hz[:, None] / (3600.0 * q[None])  # (H, N): SOC per A over the horizon
+    nh = len(hz)
+    # discharge rows first, then charge: one OCV evaluation serves both directions
+    s2 = np.broadcast_to(s, (2 * nh, n))
+    ocv_s = np.asarray(ocv(s2), dtype=float)
     if method == "model":
-        base = (v_u - r0_u * i_u)[None] - decay
+        base = (v - r0 * i_now)[None] - decay
         c_use = c
     elif method == "hppc":
-        base = ocv_s  # at rest, and the OCV held
+        base = ocv_s[:nh]  # at rest, and the OCV held
         c_use = np.zeros_like(c)
     else:
         raise ValueError(f"method must be 'model' or 'hppc', got {method!r}")
@@ -217,19 +207,16 @@ def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv
     cap_dis = cfg.i_discharge_max_a * derate(t, cfg.derate_temperatures_c, cfg.discharge_derate)
     cap_chg = cfg.i_charge_max_a * derate(t, cfg.derate_temperatures_c, cfg.charge_derate)
     with np.errstate(divide="ignore", invalid="ignore"):
-        soc_dis = np.maximum(s_h - cfg.soc_min, 0.0) / c
-        soc_chg = np.maximum(cfg.soc_max - s_h, 0.0) / c
-    cap_d = np.minimum(np.broadcast_to(cap_dis, r_d.shape), soc_dis)
-    cap_c = np.minimum(np.broadcast_to(cap_chg, r_d.shape), soc_chg)
-    i_dis = _solve(cfg.v_min, base, r_d, s_h, c_use, -1.0, cap_d, ocv, docv_dsoc, ocv_s)
-    i_chg = _solve(cfg.v_max, base, r_d, s_h, c_use, 1.0, cap_c, ocv, docv_dsoc, ocv_s)
-    i_dis = np.where(ok[None] & np.isfinite(i_dis), np.maximum(i_dis, 0.0), 0.0)
-    i_chg = np.where(ok[None] & np.isfinite(i_chg), np.maximum(i_chg, 0.0), 0.0)
-    v_dis = base + ocv(s_h - c_use * i_dis) - ocv_s - r_d * i_dis
-    v_chg = base + ocv(s_h + c_use * i_chg) - ocv_s + r_d * i_chg
-    p_dis = np.where(np.isfinite(v_dis), np.maximum(i_dis * v_dis, 0.0), 0.0)
-    p_chg = np.where(np.isfinite(v_chg), np.maximum(i_chg * v_chg, 0.0), 0.0)
-    return SopResult(hz, i_dis, i_chg, p_dis, p_chg)
+        cap = np.concatenate([np.minimum(cap_dis[None], np.maximum(s - cfg.soc_min, 0.0)[None] / c),
+                              np.minimum(cap_chg[None], np.maximum(cfg.soc_max - s, 0.0)[None] / c)])
+    sign = np.concatenate([np.full((nh, 1), -1.0), np.ones((nh, 1))])
+    target = np.concatenate([np.full((nh, 1), cfg.v_min), np.full((nh, 1), cfg.v_max)])
+    base2, r_d2, c2 = np.concatenate([base, base]), np.concatenate([r_d, r_d]), np.concatenate([c_use, c_use])
+    lim = _solve(target, base2, r_d2, s2, c2, sign, cap, ocv, docv_dsoc, ocv_s, cfg.newton_steps)
+    lim = np.where(ok[None] & np.isfinite(lim), np.maximum(lim, 0.0), 0.0)
+    v_at = base2 + ocv(s2 + sign * c2 * lim) - ocv_s + sign * r_d2 * lim
+    p = np.where(np.isfinite(v_at), np.maximum(lim * v_at, 0.0), 0.0)
+    return SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:])
 
 
 def pack_limits(result: SopResult, *, voltage_v, current_now_a, soc, capacity_ah, ocv: OcvFn,
@@ -242,22 +229,28 @@ def pack_limits(result: SopResult, *, voltage_v, current_now_a, soc, capacity_ah
     cell gives 0.
     """
     n = result.discharge_a.shape[1]
+    nh = len(result.horizons_s)
     use = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
-    out: dict[str, np.ndarray] = {}
-    for key, lim, sign in (("discharge", result.discharge_a, -1.0), ("charge", result.charge_a, 1.0)):
-        if not use.any():
-            out[f"{key}_a"] = np.zeros(len(result.horizons_s))
-            out[f"{key}_w"] = np.zeros(len(result.horizons_s))
-            continue
-        i_cell = np.min(lim[:, use], axis=1)  # (H,)
-        p = np.zeros_like(i_cell)
-        for h, d in enumerate(result.horizons_s):
-            v = predict_voltage(sign * i_cell[h], d, voltage_v=voltage_v, current_now_a=current_now_a, soc=soc,
-                                capacity_ah=capacity_ah, ocv=ocv, r0_ohm=r0_ohm, r_ohm=r_ohm, tau_s=tau_s, x_v=x_v)
-            p[h] = i_cell[h] * n_parallel * float(np.sum(np.where(use & np.isfinite(v), v, 0.0)))
-        out[f"{key}_a"] = i_cell * n_parallel
-        out[f"{key}_w"] = np.maximum(p, 0.0)
-    return out
+    if not use.any():
+        z = np.zeros(nh)
+        return {"discharge_a": z, "charge_a": z.copy(), "discharge_w": z.copy(), "charge_w": z.copy()}
+    i_dis = np.min(result.discharge_a[:, use], axis=1)  # (H,) per cell of the string
+    i_chg = np.min(result.charge_a[:, use], axis=1)
+    r0 = np.asarray(r0_ohm, dtype=float)
+    r_d, decay = _horizon_terms(r0, np.asarray(r_ohm, float), np.asarray(tau_s, float), np.asarray(x_v, float),
+                                result.horizons_s)
+    base = (np.asarray(voltage_v, float) - r0 * np.asarray(current_now_a, float))[None] - decay
+    s = np.asarray(soc, dtype=float)
+    c = result.horizons_s[:, None] / (3600.0 * np.asarray(capacity_ah, dtype=float)[None])
+    i2 = np.concatenate([-i_dis, i_chg])[:, None]  # (2H, 1) signed cell current
+    base2, r_d2, c2 = np.concatenate([base, base]), np.concatenate([r_d, r_d]), np.concatenate([c, c])
+    s2 = np.broadcast_to(s, base2.shape)
+    with np.errstate(invalid="ignore"):
+        v = base2 + ocv(s2 + c2 * i2) - ocv(s2) + r_d2 * i2
+        p = np.abs(i2[:, 0]) * n_parallel * np.sum(np.where(use & np.isfinite(v), v, 0.0), axis=1)
+    p = np.maximum(p, 0.0)
+    return {"discharge_a": i_dis * n_parallel, "charge_a": i_chg * n_parallel, "discharge_w": p[:nh],
+            "charge_w": p[nh:]}
 
 
 def hppc_limits(**kwargs) -> SopResult:

@@ -39,9 +39,9 @@ def test_limit_current_drives_the_simulated_cell_exactly_to_v_min_and_v_max(nmc_
             # the ECM simulated exactly (ZOH) with the limit current held for the horizon
             sim = simulate_ecm(np.tile(sign * lim, (n + 1, 1)), 1.0, EcmParams.from_rc(R0, R_RC, TAU), nmc_like_ocv.ocv,
                                soc0=soc, capacity_ah=Q, x0=x)
-            np.testing.assert_allclose(sim.voltage_v[-1], target, atol=1e-9)
+            np.testing.assert_allclose(sim.voltage_v[-1], target, atol=1e-7)
             # and it was inside the bounds before the horizon
-            assert np.all(sign * (sim.voltage_v[:-1] - target) < 1e-9)
+            assert np.all(sign * (sim.voltage_v[:-1] - target) < 1e-7)
         v_at = predict_voltage(-res.discharge_a[h], d, voltage_v=_cells(nmc_like_ocv, soc, x, i_now), current_now_a=i_now,
                                soc=soc, capacity_ah=Q, ocv=nmc_like_ocv.ocv, r0_ohm=R0, r_ohm=R_RC, tau_s=TAU, x_v=x)
         np.testing.assert_allclose(res.discharge_w[h], res.discharge_a[h] * v_at, rtol=1e-12)
