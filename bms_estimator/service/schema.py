@@ -123,20 +123,24 @@ def sox_limit_keys(horizon_s: float) -> tuple[str, str, str, str]:
     return (f"i_discharge_max_{tag}_a", f"i_charge_max_{tag}_a", f"p_discharge_max_{tag}_w", f"p_charge_max_{tag}_w")
 
 
-def _limit_fields(cls, horizons, enabled_power_only: bool):
+def _limit_fields(cls, horizons, *, current_ha: bool, power_ha_all: bool):
+    """The SOP fields: currents with an HA entity at 10 s (when ``current_ha``), powers at 10 s or at
+    every horizon (``power_ha_all``)."""
     out = []
     for h in horizons:
         ia, ic, pa, pc = sox_limit_keys(h)
-        out += [cls(ia, f"Discharge current limit {h:g} s", _CURRENT if not enabled_power_only else None, 1.0, 1),
-                cls(ic, f"Charge current limit {h:g} s", _CURRENT if not enabled_power_only else None, 1.0, 1),
-                cls(pa, f"Discharge power limit {h:g} s", _POWER if (h == 10.0 or not enabled_power_only) else None, 1.0, 0),
-                cls(pc, f"Charge power limit {h:g} s", _POWER if (h == 10.0 or not enabled_power_only) else None, 1.0, 0)]
+        cur = _CURRENT if current_ha and h == 10.0 else None
+        pw = _POWER if power_ha_all or h == 10.0 else None
+        out += [cls(ia, f"Discharge current limit {h:g} s", cur, 1.0, 1),
+                cls(ic, f"Charge current limit {h:g} s", cur, 1.0, 1),
+                cls(pa, f"Discharge power limit {h:g} s", pw, 1.0, 0),
+                cls(pc, f"Charge power limit {h:g} s", pw, 1.0, 0)]
     return tuple(out)
 
 
 #: per-cell SOP/SOE/SOH outputs (core.sox.SoxEstimator.outputs); HA entities only for the 10 s power
 #: limits, the energy left and the two SOH figures (cell entities are disabled by default anyway)
-CELL_SOX_FIELDS: tuple[CellField, ...] = _limit_fields(CellField, SOX_HORIZONS_S, True) + (
+CELL_SOX_FIELDS: tuple[CellField, ...] = _limit_fields(CellField, SOX_HORIZONS_S, current_ha=False, power_ha_all=False) + (
     CellField("energy_left_wh", "energy left", _ENERGY_LEFT, 1.0, 1),
     CellField("energy_delivered_wh", "energy delivered since full"),
     CellField("energy_discharged_wh", "energy discharged"),
@@ -181,7 +185,7 @@ PACK_FIELDS: tuple[PackField, ...] = (
 )
 
 #: pack SOP/SOE/SOH outputs (core.sox.SoxEstimator.pack_outputs), appended to the pack payload
-PACK_SOX_FIELDS: tuple[PackField, ...] = _limit_fields(PackField, SOX_HORIZONS_S, False) + (
+PACK_SOX_FIELDS: tuple[PackField, ...] = _limit_fields(PackField, SOX_HORIZONS_S, current_ha=True, power_ha_all=True) + (
     PackField("energy_left_wh", "Energy left", _ENERGY_LEFT, 1.0, 0),
     PackField("energy_delivered_wh", "Energy delivered since full", _ENERGY_NET, 1.0, 1),
     PackField("energy_discharged_wh", "Energy discharged", _ENERGY_OUT, 1.0, 1),

@@ -804,6 +804,16 @@ def test_restart_resumes_from_saved_state(tmp_path):
     assert not svc1.restored
     saved = assert_state_file_valid(Path(cfg.state.path), soc=whole.steps[149].soc)
     assert saved.meta["t_s"] == T0 + 150
+    # the SOP/SOE/SOH state (energy counters, commissioning R0) is saved and resumed with the SOC (issue 14)
+    sox1 = svc1.pipeline.sox
+    assert np.all(sox1.energy_discharged_wh > 0)
+    resumed = Service(cfg)
+    assert resumed.restore()
+    np.testing.assert_array_equal(resumed.pipeline.sox.energy_discharged_wh, sox1.energy_discharged_wh)
+    np.testing.assert_array_equal(resumed.pipeline.sox.x_v, sox1.x_v)
+    snap = svc1.pipeline.last
+    assert np.all(np.isfinite(snap.cells["p_discharge_max_10s_w"])) and np.all(snap.cells["p_discharge_max_10s_w"] > 0)
+    assert snap.pack_sox["i_discharge_max_10s_a"] == float(np.min(snap.cells["i_discharge_max_10s_a"]))
 
     svc2, socs2 = run_async(one_run(second, 150), 40)
     assert svc2.restored
