@@ -12,6 +12,7 @@ At the start ``a`` of each window (the estimator has seen the samples before ``a
 
     predicted   v_hat = v(D, I_w) of core.sop, I_w = the window's mean current, D = n Ts
     measured    v     = the voltage of the window's last sample;   error = v_hat - v
+                (scored over the windows under load, |I_w| >= REST_C C: a rest is predicted trivially)
     limits      I_dis, I_chg at D (Plett's model and the HPPC static-resistance baseline)
     within      every sample's current of the window is within [-I_dis, I_chg]
     exceeded    within, and some sample's voltage of the window is past v_min or v_max
@@ -28,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .core.soc import SocConfig, SocEstimator
+from .core.soe import SoeConfig, energy_left_wh
 from .core.sop import SopConfig, predict_voltage, sop_limits
 from .core.sox import SoxConfig, SoxEstimator
 
@@ -61,6 +63,10 @@ class BacktestResult:
     within_hppc: np.ndarray
     exceeded_hppc: np.ndarray
     capacity_ah: float  # the estimator's capacity at the end
+    energy_left_wh: np.ndarray  # SOE at the start, at the recent mean discharge rate (core.soe)
+    energy_to_end_wh: np.ndarray  # what the cell then delivered to the recording's end
+    #: v_min -> (within, exceeded) of the model limits computed for that v_min
+    by_v_min: dict = None  # type: ignore[assignment]
 
     @property
     def error_mv(self) -> np.ndarray:
@@ -93,8 +99,12 @@ def find_pulses(current_a: np.ndarray, dt_s: float, capacity_ah: float) -> list[
 
 def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity_ah: float, *,
                  horizon_s: float = 10.0, initial_soc: float | None = 1.0, soc_config: SocConfig = SocConfig(),
-                 sop_config: SopConfig | None = None, mode: str = "auto") -> BacktestResult:
-    """Run the estimator over the recording and score every window (module docstring)."""
+                 sop_config: SopConfig | None = None, mode: str = "auto",
+                 extra_v_min: tuple[float, ...] = ()) -> BacktestResult:
+    """Run the estimator over the recording and score every window (module docstring).
+
+    ``extra_v_min``: further cut-offs to compute the model's discharge limits for and check.
+    """
     i = np.asarray(current_a, dtype=float)
     v = np.asarray(voltage_v, dtype=float)
     temp = None if temperature_c is None else np.asarray(temperature_c, dtype=float)
@@ -119,7 +129,8 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
     sox = SoxEstimator(1, dt_s, SoxConfig(sop=sop_cfg))
     rows: dict[str, list[float]] = {k: [] for k in (
         "start_s", "current_a", "soc", "temperature_c", "v_pred", "v_meas", "v_min_meas", "v_max_meas",
-        "i_dis_a", "i_chg_a", "i_dis_hppc_a", "i_chg_hppc_a")}
+        "i_dis_a", "i_chg_a", "i_dis_hppc_a", "i_chg_hppc_a", "energy_left_wh")}
+    extra = {vm: [] for vm in extra_v_min}
     start_set = set(starts)
     v1 = np.empty(1)
     t1 = None if temp is None else np.empty(1)
@@ -133,11 +144,19 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
             lim = sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f, config=sop_cfg, **kw)
             base = sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f, config=sop_cfg,
                               method="hppc", **kw)
+            for vm in extra:
+                cfg_vm = SopConfig(**{**sop_cfg.__dict__, "v_min": vm})
+                extra[vm].append(float(sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f,
+                                                  config=cfg_vm, **kw).discharge_a[0, 0]))
+            rate = max(-float(sox.mean_current_a[0]), 0.0) / float(kw["capacity_ah"][0])
+            e_left, _ = energy_left_wh(kw["soc"], kw["capacity_ah"], kw["r0_ohm"] + kw["r_ohm"].sum(axis=1),
+                                       lambda z: ocv_f(z), v_min=sop_cfg.v_min, config=SoeConfig(rate_c=rate))
             for key, val in (("start_s", k * dt_s), ("current_a", i_w), ("soc", kw["soc"][0]),
                              ("temperature_c", est.temperature_c[0]), ("v_pred", v_hat), ("v_meas", v[k + n_w - 1]),
                              ("v_min_meas", np.min(v[seg])), ("v_max_meas", np.max(v[seg])),
                              ("i_dis_a", lim.discharge_a[0, 0]), ("i_chg_a", lim.charge_a[0, 0]),
-                             ("i_dis_hppc_a", base.discharge_a[0, 0]), ("i_chg_hppc_a", base.charge_a[0, 0])):
+                             ("i_dis_hppc_a", base.discharge_a[0, 0]), ("i_chg_hppc_a", base.charge_a[0, 0]),
+                             ("energy_left_wh", e_left[0])):
                 rows[key].append(float(val))
         v1[0] = v[k]
         if t1 is not None:
@@ -158,8 +177,17 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
 
     w, e = check(r["i_dis_a"], r["i_chg_a"])
     wh, eh = check(r["i_dis_hppc_a"], r["i_chg_hppc_a"])
+    by_v_min = {}
+    for vm, lims in extra.items():
+        lim = np.asarray(lims)
+        within_vm = -i_min <= lim + 1e-9
+        by_v_min[vm] = (within_vm, within_vm & (r["v_min_meas"] < vm))
+    # energy delivered from each window's start to the end (positive = out of the cell)
+    e_out = -np.nan_to_num(v * i) * dt_s / 3600.0
+    tail = np.cumsum(e_out[::-1])[::-1]
     return BacktestResult("hppc" if use_pulses else "drive", d, within=w, exceeded=e, within_hppc=wh,
-                          exceeded_hppc=eh, capacity_ah=float(est.capacity_ah[0]), **r)
+                          exceeded_hppc=eh, capacity_ah=float(est.capacity_ah[0]), energy_to_end_wh=tail[starts_k],
+                          by_v_min=by_v_min, **r)
 
 
 def _stats(x: np.ndarray) -> dict[str, float]:
@@ -171,15 +199,19 @@ def _stats(x: np.ndarray) -> dict[str, float]:
 
 def summary(res: BacktestResult) -> dict:
     """The command's JSON: the issue's keys first, then the breakdowns."""
-    err = np.abs(res.error_mv)
-    n = len(err)
+    q = res.capacity_ah if res.capacity_ah > 0 else 1.0
+    # the voltage error is scored over the windows under load (a rest window is predicted trivially)
+    loaded = np.abs(res.current_a) >= REST_C * q
+    err = np.abs(res.error_mv)[loaded]
+    n = len(res.error_mv)
     out = {
         "windows": n,
         "voltage_error_mv": {k: v for k, v in _stats(err).items() if k != "n"},
+        "windows_loaded": int(np.count_nonzero(loaded)),
         "limit_exceeded_pct": float(100.0 * np.count_nonzero(res.exceeded) / n),
         "mode": res.mode,
         "horizon_s": res.horizon_s,
-        "signed_error_mv": {k: v for k, v in _stats(res.error_mv).items() if k != "n"},
+        "signed_error_mv": {k: v for k, v in _stats(res.error_mv[loaded]).items() if k != "n"},
         "windows_within_limit": int(np.count_nonzero(res.within)),
         "limit_exceeded": int(np.count_nonzero(res.exceeded)),
         "hppc_method": {
@@ -190,15 +222,15 @@ def summary(res: BacktestResult) -> dict:
         "discharge_limit_a": {"model": _stats(res.i_dis_a), "hppc": _stats(res.i_dis_hppc_a)},
         "capacity_ah_estimated": res.capacity_ah,
     }
-    # breakdowns: by SOC decile and C-rate (of the window's mean current)
-    q = res.capacity_ah if res.capacity_ah > 0 else 1.0
+    # breakdowns of the loaded windows: by SOC decile and C-rate (of the window's mean current)
+    soc = res.soc[loaded]
     by_soc = {}
     for lo in np.arange(0.0, 1.0, 0.1):
-        m = (res.soc >= lo) & (res.soc < lo + 0.1 + (1e-9 if lo >= 0.9 else 0))
+        m = (soc >= lo) & (soc < lo + 0.1 + (1e-9 if lo >= 0.9 else 0))
         if m.any():
             by_soc[f"{lo:.1f}-{lo + 0.1:.1f}"] = _stats(err[m])
     by_rate = {}
-    c = np.abs(res.current_a) / q
+    c = np.abs(res.current_a[loaded]) / q
     for lo, hi in ((0, 0.75), (0.75, 1.5), (1.5, 3.0), (3.0, 5.0), (5.0, 100.0)):
         m = (c >= lo) & (c < hi)
         if m.any():
@@ -206,4 +238,8 @@ def summary(res: BacktestResult) -> dict:
     out["abs_error_mv_by_soc"] = by_soc
     out["abs_error_mv_by_c_rate"] = by_rate
     out["temperature_c_median"] = float(np.nanmedian(res.temperature_c))
+    for vm, (w, e) in (res.by_v_min or {}).items():
+        out.setdefault("limit_exceeded_at_v_min", {})[f"{vm:g}"] = {
+            "windows_within_limit": int(np.count_nonzero(w)), "limit_exceeded": int(np.count_nonzero(e)),
+            "limit_exceeded_pct": float(100.0 * np.count_nonzero(e) / n)}
     return out

@@ -70,7 +70,7 @@ def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_
                    config: SoeConfig = SoeConfig()) -> tuple[np.ndarray, np.ndarray]:
     """(energy left in Wh, cut-off SOC) per cell at ``config.rate_c`` (module docstring).
 
-    ``ocv`` maps an ``(N, n_points)`` SOC array to volts (each row at its cell's temperature).
+    ``ocv`` maps a ``(K, N)`` SOC array to volts (each column at its cell's temperature).
     Non-finite inputs give NaN for that cell.
     """
     s = np.asarray(soc, dtype=float)
@@ -79,7 +79,7 @@ def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_
     ok = np.isfinite(s) & np.isfinite(q) & (q > 0) & np.isfinite(r)
     s_u = np.where(ok, s, soc_min)
     z = _grid(s_u, soc_min, int(config.n_points))
-    v = np.asarray(ocv(z), dtype=float) - np.where(ok, r, 0.0)[:, None] * (config.rate_c * np.where(ok, q, 0.0))[:, None]
+    v = np.asarray(ocv(z.T), dtype=float).T - np.where(ok, r, 0.0)[:, None] * (config.rate_c * np.where(ok, q, 0.0))[:, None]
     z_cut = _cut_soc(z, v, v_min)
     # trapezoid over each grid interval's part above the cut (the voltage there >= v_min)
     lo = np.maximum(z[:, :-1], z_cut[:, None])

@@ -59,18 +59,17 @@ class SoxEstimator:
     # ---------------------------------------------------------------- OCV at the cells' temperatures
     @staticmethod
     def ocv_functions(est):
+        """(OCV, dOCV/dSOC) of SOC arrays whose last axis is the cells, at each cell's temperature."""
         ocv = est.ocv
         t = np.asarray(est.temperature_c, dtype=float)
         if hasattr(ocv, "temperatures_c"):
-            def f(s):
+            def f(s):  # s: (..., N), the last axis the cells
                 s = np.asarray(s, dtype=float)
-                tt = t if s.shape[-1:] == t.shape else t[:, None]
-                return ocv.ocv(s, np.broadcast_to(tt, s.shape))
+                return ocv.ocv(s, np.broadcast_to(t, s.shape))
 
             def g(s):
                 s = np.asarray(s, dtype=float)
-                tt = t if s.shape[-1:] == t.shape else t[:, None]
-                return ocv.docv_dsoc(s, np.broadcast_to(tt, s.shape))
+                return ocv.docv_dsoc(s, np.broadcast_to(t, s.shape))
             return f, g
         return ocv.ocv, ocv.docv_dsoc
 
