@@ -204,7 +204,7 @@ CAN_PACK_SOX_SIGNALS: Mapping[str, Mapping[str, str]] = {
     "PackEnergy": {"EnergyLeft": "energy_left_wh", "EnergyDelivered": "energy_delivered_wh",
                    "TimeToEmpty": "time_to_empty_s", "TimeToFull": "time_to_full_s"},
     "PackHealth": {"SohCapacity": "soh_capacity_min", "SohResistance": "soh_resistance_max",
-                   "CapacityMean": "capacity_ah_mean"},
+                   "CapacityMean": "capacity_ah_mean", "EnergyDischarged": "energy_discharged_wh"},
 }
 
 #: CAN status signal (project DBC) -> the snapshot counter it carries. A DBC whose status
