@@ -415,6 +415,12 @@ def test_service_matches_offline_estimator_on_can_and_mqtt(mosquitto, tmp_path):
     pack = [json.loads(bytes(m.payload)) for m in messages if m.topic.value == f"{root}/pack/state"]
     assert pack and pack[-1]["t_s"] == T0 + n_rows and pack[-1]["soc_mean"] == pytest.approx(ref.est.soc.mean())
     assert pack[-1]["cells_stale"] == 0 and pack[-1]["cells_valid"] == N
+    # state of power, energy and health (issue 14) in the pack payload and the metrics
+    assert pack[-1]["p_discharge_max_10s_w"] > 0 and pack[-1]["i_charge_max_2s_a"] >= 0
+    assert pack[-1]["energy_left_wh"] > 0 and pack[-1]["energy_discharged_wh"] > 0
+    assert metrics['bms_pack_power_limit_watts{direction="discharge",horizon="10s"}'] == pytest.approx(
+        pack[-1]["p_discharge_max_10s_w"])
+    assert metrics["bms_pack_energy_left_wh"] == pytest.approx(pack[-1]["energy_left_wh"])
     # availability and Home Assistant discovery (retained)
     avail = [bytes(m.payload).decode() for m in messages if m.topic.value == f"{root}/availability"]
     assert avail[0] == "online" and avail[-1] == "offline"
