@@ -365,7 +365,7 @@ def pack_payload(snap: Snapshot) -> dict[str, Any]:
         "cells_valid": snap.cells_valid,
         "capacity_ah_mean": json_number(snap.capacity_ah_mean),
         "state": snap.state.label,
-        **{k: json_number(v) for k, v in snap.pack_sox.items()},
+        **{k: json_number(v) for k, v in getattr(snap, "pack_sox", {}).items()},  # SOP/SOE/SOH when computed
     }
 
 
