@@ -197,9 +197,10 @@ def _stats(x: np.ndarray) -> dict[str, float]:
     return {"median": float(np.median(x)), "p95": float(np.percentile(x, 95)), "n": int(x.size)}
 
 
-def summary(res: BacktestResult) -> dict:
-    """The command's JSON: the issue's keys first, then the breakdowns."""
-    q = res.capacity_ah if res.capacity_ah > 0 else 1.0
+def summary(res: BacktestResult, capacity_stated_ah: float | None = None) -> dict:
+    """The command's JSON: the issue's keys first, then the breakdowns (C-rates of the stated
+    capacity when given, else of the estimated one)."""
+    q = capacity_stated_ah or (res.capacity_ah if res.capacity_ah > 0 else 1.0)
     # the voltage error is scored over the windows under load (a rest window is predicted trivially)
     loaded = np.abs(res.current_a) >= REST_C * q
     err = np.abs(res.error_mv)[loaded]

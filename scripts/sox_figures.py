@@ -8,6 +8,7 @@ OCV tables (25 degC C/20 shipped sample; HPPC-rest tables at the others, made he
 ``bms-estimator ocv``), 2.9 Ah stated, 10 s horizon, and writes:
 
     <out>/sox_results.json   every file's summary plus the SOE and SOH rows
+    <out>/cache/*.json       each file's result (a re-run reuses them; delete to recompute)
     <out>/sox_tables.md      the README tables
     <out>/hppc_error.png     |10 s voltage error| of the HPPC pulses by SOC, per temperature
     <out>/soe_error.png      SOE error against the energy delivered to the cut-off, as the drive goes on
@@ -54,13 +55,16 @@ def _ocv_tables(data: Path, out: Path) -> list[Path]:
     return tables
 
 
-def _one(args: tuple[Path, list[Path]]) -> dict:
-    path, tables = args
+def _one(args: tuple[Path, list[Path], Path]) -> dict:
+    path, tables, cache_dir = args
+    cache = cache_dir / f"{path.parent.name}_{path.name}.json"
+    if cache.exists():
+        return json.loads(cache.read_text())
     rec = load_recording(path, resample_s=1.0)
     ocv = load_ocv(tables, rec)
     res = run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv, CAPACITY_AH,
                        horizon_s=10.0, initial_soc=1.0, sop_config=SopConfig(), extra_v_min=STRICT_V_MIN)
-    out = summary(res)
+    out = summary(res, CAPACITY_AH)
     out["file"] = f"{path.parent.name}/{path.name}"
     q_out = float(-np.sum(np.minimum(rec.current_a, 0.0)) * rec.dt_s / 3600.0)
     q_in = float(np.sum(np.maximum(rec.current_a, 0.0)) * rec.dt_s / 3600.0)
@@ -68,7 +72,9 @@ def _one(args: tuple[Path, list[Path]]) -> dict:
     out["rows"] = {"start_s": res.start_s, "soc": res.soc, "current_a": res.current_a, "error_mv": res.error_mv,
                    "energy_left_wh": res.energy_left_wh, "energy_to_end_wh": res.energy_to_end_wh,
                    "i_dis_a": res.i_dis_a, "i_dis_hppc_a": res.i_dis_hppc_a, "v_meas": res.v_meas}
-    return to_jsonable(out)
+    out = to_jsonable(out)
+    cache.write_text(json.dumps(out))  # a file's result survives an interrupted run
+    return out
 
 
 def _tables(results: list[dict]) -> str:
@@ -77,7 +83,11 @@ def _tables(results: list[dict]) -> str:
     for r in results:
         if r["mode"] != "hppc":
             continue
-        by_rate = ", ".join(f"{k} {v['median']:.0f}" for k, v in r["abs_error_mv_by_c_rate"].items())
+        c = np.abs(np.asarray(r["rows"]["current_a"], float)) / CAPACITY_AH  # of the stated capacity
+        err = np.abs(np.asarray(r["rows"]["error_mv"], float))
+        by_rate = ", ".join(f"{lo:g}-{hi:g}C {np.median(err[(c >= lo) & (c < hi)]):.0f}"
+                            for lo, hi in ((0.4, 0.75), (0.75, 1.5), (1.5, 3.0), (3.0, 5.0), (5.0, 7.0))
+                            if np.any((c >= lo) & (c < hi)))
         lines.append(f"| {r['file'].split('/')[0]} | {r['windows']} | {r['voltage_error_mv']['median']:.1f} | "
                      f"{r['voltage_error_mv']['p95']:.1f} | {by_rate} |")
     lines += ["", "### HPPC: median |error| by SOC band (mV)", "",
@@ -184,8 +194,11 @@ def main() -> int:
     tables = _ocv_tables(args.data, args.out)
     files = sorted(p for t in TEMPS for p in (args.data / CELL / t).glob("*.csv.gz")
                    if "c20" not in p.name and "hppc_steps" not in p.name and args.only in str(p))
+    files.sort(key=lambda p: ("hppc" not in p.name, TEMPS.index(p.parent.name), p.name))  # HPPC first
+    cache_dir = args.out / "cache"
+    cache_dir.mkdir(exist_ok=True)
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        results = list(pool.map(_one, [(p, tables) for p in files]))
+        results = list(pool.map(_one, [(p, tables, cache_dir) for p in files]))
     for r in results:
         print(f"{r['file']}: {r['mode']} {r['windows']} windows, median |err| {r['voltage_error_mv']['median']:.1f} mV, "
               f"exceeded {r['limit_exceeded']}", flush=True)

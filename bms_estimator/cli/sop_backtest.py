@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     res = run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv, args.capacity_ah,
                        horizon_s=args.horizon_s, initial_soc=args.initial_soc, soc_config=soc_config(args),
                        sop_config=sop, mode=args.mode)
-    out = summary(res)
+    out = summary(res, args.capacity_ah)
     if args.json is not None:
         write_json(out, args.json)
     if args.json is None or str(args.json) != "-":
