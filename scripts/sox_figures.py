@@ -189,14 +189,21 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "sox")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--only", default="", help="substring of the files to run (default: all)")
+    ap.add_argument("--cached-only", action="store_true",
+                    help="make the tables and plots from the files already in <out>/cache only")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     tables = _ocv_tables(args.data, args.out)
     files = sorted(p for t in TEMPS for p in (args.data / CELL / t).glob("*.csv.gz")
                    if "c20" not in p.name and "hppc_steps" not in p.name and args.only in str(p))
-    files.sort(key=lambda p: ("hppc" not in p.name, TEMPS.index(p.parent.name), p.name))  # HPPC first
+    # HPPC first, then one drive cycle per ambient before the rest (an interrupted run still covers them)
+    first = ("us06", "la92")
+    files.sort(key=lambda p: ("hppc" not in p.name, not any(p.name.startswith(f) for f in first),
+                              TEMPS.index(p.parent.name), p.name))
     cache_dir = args.out / "cache"
     cache_dir.mkdir(exist_ok=True)
+    if args.cached_only:
+        files = [p for p in files if (cache_dir / f"{p.parent.name}_{p.name}.json").exists()]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         results = list(pool.map(_one, [(p, tables, cache_dir) for p in files]))
     for r in results:
