@@ -13,7 +13,8 @@ At the start ``a`` of each window (the estimator has seen the samples before ``a
     predicted   v_hat = v(D, I_w) of core.sop, I_w = the window's mean current, D = n Ts
     measured    v     = the voltage of the window's last sample;   error = v_hat - v
                 (scored over the windows under load, |I_w| >= REST_C C: a rest is predicted trivially)
-    limits      I_dis, I_chg at D (Plett's model and the HPPC static-resistance baseline)
+    limits      I_dis, I_chg at D (Plett's model with its model-error margin, and the HPPC
+                static-resistance baseline without one)
     within      every sample's current of the window is within [-I_dis, I_chg]
     exceeded    within, and some sample's voltage of the window is past v_min or v_max
 
@@ -141,13 +142,14 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
             seg = slice(k, k + n_w)
             i_w = float(np.mean(i[seg]))
             v_hat = float(predict_voltage(np.array([i_w]), d, ocv=ocv_f, **kw)[0])
-            lim = sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f, config=sop_cfg, **kw)
+            lim = sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f, config=sop_cfg,
+                             v_margin=sox.v_margin, **kw)
             base = sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f, config=sop_cfg,
                               method="hppc", **kw)
             for vm in extra:
                 cfg_vm = SopConfig(**{**sop_cfg.__dict__, "v_min": vm})
                 extra[vm].append(float(sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f,
-                                                  config=cfg_vm, **kw).discharge_a[0, 0]))
+                                                  config=cfg_vm, v_margin=sox.v_margin, **kw).discharge_a[0, 0]))
             rate = max(-float(sox.mean_current_a[0]), 0.0) / float(kw["capacity_ah"][0])
             e_left, _ = energy_left_wh(kw["soc"], kw["capacity_ah"], kw["r0_ohm"] + kw["r_ohm"].sum(axis=1),
                                        lambda z: ocv_f(z), v_min=sop_cfg.v_min, config=SoeConfig(rate_c=rate))

@@ -40,6 +40,15 @@ cell carries the pack current / n_parallel, so the pack current limit is the
 weakest cell's times ``n_parallel``, and the pack power is that current times the
 sum of every cell's predicted voltage at it (the series count times the mean).
 
+Model-error margin.  The n-step error of the model (n = D / Ts) is what the ECM does not
+explain changing over the horizon: with ``b_k = v_k - OCV(s_k) - R0 i_k - sum_j x_j[k]``
+(x_j the RC voltages tracked under the actual current), the prediction made at ``k - n``
+for the current that then flowed misses ``v_k`` by ``e_k = b_k - b_{k-n}``.
+:class:`~bms_estimator.core.sox.SoxEstimator` keeps ``rms_D`` (an exponential average of
+``e^2`` over ``margin_tau_s``) and the limits are solved for the bounds moved inward by
+``margin_sigmas * rms_D``, so a cell whose model has been missing by 30 mV over 10 s gets
+90 mV of headroom, one whose model fits gets almost none.
+
 Baseline: the HPPC static-resistance method (FreedomCAR/USABC HPPC manual) assumes
 a cell at rest and an unchanged OCV::
 
@@ -79,6 +88,10 @@ class SopConfig:
     soc_max: Annotated[float, Gt(0)] = 1.0
     n_parallel: Annotated[int, Ge(1)] = 1  # cells in parallel per series element
     newton_steps: Annotated[int, Ge(0)] = 2  # refinements of the linearised root on the OCV curve
+    # model-error margin (core.sox): the limits keep the prediction this many RMS horizon errors
+    # of the recent past inside the bounds (0 = none); the RMS is averaged over margin_tau_s
+    margin_sigmas: Annotated[float, Ge(0)] = 3.0
+    margin_tau_s: Annotated[float, Gt(0)] = 600.0
     # derating: factor on the design current limits, linear between these temperatures (degC)
     derate_temperatures_c: tuple[float, ...] = (-20.0, 0.0, 10.0, 45.0, 60.0)
     discharge_derate: tuple[Annotated[float, Ge(0)], ...] = (0.3, 0.6, 1.0, 1.0, 0.0)
@@ -163,8 +176,12 @@ def _solve(target, base, r_d, s, c, sign, cap, ocv: OcvFn, slope: OcvFn, ocv_s, 
 
 
 def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
-               r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model") -> SopResult:
+               r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model",
+               v_margin=None) -> SopResult:
     """Discharge and charge current and power limits per horizon and cell (module docstring).
+
+    ``v_margin`` (V, ``(H, N)`` or broadcastable, >= 0): the model's own error margin; the
+    limits keep the predicted voltage within ``[v_min + margin, v_max - margin]``.
 
     Args are per cell (``(N,)``; ``r_ohm``, ``tau_s``, ``x_v`` are ``(N, m)``); ``ocv`` and
     ``docv_dsoc`` map an SOC array of shape ``(K, N)`` to volts (at each cell's temperature).
@@ -211,6 +228,9 @@ def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv
                               np.minimum(cap_chg[None], np.maximum(cfg.soc_max - s, 0.0)[None] / c)])
     sign = np.concatenate([np.full((nh, 1), -1.0), np.ones((nh, 1))])
     target = np.concatenate([np.full((nh, 1), cfg.v_min), np.full((nh, 1), cfg.v_max)])
+    if v_margin is not None:
+        m = np.broadcast_to(np.nan_to_num(np.maximum(np.asarray(v_margin, dtype=float), 0.0)), (nh, n))
+        target = target + np.concatenate([m, -m])
     base2, r_d2, c2 = np.concatenate([base, base]), np.concatenate([r_d, r_d]), np.concatenate([c_use, c_use])
     lim = _solve(target, base2, r_d2, s2, c2, sign, cap, ocv, docv_dsoc, ocv_s, cfg.newton_steps)
     lim = np.where(ok[None] & np.isfinite(lim), np.maximum(lim, 0.0), 0.0)

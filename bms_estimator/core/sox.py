@@ -11,6 +11,8 @@ Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``s
     energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing); E_net (Wh out since
                   the last full cell, soc >= full_soc) goes down again with charge
     SOH           core.soh: capacity SOH (once justified) and resistance SOH at the reference point
+    margin        b = v - OCV(s) - R0 i - sum_j x_j; rms_D^2 += a (b_k - b_{k-D/Ts})^2 - ...: the model's
+                  D-second error, which moves the SOP bounds inward (core.sop, "Model-error margin")
 
 The RC voltages are tracked here from the identified parameters (the same ZOH recursion
 as core.ecm), so this module does not depend on how the SOC filter keeps its own.
@@ -55,6 +57,13 @@ class SoxEstimator:
         self._x_prev = np.zeros((self.n_cells, 2))
         self.outputs: dict[str, np.ndarray] = {}
         self.pack: dict[str, np.ndarray] = {}
+        # model-error margin (core.sop): the residual b the ECM leaves, its history over the
+        # longest horizon, and the mean square of its change over each horizon
+        hz = np.asarray(config.sop.horizons_s, dtype=float)
+        self._lag = np.maximum(np.rint(hz / self.dt_s).astype(int), 1)
+        self._b_hist = np.full((int(self._lag.max()) + 1, self.n_cells), np.nan)
+        self._b_head = 0
+        self.error_ms_v2 = np.zeros((len(hz), self.n_cells))  # mean square n-step error per horizon
 
     # ---------------------------------------------------------------- OCV at the cells' temperatures
     @staticmethod
@@ -108,8 +117,30 @@ class SoxEstimator:
         self.energy_discharged_wh += np.maximum(-e, 0.0)
         soc = np.asarray(est.soc, dtype=float)
         self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
+        self._track_error(est, p, i_use, v, ok)
         identified = np.asarray(getattr(est.identifier, "identified", np.ones(n, bool)), dtype=bool)
         self.resistance.update(p["r0_ohm"], est.temperature_c, soc, identified & ok)
+
+    def _track_error(self, est, p, i_use, v, ok) -> None:
+        """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon."""
+        ocv, _ = self.ocv_functions(est)
+        with np.errstate(invalid="ignore"):
+            b = v - ocv(np.asarray(est.soc, dtype=float)) - p["r0_ohm"] * i_use - self._x_prev.sum(axis=1)
+        b = np.where(ok, b, np.nan)
+        size = self._b_hist.shape[0]
+        self._b_head = (self._b_head + 1) % size
+        self._b_hist[self._b_head] = b
+        past = self._b_hist[(self._b_head - self._lag) % size]  # (H, N)
+        e = b[None, :] - past
+        a = 1.0 - np.exp(-self.dt_s / self.config.sop.margin_tau_s)
+        fresh = np.isfinite(e)
+        self.error_ms_v2 = np.where(fresh, self.error_ms_v2 + a * (np.where(fresh, e, 0.0) ** 2 - self.error_ms_v2),
+                                    self.error_ms_v2)
+
+    @property
+    def v_margin(self) -> np.ndarray:
+        """(H, N) volts the limits keep the prediction inside the bounds (module docstring of core.sop)."""
+        return self.config.sop.margin_sigmas * np.sqrt(self.error_ms_v2)
 
     def model(self, est) -> dict[str, np.ndarray]:
         """Keyword arguments of core.sop's functions for the state now (anchor, SOC, capacity, model)."""
@@ -126,7 +157,8 @@ class SoxEstimator:
         kw = self.model(est)
         soc, q, r = kw["soc"], kw["capacity_ah"], kw["r_ohm"]
         p = est.params
-        res = sop_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=slope, config=cfg.sop, **kw)
+        res = sop_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=slope, config=cfg.sop,
+                         v_margin=self.v_margin, **kw)
         self.sop = res
         self.pack = pack_limits(res, ocv=ocv, n_parallel=cfg.sop.n_parallel,
                                 valid=np.isfinite(self.v_anchor), **kw)
@@ -187,13 +219,14 @@ class SoxEstimator:
     def state_dict(self) -> dict[str, np.ndarray]:
         s = {f"soh.{k}": v for k, v in self.resistance.state_dict().items()}
         s.update({"x_v": self.x_v.copy(), "mean_current_a": self.mean_current_a.copy(),
+                  "error_ms_v2": self.error_ms_v2.copy(),
                   "energy_discharged_wh": self.energy_discharged_wh.copy(),
                   "energy_delivered_wh": self.energy_delivered_wh.copy()})
         return s
 
     def load_state_dict(self, s) -> None:
         self.resistance.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("soh.")})
-        for k in ("x_v", "mean_current_a", "energy_discharged_wh", "energy_delivered_wh"):
+        for k in ("x_v", "mean_current_a", "energy_discharged_wh", "energy_delivered_wh", "error_ms_v2"):
             a = np.asarray(s[k], dtype=float)
             if a.shape != getattr(self, k).shape:
                 raise ValueError(f"sox state {k!r} has shape {a.shape}, expected {getattr(self, k).shape}")
