@@ -118,18 +118,21 @@ def _tables(results: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _soe_rows(results: list[dict]) -> list[dict]:
-    """SOE error (predicted energy left - energy delivered to the end) at 10..90 % of each drive that
-    ended at the 2.5 V cut-off (the 25 and 10 degC files)."""
-    out = []
+def _soe_drives(results: list[dict]):
+    """(file, energy left, energy delivered to the end) of each drive that ended at the 2.5 V
+    cut-off (the 25 and 10 degC files; the colder ones stop at a depth of discharge)."""
     for r in results:
-        if r["mode"] != "drive" or not r["file"].startswith(("25degC", "10degC")):
-            continue
-        rows = r["rows"]
-        e_left = np.asarray(rows["energy_left_wh"], float)
-        e_end = np.asarray(rows["energy_to_end_wh"], float)
+        if r["mode"] == "drive" and r["file"].startswith(("25degC", "10degC")):
+            rows = r["rows"]
+            yield r["file"], np.asarray(rows["energy_left_wh"], float), np.asarray(rows["energy_to_end_wh"], float)
+
+
+def _soe_rows(results: list[dict]) -> list[dict]:
+    """SOE error (predicted energy left - energy delivered to the end) at 10..90 % of each drive."""
+    out = []
+    for name, e_left, e_end in _soe_drives(results):
         total = e_end[0]
-        row = {"file": r["file"], "energy_total_wh": float(total)}
+        row = {"file": name, "energy_total_wh": float(total)}
         for frac in (0.1, 0.3, 0.5, 0.7, 0.9):
             k = int(np.argmin(np.abs((total - e_end) / total - frac)))
             row[f"{int(frac * 100)}%"] = float(e_left[k] - e_end[k])
@@ -166,13 +169,8 @@ def _plots(results: list[dict], out: Path) -> None:
     fig.savefig(out / "hppc_error.png", dpi=110)
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(7, 4))
-    for r in results:
-        if r["mode"] != "drive" or not r["file"].startswith(("25degC", "10degC")):
-            continue
-        rows = r["rows"]
-        e_left = np.asarray(rows["energy_left_wh"], float)
-        e_end = np.asarray(rows["energy_to_end_wh"], float)
-        ax.plot(100 * (1 - e_end / e_end[0]), e_left - e_end, lw=0.8, label=r["file"])
+    for name, e_left, e_end in _soe_drives(results):
+        ax.plot(100 * (1 - e_end / e_end[0]), e_left - e_end, lw=0.8, label=name)
     ax.set_xlabel("energy delivered so far (% of the drive's total)")
     ax.set_ylabel("SOE - energy delivered to cut-off (Wh)")
     ax.axhline(0, color="k", lw=0.5)
