@@ -103,7 +103,7 @@ def _tables(results: list[dict]) -> str:
             cells.append(f"{v['median']:.0f}" if v else "-")
         lines.append(f"| {r['file'].split('/')[0]} | " + " | ".join(cells) + " |")
     lines += ["", "### Drive cycles: every 10 s window", "",
-              "| file | windows | median / p95 \\|error\\| mV | within limit | exceeded (2.5 V) | exceeded at 3.0 V / 3.2 V "
+              "| file | windows | median / p95 \\|error\\| mV | within limit | exceeded (2.5 / 4.2 V) | exceeded at v_min 3.0 V / 3.2 V "
               "(HPPC method at 2.5 V) | median limit model / HPPC A |",
               "|---|---|---|---|---|---|---|"]
     for r in results:
