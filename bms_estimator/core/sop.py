@@ -87,7 +87,7 @@ class SopConfig:
     soc_min: Annotated[float, Ge(0)] = 0.0
     soc_max: Annotated[float, Gt(0)] = 1.0
     n_parallel: Annotated[int, Ge(1)] = 1  # cells in parallel per series element
-    newton_steps: Annotated[int, Ge(0)] = 2  # refinements of the linearised root on the OCV curve
+    newton_steps: Annotated[int, Ge(0)] = 1  # refinements of the linearised root on the OCV curve
     # model-error margin (core.sox): the limits keep the prediction this many RMS horizon errors
     # of the recent past inside the bounds (0 = none); the RMS is averaged over margin_tau_s
     margin_sigmas: Annotated[float, Ge(0)] = 3.0
@@ -172,7 +172,9 @@ def _solve(target, base, r_d, s, c, sign, cap, ocv: OcvFn, slope: OcvFn, ocv_s, 
             x = np.clip(x - gx / (r_d + c * slope(z)), 0.0, cap)
         gx = g0 + sign * (ocv(s + sign * c * x) - ocv_s) + r_d * x
         x = np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x)
-    return np.where(g0 >= 0.0, 0.0, x)  # already at or past the bound: nothing
+    # the predicted voltage at x is target + sign g(x); after a step back g <= 0, taken as 0 (the
+    # bound itself: the lower voltage for a discharge, within the step for a charge)
+    return np.where(g0 >= 0.0, 0.0, x), target + sign * np.minimum(gx, 0.0)
 
 
 def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
@@ -232,9 +234,10 @@ def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv
         m = np.broadcast_to(np.nan_to_num(np.maximum(np.asarray(v_margin, dtype=float), 0.0)), (nh, n))
         target = target + np.concatenate([m, -m])
     base2, r_d2, c2 = np.concatenate([base, base]), np.concatenate([r_d, r_d]), np.concatenate([c_use, c_use])
-    lim = _solve(target, base2, r_d2, s2, c2, sign, cap, ocv, docv_dsoc, ocv_s, cfg.newton_steps)
+    lim, v_at = _solve(target, base2, r_d2, s2, c2, sign, cap, ocv, docv_dsoc, ocv_s, cfg.newton_steps)
+    # a zero limit (past the bound, no current allowed) has the voltage at zero current
+    v_at = np.where(lim > 0.0, v_at, base2 + sign * 0.0)
     lim = np.where(ok[None] & np.isfinite(lim), np.maximum(lim, 0.0), 0.0)
-    v_at = base2 + ocv(s2 + sign * c2 * lim) - ocv_s + sign * r_d2 * lim
     p = np.where(np.isfinite(v_at), np.maximum(lim * v_at, 0.0), 0.0)
     return SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:])
 
