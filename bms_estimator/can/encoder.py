@@ -12,6 +12,9 @@ scalings are in the DBC's ``CM_`` comments):
     voltage, number of valid cells
 ``EstimatorStatus`` (0x1B5E0120) + ``EstimatorCounters`` (0x1B5E0121)
     uptime, sample count; error counters and service state
+``PackLimits2s/10s/30s`` (0x1B5E0112..14), ``PackEnergy`` (0x1B5E0115), ``PackHealth`` (0x1B5E0116)
+    state of power, energy and health (schema.CAN_PACK_SOX_SIGNALS), when the snapshot has them
+    and the DBC has the message; SOH fractions are sent in %
 
 Inputs are SI (ohm, F, V, A); the encoder converts to the DBC's units from each
 signal's ``unit`` (``mOhm``, ``mV``, ...), so it follows the DBC if a scaling is
@@ -51,7 +54,7 @@ import numpy as np
 import structlog
 from cantools.database.can import Database, Message
 
-from ..service.schema import CAN_STATUS_SIGNALS, soc_stats
+from ..service.schema import CAN_PACK_SOX_SIGNALS, CAN_STATUS_SIGNALS, soc_stats
 from .signals import SignalCodec
 
 if TYPE_CHECKING:
@@ -76,6 +79,12 @@ UNIT_FROM_SI: dict[str, float] = {
     "s": 1.0,
     "%": 1.0,
     "degC": 1.0,
+    "W": 1.0,
+    "kW": 1e-3,
+    "Wh": 1.0,
+    "kWh": 1e-3,
+    "Ah": 1.0,
+    "min": 1.0 / 60.0,
 }
 
 def _to_float(v: Any) -> float:
@@ -155,6 +164,16 @@ class StateEncoder:
         if unknown:
             raise KeyError(f"status signal(s) {', '.join(unknown)} carry no known counter "
                            f"(known: {', '.join(CAN_STATUS_SIGNALS)})")
+        # SOP/SOE/SOH messages: optional (a DBC without them sends none)
+        self._sox_msgs = [m for m in CAN_PACK_SOX_SIGNALS if m in {x.name for x in db.messages}]
+        for name in self._sox_msgs:
+            msg = db.get_message_by_name(name)
+            self._msgs[name] = msg
+            self._codecs[name] = {s.name: self._codec(s) for s in msg.signals}
+            unknown = [sig for sig in self._codecs[name] if sig not in CAN_PACK_SOX_SIGNALS[name]]
+            if unknown:
+                raise KeyError(f"{name} signal(s) {', '.join(unknown)} carry no known figure "
+                               f"(known: {', '.join(CAN_PACK_SOX_SIGNALS[name])})")
         self.skipped_cells = 0
         self.encode_failures = 0
         self._summary_counter = 0
@@ -365,6 +384,28 @@ class StateEncoder:
                 out.append(frame)
         return out
 
+    # ------------------------------------------------------------------- SOX
+    def encode_pack_sox(self, values: Mapping[str, Any], *, timestamp: float | None = None) -> list[can.Message]:
+        """PackLimits*/PackEnergy/PackHealth from pack figures in SI (A, W, Wh, s, Ah; SOH as a
+        fraction, sent in %): the keys of ``schema.CAN_PACK_SOX_SIGNALS``; a missing key is NotAvailable."""
+        out: list[can.Message] = []
+        for name in self._sox_msgs:
+            raws: dict[str, int] = {}
+            try:
+                for sname, codec in self._codecs[name].items():
+                    value = _to_float(values.get(CAN_PACK_SOX_SIGNALS[name][sname], math.nan))
+                    if self._msgs[name].get_signal_by_name(sname).unit == "%":
+                        value *= 100.0
+                    raws[sname] = int(codec.raw(value))
+            except Exception:  # pragma: no cover - defensive
+                self.encode_failures += 1
+                log.exception("can.encode_pack_sox.failed", message=name)
+                continue
+            frame = self._frame(name, raws, timestamp)
+            if frame is not None:
+                out.append(frame)
+        return out
+
     # -------------------------------------------------------------- snapshot
     def encode_snapshot(self, snap: Snapshot) -> list[can.Message]:
         """Every output frame of one :class:`~bms_estimator.service.pipeline.Snapshot`: the
@@ -375,4 +416,6 @@ class StateEncoder:
         frames += self.encode_pack_summary(c["soc"], snap.current_a, snap.pack_voltage_v,
                                            cells_valid=snap.cells_valid, timestamp=t)
         frames += self.encode_status(snap.counters, timestamp=t)
+        if snap.pack_sox:
+            frames += self.encode_pack_sox({**snap.pack_sox, "capacity_ah_mean": snap.capacity_ah_mean}, timestamp=t)
         return frames

@@ -25,6 +25,7 @@ SUBCOMMANDS = {
     "dashboard": "dashboard",
     "run": "run",
     "batch": "batch",
+    "sop-backtest": "sop_backtest",
 }
 
 

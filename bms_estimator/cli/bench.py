@@ -9,6 +9,8 @@ Figures (one core, this machine, one run):
 * ``cell_updates_per_s_lif_iv``: the same as the first with the recursive-IV LIF identifier (``lif-iv``).
 * ``cell_updates_per_s_lif_iv_bv``: the same with the kinetic-term identifier (``lif-iv-bv``).
 * ``tick_ms_200_cells``: median wall time of one 1 s update of a 200-cell pack.
+* ``tick_ms_200_cells_sox``: the same with the state of power, energy and health
+  (core.sox.SoxEstimator: SOP at 2/10/30 s, SOE, SOH) after it; ``sox_ms_200_cells`` that part alone.
 * ``frames_per_s``: CAN decode + sample assembly, 200 cells.
 * ``publish_latency_ms_p99``: from the CAN frame that closes a 1 s sample to the MQTT
   message for it, 200 cells, through a real Mosquitto (left out without one).
@@ -37,6 +39,7 @@ from ..core.identifier import IdentifierConfig
 from ..core.ocv import OcvCurve
 from ..core.ocv_surface import OcvSurface
 from ..core.soc import SocConfig, SocEstimator
+from ..core.sox import SoxEstimator
 
 
 def add_parser(sub) -> None:
@@ -95,16 +98,27 @@ def bench_cell_updates(n_cells: int = 2000, seconds: float = 3.0, method: str = 
     return n_cells * (k - warm) / (time.perf_counter() - t0)
 
 
-def bench_tick_ms(n_cells: int = 200, ticks: int = 300) -> float:
+def bench_tick_ms(n_cells: int = 200, ticks: int = 300, *, sox: str = "off") -> float:
+    """Median ms of one tick: the SOC estimator (``sox="off"``), it and the SOP/SOE/SOH
+    (``"with"``), or the SOP/SOE/SOH alone (``"only"``)."""
     est = SocEstimator(n_cells, _synthetic_surface(), 3.0, 1.0, initial_soc=0.8)
+    sx = SoxEstimator(n_cells, 1.0) if sox != "off" else None
     warm = _warm_up(est)
     current, volts = _pack_inputs(n_cells, warm + ticks)
     for k in range(warm):
         est.update(current[k], volts[k])
+        if sx is not None:
+            sx.update(est, current[k], volts[k])
     times = []
     for k in range(warm, warm + ticks):
         t0 = time.perf_counter()
-        est.update(current[k], volts[k])
+        if sox != "only":
+            est.update(current[k], volts[k])
+        else:
+            est.update(current[k], volts[k])
+            t0 = time.perf_counter()
+        if sx is not None:
+            sx.update(est, current[k], volts[k])
         times.append(time.perf_counter() - t0)
     return float(np.median(times) * 1e3)
 
@@ -189,6 +203,8 @@ FIGURES = {
     "cell_updates_per_s_lif_iv": lambda args: bench_cell_updates(2000, args.seconds, "lif-iv"),
     "cell_updates_per_s_lif_iv_bv": lambda args: bench_cell_updates(2000, args.seconds, "lif-iv-bv"),
     "tick_ms_200_cells": lambda args: bench_tick_ms(200),
+    "tick_ms_200_cells_sox": lambda args: bench_tick_ms(200, sox="with"),
+    "sox_ms_200_cells": lambda args: bench_tick_ms(200, sox="only"),
     "frames_per_s": lambda args: _frames_per_s(),
     "publish_latency_ms_p99": lambda args: _publish_latency(),
     "replay_speedup": lambda args: _replay_speedup(),

@@ -155,6 +155,7 @@ class Record:
     soc: np.ndarray = field(init=False)
     capacity_ah: np.ndarray = field(init=False)
     params: dict[str, np.ndarray] = field(init=False)
+    pack_sox: dict[str, float] = field(default_factory=dict)  # the last sample's pack SOP/SOE/SOH
 
     def __post_init__(self) -> None:
         n, c = self.n_cells, self.capacity
@@ -201,6 +202,7 @@ class Record:
         for name in ("t_s", "current_a", "voltage_v", "v_o", "soc", "capacity_ah"):
             setattr(out, name, getattr(self, name)[:n].copy())
         out.params = {k: v[:n].copy() for k, v in self.params.items()}
+        out.pack_sox = dict(self.pack_sox)
         out.rows = n
         return out
 
@@ -212,6 +214,7 @@ def record_service(svc: Any, expected_samples: int = 16384) -> Record:
     def hook(snap: Any) -> None:
         if snap.current_valid and math.isfinite(snap.current_a):
             record.add(snap.t_s, snap.current_a, snap.sample.cell_voltage_v, svc.estimator)
+            record.pack_sox = dict(getattr(snap, "pack_sox", {}))
 
     svc.pipeline.add_hook(hook)
     return record

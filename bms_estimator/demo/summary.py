@@ -175,6 +175,7 @@ def analyse(setup: Any, result: Any) -> dict[str, Any]:
                                                                  for c in per_cell]),
         "voltage_osa_rmse_mv_mean": _finite_mean([c["voltage_osa_rmse_mv"] for c in per_cell]),
         "cells": per_cell,
+        "pack_sox_end": dict(getattr(rec, "pack_sox", {})),
         "notes": list(result.notes),
     }
 
@@ -251,6 +252,15 @@ def format_summary(a: dict[str, Any], figure: Path | None = None) -> str:
     else:
         lines.append(f"R0 ranking vs the injected spread: n/a (needs a run longer than the {a['osa_from_s']:.0f} s "
                      "initialisation and three cells or more)")
+    sox = a.get("pack_sox_end") or {}
+    if sox:
+        lines.append(
+            f"Power, energy, health at the end (pack): 10 s limits discharge {_f(sox.get('p_discharge_max_10s_w'), 1, 0, 1)} W"
+            f" ({_f(sox.get('i_discharge_max_10s_a'), 1, 2, 1)} A), charge {_f(sox.get('p_charge_max_10s_w'), 1, 0, 1)} W"
+            f" ({_f(sox.get('i_charge_max_10s_a'), 1, 2, 1)} A); energy left {_f(sox.get('energy_left_wh'), 1, 1, 1)} Wh,"
+            f" discharged {_f(sox.get('energy_discharged_wh'), 1, 1, 1)} Wh, time to empty"
+            f" {_f(sox.get('time_to_empty_s'), 1 / 60, 0, 1)} min; SOH capacity {_f(sox.get('soh_capacity_min'), 100, 1, 1)} %,"
+            f" resistance {_f(sox.get('soh_resistance_max'), 100, 1, 1)} % (weakest cell; '-' = not yet justified)")
     mq = a["mqtt_final_states_match_service"]
     lines.append(
         f"Service: {a['frames']:,} frames, {a['samples']:,} samples in {a['replay_wall_s']:.1f} s "

@@ -35,7 +35,7 @@ from rich.console import Group, RenderableType
 from rich.table import Table
 from rich.text import Text
 
-from ..service.schema import CELL_KEYS
+from ..service.schema import CELL_KEYS, PACK_SOX_FIELDS
 
 __all__ = [
     "CellView",
@@ -50,6 +50,8 @@ __all__ = [
 #: numeric fields of a cell payload that the dashboard reads
 CELL_NUMBERS = tuple(k for k in CELL_KEYS if k != "stale") + ("t_s",)
 PACK_NUMBERS = ("t_s", "soc_min", "soc_mean", "soc_max", "current_a", "cells_stale")
+#: the pack's SOP/SOE/SOH figures, shown on a line of their own
+PACK_SOX_KEYS = tuple(f.key for f in PACK_SOX_FIELDS)
 MAX_CELL_INDEX = 100_000  # a larger index in a topic is treated as garbage
 
 
@@ -216,7 +218,7 @@ class DashboardState:
         else:
             summary: dict[str, Any] = {}
             for key, raw in data.items():
-                if key in PACK_NUMBERS:
+                if key in PACK_NUMBERS or key in PACK_SOX_KEYS:
                     summary[key] = _number(raw)
                     if raw is not None and summary[key] is None:
                         c.invalid_fields += 1
@@ -283,7 +285,16 @@ def _pack_line(view: PackView, now: float) -> Text:
     if s.get("t_s") is not None:
         txt.append(f"   t {s['t_s']:.1f} s")
     txt.append(f"   ({_age(now, view.summary_received)} s ago)", style="dim")
-    extras = [(k, v) for k, v in s.items() if k not in PACK_NUMBERS]
+    if s.get("p_discharge_max_10s_w") is not None or s.get("energy_left_wh") is not None:
+        txt.append("\n  10 s power limit discharge ")
+        txt.append(f"{_fmt(s.get('p_discharge_max_10s_w'), 1e-3, 2)} kW", style="bold")
+        txt.append(f" ({_fmt(s.get('i_discharge_max_10s_a'), 1, 1)} A), charge ")
+        txt.append(f"{_fmt(s.get('p_charge_max_10s_w'), 1e-3, 2)} kW", style="bold")
+        txt.append(f" ({_fmt(s.get('i_charge_max_10s_a'), 1, 1)} A)   energy left {_fmt(s.get('energy_left_wh'), 1, 0)} Wh"
+                   f"   to empty {_fmt(s.get('time_to_empty_s'), 1 / 60, 0)} min"
+                   f"   SOH capacity {_fmt(s.get('soh_capacity_min'), 100, 1)} %, resistance "
+                   f"{_fmt(s.get('soh_resistance_max'), 100, 1)} %")
+    extras = [(k, v) for k, v in s.items() if k not in PACK_NUMBERS and k not in PACK_SOX_KEYS]
     if extras:
         txt.append("\n  " + "  ".join(f"{k}={v}" for k, v in extras[:12]), style="dim")
     return txt

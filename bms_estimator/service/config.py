@@ -39,6 +39,8 @@ from pydantic_settings import BaseSettings, NestedSecretsSettingsSource, Pydanti
 
 from ..core.identifier import IdentifierConfig
 from ..core.soc_ekf import SocEkfConfig
+from ..core.sop import SopConfig
+from ..core.sox import SoxConfig
 from ..errors import ConfigError
 from ..core.soc import SocConfig
 
@@ -145,6 +147,7 @@ def _dataclass_fields(cls: type) -> dict[str, tuple[Any, Any]]:
 _IDENTIFIER_FIELDS = _dataclass_fields(IdentifierConfig)
 _SOC_FIELDS = _dataclass_fields(SocConfig)
 _EKF_FIELDS = _dataclass_fields(SocEkfConfig)
+_SOP_FIELDS = _dataclass_fields(SopConfig)
 
 #: ``[estimator.core.identifier]``: the fields of the core's IdentifierConfig, with its bounds
 IdentifierSettings = create_model("IdentifierSettings", __base__=_Strict, **_IDENTIFIER_FIELDS)  # type: ignore[call-overload]
@@ -178,11 +181,31 @@ CoreSettings = create_model(  # type: ignore[call-overload]
 )
 
 
+class _SopBase(_Strict):
+    _sop_config: SopConfig = PrivateAttr(default_factory=SopConfig)
+
+    @model_validator(mode="after")
+    def _build(self) -> Any:
+        self._sop_config = SopConfig(**{k: getattr(self, k) for k in _SOP_FIELDS})  # ValueError: a cross-field rule
+        return self
+
+
+#: ``[estimator.sop]``: the cell's voltage and current limits, derating and SOP horizons (core.sop.SopConfig)
+SopSettings = create_model("SopSettings", __base__=_SopBase, **_SOP_FIELDS)  # type: ignore[call-overload]
+
+
 class EstimatorConfig(_Strict):
     sample_period_s: float = Field(1.0, gt=0, le=60)
     staleness_s: float = Field(5.0, gt=0, le=3600)
     # The numerical core's tuning: the fields of core.soc.SocConfig and core.identifier.IdentifierConfig.
     core: CoreSettings = Field(default_factory=CoreSettings)  # type: ignore[valid-type]
+    # State of power, energy and health (core/sox.py): the cell's limits and the SOP horizons.
+    sop: SopSettings = Field(default_factory=SopSettings)  # type: ignore[valid-type]
+
+    @property
+    def sox_config(self) -> SoxConfig:
+        """``sop`` as the core's :class:`~bms_estimator.core.sox.SoxConfig`."""
+        return SoxConfig(sop=self.sop._sop_config)
 
     @property
     def soc_config(self) -> SocConfig:

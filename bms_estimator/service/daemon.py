@@ -63,6 +63,7 @@ from ..can.sampler import SampleAssembler
 from ..core.ocv import OcvCurve
 from ..core.ocv_surface import OcvSurface
 from ..core.soc import SocEstimator
+from ..core.sox import SoxEstimator
 from ..errors import DataError
 from . import systemd
 from .config import ConfigError, ServiceConfig
@@ -173,7 +174,7 @@ class Service:
             log.warning("pack.ocv_csv not set: using the built-in sample OCV curve", cell=DEFAULT_OCV_CELL)
 
         assert self.decoder is not None
-        self.pipeline = Pipeline(self.decoder, self.sampler, estimator)
+        self.pipeline = Pipeline(self.decoder, self.sampler, estimator, sox=self._new_sox())
         self.metrics = metrics if metrics is not None else ServiceMetrics(cell_metrics=cfg.health.cell_metrics)
         self.metrics.attach(self)
         self.pipeline.observe_tick = self.metrics.observe_tick
@@ -209,6 +210,9 @@ class Service:
             self.n_cells, self.ocv, self.cfg.pack.capacity_ah, self.period_s, initial_soc=None, config=self.soc_config
         )
 
+    def _new_sox(self) -> SoxEstimator:
+        return SoxEstimator(self.n_cells, self.period_s, self.cfg.estimator.sox_config)
+
     def _fingerprint(self) -> str:
         """What a saved state must have been made with to be resumed."""
         ident = self.soc_config.identifier
@@ -240,6 +244,7 @@ class Service:
                 reason = f"rejected by the estimator: {type(exc).__name__}: {exc}"
             else:
                 self.pipeline.estimator = est
+                self._restore_sox(saved)
         if reason is not None:
             aside = _move_aside(Path(st.path), "foreign") if Path(st.path).exists() else None
             log.warning("saved estimator state not used; starting fresh", path=str(st.path), reason=reason,
@@ -252,6 +257,20 @@ class Service:
         log.info("estimator resumed from saved state", path=str(st.path), age_s=round(float(meta.get("age_s", 0)), 1),
                  t_s=meta.get("t_s"), soc_mean=float(np.nanmean(soc)) if np.isfinite(soc).any() else None)
         return True
+
+    def _restore_sox(self, saved: Any) -> None:
+        """The SOX part of a resumed state (the commissioning R0, energy counters); a state without
+        it (older files) or one that does not fit starts these afresh, the SOC state stays resumed."""
+        sox = self._new_sox()
+        part = {k[4:]: v for k, v in dict(saved).items() if k.startswith("sox.")}
+        if part:
+            try:
+                sox.load_state_dict(part)
+            except Exception as exc:  # noqa: BLE001 - ValueError, KeyError, shape errors...
+                log.warning("saved SOP/SOE/SOH state not used; starting it fresh",
+                            reason=f"{type(exc).__name__}: {exc}")
+                sox = self._new_sox()
+        self.pipeline.sox = sox
 
     # ---------------------------------------------------------------- outputs
     def _on_snapshot(self, snap: Snapshot) -> None:
@@ -308,6 +327,8 @@ class Service:
             saved_at = time.time()
         # own copies: the worker thread writes them while the estimator moves on
         state = {k: np.array(v, copy=True) for k, v in est.state_dict().items()}
+        if self.pipeline.sox is not None:
+            state.update({f"sox.{k}": np.array(v, copy=True) for k, v in self.pipeline.sox.state_dict().items()})
         return state, meta, saved_at
 
     async def _write(self, state: dict[str, Any], meta: dict[str, Any], saved_at: float) -> bool:

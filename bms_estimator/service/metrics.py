@@ -19,7 +19,10 @@ Families (``bms_`` prefix; counters end in ``_total``):
   ``estimator_corrections``, ``estimator_restarts``, ``state_restored``, ``tick_seconds``
   (histogram), ``last_sample_time_seconds``
 * battery: ``pack_soc{stat=min|mean|max}``, ``pack_current_amperes``, ``pack_voltage_volts``,
-  ``pack_capacity_ah``, ``cells_stale``, and with ``health.cell_metrics``
+  ``pack_capacity_ah``, ``cells_stale``; SOP/SOE/SOH: ``pack_current_limit_amperes`` and
+  ``pack_power_limit_watts{direction=discharge|charge,horizon=2s|10s|30s}``, ``pack_energy_left_wh``,
+  ``pack_energy_delivered_wh``, ``pack_energy_discharged_wh``, ``pack_time_to_empty_seconds``,
+  ``pack_time_to_full_seconds``, ``pack_soh_ratio{kind=capacity|resistance}``; and with ``health.cell_metrics``
   ``cell_soc{cell}``, ``cell_r0_ohms{cell}``, ``cell_capacity_ah{cell}``
 * outputs: ``mqtt_published``, ``mqtt_dropped``, ``mqtt_connects``, ``mqtt_connect_failures``,
   ``mqtt_connected``, ``mqtt_publish_latency_seconds`` (histogram), ``state_saves``,
@@ -105,6 +108,16 @@ class ServiceMetrics:
 
     def set_state(self, state: EstimatorState) -> None:
         self.estimator_state.state(state.label)
+
+
+#: pack SOX figure -> (metric, help); the SOP limits are labelled families below
+_SOX_GAUGES = (
+    ("energy_left_wh", "bms_pack_energy_left_wh", "energy left to the cut-off at the stated rate"),
+    ("energy_delivered_wh", "bms_pack_energy_delivered_wh", "net energy out since the pack was last full"),
+    ("energy_discharged_wh", "bms_pack_energy_discharged_wh", "energy discharged since the service first started"),
+    ("time_to_empty_s", "bms_pack_time_to_empty_seconds", "time to the cut-off at the recent mean current (+Inf idle)"),
+    ("time_to_full_s", "bms_pack_time_to_full_seconds", "time to full at the recent mean current (+Inf idle)"),
+)
 
 
 def _counter(name: str, doc: str, value: float, labels: dict[str, float] | None = None,
@@ -195,6 +208,32 @@ class _ServiceCollector(Collector):
         yield _gauge("bms_healthy", "1 while the estimator heartbeat is fresh", int(hb.is_fresh()))
         yield from self._battery(svc)
 
+    @staticmethod
+    def _sox(snap: Any) -> Iterator[Any]:
+        """SOP limits per direction and horizon, energy, times and SOH (issue 14), when the snapshot has them."""
+        sox = snap.pack_sox
+        if not sox:
+            return
+        cur = GaugeMetricFamily("bms_pack_current_limit_amperes", "pack current limit over the horizon (magnitude)",
+                                labels=["direction", "horizon"])
+        pw = GaugeMetricFamily("bms_pack_power_limit_watts", "pack power limit over the horizon (magnitude)",
+                               labels=["direction", "horizon"])
+        for key, v in sox.items():
+            parts = key.split("_")  # i_discharge_max_10s_a / p_charge_max_2s_w
+            if len(parts) == 5 and parts[2] == "max" and parts[0] in ("i", "p"):
+                (cur if parts[0] == "i" else pw).add_metric([parts[1], parts[3]], v)
+        yield cur
+        yield pw
+        for key, name, doc in _SOX_GAUGES:
+            if key in sox:
+                yield _gauge(name, doc, sox[key])
+        soh = GaugeMetricFamily("bms_pack_soh_ratio", "state of health of the weakest cell: capacity (estimated / "
+                                "stated; NaN until justified) and resistance (R0 at 25 degC / commissioning)",
+                                labels=["kind"])
+        soh.add_metric(["capacity"], sox.get("soh_capacity_min", math.nan))
+        soh.add_metric(["resistance"], sox.get("soh_resistance_max", math.nan))
+        yield soh
+
     def _battery(self, svc: Service) -> Iterator[Any]:
         snap = svc.pipeline.last
         if snap is None:
@@ -208,8 +247,15 @@ class _ServiceCollector(Collector):
         yield _gauge("bms_pack_voltage_volts", "pack voltage (NaN when unknown)", snap.pack_voltage_v)
         yield _gauge("bms_pack_capacity_ah", "mean estimated cell capacity", snap.capacity_ah_mean)
         yield _gauge("bms_cells_stale", "cells whose inputs are stale", snap.n_cells - snap.cells_valid)
+        yield from self._sox(snap)
         if self.cell_metrics:
             cells = [str(i) for i in range(snap.n_cells)]
+            if "p_discharge_max_10s_w" in snap.cells:
+                fam = GaugeMetricFamily("bms_cell_power_limit_watts", "cell 10 s power limit", labels=["cell", "direction"])
+                for d in ("discharge", "charge"):
+                    for cell, v in zip(cells, np.asarray(snap.cells[f"p_{d}_max_10s_w"], dtype=float).tolist()):
+                        fam.add_metric([cell, d], v)
+                yield fam
             for name, doc, key in (("bms_cell_soc", "cell SOC (fraction)", "soc"),
                                    ("bms_cell_r0_ohms", "cell R0", "r0_ohm"),
                                    ("bms_cell_capacity_ah", "cell capacity estimate", "capacity_ah")):

@@ -6,6 +6,7 @@ One hop per file::
       -> can/decoder.py   FrameDecoder.decode(msg)              signal events (cell voltages, current, ...)
       -> can/sampler.py   SampleAssembler.feed_frame(events, t) Samples on the frames' own time grid
       -> core/soc.py      SocEstimator.update(i, v, valid, T)   SOC, its sigma + 2-RC parameters of every cell
+      -> core/sox.py      SoxEstimator.update(est, i, v, valid) power limits, energy, health (when given)
       -> service/pipeline.py  Snapshot                          one immutable record per sample
       -> on_snapshot hooks, each an output adapter formatting the Snapshot with service/schema.py:
            service/mqtt.py    MqttPublisher.submit_snapshot     cell + pack JSON (latest-value buffer)
@@ -34,6 +35,7 @@ import structlog
 from ..can.decoder import FrameDecoder
 from ..can.sampler import Sample, SampleAssembler
 from ..core.soc import SocEstimator
+from ..core.sox import SoxEstimator
 from .schema import CELL_FIELDS, EstimatorState, SocStats, soc_stats
 
 __all__ = ["Pipeline", "PipelineCounters", "Snapshot", "StatusCounters"]
@@ -77,6 +79,8 @@ class Snapshot:
     state: EstimatorState
     counters: StatusCounters
     sample: Sample = field(repr=False)
+    #: pack SOP/SOE/SOH figures (schema.PACK_SOX_FIELDS keys); empty without a SoxEstimator
+    pack_sox: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def n_cells(self) -> int:
@@ -108,12 +112,14 @@ class Pipeline:
         estimator: SocEstimator,
         *,
         on_snapshot: Callable[[Snapshot], None] | None = None,
+        sox: SoxEstimator | None = None,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
     ) -> None:
         self.decoder = decoder
         self.sampler = sampler
         self.estimator = estimator
+        self.sox = sox
         self.n_cells = int(estimator.n_cells)
         self.hooks: list[Callable[[Snapshot], None]] = [] if on_snapshot is None else [on_snapshot]
         self.counters = PipelineCounters()
@@ -153,6 +159,8 @@ class Pipeline:
             if sample.current_valid and math.isfinite(sample.current_a):
                 est.update(sample.current_a, sample.cell_voltage_v, sample.valid,
                            temperature_c=sample.cell_temperature_c)
+                if self.sox is not None:
+                    self.sox.update(est, sample.current_a, sample.cell_voltage_v, sample.valid)
             else:
                 c.samples_current_invalid += 1
             snap = self._snapshot(sample)
@@ -193,6 +201,11 @@ class Pipeline:
                 "temperature_c": sample.cell_temperature_c,
                 "capacity_ah": np.broadcast_to(capacity, (self.n_cells,)),
             }
+        sox = self.sox
+        pack_sox: dict[str, float] = {}
+        if sox is not None and sox.outputs:
+            cells.update({k: np.array(v, dtype=float, copy=True) for k, v in sox.outputs.items()})
+            pack_sox = sox.pack_outputs()
         for f in CELL_FIELDS:  # further per-cell outputs the estimator offers (schema.CellField.estimator)
             if f.estimator is not None and f.key not in cells and hasattr(est, f.estimator):
                 value = np.array(getattr(est, f.estimator), dtype=float, copy=True)
@@ -210,6 +223,7 @@ class Pipeline:
             state=self.state,
             counters=self.status_counters(self.state, self.n_cells - n_valid),
             sample=sample,
+            pack_sox=pack_sox,
         )
 
     def status_counters(self, state: EstimatorState, stale_cells: int) -> StatusCounters:

@@ -38,7 +38,9 @@ if TYPE_CHECKING:
     from .pipeline import Snapshot
 
 __all__ = [
+    "CAN_PACK_SOX_SIGNALS",
     "CAN_STATUS_SIGNALS",
+    "PACK_SOX_FIELDS",
     "CELL_FIELDS",
     "PACK_FIELDS",
     "CellField",
@@ -102,6 +104,54 @@ CELL_FIELDS: tuple[CellField, ...] = (
     CellField("capacity_ah", "capacity", {**_DIAG, "unit_of_measurement": "Ah", "icon": "mdi:battery-high"}, 1.0, 3,
               "capacity"),
 )
+
+#: SOP horizons whose keys the schema names (core.sop.SopConfig's defaults); other configured
+#: horizons are published under the same key pattern but have no HA entity or CAN signal
+SOX_HORIZONS_S: tuple[float, ...] = (2.0, 10.0, 30.0)
+_POWER = {"device_class": "power", "unit_of_measurement": "W", "state_class": "measurement"}
+_CURRENT = {"device_class": "current", "unit_of_measurement": "A", "state_class": "measurement"}
+_ENERGY_LEFT = {"device_class": "energy_storage", "unit_of_measurement": "Wh", "state_class": "measurement"}
+_ENERGY_NET = {"device_class": "energy", "unit_of_measurement": "Wh", "state_class": "total"}  # goes down with charge
+_ENERGY_OUT = {"device_class": "energy", "unit_of_measurement": "Wh", "state_class": "total_increasing"}
+_DURATION = {"device_class": "duration", "unit_of_measurement": "s", "state_class": "measurement"}
+_SOH = {**_DIAG, "unit_of_measurement": "%", "icon": "mdi:battery-heart-variant"}
+
+
+def sox_limit_keys(horizon_s: float) -> tuple[str, str, str, str]:
+    """(discharge A, charge A, discharge W, charge W) payload keys of one SOP horizon."""
+    tag = f"{horizon_s:g}s"
+    return (f"i_discharge_max_{tag}_a", f"i_charge_max_{tag}_a", f"p_discharge_max_{tag}_w", f"p_charge_max_{tag}_w")
+
+
+def _limit_fields(cls, horizons, *, current_ha: bool, power_ha_all: bool):
+    """The SOP fields: currents with an HA entity at 10 s (when ``current_ha``), powers at 10 s or at
+    every horizon (``power_ha_all``)."""
+    out = []
+    for h in horizons:
+        ia, ic, pa, pc = sox_limit_keys(h)
+        cur = _CURRENT if current_ha and h == 10.0 else None
+        pw = _POWER if power_ha_all or h == 10.0 else None
+        out += [cls(ia, f"Discharge current limit {h:g} s", cur, 1.0, 1),
+                cls(ic, f"Charge current limit {h:g} s", cur, 1.0, 1),
+                cls(pa, f"Discharge power limit {h:g} s", pw, 1.0, 0),
+                cls(pc, f"Charge power limit {h:g} s", pw, 1.0, 0)]
+    return tuple(out)
+
+
+#: per-cell SOP/SOE/SOH outputs (core.sox.SoxEstimator.outputs); HA entities only for the 10 s power
+#: limits, the energy left and the two SOH figures (cell entities are disabled by default anyway)
+CELL_SOX_FIELDS: tuple[CellField, ...] = _limit_fields(CellField, SOX_HORIZONS_S, current_ha=False, power_ha_all=False) + (
+    CellField("energy_left_wh", "energy left", _ENERGY_LEFT, 1.0, 1),
+    CellField("energy_delivered_wh", "energy delivered since full"),
+    CellField("energy_discharged_wh", "energy discharged"),
+    CellField("time_to_empty_s", "time to empty"),
+    CellField("time_to_full_s", "time to full"),
+    CellField("soh_capacity", "capacity SOH", _SOH, 100.0, 1),
+    CellField("soh_capacity_sigma", "capacity SOH uncertainty"),
+    CellField("soh_resistance", "resistance SOH", _SOH, 100.0, 1),
+    CellField("r0_ref_ohm", "R0 at reference"),
+)
+CELL_FIELDS = CELL_FIELDS + CELL_SOX_FIELDS
 CELL_KEYS: tuple[str, ...] = tuple(f.key for f in CELL_FIELDS)
 
 
@@ -133,6 +183,29 @@ PACK_FIELDS: tuple[PackField, ...] = (
     PackField("state", "Estimator state", {"device_class": "enum", "entity_category": "diagnostic",
                                            "options": [s.label for s in EstimatorState]}),
 )
+
+#: pack SOP/SOE/SOH outputs (core.sox.SoxEstimator.pack_outputs), appended to the pack payload
+PACK_SOX_FIELDS: tuple[PackField, ...] = _limit_fields(PackField, SOX_HORIZONS_S, current_ha=True, power_ha_all=True) + (
+    PackField("energy_left_wh", "Energy left", _ENERGY_LEFT, 1.0, 0),
+    PackField("energy_delivered_wh", "Energy delivered since full", _ENERGY_NET, 1.0, 1),
+    PackField("energy_discharged_wh", "Energy discharged", _ENERGY_OUT, 1.0, 1),
+    PackField("time_to_empty_s", "Time to empty", _DURATION, 1.0, 0),
+    PackField("time_to_full_s", "Time to full", _DURATION, 1.0, 0),
+    PackField("soh_capacity_min", "Capacity SOH (weakest cell)", _SOH, 100.0, 1),
+    PackField("soh_resistance_max", "Resistance SOH (weakest cell)", _SOH, 100.0, 1),
+)
+PACK_FIELDS = PACK_FIELDS + PACK_SOX_FIELDS
+
+#: CAN output message -> {signal: pack SOX key}; sent when the DBC has the message (SI in, the
+#: encoder scales to the signal's unit)
+CAN_PACK_SOX_SIGNALS: Mapping[str, Mapping[str, str]] = {
+    **{f"PackLimits{h:g}s": dict(zip(("DischargeCurrentLimit", "ChargeCurrentLimit", "DischargePowerLimit",
+                                       "ChargePowerLimit"), sox_limit_keys(h))) for h in SOX_HORIZONS_S},
+    "PackEnergy": {"EnergyLeft": "energy_left_wh", "EnergyDelivered": "energy_delivered_wh",
+                   "TimeToEmpty": "time_to_empty_s", "TimeToFull": "time_to_full_s"},
+    "PackHealth": {"SohCapacity": "soh_capacity_min", "SohResistance": "soh_resistance_max",
+                   "CapacityMean": "capacity_ah_mean", "EnergyDischarged": "energy_discharged_wh"},
+}
 
 #: CAN status signal (project DBC) -> the snapshot counter it carries. A DBC whose status
 #: messages have a signal not named here is refused when the encoder is built.
@@ -292,6 +365,7 @@ def pack_payload(snap: Snapshot) -> dict[str, Any]:
         "cells_valid": snap.cells_valid,
         "capacity_ah_mean": json_number(snap.capacity_ah_mean),
         "state": snap.state.label,
+        **{k: json_number(v) for k, v in getattr(snap, "pack_sox", {}).items()},  # SOP/SOE/SOH when computed
     }
 
 

@@ -47,6 +47,11 @@ def _run_demo(tmp_path, capsys, broker: str, duration_s: int | None) -> tuple[st
                     "tau1_s_final", "r2_ohm_final", "tau2_s_final", "c0_v_final", "capacity_ah_estimated"):
             assert isinstance(c[key], float), (key, c)
         assert 0.0 < c["r0_ohm_final"] < 0.1 and c["voltage_osa_rmse_mv"] < 30.0
+    # state of power, energy and health at the end (issue 14), printed and in the JSON
+    sox = summary["pack_sox_end"]
+    assert sox["p_discharge_max_10s_w"] > 0 and sox["energy_left_wh"] > 0 and sox["energy_discharged_wh"] > 0
+    m = re.search(r"10 s limits discharge\s+(\d+) W", text)
+    assert m and float(m.group(1)) == pytest.approx(sox["p_discharge_max_10s_w"], abs=1.0)
     m = re.search(r"R0 ranking vs the injected spread: Spearman (-?\d\.\d{3})", text)
     assert m and float(m.group(1)) == pytest.approx(summary["spearman_r0_median_vs_injected"], abs=1e-3)
     # The R0 ranking builds over the first hour: with the EKF's SOC corrections shifted into the

@@ -63,6 +63,23 @@ def test_recorded_messages_make_the_table():
     assert "offline" in text(state)
 
 
+def test_pack_state_of_power_energy_and_health_line():
+    """The SOP/SOE/SOH figures of the pack payload (issue 14) get a line of their own, in kW, Wh,
+    min and %; a garbage value is shown as '-' and counted, not a crash."""
+    state = DashboardState()
+    pack = {"t_s": 1.0, "soc_min": 0.5, "soc_mean": 0.5, "soc_max": 0.5, "current_a": -2.0, "cells_stale": 0,
+            "p_discharge_max_10s_w": 12345.0, "i_discharge_max_10s_a": 60.5, "p_charge_max_10s_w": 4000.0,
+            "i_charge_max_10s_a": 20.0, "energy_left_wh": 1500.4, "time_to_empty_s": 3600.0,
+            "soh_capacity_min": 0.934, "soh_resistance_max": "oops"}
+    state.apply("bms/p1/pack/state", json.dumps(pack).encode(), 1.0)
+    out = text(state)
+    assert "10 s power limit discharge 12.35 kW (60.5 A), charge 4.00 kW (20.0 A)" in out
+    assert "energy left 1500 Wh" in out and "to empty 60 min" in out
+    assert "SOH capacity 93.4 %, resistance - %" in out
+    assert state.counters.invalid_fields == 1
+    assert "p_charge_max_2s_w" not in out  # not among the generic extras
+
+
 def test_garbage_is_ignored_and_counted():
     state = DashboardState(pack_id="p1")
     state.apply_many(recorded())

@@ -415,6 +415,12 @@ def test_service_matches_offline_estimator_on_can_and_mqtt(mosquitto, tmp_path):
     pack = [json.loads(bytes(m.payload)) for m in messages if m.topic.value == f"{root}/pack/state"]
     assert pack and pack[-1]["t_s"] == T0 + n_rows and pack[-1]["soc_mean"] == pytest.approx(ref.est.soc.mean())
     assert pack[-1]["cells_stale"] == 0 and pack[-1]["cells_valid"] == N
+    # state of power, energy and health (issue 14) in the pack payload and the metrics
+    assert pack[-1]["p_discharge_max_10s_w"] > 0 and pack[-1]["i_charge_max_2s_a"] >= 0
+    assert pack[-1]["energy_left_wh"] > 0 and pack[-1]["energy_discharged_wh"] > 0
+    assert metrics['bms_pack_power_limit_watts{direction="discharge",horizon="10s"}'] == pytest.approx(
+        pack[-1]["p_discharge_max_10s_w"])
+    assert metrics["bms_pack_energy_left_wh"] == pytest.approx(pack[-1]["energy_left_wh"])
     # availability and Home Assistant discovery (retained)
     avail = [bytes(m.payload).decode() for m in messages if m.topic.value == f"{root}/availability"]
     assert avail[0] == "online" and avail[-1] == "offline"
@@ -804,6 +810,16 @@ def test_restart_resumes_from_saved_state(tmp_path):
     assert not svc1.restored
     saved = assert_state_file_valid(Path(cfg.state.path), soc=whole.steps[149].soc)
     assert saved.meta["t_s"] == T0 + 150
+    # the SOP/SOE/SOH state (energy counters, commissioning R0) is saved and resumed with the SOC (issue 14)
+    sox1 = svc1.pipeline.sox
+    assert np.all(sox1.energy_discharged_wh > 0)
+    resumed = Service(cfg)
+    assert resumed.restore()
+    np.testing.assert_array_equal(resumed.pipeline.sox.energy_discharged_wh, sox1.energy_discharged_wh)
+    np.testing.assert_array_equal(resumed.pipeline.sox.x_v, sox1.x_v)
+    snap = svc1.pipeline.last
+    assert np.all(np.isfinite(snap.cells["p_discharge_max_10s_w"])) and np.all(snap.cells["p_discharge_max_10s_w"] > 0)
+    assert snap.pack_sox["i_discharge_max_10s_a"] == float(np.min(snap.cells["i_discharge_max_10s_a"]))
 
     svc2, socs2 = run_async(one_run(second, 150), 40)
     assert svc2.restored

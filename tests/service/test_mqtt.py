@@ -138,6 +138,10 @@ def test_home_assistant_discovery_retained_and_resent(mosquitto):
     # pack: SOC min/mean/max, current, stale cells, voltage, capacity, state; per cell: SOC, R0, voltage,
     # temperature, capacity
     n_configs = 8 + 6 * n  # per cell: SOC, its uncertainty, R0, voltage, temperature, capacity
+    # SOP/SOE/SOH (issue 14): pack 10 s current limits (2), power limits at 2/10/30 s (6), energy left,
+    # delivered, discharged, time to empty and full, capacity and resistance SOH (7); per cell the 10 s
+    # power limits, the energy left and both SOH figures
+    n_configs += 15 + 5 * n
 
     async def main():
         pub = MqttPublisher(mqtt_cfg(port, qos=0), "hapack", n, expire_after_s=30)
@@ -169,6 +173,15 @@ def test_home_assistant_discovery_retained_and_resent(mosquitto):
                 assert cur["availability_topic"] == "bms/hapack/availability" and "enabled_by_default" not in cur
                 volt = configs["homeassistant/sensor/bms_hapack_pack_voltage/config"]
                 assert volt["device_class"] == "voltage" and "value_json.pack_voltage_v" in volt["value_template"]
+                p10 = configs["homeassistant/sensor/bms_hapack_pack_p_discharge_max_10s_w/config"]
+                assert p10["device_class"] == "power" and p10["unit_of_measurement"] == "W"
+                assert "value_json.p_discharge_max_10s_w" in p10["value_template"]
+                left = configs["homeassistant/sensor/bms_hapack_pack_energy_left_wh/config"]
+                assert left["unit_of_measurement"] == "Wh" and left["device_class"] == "energy_storage"
+                net = configs["homeassistant/sensor/bms_hapack_pack_energy_delivered_wh/config"]
+                assert net["device_class"] == "energy" and net["state_class"] == "total"
+                soh = configs["homeassistant/sensor/bms_hapack_cell1_soh_capacity/config"]
+                assert soh["unit_of_measurement"] == "%" and "* 100" in soh["value_template"]
                 state = configs["homeassistant/sensor/bms_hapack_pack_state/config"]
                 assert state["device_class"] == "enum" and "running" in state["options"]
                 assert {c["device"]["identifiers"][0] for c in configs.values()} == {"bms_estimator_hapack"}
@@ -232,11 +245,11 @@ def test_orphan_entities_are_removed(mosquitto):
         ours = {t for t in after if "/bms_hapack_" in t and "/bms_hapack_x_" not in t}
         assert not any(f"_cell{i}_" in t for t in ours for i in (2, 3))
         assert "homeassistant/sensor/bms_hapack_cell1_soc/config" in ours
-        assert len(ours) == 8 + 6 * 2
+        assert len(ours) == 8 + 15 + (6 + 5) * 2  # with the SOP/SOE/SOH entities (issue 14)
         await publish_once("hapack", 2, discovery=False)
         after = await _retained_configs(port)
         assert not any("/bms_hapack_" in t and "/bms_hapack_x_" not in t for t in after)
-        assert len([t for t in after if "/bms_hapack_x_" in t]) == 8 + 6  # the other pack kept
+        assert len([t for t in after if "/bms_hapack_x_" in t]) == 8 + 15 + 6 + 5  # the other pack kept
 
     run_async(main())
 

@@ -1,0 +1,61 @@
+"""``bms-estimator sop-backtest``: the online SOP's voltage prediction and limits against a recording."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..core.identifier import IdentifierConfig
+from ..core.sop import SopConfig
+from ..sop_backtest import run_backtest, summary
+from .common import add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float, soc_config, write_json
+
+_SOP = SopConfig()
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "sop-backtest", help="check the state-of-power prediction and limits against what the cell did",
+        description="Runs the online estimator over DATA. At the start of every window (each pulse of an HPPC "
+                    "file, otherwise every --horizon-s of a drive cycle) it predicts the voltage at the window's end "
+                    "from the window's own mean current (Plett's model-based method on the identified 2-RC model), "
+                    "and checks the computed current limits against what the cell then did: 'limit exceeded' = the "
+                    "voltage went past --v-min/--v-max while every sample's current stayed within the limits. The "
+                    "HPPC static-resistance method is scored alongside as the baseline.")
+    p.add_argument("data", type=Path, help="CSV(.gz) in the ../shared/data layout (HPPC or drive cycle)")
+    add_cell_options(p)
+    p.add_argument("--horizon-s", type=positive_float, default=10.0, help="prediction horizon = window length (default 10 s)")
+    p.add_argument("--v-min", type=positive_float, default=_SOP.v_min, help=f"cell discharge cut-off, V (default {_SOP.v_min:g})")
+    p.add_argument("--v-max", type=positive_float, default=_SOP.v_max, help=f"cell charge cut-off, V (default {_SOP.v_max:g})")
+    p.add_argument("--i-discharge-max-a", type=positive_float, default=_SOP.i_discharge_max_a,
+                   help=f"the cell's discharge current rating, A (default {_SOP.i_discharge_max_a:g})")
+    p.add_argument("--i-charge-max-a", type=positive_float, default=_SOP.i_charge_max_a,
+                   help=f"the cell's charge current rating, A (default {_SOP.i_charge_max_a:g})")
+    p.add_argument("--mode", choices=("auto", "hppc", "drive"), default="auto",
+                   help="windows at the pulses (hppc), every horizon (drive), or whichever the file is (default auto)")
+    add_method_option(p, IdentifierConfig().method, "(the online estimator's identification)")
+    p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here ('-' = stdout)")
+    add_tuning_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.v_min < args.v_max:
+        raise ValueError(f"--v-min {args.v_min:g} must be below --v-max {args.v_max:g}")
+    rec = load(args.data, args)
+    ocv = load_ocv(args.ocv, rec)
+    sop = SopConfig(v_min=args.v_min, v_max=args.v_max, i_discharge_max_a=args.i_discharge_max_a,
+                    i_charge_max_a=args.i_charge_max_a)
+    res = run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv, args.capacity_ah,
+                       horizon_s=args.horizon_s, initial_soc=args.initial_soc, soc_config=soc_config(args),
+                       sop_config=sop, mode=args.mode)
+    out = summary(res, args.capacity_ah)
+    if args.json is not None:
+        write_json(out, args.json)
+    if args.json is None or str(args.json) != "-":
+        e = out["voltage_error_mv"]
+        print(f"{out['windows']} {out['mode']} windows of {res.horizon_s:g} s: |voltage error| median "
+              f"{e['median']:.1f} mV, p95 {e['p95']:.1f} mV; limit exceeded in {out['limit_exceeded']} "
+              f"({out['limit_exceeded_pct']:.2f} %) of them, {out['windows_within_limit']} stayed within the limit "
+              f"(HPPC method: {out['hppc_method']['limit_exceeded']} exceeded)")
+    return 0

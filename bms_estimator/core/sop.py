@@ -1,0 +1,281 @@
+"""State of power: the largest constant current (and power) over a horizon, per cell and for the pack.
+
+Model-based SOP (Plett, "High-performance battery-pack power estimation using a
+dynamic cell model", IEEE TVT 53(5), 2004), on the identified 2-RC model, current
+``I`` positive = charge.  Held constant for ``D`` seconds from now, the ECM
+(:mod:`bms_estimator.core.ecm`, exact for constant current) predicts::
+
+    v(D, I) = OCV(s + c I) + b + sum_j [x_j p_j + R_j (1 - p_j) I] + R0 I,
+              p_j = exp(-D / tau_j),   c = D / (3600 Q)
+
+where ``x_j`` are the RC voltages now and ``b`` all that the model holds constant
+over the horizon (the OCV bias c0, the hysteresis, a slow diffusion voltage).  ``b``
+is not modelled separately: the prediction is anchored on the voltage ``v`` measured
+now at the current ``i`` (``v = OCV(s) + b + sum_j x_j + R0 i``), so whatever the
+model does not explain stays in the prediction as measured::
+
+    v(D, I) = v_base + [OCV(s + c I) - OCV(s)] + R_D I
+    v_base  = v - R0 i - sum_j x_j (1 - p_j)          (the voltage after D s at I = 0, OCV aside)
+    R_D     = R0 + sum_j R_j (1 - p_j)                 (the D-second resistance)
+
+Limits, magnitudes in A (>= 0).  The discharge limit ``I_dis`` solves
+``v(D, -I_dis) = v_min``, the charge limit ``I_chg`` solves ``v(D, I_chg) = v_max``;
+``v(D, I)`` is strictly increasing in ``I`` (OCV increasing, ``R_D > 0``), so each
+root is unique.  It is found by safeguarded Newton from Plett's linearised root
+(``OCV(s + c I) ~ OCV(s) + OCV'(s) c I``, his closed form) with ``newton_steps``
+Newton steps on the OCV curve itself, clipped to ``[0, I_cap]``; a final overshoot
+``g > 0`` is stepped back by ``g / R_D`` (the slope of ``g`` is at least ``R_D``), so the
+predicted voltage at the limit never passes the bound.  Then, as in Plett's method:
+
+    SOC:         I_dis <= (s - soc_min) 3600 Q / D,   I_chg <= (soc_max - s) 3600 Q / D
+    design:      I_dis <= I_dis,max d_dis(T),          I_chg <= I_chg,max d_chg(T)
+
+with ``d(T)`` the temperature derating, piecewise linear in the cell temperature
+over ``derate_temperatures_c`` (held beyond its ends; 0 = no current).  A cell
+already past a voltage bound has a zero limit in that direction.  The power
+limits are ``P = |I| v(D, I)`` at the limit currents.
+
+Pack (cells in series, ``n_parallel`` strings of equal cells in parallel): every
+cell carries the pack current / n_parallel, so the pack current limit is the
+weakest cell's times ``n_parallel``, and the pack power is that current times the
+sum of every cell's predicted voltage at it (the series count times the mean).
+
+Model-error margin.  The n-step error of the model (n = D / Ts) is what the ECM does not
+explain changing over the horizon: with ``b_k = v_k - OCV(s_k) - R0 i_k - sum_j x_j[k]``
+(x_j the RC voltages tracked under the actual current), the prediction made at ``k - n``
+for the current that then flowed misses ``v_k`` by ``e_k = b_k - b_{k-n}``.
+:class:`~bms_estimator.core.sox.SoxEstimator` keeps ``rms_D`` (an exponential average of
+``e^2`` over ``margin_tau_s``) and the limits are solved for the bounds moved inward by
+``margin_sigmas * rms_D``, so a cell whose model has been missing by 30 mV over 10 s gets
+90 mV of headroom, one whose model fits gets almost none.
+
+Baseline: the HPPC static-resistance method (FreedomCAR/USABC HPPC manual) assumes
+a cell at rest and an unchanged OCV::
+
+    I_dis = (OCV(s) - v_min) / R_D,    I_chg = (v_max - OCV(s)) / R_D
+
+with the same design limits and derating.  It ignores the RC voltages already
+built up (optimistic after a discharge pulse, pessimistic after a charge) and the
+OCV's fall over the horizon.
+
+Everything is vectorised over cells (and horizons); no I/O.  Limits are never
+negative and never NaN: a cell whose inputs or model are not finite gets 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Annotated, Callable
+
+import numpy as np
+from annotated_types import Ge, Gt
+
+__all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", "hppc_limits", "pack_limits"]
+
+OcvFn = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class SopConfig:
+    """Cell limits and derating (defaults: an 18650 NCA/NMC cell's datasheet figures)."""
+
+    horizons_s: tuple[Annotated[float, Gt(0)], ...] = (2.0, 10.0, 30.0)
+    v_min: Annotated[float, Gt(0)] = 2.5  # V, cell discharge cut-off
+    v_max: Annotated[float, Gt(0)] = 4.2  # V, cell charge cut-off
+    i_discharge_max_a: Annotated[float, Ge(0)] = 20.0  # A, the cell's continuous discharge rating
+    i_charge_max_a: Annotated[float, Ge(0)] = 6.0  # A, the cell's charge rating
+    soc_min: Annotated[float, Ge(0)] = 0.0
+    soc_max: Annotated[float, Gt(0)] = 1.0
+    n_parallel: Annotated[int, Ge(1)] = 1  # cells in parallel per series element
+    newton_steps: Annotated[int, Ge(0)] = 1  # refinements of the linearised root on the OCV curve
+    # model-error margin (core.sox): the limits keep the prediction this many RMS horizon errors
+    # of the recent past inside the bounds (0 = none); the RMS is averaged over margin_tau_s
+    margin_sigmas: Annotated[float, Ge(0)] = 3.0
+    margin_tau_s: Annotated[float, Gt(0)] = 600.0
+    # derating: factor on the design current limits, linear between these temperatures (degC)
+    derate_temperatures_c: tuple[float, ...] = (-20.0, 0.0, 10.0, 45.0, 60.0)
+    discharge_derate: tuple[Annotated[float, Ge(0)], ...] = (0.3, 0.6, 1.0, 1.0, 0.0)
+    charge_derate: tuple[Annotated[float, Ge(0)], ...] = (0.0, 0.1, 0.5, 1.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not self.horizons_s or any(not (np.isfinite(h) and h > 0) for h in self.horizons_s):
+            raise ValueError(f"horizons_s must be positive numbers of seconds, got {list(self.horizons_s)}")
+        if not 0 < self.v_min < self.v_max:
+            raise ValueError(f"need 0 < v_min < v_max, got v_min={self.v_min}, v_max={self.v_max}")
+        if not 0 <= self.soc_min < self.soc_max <= 1:
+            raise ValueError(f"need 0 <= soc_min < soc_max <= 1, got {self.soc_min}, {self.soc_max}")
+        t = np.asarray(self.derate_temperatures_c, dtype=float)
+        if t.size < 1 or np.any(np.diff(t) <= 0) or not np.all(np.isfinite(t)):
+            raise ValueError(f"derate_temperatures_c must be increasing, got {list(self.derate_temperatures_c)}")
+        for name in ("discharge_derate", "charge_derate"):
+            d = np.asarray(getattr(self, name), dtype=float)
+            if d.shape != t.shape or np.any(d < 0) or np.any(d > 1) or not np.all(np.isfinite(d)):
+                raise ValueError(f"{name} must have one factor in [0, 1] per derate temperature "
+                                 f"({t.size}), got {list(getattr(self, name))}")
+
+
+@dataclass(frozen=True)
+class SopResult:
+    """Limits per horizon and cell, shape ``(n_horizons, n_cells)``; magnitudes, A and W."""
+
+    horizons_s: np.ndarray
+    discharge_a: np.ndarray
+    charge_a: np.ndarray
+    discharge_w: np.ndarray
+    charge_w: np.ndarray
+
+
+def derate(temperature_c: np.ndarray, temperatures_c, factors) -> np.ndarray:
+    """Derating factor at each temperature (linear, held beyond the ends; NaN -> 0)."""
+    t = np.asarray(temperature_c, dtype=float)
+    d = np.interp(np.where(np.isfinite(t), t, 0.0), np.asarray(temperatures_c, float), np.asarray(factors, float))
+    return np.where(np.isfinite(t), d, 0.0)
+
+
+def _horizon_terms(r0, r_rc, tau_rc, x_rc, horizons_s):
+    """(R_D, sum_j x_j (1 - p_j)) with shape (H, N): r_rc, tau_rc, x_rc are (N, m)."""
+    d = np.asarray(horizons_s, dtype=float)[:, None, None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        q = 1.0 - np.exp(-d / tau_rc[None])  # (H, N, m)
+    r_d = r0[None] + np.sum(r_rc[None] * q, axis=-1)
+    decay = np.sum(x_rc[None] * q, axis=-1)
+    return r_d, decay
+
+
+def predict_voltage(current_a, horizon_s, *, voltage_v, current_now_a, soc, capacity_ah, ocv: OcvFn,
+                    r0_ohm, r_ohm, tau_s, x_v) -> np.ndarray:
+    """``v(D, I)`` of the module docstring for a constant current ``I`` (per cell) over ``D`` s."""
+    r0 = np.asarray(r0_ohm, dtype=float)
+    r_d, decay = _horizon_terms(r0, np.asarray(r_ohm, float), np.asarray(tau_s, float), np.asarray(x_v, float),
+                                [float(horizon_s)])
+    i = np.asarray(current_a, dtype=float)
+    s = np.asarray(soc, dtype=float)
+    c = float(horizon_s) / (3600.0 * np.asarray(capacity_ah, dtype=float))
+    base = np.asarray(voltage_v, float) - r0 * np.asarray(current_now_a, float) - decay[0]
+    return base + (ocv(s + c * i) - ocv(s)) + r_d[0] * i
+
+
+def _solve(target, base, r_d, s, c, sign, cap, ocv: OcvFn, slope: OcvFn, ocv_s, steps: int):
+    """The root ``I`` in ``[0, cap]`` of ``g(I) = sign (base + OCV(s + sign c I) - OCV(s) - target) + R_D I``.
+
+    ``g`` is increasing with ``g' >= R_D``.  Start: Plett's linearised root
+    ``-g(0) / (R_D + c OCV'(s))``; then ``steps`` Newton steps; last, if ``g(I) > 0``
+    (an overshoot), ``I -= g(I) / R_D``, which by ``g' >= R_D`` makes ``g(I) <= 0``: the
+    limit never lets the predicted voltage past the bound.
+    """
+    g0 = sign * (base - target)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.clip(-g0 / (r_d + c * slope(s)), 0.0, cap)
+        for _ in range(steps):
+            z = s + sign * c * x
+            gx = g0 + sign * (ocv(z) - ocv_s) + r_d * x
+            x = np.clip(x - gx / (r_d + c * slope(z)), 0.0, cap)
+        gx = g0 + sign * (ocv(s + sign * c * x) - ocv_s) + r_d * x
+        x = np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x)
+    # the predicted voltage at x is target + sign g(x); after a step back g <= 0, taken as 0 (the
+    # bound itself: the lower voltage for a discharge, within the step for a charge)
+    return np.where(g0 >= 0.0, 0.0, x), target + sign * np.minimum(gx, 0.0)
+
+
+def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
+               r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model",
+               v_margin=None) -> SopResult:
+    """Discharge and charge current and power limits per horizon and cell (module docstring).
+
+    ``v_margin`` (V, ``(H, N)`` or broadcastable, >= 0): the model's own error margin; the
+    limits keep the predicted voltage within ``[v_min + margin, v_max - margin]``.
+
+    Args are per cell (``(N,)``; ``r_ohm``, ``tau_s``, ``x_v`` are ``(N, m)``); ``ocv`` and
+    ``docv_dsoc`` map an SOC array of shape ``(K, N)`` to volts (at each cell's temperature).
+    ``method`` = ``"model"`` (Plett's, the default) or ``"hppc"`` (the static-resistance baseline).
+    """
+    cfg = config
+    v = np.asarray(voltage_v, dtype=float)
+    n = v.shape[0]
+    i_now = np.broadcast_to(np.asarray(current_now_a, float), (n,))
+    s = np.broadcast_to(np.asarray(soc, float), (n,))
+    q = np.broadcast_to(np.asarray(capacity_ah, float), (n,))
+    r0 = np.broadcast_to(np.asarray(r0_ohm, float), (n,))
+    r_rc = np.asarray(r_ohm, float).reshape(n, -1)
+    tau_rc = np.asarray(tau_s, float).reshape(n, -1)
+    x_rc = np.broadcast_to(np.asarray(x_v, float), r_rc.shape)
+    hz = np.asarray(cfg.horizons_s, dtype=float)
+    with np.errstate(invalid="ignore"):
+        ok = (np.isfinite(v) & np.isfinite(i_now) & np.isfinite(s) & (q > 0) & np.isfinite(q) & (r0 > 0)
+              & np.isfinite(r0) & ((r_rc >= 0) & (tau_rc > 0) & np.isfinite(r_rc + tau_rc + x_rc)).all(axis=1))
+    if not ok.all():  # a cell that cannot be predicted gets no current: harmless numbers, zeroed at the end
+        v, s, q, r0, i_now = (np.where(ok, a, d) for a, d in ((v, cfg.v_min), (s, 0.0), (q, 1.0), (r0, 1.0),
+                                                               (i_now, 0.0)))
+        okc = ok[:, None]
+        r_rc, tau_rc, x_rc = np.where(okc, r_rc, 0.0), np.where(okc, tau_rc, 1.0), np.where(okc, x_rc, 0.0)
+    r_d, decay = _horizon_terms(r0, r_rc, tau_rc, x_rc, hz)  # (H, N)
+    c = hz[:, None] / (3600.0 * q[None])  # (H, N): SOC per A over the horizon
+    nh = len(hz)
+    # discharge rows first, then charge: one OCV evaluation serves both directions
+    s2 = np.broadcast_to(s, (2 * nh, n))
+    ocv_s = np.asarray(ocv(s2), dtype=float)
+    if method == "model":
+        base = (v - r0 * i_now)[None] - decay
+        c_use = c
+    elif method == "hppc":
+        base = ocv_s[:nh]  # at rest, and the OCV held
+        c_use = np.zeros_like(c)
+    else:
+        raise ValueError(f"method must be 'model' or 'hppc', got {method!r}")
+    t = np.broadcast_to(np.asarray(temperature_c, float), (n,))
+    cap_dis = cfg.i_discharge_max_a * derate(t, cfg.derate_temperatures_c, cfg.discharge_derate)
+    cap_chg = cfg.i_charge_max_a * derate(t, cfg.derate_temperatures_c, cfg.charge_derate)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cap = np.concatenate([np.minimum(cap_dis[None], np.maximum(s - cfg.soc_min, 0.0)[None] / c),
+                              np.minimum(cap_chg[None], np.maximum(cfg.soc_max - s, 0.0)[None] / c)])
+    sign = np.concatenate([np.full((nh, 1), -1.0), np.ones((nh, 1))])
+    target = np.concatenate([np.full((nh, 1), cfg.v_min), np.full((nh, 1), cfg.v_max)])
+    if v_margin is not None:
+        m = np.broadcast_to(np.nan_to_num(np.maximum(np.asarray(v_margin, dtype=float), 0.0)), (nh, n))
+        target = target + np.concatenate([m, -m])
+    base2, r_d2, c2 = np.concatenate([base, base]), np.concatenate([r_d, r_d]), np.concatenate([c_use, c_use])
+    lim, v_at = _solve(target, base2, r_d2, s2, c2, sign, cap, ocv, docv_dsoc, ocv_s, cfg.newton_steps)
+    # a zero limit (past the bound, no current allowed) has the voltage at zero current
+    v_at = np.where(lim > 0.0, v_at, base2 + sign * 0.0)
+    lim = np.where(ok[None] & np.isfinite(lim), np.maximum(lim, 0.0), 0.0)
+    p = np.where(np.isfinite(v_at), np.maximum(lim * v_at, 0.0), 0.0)
+    return SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:])
+
+
+def pack_limits(result: SopResult, *, voltage_v, current_now_a, soc, capacity_ah, ocv: OcvFn,
+                r0_ohm, r_ohm, tau_s, x_v, n_parallel: int = 1, valid=None) -> dict[str, np.ndarray]:
+    """Pack current and power limits per horizon (module docstring), shape ``(H,)``.
+
+    The pack current is the weakest cell's limit times ``n_parallel``; the power is that
+    current times the sum of every cell's predicted voltage at its share of it.
+    ``valid`` (N,) bool restricts the weakest-cell search (all cells when None); no valid
+    cell gives 0.
+    """
+    n = result.discharge_a.shape[1]
+    nh = len(result.horizons_s)
+    use = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    if not use.any():
+        z = np.zeros(nh)
+        return {"discharge_a": z, "charge_a": z.copy(), "discharge_w": z.copy(), "charge_w": z.copy()}
+    i_dis = np.min(result.discharge_a[:, use], axis=1)  # (H,) per cell of the string
+    i_chg = np.min(result.charge_a[:, use], axis=1)
+    r0 = np.asarray(r0_ohm, dtype=float)
+    r_d, decay = _horizon_terms(r0, np.asarray(r_ohm, float), np.asarray(tau_s, float), np.asarray(x_v, float),
+                                result.horizons_s)
+    base = (np.asarray(voltage_v, float) - r0 * np.asarray(current_now_a, float))[None] - decay
+    s = np.asarray(soc, dtype=float)
+    c = result.horizons_s[:, None] / (3600.0 * np.asarray(capacity_ah, dtype=float)[None])
+    i2 = np.concatenate([-i_dis, i_chg])[:, None]  # (2H, 1) signed cell current
+    base2, r_d2, c2 = np.concatenate([base, base]), np.concatenate([r_d, r_d]), np.concatenate([c, c])
+    s2 = np.broadcast_to(s, base2.shape)
+    with np.errstate(invalid="ignore"):
+        v = base2 + ocv(s2 + c2 * i2) - ocv(s2) + r_d2 * i2
+        p = np.abs(i2[:, 0]) * n_parallel * np.sum(np.where(use & np.isfinite(v), v, 0.0), axis=1)
+    p = np.maximum(p, 0.0)
+    return {"discharge_a": i_dis * n_parallel, "charge_a": i_chg * n_parallel, "discharge_w": p[:nh],
+            "charge_w": p[nh:]}
+
+
+def hppc_limits(**kwargs) -> SopResult:
+    """The static-resistance baseline: :func:`sop_limits` with ``method="hppc"``."""
+    return sop_limits(method="hppc", **kwargs)

@@ -1,0 +1,233 @@
+"""SOP, SOE and SOH of N cells, one sample per call, on top of a :class:`~bms_estimator.core.soc.SocEstimator`.
+
+Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``soc``,
+``temperature_c``, ``capacity_ah``, ``capacity_stated_ah``, ``capacity_estimated``,
+``params``, ``ocv``, ``identifier.identified``)::
+
+    RC voltages   x_j[k+1] = p_j x_j[k] + R_j (1 - p_j) i[k],  p_j = exp(-Ts/tau_j)   (identified R_j, tau_j)
+    SOP           core.sop.sop_limits at the start of the next period (x_j[k+1], v[k] moved by it)
+    SOE           core.soe.energy_left_wh at SoeConfig.rate_c; time to empty/full at the mean
+                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m)
+    energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing); E_net (Wh out since
+                  the last full cell, soc >= full_soc) goes down again with charge
+    SOH           core.soh: capacity SOH (once justified) and resistance SOH at the reference point
+    margin        b = v - OCV(s) - R0 i - sum_j x_j; rms_D^2 += a (b_k - b_{k-D/Ts})^2 - ...: the model's
+                  D-second error, which moves the SOP bounds inward (core.sop, "Model-error margin")
+
+The RC voltages are tracked here from the identified parameters (the same ZOH recursion
+as core.ecm), so this module does not depend on how the SOC filter keeps its own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
+from .soh import ResistanceSoh, SohConfig, capacity_soh
+from .sop import SopConfig, pack_limits, sop_limits
+
+__all__ = ["SoxConfig", "SoxEstimator"]
+
+
+@dataclass(frozen=True)
+class SoxConfig:
+    sop: SopConfig = field(default_factory=SopConfig)
+    soe: SoeConfig = field(default_factory=SoeConfig)
+    soh: SohConfig = field(default_factory=SohConfig)
+    full_soc: float = 0.99  # the net energy delivered restarts at this SOC
+
+
+class SoxEstimator:
+    """The state of power, energy and health of the cells a SocEstimator tracks."""
+
+    def __init__(self, n_cells: int, dt_s: float, config: SoxConfig = SoxConfig()) -> None:
+        self.n_cells = int(n_cells)
+        self.dt_s = float(dt_s)
+        self.config = config
+        self.x_v = np.zeros((self.n_cells, 2))  # RC voltages at the start of the next period
+        self.mean_current_a = np.zeros(self.n_cells)
+        self.energy_discharged_wh = np.zeros(self.n_cells)
+        self.energy_delivered_wh = np.zeros(self.n_cells)  # net, since the last full cell
+        self.resistance = ResistanceSoh(self.n_cells, self.dt_s, config.soh)
+        self.v_anchor = np.full(self.n_cells, np.nan)  # the voltage at the next period's start, at i_anchor
+        self.i_anchor = np.zeros(self.n_cells)
+        self.soc_anchor = np.full(self.n_cells, np.nan)
+        self._x_prev = np.zeros((self.n_cells, 2))
+        self.outputs: dict[str, np.ndarray] = {}
+        self.pack: dict[str, np.ndarray] = {}
+        # model-error margin (core.sop): the residual b the ECM leaves, its history over the
+        # longest horizon, and the mean square of its change over each horizon
+        hz = np.asarray(config.sop.horizons_s, dtype=float)
+        self._lag = np.maximum(np.rint(hz / self.dt_s).astype(int), 1)
+        self._b_hist = np.full((int(self._lag.max()) + 1, self.n_cells), np.nan)
+        self._b_head = 0
+        self.error_ms_v2 = np.zeros((len(hz), self.n_cells))  # mean square n-step error per horizon
+
+    # ---------------------------------------------------------------- OCV at the cells' temperatures
+    @staticmethod
+    def ocv_functions(est):
+        """(OCV, dOCV/dSOC) of SOC arrays whose last axis is the cells, at each cell's temperature."""
+        ocv = est.ocv
+        t = np.asarray(est.temperature_c, dtype=float)
+        if hasattr(ocv, "temperatures_c"):
+            def f(s):  # s: (..., N), the last axis the cells
+                s = np.asarray(s, dtype=float)
+                return ocv.ocv(s, np.broadcast_to(t, s.shape))
+
+            def g(s):
+                s = np.asarray(s, dtype=float)
+                return ocv.docv_dsoc(s, np.broadcast_to(t, s.shape))
+            return f, g
+        return ocv.ocv, ocv.docv_dsoc
+
+    def update(self, est, current_a, voltage_v, valid=None) -> None:
+        """One period, after ``est.update`` with the same current and voltages: track, then compute."""
+        self.track(est, current_a, voltage_v, valid)
+        self.compute(est)
+
+    def track(self, est, current_a, voltage_v, valid=None) -> None:
+        """The per-sample states only (RC voltages, mean current, energy, R0 history); cheap."""
+        n = self.n_cells
+        i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
+        v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
+        ok = np.isfinite(v) & np.isfinite(i)
+        if valid is not None:
+            ok &= np.asarray(valid, dtype=bool)
+        i_use = np.where(np.isfinite(i), i, 0.0)
+        p = est.params
+        r = np.stack([p["r1_ohm"], p["r2_ohm"]], axis=1)
+        tau = np.stack([p["tau1_s"], p["tau2_s"]], axis=1)
+        good = np.all(np.isfinite(r) & np.isfinite(tau) & (tau > 0), axis=1)
+        with np.errstate(invalid="ignore", over="ignore"):
+            pj = np.exp(-self.dt_s / np.where(good[:, None], tau, 1.0))
+        self._x_prev = self.x_v.copy()
+        x_next = pj * self.x_v + np.where(good[:, None], r, 0.0) * (1.0 - pj) * i_use[:, None]
+        self.x_v = np.where(good[:, None], x_next, 0.0)
+        # the voltage at the next period's start at this period's current: v moved by the RC change
+        self.v_anchor = np.where(ok, v + (self.x_v - self._x_prev).sum(axis=1), self.v_anchor)
+        self.i_anchor = np.where(ok, i_use, self.i_anchor)
+        # the SOC at the next period's start
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.soc_anchor = np.asarray(est.soc, float) + i_use * self.dt_s / (3600.0 * np.asarray(est.counting_capacity_ah, float))
+        a = 1.0 - np.exp(-self.dt_s / self.config.soe.mean_current_tau_s)
+        self.mean_current_a = self.mean_current_a + a * (i_use - self.mean_current_a)
+        e = np.where(ok, v * i_use * self.dt_s / 3600.0, 0.0)
+        self.energy_discharged_wh += np.maximum(-e, 0.0)
+        soc = np.asarray(est.soc, dtype=float)
+        self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
+        self._track_error(est, p, i_use, v, ok)
+        identified = np.asarray(getattr(est.identifier, "identified", np.ones(n, bool)), dtype=bool)
+        self.resistance.update(p["r0_ohm"], est.temperature_c, soc, identified & ok)
+
+    def _track_error(self, est, p, i_use, v, ok) -> None:
+        """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon."""
+        ocv, _ = self.ocv_functions(est)
+        with np.errstate(invalid="ignore"):
+            b = v - ocv(np.asarray(est.soc, dtype=float)) - p["r0_ohm"] * i_use - self._x_prev.sum(axis=1)
+        b = np.where(ok, b, np.nan)
+        size = self._b_hist.shape[0]
+        self._b_head = (self._b_head + 1) % size
+        self._b_hist[self._b_head] = b
+        past = self._b_hist[(self._b_head - self._lag) % size]  # (H, N)
+        e = b[None, :] - past
+        a = 1.0 - np.exp(-self.dt_s / self.config.sop.margin_tau_s)
+        fresh = np.isfinite(e)
+        self.error_ms_v2 = np.where(fresh, self.error_ms_v2 + a * (np.where(fresh, e, 0.0) ** 2 - self.error_ms_v2),
+                                    self.error_ms_v2)
+
+    @property
+    def v_margin(self) -> np.ndarray:
+        """(H, N) volts the limits keep the prediction inside the bounds (module docstring of core.sop)."""
+        return self.config.sop.margin_sigmas * np.sqrt(self.error_ms_v2)
+
+    def model(self, est) -> dict[str, np.ndarray]:
+        """Keyword arguments of core.sop's functions for the state now (anchor, SOC, capacity, model)."""
+        p = est.params
+        return dict(voltage_v=self.v_anchor, current_now_a=self.i_anchor, soc=np.clip(self.soc_anchor, 0.0, 1.0),
+                    capacity_ah=np.asarray(est.counting_capacity_ah, dtype=float), r0_ohm=p["r0_ohm"],
+                    r_ohm=np.stack([p["r1_ohm"], p["r2_ohm"]], axis=1),
+                    tau_s=np.stack([p["tau1_s"], p["tau2_s"]], axis=1), x_v=self.x_v)
+
+    def compute(self, est) -> None:
+        """SOP, SOE and SOH from the tracked state (after :meth:`track`)."""
+        cfg = self.config
+        ocv, slope = self.ocv_functions(est)
+        kw = self.model(est)
+        soc, q, r = kw["soc"], kw["capacity_ah"], kw["r_ohm"]
+        p = est.params
+        res = sop_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=slope, config=cfg.sop,
+                         v_margin=self.v_margin, **kw)
+        self.sop = res
+        self.pack = pack_limits(res, ocv=ocv, n_parallel=cfg.sop.n_parallel,
+                                valid=np.isfinite(self.v_anchor), **kw)
+        r_ss = p["r0_ohm"] + r.sum(axis=1)
+        e_left, z_cut = energy_left_wh(soc, q, r_ss, ocv, v_min=cfg.sop.v_min, soc_min=cfg.sop.soc_min, config=cfg.soe)
+        tte = time_to_empty_s(soc, z_cut, q, self.mean_current_a, idle_current_c=cfg.soe.idle_current_c)
+        ttf = time_to_full_s(soc, q, self.mean_current_a, soc_max=cfg.sop.soc_max, idle_current_c=cfg.soe.idle_current_c)
+        ekf = getattr(est, "ekf", None)
+        pq = getattr(ekf, "p", None)
+        rel_sigma = np.sqrt(np.maximum(pq[:, 3, 3], 0.0)) if pq is not None and np.ndim(pq) == 3 and pq.shape[1] > 3 \
+            else np.full(self.n_cells, np.nan)
+        soh_q, soh_q_sigma = capacity_soh(est.capacity_ah, est.capacity_stated_ah, rel_sigma * est.capacity_ah,
+                                          est.capacity_estimated)
+        out = {}
+        for h, d in enumerate(res.horizons_s):
+            tag = f"{d:g}s"
+            out[f"i_discharge_max_{tag}_a"] = res.discharge_a[h]
+            out[f"i_charge_max_{tag}_a"] = res.charge_a[h]
+            out[f"p_discharge_max_{tag}_w"] = res.discharge_w[h]
+            out[f"p_charge_max_{tag}_w"] = res.charge_w[h]
+        out.update(
+            energy_left_wh=e_left,
+            energy_delivered_wh=self.energy_delivered_wh.copy(),
+            energy_discharged_wh=self.energy_discharged_wh.copy(),
+            time_to_empty_s=tte,
+            time_to_full_s=ttf,
+            soh_capacity=soh_q,
+            soh_capacity_sigma=soh_q_sigma,
+            soh_resistance=self.resistance.ratio,
+            r0_ref_ohm=self.resistance.r0_ref_ohm.copy(),
+        )
+        self.outputs = out
+
+    def pack_outputs(self) -> dict[str, float]:
+        """Pack figures: the SOP per horizon, and the sums/extremes of the cell figures."""
+        out: dict[str, float] = {}
+        hz = self.config.sop.horizons_s
+        for h, d in enumerate(hz):
+            tag = f"{d:g}s"
+            for k in ("discharge", "charge"):
+                if self.pack:
+                    out[f"i_{k}_max_{tag}_a"] = float(self.pack[f"{k}_a"][h])
+                    out[f"p_{k}_max_{tag}_w"] = float(self.pack[f"{k}_w"][h])
+        o = self.outputs
+        if o:
+            np_ = self.config.sop.n_parallel
+            with np.errstate(all="ignore"):
+                e = o["energy_left_wh"]  # the weakest cell ends the series string's discharge
+                out["energy_left_wh"] = float(np_ * np.nanmin(e) * self.n_cells) if np.isfinite(e).any() else float("nan")
+                out["energy_delivered_wh"] = float(np_ * np.sum(o["energy_delivered_wh"]))
+                out["energy_discharged_wh"] = float(np_ * np.sum(o["energy_discharged_wh"]))
+                out["time_to_empty_s"] = float(np.min(o["time_to_empty_s"]))
+                out["time_to_full_s"] = float(np.max(o["time_to_full_s"]))
+                out["soh_capacity_min"] = float(np.nanmin(o["soh_capacity"])) if np.isfinite(o["soh_capacity"]).any() else float("nan")
+                out["soh_resistance_max"] = float(np.nanmax(o["soh_resistance"])) if np.isfinite(o["soh_resistance"]).any() else float("nan")
+        return out
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        s = {f"soh.{k}": v for k, v in self.resistance.state_dict().items()}
+        s.update({"x_v": self.x_v.copy(), "mean_current_a": self.mean_current_a.copy(),
+                  "error_ms_v2": self.error_ms_v2.copy(),
+                  "energy_discharged_wh": self.energy_discharged_wh.copy(),
+                  "energy_delivered_wh": self.energy_delivered_wh.copy()})
+        return s
+
+    def load_state_dict(self, s) -> None:
+        self.resistance.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("soh.")})
+        for k in ("x_v", "mean_current_a", "energy_discharged_wh", "energy_delivered_wh", "error_ms_v2"):
+            a = np.asarray(s[k], dtype=float)
+            if a.shape != getattr(self, k).shape:
+                raise ValueError(f"sox state {k!r} has shape {a.shape}, expected {getattr(self, k).shape}")
+            setattr(self, k, a.copy())
