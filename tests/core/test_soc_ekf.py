@@ -235,17 +235,3 @@ def test_a_cold_cell_on_the_identifiers_prior_does_not_read_as_soc():
     assert worst[1.0] < 3.0, worst
     assert worst[0.0] > 3.0 * worst[1.0], worst
 
-
-def test_a_cells_estimate_does_not_depend_on_the_other_cells_of_the_pack(capacity_cases):
-    """Each cell of a pack is its own estimate: run alone or beside other cells, a cell's SOC, capacity and
-    parameters are the same (to rounding: numpy may sum a 1-cell and a 4-cell array in another order).  (The identifier's history used to be shifted for every cell once
-    any one cell's EKF moves added up to a millivolt, so a cell's numbers depended on its neighbours; on
-    the measured matrix that moved single runs by up to 1 % SOC.)"""
-    _, cur, vol = capacity_cases
-    start = np.array([0.8, 1.0, 0.9, 1.0])
-    soc_pack, _, est_pack = _run(cur, vol, start, _ocv(), SocConfig())
-    for j in (0, 2):
-        soc_alone, _, est_alone = _run(cur[:, j:j + 1], vol[:, j:j + 1], start[j], _ocv(), SocConfig())
-        np.testing.assert_allclose(soc_alone[:, 0], soc_pack[:, j], rtol=0, atol=1e-9)
-        assert est_alone.capacity_ah[0] == pytest.approx(est_pack.capacity_ah[j], rel=1e-9)
-        assert est_alone.identifier.params.r0_ohm[0] == pytest.approx(est_pack.identifier.params.r0_ohm[j], rel=1e-9)
