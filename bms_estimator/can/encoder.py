@@ -361,23 +361,28 @@ class StateEncoder:
         may be a number or a value-table name such as ``"Running"``). Missing
         keys encode as 0 (counters saturate at their maximum).
         """
+        def raw(mname: str, sname: str, codec) -> int:
+            key = CAN_STATUS_SIGNALS[sname]
+            if isinstance(counters, Mapping):
+                value = counters.get(key, counters.get(sname, 0))
+            else:
+                value = getattr(counters, key, getattr(counters, sname, 0))
+            if isinstance(value, str) and value in codec.choices_by_name:
+                return codec.choices_by_name[value]
+            return int(codec.raw(_to_float(value)))
+
+        return self._encode_each((self.STATUS, self.COUNTERS), raw, timestamp, "can.encode_status.failed")
+
+    def _encode_each(self, names, raw, timestamp: float | None, event: str) -> list[can.Message]:
+        """One frame per message name, each signal's raw value from ``raw(message, signal, codec)``;
+        a message that fails to encode is counted and logged, and the others still go out."""
         out: list[can.Message] = []
-        for mname in (self.STATUS, self.COUNTERS):
-            raws: dict[str, int] = {}
+        for mname in names:
             try:
-                for sname, codec in self._codecs[mname].items():
-                    key = CAN_STATUS_SIGNALS[sname]
-                    if isinstance(counters, Mapping):
-                        value = counters.get(key, counters.get(sname, 0))
-                    else:
-                        value = getattr(counters, key, getattr(counters, sname, 0))
-                    if isinstance(value, str) and value in codec.choices_by_name:
-                        raws[sname] = codec.choices_by_name[value]
-                        continue
-                    raws[sname] = int(codec.raw(_to_float(value)))
+                raws = {sname: raw(mname, sname, codec) for sname, codec in self._codecs[mname].items()}
             except Exception:  # pragma: no cover - defensive
                 self.encode_failures += 1
-                log.exception("can.encode_status.failed", message=mname)
+                log.exception(event, message=mname)
                 continue
             frame = self._frame(mname, raws, timestamp)
             if frame is not None:
@@ -388,23 +393,13 @@ class StateEncoder:
     def encode_pack_sox(self, values: Mapping[str, Any], *, timestamp: float | None = None) -> list[can.Message]:
         """PackLimits*/PackEnergy/PackHealth from pack figures in SI (A, W, Wh, s, Ah; SOH as a
         fraction, sent in %): the keys of ``schema.CAN_PACK_SOX_SIGNALS``; a missing key is NotAvailable."""
-        out: list[can.Message] = []
-        for name in self._sox_msgs:
-            raws: dict[str, int] = {}
-            try:
-                for sname, codec in self._codecs[name].items():
-                    value = _to_float(values.get(CAN_PACK_SOX_SIGNALS[name][sname], math.nan))
-                    if self._msgs[name].get_signal_by_name(sname).unit == "%":
-                        value *= 100.0
-                    raws[sname] = int(codec.raw(value))
-            except Exception:  # pragma: no cover - defensive
-                self.encode_failures += 1
-                log.exception("can.encode_pack_sox.failed", message=name)
-                continue
-            frame = self._frame(name, raws, timestamp)
-            if frame is not None:
-                out.append(frame)
-        return out
+        def raw(name: str, sname: str, codec) -> int:
+            value = _to_float(values.get(CAN_PACK_SOX_SIGNALS[name][sname], math.nan))
+            if self._msgs[name].get_signal_by_name(sname).unit == "%":
+                value *= 100.0
+            return int(codec.raw(value))
+
+        return self._encode_each(self._sox_msgs, raw, timestamp, "can.encode_pack_sox.failed")
 
     # -------------------------------------------------------------- snapshot
     def encode_snapshot(self, snap: Snapshot) -> list[can.Message]:
