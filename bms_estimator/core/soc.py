@@ -202,7 +202,6 @@ class SocEstimator:
         self._start_hysteresis(np.isfinite(self.soc))
         self.ekf = (SocEkf(self.n_cells, self.dt_s, self.capacity_ah, config.ekf)
                     if config.soc_method == "ekf" else None)
-        self._ekf_shift_v = np.zeros(self.n_cells)  # EKF moves of the OCV not yet shifted out of the identifier
 
     # ------------------------------------------------------------------ OCV at the cell temperature
     def _table_capacity_ah(self) -> float | None:
@@ -362,17 +361,14 @@ class SocEstimator:
             self.capacity_estimated |= self.ekf.p[:, 3, 3] < (0.5 * self.config.ekf.capacity_sigma) ** 2
         self.soc = np.clip(self.soc + d_soc, 0.0, 1.0)
         # The OCV the identifier saw moves with the SOC, as in a c0 compensation: its history and
-        # c0 shift too, once the moves add up to a millivolt (a shift every sample costs a fifth
-        # of the update; a sub-millivolt step in v_o is below the noise of the regression).
-        # Known flaw: the check takes the pack's largest pending shift, so when a cell's history
-        # shifts depends on its neighbours (single matrix runs moved by up to 1 % SOC with the
-        # grouping of files).  Shifting per cell at 1 mV blurred R0 in the 16-cell e2e pack
-        # (rank against the injected spread 0.82 against 0.98), and at 0.25 mV the identifier of
-        # a 60 s replay held its parameters; not yet solved.
-        self._ekf_shift_v += slope * d_soc
-        if np.max(np.abs(self._ekf_shift_v)) > 1e-3:
-            self.identifier.shift_bias(self._ekf_shift_v)
-            self._ekf_shift_v[:] = 0.0
+        # c0 shift with every EKF move, cell by cell.  (Shifting only once the pack's largest
+        # pending move reached a millivolt saved a fifth of the update but made a cell's estimate
+        # depend on the cells beside it: single matrix runs moved by up to 1 % SOC with the
+        # grouping of files.  Shifted every sample, a cell's results are the same alone or in any
+        # pack, which the batch's stacking of drives and the matrix rely on.)
+        shift = slope * d_soc
+        if shift.any():
+            self.identifier.shift_bias(shift)
 
     def _compensate(self, use: np.ndarray) -> None:
         if self.ekf is not None:
@@ -511,7 +507,6 @@ class SocEstimator:
             s.update({f"hyst.{k}": v for k, v in self._hyst.state_dict().items()})
         if self.ekf is not None:
             s.update({f"ekf.{k}": v for k, v in self.ekf.state_dict().items()})
-            s["ekf.shift_v"] = self._ekf_shift_v.copy()
         return s
 
     def _check_state(self, s: dict[str, np.ndarray]) -> None:
@@ -574,4 +569,8 @@ class SocEstimator:
         if self.ekf is not None and "ekf.p" in s:
             # a state saved by the c0 method keeps the EKF's fresh start (initial_soc_sigma)
             self.ekf.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("ekf.") and k != "ekf.shift_v"})
-            self._ekf_shift_v = np.asarray(s.get("ekf.shift_v", np.zeros(n)), dtype=float).copy()
+            # a state saved while EKF moves were still pending for the identifier (older versions
+            # shifted in millivolt steps): shift them now
+            pending = np.asarray(s.get("ekf.shift_v", np.zeros(n)), dtype=float)
+            if pending.shape == (n,) and np.all(np.isfinite(pending)) and pending.any():
+                self.identifier.shift_bias(pending)

@@ -235,3 +235,21 @@ def test_a_cold_cell_on_the_identifiers_prior_does_not_read_as_soc():
     assert worst[1.0] < 3.0, worst
     assert worst[0.0] > 3.0 * worst[1.0], worst
 
+
+
+def test_a_cell_estimates_the_same_alone_and_beside_other_cells():
+    # The EKF's SOC moves are shifted out of each cell's identifier history every sample, cell by
+    # cell: a cell's estimate must not depend on the cells run beside it (it did when the shift
+    # waited for the pack's largest pending move to reach a millivolt).  The neighbours start
+    # 20 % and 40 % low, so their filters move a lot while cell 0's (started right) barely does.
+    n = 1800
+    cur, vol = _cells([3.0, 2.8, 3.2], [1, 2, 3])
+    cur, vol = cur[:n], vol[:n]
+    ocv = _ocv()
+    config = SocConfig()
+    alone = _run(cur[:, :1], vol[:, :1], np.array([1.0]), ocv, config)
+    packed = _run(cur, vol, np.array([1.0, 0.8, 0.6]), ocv, config)
+    assert np.ptp(packed[0][:, 1]) > 0.05  # the neighbours' filters did move
+    # equal up to the rounding of numpy's vectorised loops over arrays of another length (1e-15)
+    np.testing.assert_allclose(packed[0][:, 0], alone[0][:, 0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(packed[1][:, 0], alone[1][:, 0], rtol=0, atol=1e-12)

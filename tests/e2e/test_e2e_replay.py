@@ -151,8 +151,12 @@ def test_b_results_identical_at_speed_1_50_and_max(short_log, mosquitto, tmp_pat
     assert 55 <= ref.wall_s <= 75  # it really was paced in real time
     assert ref.samples == 59 and ref.last_t_s == 59.0
     assert all(len(ref.cells[i]) >= 55 for i in range(N_CELLS))  # nearly every sample arrived at speed 1
-    r0_seen = {json.loads(p)["r0_ohm"] for p in ref.cells[0].values()}
-    assert len(r0_seen) > 5  # the identifier was at work, not holding its prior
+    # the identifier was at work, not holding its prior: it left the prior's R0 (0.06 ohm Ah over
+    # the stated capacity) for an identified one, and its c0 moved sample by sample
+    payloads = [json.loads(p) for p in ref.cells[0].values()]
+    r0_seen = {p["r0_ohm"] for p in payloads}
+    assert len(r0_seen) >= 2 and any(abs(r - 0.06 / CAPACITY_AH) > 1e-4 for r in r0_seen), r0_seen
+    assert len({p["c0_v"] for p in payloads}) > 5
     for speed, run in runs.items():
         assert run.frames_decoded == run.frames_sent == short_log["truth"]["frames"], speed
         assert run.samples == ref.samples and run.last_t_s == ref.last_t_s, speed
