@@ -39,7 +39,7 @@ import can
 import structlog
 from cantools.database.can import Database, Message
 
-from .e2e import CRC_ALGORITHMS
+from .e2e import CRC_ALGORITHMS, e2e_layout
 from .mapping import CanMapping, CellSignals, E2ECheck, MappingError, ScalarSignal, load_mapping
 from .signals import not_available_raws
 
@@ -128,6 +128,7 @@ class _E2EPlan:
     crc: str | None  # CRC signal
     crc_byte: int  # its byte in the frame
     crc_fn: Callable[[bytes], int] | None
+    crc_algorithm: str | None  # its name (the fleet's bulk decode computes it on arrays)
 
 
 @dataclass(slots=True)
@@ -301,31 +302,13 @@ class FrameDecoder:
         if plan is None:
             problems.append(f"e2e.{name}: not an input message of this mapping")
             return
-        names = {s.name: s for s in msg.signals}
-        modulus, crc_byte = 0, -1
-        if check.counter is not None:
-            sig = names.get(check.counter)
-            if sig is None:
-                problems.append(f"e2e.{name}: counter signal {check.counter!r} not in the message")
-            elif sig.is_signed or sig.multiplexer_ids:
-                problems.append(f"e2e.{name}: counter {check.counter!r} must be unsigned and not multiplexed")
-            else:
-                top = (1 << sig.length) - 1
-                if sig.maximum is not None and sig.scale == 1 and sig.offset == 0:
-                    top = min(top, int(sig.maximum))
-                modulus = top + 1
-        if check.crc is not None:
-            sig = names.get(check.crc)
-            if sig is None:
-                problems.append(f"e2e.{name}: crc signal {check.crc!r} not in the message")
-            else:
-                lsb = sig.start if sig.byte_order == "little_endian" else sig.start - 7
-                if sig.length != 8 or lsb % 8 != 0 or sig.multiplexer_ids:
-                    problems.append(f"e2e.{name}: crc {check.crc!r} must be 8 bit, byte aligned, not multiplexed")
-                else:
-                    crc_byte = lsb // 8
-        plan.e2e = _E2EPlan(check.counter, modulus, check.crc, crc_byte,
-                            CRC_ALGORITHMS[check.crc_algorithm] if check.crc is not None else None)
+        layout, bad = e2e_layout(msg, check)
+        if layout is None:
+            problems.extend(bad)
+            return
+        plan.e2e = _E2EPlan(layout.counter, layout.modulus, layout.crc, layout.crc_byte,
+                            CRC_ALGORITHMS[layout.crc_algorithm] if layout.crc_algorithm else None,
+                            layout.crc_algorithm)
 
     def _build_scalar(self, kind: EventKind, spec: ScalarSignal, problems: list[str]) -> None:
         msg = self._message(spec.message, problems)
