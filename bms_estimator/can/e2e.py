@@ -15,7 +15,8 @@ Counter: an unsigned signal of ``L`` bits that the sender increments by one per 
 the first frame after start is accepted as the reference. A frame whose counter is not the
 next one (a skipped value: a lost or injected frame; a repeated value: a frozen sender) is
 dropped, and the counter re-synchronises on it, so one lost frame on the bus costs the frame
-after it too and nothing more.
+after it too and nothing more. A frame dropped for its CRC is checked no further: its counter
+is not trusted, so it counts as lost and the frame after it is dropped as well.
 
 CRC: an 8-bit, byte-aligned signal; the CRC is computed over the frame's other data bytes in
 their order (the CRC byte left out) and must equal it. Algorithms (``crc_algorithm``):
