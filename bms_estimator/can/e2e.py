@@ -16,7 +16,8 @@ the first frame after start is accepted as the reference. A frame whose counter 
 next one (a skipped value: a lost or injected frame; a repeated value: a frozen sender) is
 dropped, and the counter re-synchronises on it, so one lost frame on the bus costs the frame
 after it too and nothing more. A frame dropped for its CRC is checked no further: its counter
-is not trusted, so it counts as lost and the frame after it is dropped as well.
+is not trusted and does not move the reference, so after a corrupted frame the sender's next
+one is dropped as a skip too, and after an injected one it is accepted.
 
 CRC: an 8-bit, byte-aligned signal; the CRC is computed over the frame's other data bytes in
 their order (the CRC byte left out) and must equal it. Algorithms (``crc_algorithm``):
