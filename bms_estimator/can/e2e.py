@@ -220,6 +220,26 @@ class E2EStamper:
         if problems:
             raise MappingError("E2E checks do not fit the DBC:", problems)
         self._next: dict[tuple[int, int | None], int] = {}
+        self._db = db
+
+    def encode(self, name: str, values: dict[str, Any], *, scaling: bool = True, strict: bool = True) -> bytes:
+        """cantools' ``encode_message`` of ``values``, stamped: the counter and CRC signals may be left
+        out (then the next value and the right CRC); a counter or CRC that ``values`` names is kept."""
+        msg = self._db.get_message_by_name(name)
+        layout = self._layouts.get(int(msg.frame_id))
+        if layout is None:
+            return bytes(self._db.encode_message(name, values, scaling=scaling, strict=strict))
+        checks = [k for k in (layout.counter, layout.crc) if k is not None]
+        data = bytes(self._db.encode_message(name, {**{k: 0 for k in checks}, **values}, scaling=scaling,
+                                             strict=strict))
+        counter = None
+        if layout.counter is not None and layout.counter in values:
+            counter = _get(int.from_bytes(data[: layout.length], "little"), layout.counter_field)  # type: ignore[arg-type]
+        out = self.stamp(msg.frame_id, data, counter=counter)
+        if layout.crc is not None and layout.crc in values:
+            k = layout.crc_byte
+            out = out[:k] + data[k: k + 1] + out[k + 1:]
+        return out
 
     def layout(self, frame_id: int) -> E2ELayout | None:
         return self._layouts.get(int(frame_id))
@@ -238,7 +258,7 @@ class E2EStamper:
     def stamp(self, frame_id: int, data: bytes, *, counter: int | None = None) -> bytes:
         """``data`` with the next counter value (or ``counter``) and its CRC."""
         layout = self._layouts.get(int(frame_id))
-        if layout is None:
+        if layout is None or len(data) < layout.length:  # not protected, or too short to be
             return bytes(data)
         n = layout.length
         x = int.from_bytes(bytes(data[:n]), "little")

@@ -23,23 +23,14 @@ def _stamper(db) -> E2EStamper | None:
 def frame(db, name: str, values: dict, t: float = 0.0, *, scaling: bool = True, strict: bool = True) -> can.Message:
     """A python-can message made with cantools ``encode_message`` (by name).
 
-    Frames of the project DBC carry its end-to-end checks as a sender makes them: the next
-    alive counter value of the message (and multiplexer value) and the CRC, unless ``values``
-    names the counter (kept) or the CRC (kept: a test's wrong CRC)."""
+    Frames of the project DBC carry its end-to-end checks as a sender makes them
+    (:meth:`E2EStamper.encode`: the next alive counter value and the CRC, unless ``values``
+    names them)."""
     m = db.get_message_by_name(name)
     stamper = _stamper(db)
-    layout = stamper.layout(m.frame_id) if stamper is not None else None
-    if layout is None:
-        data = db.encode_message(name, values, scaling=scaling, strict=strict)
-        return can.Message(timestamp=t, arbitration_id=m.frame_id, is_extended_id=m.is_extended_frame, data=data)
-    given = {k for k in (layout.counter, layout.crc) if k is not None and k in values}
-    full = {**{k: 0 for k in (layout.counter, layout.crc) if k is not None}, **values}
-    data = db.encode_message(name, full, scaling=scaling, strict=strict)
-    counter = m.decode(data, decode_choices=False, scaling=False)[layout.counter] if layout.counter in given else None
-    stamped = stamper.stamp(m.frame_id, data, counter=counter)
-    if layout.crc in given:
-        stamped = stamped[: layout.crc_byte] + bytes(data[layout.crc_byte: layout.crc_byte + 1]) + stamped[layout.crc_byte + 1:]
-    return can.Message(timestamp=t, arbitration_id=m.frame_id, is_extended_id=m.is_extended_frame, data=stamped)
+    data = (stamper.encode(name, values, scaling=scaling, strict=strict) if stamper is not None
+            else db.encode_message(name, values, scaling=scaling, strict=strict))
+    return can.Message(timestamp=t, arbitration_id=m.frame_id, is_extended_id=m.is_extended_frame, data=data)
 
 
 def fox_voltage_frame(db, mux: int, volts_mv: list[int], t: float = 0.0, invalid: tuple[int, ...] = ()) -> can.Message:
