@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from enum import IntEnum
 from collections.abc import Callable
 from typing import NamedTuple
@@ -129,6 +129,7 @@ class _E2EPlan:
     crc_byte: int  # its byte in the frame
     crc_fn: Callable[[bytes], int] | None
     crc_algorithm: str | None  # its name (the fleet's bulk decode computes it on arrays)
+    last: dict = field(default_factory=dict)  # multiplexer value (None) -> the last counter value seen
 
 
 @dataclass(slots=True)
@@ -236,7 +237,6 @@ class FrameDecoder:
         self._known = {_key(m.frame_id, m.is_extended_frame) for m in db.messages}
         self._na_rx = re.compile(self.mapping.na_choice_pattern)
         self._plans: dict[int, _MessagePlan] = {}
-        self._last_counter: dict[tuple[int, int | None], int] = {}  # (frame key, mux) -> last counter value
         self.voltage_cells: set[int] = set()
         self.temperature_cells: set[int] = set()
         problems: list[str] = []
@@ -414,18 +414,18 @@ class FrameDecoder:
         if dropped:
             log.info("can.mapping.cells_beyond_pack", group=what, n_cells=self.n_cells, signals_left_out=dropped)
 
-    def _e2e_ok(self, plan: _MessagePlan, e2e: _E2EPlan, data: bytes, raw: dict, msg: can.Message) -> bool:
+    def _e2e_ok(self, plan: _MessagePlan, e2e: _E2EPlan, data: bytes, raw: dict) -> bool:
         """The frame's CRC and alive counter (see :mod:`bms_estimator.can.e2e`); counts a failure."""
         if e2e.crc_fn is not None:
-            if e2e.crc_fn(data[: e2e.crc_byte] + data[e2e.crc_byte + 1:]) != data[e2e.crc_byte]:
+            k = e2e.crc_byte
+            if e2e.crc_fn(data[:k] + data[k + 1:]) != data[k]:
                 self.counters.e2e_crc += 1
                 return False
         if e2e.counter is not None:
             value = raw.get(e2e.counter)
-            key = (_key(msg.arbitration_id, msg.is_extended_id),
-                   raw.get(plan.mux_signal) if plan.mux_signal is not None else None)
-            last = self._last_counter.get(key)
-            self._last_counter[key] = value
+            mux = raw.get(plan.mux_signal) if plan.mux_signal is not None else None
+            last = e2e.last.get(mux)  # per multiplexer value of this frame id
+            e2e.last[mux] = value
             if last is not None and value != (last + 1) % e2e.modulus:
                 self.counters.e2e_counter += 1
                 return False
@@ -503,7 +503,7 @@ class FrameDecoder:
                         c.decode_error += 1
                     return []
             e2e = plan.e2e
-            if e2e is not None and not self._e2e_ok(plan, e2e, bytes(data[: plan.length]), raw, msg):
+            if e2e is not None and not self._e2e_ok(plan, e2e, bytes(data[: plan.length]), raw):
                 return []
             c.decoded += 1
             entries = plan.common
