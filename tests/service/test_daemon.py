@@ -546,6 +546,35 @@ def test_undecodable_and_unmapped_mux_values_are_counted(tmp_path):
     np.testing.assert_array_equal(ref.est.soc, Offline().feed(clean).est.soc)
 
 
+def test_spoofed_frames_and_a_lost_frame_are_dropped_by_the_default_end_to_end_checks(tmp_path):
+    """The shipped default mapping checks the project DBC's CRC and alive counters. Injected
+    PackMeasurement frames with an in-range +-5000 A current and a wrong CRC (the counter value the
+    sender sends next, as a spoofer would guess it) are dropped, counted, and leave the estimate
+    bit-identical to the clean run; a current frame lost on the bus makes the next one skip a value,
+    which is dropped and counted too."""
+    clean = rows(0, 30)
+    frames = list(clean)
+    cur = [k for k, f in enumerate(clean) if f.arbitration_id == MSG["PackMeasurement"].frame_id]
+    spoofs = []
+    for n, k in enumerate(cur[20:200:45]):  # four spoofs, +5000 and -5000 A in turn
+        real = clean[cur[cur.index(k) + 1]]  # the sender's next current frame: its counter value
+        d = MSG["PackMeasurement"].decode(real.data, decode_choices=False)
+        d.update(PackCurrent=5000.0 if n % 2 == 0 else -5000.0, MeasurementCrc=real.data[7] ^ 0x3C)
+        spoofs.append(msg("PackMeasurement", d, clean[k].timestamp + 0.001))
+    frames += spoofs
+    frames.sort(key=lambda m: m.timestamp)  # stable: each spoof right after its real frame
+    metrics, ref, _ = run_bad_input(tmp_path, frames, 30)
+    assert metrics['bms_decode_problems_total{reason="e2e_crc"}'] == len(spoofs) == 4
+    assert metrics['bms_decode_problems_total{reason="e2e_counter"}'] == 0
+    np.testing.assert_array_equal(ref.est.soc, Offline().feed(clean).est.soc)  # the spoofs reached nothing
+
+    lost = [f for k, f in enumerate(clean) if k != cur[57]]  # one current frame never arrives
+    metrics, ref, _ = run_bad_input(tmp_path / "lost", lost, 30)
+    assert metrics['bms_decode_problems_total{reason="e2e_counter"}'] == 1
+    assert metrics['bms_decode_problems_total{reason="e2e_crc"}'] == 0
+    assert metrics["bms_decode_problems_total"] == 1
+
+
 def test_not_available_out_of_range_and_invalid_values(tmp_path):
     frames: list[can.Message] = []
     for k in range(40):
