@@ -197,12 +197,14 @@ class E2EStamper:
     Built from a DBC and a mapping (its ``[e2e.*]`` tables; a preset name, TOML path, dict or
     :class:`~bms_estimator.can.mapping.CanMapping`). The counter runs per frame id and
     multiplexer value, from 0, in the order frames are stamped. Frames of other messages pass
-    unchanged. Only Intel (little-endian) counters and multiplexers are written.
+    unchanged. Intel (little-endian) counters are written as bit fields, others (foxBMS' IVT-S)
+    through cantools; :meth:`stamp_rows` takes Intel counters only.
     """
 
     def __init__(self, db: Database, mapping: CanMapping | str | dict = "default") -> None:
         m = load_mapping(mapping)
         self._layouts: dict[int, E2ELayout] = {}
+        self._messages: dict[int, Message] = {}
         problems: list[str] = []
         for name, check in m.e2e.items():
             try:
@@ -211,12 +213,11 @@ class E2EStamper:
                 problems.append(f"e2e.{name}: message not in the DBC")
                 continue
             layout, bad = e2e_layout(msg, check)
-            if layout is not None and layout.counter is not None and layout.counter_field is None:
-                bad = bad + [f"e2e.{name}: only a little-endian counter can be stamped"]
             if bad:
                 problems += bad
                 continue
             self._layouts[int(msg.frame_id)] = layout
+            self._messages[int(msg.frame_id)] = msg
         if problems:
             raise MappingError("E2E checks do not fit the DBC:", problems)
         self._next: dict[tuple[int, int | None], int] = {}
@@ -234,7 +235,7 @@ class E2EStamper:
                                              strict=strict))
         counter = None
         if layout.counter is not None and layout.counter in values:
-            counter = _get(int.from_bytes(data[: layout.length], "little"), layout.counter_field)  # type: ignore[arg-type]
+            counter = self._counter_of(int(msg.frame_id), layout, data)
         out = self.stamp(msg.frame_id, data, counter=counter)
         if layout.crc is not None and layout.crc in values:
             k = layout.crc_byte
@@ -255,19 +256,45 @@ class E2EStamper:
             k = layout.crc_byte
             data[k] = CRC_ALGORITHMS[layout.crc_algorithm](bytes(data[:k] + data[k + 1:]))
 
+    def _raw(self, frame_id: int, data: bytes) -> dict[str, int]:
+        return self._messages[frame_id].decode(data, decode_choices=False, scaling=False)
+
+    def _counter_of(self, frame_id: int, layout: E2ELayout, data: bytes) -> int:
+        if layout.counter_field is not None:
+            return _get(int.from_bytes(data[: layout.length], "little"), layout.counter_field)
+        return int(self._raw(frame_id, data)[layout.counter])  # a big-endian counter: cantools
+
+    def _mux_of(self, frame_id: int, layout: E2ELayout, data: bytes) -> int | None:
+        if layout.mux_field is not None:
+            return _get(int.from_bytes(data[: layout.length], "little"), layout.mux_field)
+        muxes = [sg.name for sg in self._messages[frame_id].signals if sg.is_multiplexer]
+        return int(self._raw(frame_id, data)[muxes[0]]) if muxes else None
+
+    def _with_counter(self, frame_id: int, layout: E2ELayout, data: bytes, value: int) -> bytes:
+        n = layout.length
+        if layout.counter_field is not None:
+            x = self._counter_put(layout, int.from_bytes(data[:n], "little"), value)
+            return x.to_bytes(n, "little") + bytes(data[n:])
+        raw = self._raw(frame_id, data)
+        raw[layout.counter] = value % layout.modulus
+        out = bytearray(self._messages[frame_id].encode(raw, scaling=False, strict=False, padding=False))
+        mask = bytearray(self._messages[frame_id].encode(
+            {k: 0 for k in raw}, scaling=False, strict=False, padding=True))  # 1 where no signal
+        return bytes((o & ~m) | (d & m) for o, m, d in zip(out, mask, bytearray(data[:n]))) + bytes(data[n:])
+
     def stamp(self, frame_id: int, data: bytes, *, counter: int | None = None) -> bytes:
         """``data`` with the next counter value (or ``counter``) and its CRC."""
-        layout = self._layouts.get(int(frame_id))
+        frame_id = int(frame_id)
+        layout = self._layouts.get(frame_id)
+        data = bytes(data)
         if layout is None or len(data) < layout.length:  # not protected, or too short to be
-            return bytes(data)
-        n = layout.length
-        x = int.from_bytes(bytes(data[:n]), "little")
+            return data
         if layout.counter is not None:
-            key = (int(frame_id), _get(x, layout.mux_field) if layout.mux_field else None)
+            key = (frame_id, self._mux_of(frame_id, layout, data))
             value = self._next.get(key, 0) if counter is None else int(counter)
             self._next[key] = (value + 1) % layout.modulus
-            x = self._counter_put(layout, x, value)
-        out = bytearray(x.to_bytes(n, "little")) + bytearray(data[n:])
+            data = self._with_counter(frame_id, layout, data, value)
+        out = bytearray(data)
         self._crc_put(layout, out)
         return bytes(out)
 
@@ -276,7 +303,7 @@ class E2EStamper:
         layout = self._layouts.get(int(frame_id))
         if layout is None or layout.counter is None:
             return self.stamp(frame_id, data)
-        own = _get(int.from_bytes(bytes(data[: layout.length]), "little"), layout.counter_field)  # type: ignore[arg-type]
+        own = self._counter_of(int(frame_id), layout, bytes(data))
         return self.stamp(frame_id, data, counter=(own + 1) % layout.modulus)
 
     def stamp_rows(self, frame_id: int, payload: np.ndarray) -> np.ndarray:
@@ -286,8 +313,8 @@ class E2EStamper:
         layout = self._layouts.get(int(frame_id))
         if layout is None or payload.size == 0:
             return payload
-        if layout.length != 8:
-            raise ValueError(f"{layout.message}: stamp_rows handles 8-byte frames only")
+        if layout.length != 8 or (layout.counter is not None and layout.counter_field is None):
+            raise ValueError(f"{layout.message}: stamp_rows handles 8-byte frames with a little-endian counter only")
         if layout.counter is not None:
             if layout.mux_field is not None:
                 s, b = layout.mux_field

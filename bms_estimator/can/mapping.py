@@ -66,7 +66,7 @@ CRC does not match, is dropped and counted (``e2e_counter``, ``e2e_crc``); see
 :mod:`bms_estimator.can.e2e`. The ``bms_estimator`` preset checks the project DBC's
 alive counters (every input frame) and PackMeasurement's CRC-8 by default. foxBMS: the
 IVT-S current and voltage frames carry a 4-bit message counter (``IVT_MsgCount_Result_*``)
-and no CRC; its preset leaves the check off (commented out).
+and no CRC; its preset checks those counters.
 
 Not-available raw values
 ------------------------

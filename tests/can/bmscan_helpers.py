@@ -11,12 +11,15 @@ _STAMPERS: dict[int, E2EStamper | None] = {}
 
 
 def _stamper(db) -> E2EStamper | None:
-    """The sender side of the project preset's end-to-end checks, for the project DBC (None for others)."""
+    """The sender side of the preset's end-to-end checks for the project or the foxBMS DBC (None for others)."""
     if id(db) not in _STAMPERS:
-        try:
-            _STAMPERS[id(db)] = E2EStamper(db, "default")
-        except MappingError:  # not the project DBC
-            _STAMPERS[id(db)] = None
+        _STAMPERS[id(db)] = None
+        for preset in ("default", "foxbms"):  # the project DBC, else foxBMS' (IVT-S message counters)
+            try:
+                _STAMPERS[id(db)] = E2EStamper(db, preset)
+                break
+            except MappingError:
+                continue
     return _STAMPERS[id(db)]
 
 
@@ -53,7 +56,6 @@ def fox_current_frame(db, current_ma: int, t: float = 0.0, error: bool = False) 
             "IVT_Result_I_Measurement_Error": 1 if error else 0,
             "IVT_Result_I_Channel_Error": 0,
             "IVT_Result_I_OCS": 0,
-            "IVT_MsgCount_Result_I": 0,
             "IVT_Result_I": current_ma,
         },
         t,

@@ -144,7 +144,7 @@ def test_foxbms_frames_to_sample(foxbms_db):
                        **{f"CellTemperature_{c:03d}_invalidFlag": 0 for c in range(6, 12)}}, t + 0.2))
     msgs.append(frame(foxbms_db, "CS_IsabellenhuetteIvtString0V1",
                       {"IVT_ID_Result_U1": 1, "IVT_Result_U1_System_Error": 0, "IVT_Result_U1_Measurement_Error": 0,
-                       "IVT_Result_U1_Channel_Error": 0, "IVT_Result_U1_OCS": 0, "IVT_MsgCount_Result_U1": 0,
+                       "IVT_Result_U1_Channel_Error": 0, "IVT_Result_U1_OCS": 0,
                        "IVT_Result_U1": 52_345}, t + 0.3))
     msgs.append(fox_current_frame(foxbms_db, 0, t + 1.0))
     msgs.sort(key=lambda m: m.timestamp)
