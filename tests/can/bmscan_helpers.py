@@ -7,26 +7,27 @@ import can
 from bms_estimator.can.e2e import E2EStamper
 from bms_estimator.errors import MappingError
 
-_STAMPERS: dict[int, E2EStamper | None] = {}
+_STAMPERS: dict[int, tuple[object, E2EStamper | None]] = {}  # id(db) -> (db, its stamper): the db kept alive
 
 
 def _stamper(db) -> E2EStamper | None:
     """The sender side of the preset's end-to-end checks for the project or the foxBMS DBC (None for others)."""
     if id(db) not in _STAMPERS:
-        _STAMPERS[id(db)] = None
+        stamper = None
         for preset in ("default", "foxbms"):  # the project DBC, else foxBMS' (IVT-S message counters)
             try:
-                _STAMPERS[id(db)] = E2EStamper(db, preset)
+                stamper = E2EStamper(db, preset)
                 break
             except MappingError:
                 continue
-    return _STAMPERS[id(db)]
+        _STAMPERS[id(db)] = (db, stamper)
+    return _STAMPERS[id(db)][1]
 
 
 def frame(db, name: str, values: dict, t: float = 0.0, *, scaling: bool = True, strict: bool = True) -> can.Message:
     """A python-can message made with cantools ``encode_message`` (by name).
 
-    Frames of the project DBC carry its end-to-end checks as a sender makes them
+    Frames of the project and foxBMS DBCs carry their end-to-end checks as a sender makes them
     (:meth:`E2EStamper.encode`: the next alive counter value and the CRC, unless ``values``
     names them)."""
     m = db.get_message_by_name(name)
