@@ -5,9 +5,12 @@ preset/DBC pair): the pack current every 10 ms, every cell voltage every
 100 ms (as many cells per frame as the DBC carries: 3 in the project's DBC, 4
 in foxBMS), every cell temperature every 1 s, and the pack voltage every
 10 ms when mapped. Frames are made with cantools ``encode`` from raw values
-before the clock starts; the timed loop is ``FrameDecoder.decode`` +
-``SampleAssembler.feed_frame`` only, replaying the stream with shifted
-timestamps until ``seconds`` of wall time have passed.
+before the clock starts and carry the mapping's end-to-end checks (alive counter,
+CRC; :class:`~bms_estimator.can.e2e.E2EStamper`) as a sender would; the timed loop is
+``FrameDecoder.decode`` + ``SampleAssembler.feed_frame`` only, replaying the stream with
+shifted timestamps until ``seconds`` of wall time have passed. The replayed stream is
+16 s long, so every message's frame count per lap is a multiple of the 4-bit counter's
+16 values and the counters run on seamlessly from lap to lap.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from cantools.database.can import Database
 
 from bms_estimator.can.dbc import load_project_db
 from bms_estimator.can.decoder import EventKind, FrameDecoder
+from bms_estimator.can.e2e import E2EStamper
 from bms_estimator.can.mapping import CanMapping, load_mapping
 from bms_estimator.can.sampler import SampleAssembler
 
@@ -106,7 +110,12 @@ def synth_frames(
                 values = {s.signal: _raw_for(value_of(s.cell, k), s.a, s.b) for s in sigs if s.kind == kind}
                 add(t, name, mux, values)
     frames.sort(key=lambda tf: tf[0])
-    return [m for _, m in frames]
+    stamper = E2EStamper(db, mapping)  # counters in sending order
+    out = []
+    for _, m in frames:
+        m.data = bytearray(stamper.stamp(m.arbitration_id, m.data))
+        out.append(m)
+    return out
 
 
 def _cover(groups: list, kind: EventKind) -> list:
@@ -149,7 +158,7 @@ def bench(
     *,
     db: Database | None = None,
     mapping: CanMapping | str = "default",
-    stream_s: float = 10.0,
+    stream_s: float = 16.0,
 ) -> BenchResult:
     """Measure decode + sample assembly throughput (see the module docstring)."""
     db = db if db is not None else load_project_db()

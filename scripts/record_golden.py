@@ -1,6 +1,8 @@
 """Record the service's outputs on a small replayed log, for tests/golden/test_golden.py.
 
     python scripts/record_golden.py            # rewrites tests/golden/*.gz
+    python scripts/record_golden.py --log-only # rewrites only the input log (a new input wire
+                                               # format; the outputs must not change)
 
 The input is ``bms-estimator encode-log`` of the shipped LG HG2 LA92 sample
 (4 cells, 420 s, seed 3), stored as a candump log. The outputs are every CAN
@@ -45,6 +47,10 @@ def main() -> None:
     from golden_run import run_golden
 
     GOLDEN.mkdir(parents=True, exist_ok=True)
+    if "--log-only" in sys.argv:
+        make_log()
+        print(f"{LOG} rewritten; the recorded outputs are unchanged")
+        return
     if not LOG.exists() or "--new-log" in sys.argv:
         make_log()
     frames, payloads = run_golden(LOG, N_CELLS)

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from enum import IntEnum
 from collections.abc import Callable
 from typing import NamedTuple
@@ -39,7 +39,7 @@ import can
 import structlog
 from cantools.database.can import Database, Message
 
-from .e2e import CRC_ALGORITHMS
+from .e2e import CRC_ALGORITHMS, e2e_layout
 from .mapping import CanMapping, CellSignals, E2ECheck, MappingError, ScalarSignal, load_mapping
 from .signals import not_available_raws
 
@@ -128,6 +128,8 @@ class _E2EPlan:
     crc: str | None  # CRC signal
     crc_byte: int  # its byte in the frame
     crc_fn: Callable[[bytes], int] | None
+    crc_algorithm: str | None  # its name (the fleet's bulk decode computes it on arrays)
+    last: dict = field(default_factory=dict)  # multiplexer value (None) -> the last counter value seen
 
 
 @dataclass(slots=True)
@@ -235,7 +237,6 @@ class FrameDecoder:
         self._known = {_key(m.frame_id, m.is_extended_frame) for m in db.messages}
         self._na_rx = re.compile(self.mapping.na_choice_pattern)
         self._plans: dict[int, _MessagePlan] = {}
-        self._last_counter: dict[tuple[int, int | None], int] = {}  # (frame key, mux) -> last counter value
         self.voltage_cells: set[int] = set()
         self.temperature_cells: set[int] = set()
         problems: list[str] = []
@@ -301,31 +302,13 @@ class FrameDecoder:
         if plan is None:
             problems.append(f"e2e.{name}: not an input message of this mapping")
             return
-        names = {s.name: s for s in msg.signals}
-        modulus, crc_byte = 0, -1
-        if check.counter is not None:
-            sig = names.get(check.counter)
-            if sig is None:
-                problems.append(f"e2e.{name}: counter signal {check.counter!r} not in the message")
-            elif sig.is_signed or sig.multiplexer_ids:
-                problems.append(f"e2e.{name}: counter {check.counter!r} must be unsigned and not multiplexed")
-            else:
-                top = (1 << sig.length) - 1
-                if sig.maximum is not None and sig.scale == 1 and sig.offset == 0:
-                    top = min(top, int(sig.maximum))
-                modulus = top + 1
-        if check.crc is not None:
-            sig = names.get(check.crc)
-            if sig is None:
-                problems.append(f"e2e.{name}: crc signal {check.crc!r} not in the message")
-            else:
-                lsb = sig.start if sig.byte_order == "little_endian" else sig.start - 7
-                if sig.length != 8 or lsb % 8 != 0 or sig.multiplexer_ids:
-                    problems.append(f"e2e.{name}: crc {check.crc!r} must be 8 bit, byte aligned, not multiplexed")
-                else:
-                    crc_byte = lsb // 8
-        plan.e2e = _E2EPlan(check.counter, modulus, check.crc, crc_byte,
-                            CRC_ALGORITHMS[check.crc_algorithm] if check.crc is not None else None)
+        layout, bad = e2e_layout(msg, check)
+        if layout is None:
+            problems.extend(bad)
+            return
+        plan.e2e = _E2EPlan(layout.counter, layout.modulus, layout.crc, layout.crc_byte,
+                            CRC_ALGORITHMS[layout.crc_algorithm] if layout.crc_algorithm else None,
+                            layout.crc_algorithm)
 
     def _build_scalar(self, kind: EventKind, spec: ScalarSignal, problems: list[str]) -> None:
         msg = self._message(spec.message, problems)
@@ -431,18 +414,18 @@ class FrameDecoder:
         if dropped:
             log.info("can.mapping.cells_beyond_pack", group=what, n_cells=self.n_cells, signals_left_out=dropped)
 
-    def _e2e_ok(self, plan: _MessagePlan, e2e: _E2EPlan, data: bytes, raw: dict, msg: can.Message) -> bool:
+    def _e2e_ok(self, plan: _MessagePlan, e2e: _E2EPlan, data: bytes, raw: dict) -> bool:
         """The frame's CRC and alive counter (see :mod:`bms_estimator.can.e2e`); counts a failure."""
         if e2e.crc_fn is not None:
-            if e2e.crc_fn(data[: e2e.crc_byte] + data[e2e.crc_byte + 1:]) != data[e2e.crc_byte]:
+            k = e2e.crc_byte
+            if e2e.crc_fn(data[:k] + data[k + 1:]) != data[k]:
                 self.counters.e2e_crc += 1
                 return False
         if e2e.counter is not None:
             value = raw.get(e2e.counter)
-            key = (_key(msg.arbitration_id, msg.is_extended_id),
-                   raw.get(plan.mux_signal) if plan.mux_signal is not None else None)
-            last = self._last_counter.get(key)
-            self._last_counter[key] = value
+            mux = raw.get(plan.mux_signal) if plan.mux_signal is not None else None
+            last = e2e.last.get(mux)  # per multiplexer value of this frame id
+            e2e.last[mux] = value
             if last is not None and value != (last + 1) % e2e.modulus:
                 self.counters.e2e_counter += 1
                 return False
@@ -520,7 +503,7 @@ class FrameDecoder:
                         c.decode_error += 1
                     return []
             e2e = plan.e2e
-            if e2e is not None and not self._e2e_ok(plan, e2e, bytes(data[: plan.length]), raw, msg):
+            if e2e is not None and not self._e2e_ok(plan, e2e, bytes(data[: plan.length]), raw):
                 return []
             c.decoded += 1
             entries = plan.common

@@ -63,8 +63,10 @@ End-to-end checks (optional)
 with ``crc_algorithm``: ``crc8_sae_j1850`` (default), ``crc8_autosar``,
 ``xor8``, ``sum8``). A frame whose counter skips or repeats a value, or whose
 CRC does not match, is dropped and counted (``e2e_counter``, ``e2e_crc``); see
-:mod:`bms_estimator.can.e2e`. foxBMS: the IVT-S current and voltage frames carry a 4-bit
-message counter (``IVT_MsgCount_Result_*``) and no CRC.
+:mod:`bms_estimator.can.e2e`. The ``bms_estimator`` preset checks the project DBC's
+alive counters (every input frame) and PackMeasurement's CRC-8 by default. foxBMS: the
+IVT-S current and voltage frames carry a 4-bit message counter (``IVT_MsgCount_Result_*``)
+and no CRC; its preset checks those counters.
 
 Not-available raw values
 ------------------------

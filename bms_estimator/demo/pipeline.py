@@ -128,14 +128,17 @@ def prepare_pack(cell: str = "lg-hg2", cycle: str | None = None, n_cells: int = 
 
 
 def closing_frame(fa: FrameArrays, period_s: float) -> can.Message:
-    """A copy of the last current frame at the log's end: it completes the last sample period."""
+    """A repeat of the last current frame at the log's end, with the next alive counter value and
+    its CRC (as the sender's next frame): it completes the last sample period."""
     from ..can.dbc import load_project_db
+    from ..can.e2e import E2EStamper
 
-    cur_id = int(load_project_db().get_message_by_name("PackMeasurement").frame_id)
+    db = load_project_db()
+    cur_id = int(db.get_message_by_name("PackMeasurement").frame_id)
     last = int(np.flatnonzero(fa.arbitration_id == cur_id)[-1])
     p_us = int(round(period_s * 1e6))
     t_end_us = (int(fa.t_us[-1]) // p_us + 1) * p_us
-    data = np.asarray([fa.data[last]], dtype="<u8").tobytes()
+    data = E2EStamper(db, "default").next_after(cur_id, np.asarray([fa.data[last]], dtype="<u8").tobytes())
     return can.Message(timestamp=fa.t0_s + t_end_us / 1e6, arbitration_id=cur_id,
                        is_extended_id=fa.extended.get(cur_id, True), dlc=8, data=data, check=False)
 

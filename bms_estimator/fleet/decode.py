@@ -13,7 +13,11 @@ conversion ``si = a * raw + b``). Per mapped frame id, on all its frames at once
   signals, an IEEE view for float signals;
 * then the decoder's rules, in its order: unknown id / unmapped, error and remote
   frames ignored, short frame, multiplexer value the DBC does not define (bad_mux),
-  invalid flag, NotAvailable raw value, non-finite, outside ``[valid_min, valid_max]``.
+  the end-to-end checks (:mod:`bms_estimator.can.e2e`: CRC of every frame with
+  :func:`~bms_estimator.can.e2e.crc_rows`; then, over the frames whose CRC held, per
+  multiplexer value in frame order, the alive counter ``c_k = (c_{k-1} + 1) mod m`` with
+  the first frame of the table as the reference), invalid flag, NotAvailable raw value,
+  non-finite, outside ``[valid_min, valid_max]``.
 
 Messages longer than 8 bytes (CAN FD) are decoded frame by frame with the service's
 decoder (the same result, at its speed). The counters equal
@@ -27,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..can.decoder import DecodeCounters, FrameDecoder
+from ..can.e2e import crc_rows
 from .frames import FrameTable
 
 __all__ = ["EventArrays", "decode_frames", "signal_raw"]
@@ -112,6 +117,10 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
             ok = np.isin(mux, defined)
             c.bad_mux += int(np.count_nonzero(~ok))
             idx, u_le, u_be, mux = idx[ok], u_le[ok], u_be[ok], mux[ok]
+        if plan.e2e is not None:
+            ok = _e2e_keep(plan, sigs, frames.data[idx, : plan.length], u_le, u_be, mux, c)
+            idx, u_le, u_be = idx[ok], u_le[ok], u_be[ok]
+            mux = mux[ok] if mux is not None else None
         c.decoded += int(idx.size)
         has_entries = np.zeros(idx.size, dtype=bool)
         groups: list[tuple[np.ndarray, list]] = []
@@ -171,6 +180,30 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
     return ev, c
 
 
+def _e2e_keep(plan, sigs: dict, data: np.ndarray, u_le: np.ndarray, u_be: np.ndarray, mux: np.ndarray | None,
+              c: DecodeCounters) -> np.ndarray:
+    """Which frames pass the plan's end-to-end checks (the decoder's ``_e2e_ok`` on arrays); counts the rest."""
+    e2e = plan.e2e
+    keep = np.ones(len(data), dtype=bool)
+    if e2e.crc_algorithm is not None:
+        k = e2e.crc_byte
+        bad = crc_rows(e2e.crc_algorithm, np.delete(data, k, axis=1)) != data[:, k]
+        c.e2e_crc += int(np.count_nonzero(bad))
+        keep &= ~bad
+    if e2e.counter is not None:
+        rows = np.flatnonzero(keep)
+        value = signal_raw(sigs[e2e.counter], u_le[rows], u_be[rows])
+        group = mux[rows] if mux is not None else np.zeros(rows.size, np.int64)
+        order = np.argsort(group, kind="stable")  # frame order within each multiplexer value
+        g, v = group[order], value[order]
+        skip = np.zeros(rows.size, dtype=bool)
+        follows = g[1:] == g[:-1]  # not the first frame of its multiplexer value
+        skip[order[1:]] = follows & (v[1:] != (v[:-1] + 1) % e2e.modulus)
+        c.e2e_counter += int(np.count_nonzero(skip))
+        keep[rows[skip]] = False
+    return keep
+
+
 def _decode_per_frame(decoder: FrameDecoder, frames: FrameTable, idx: np.ndarray, c: DecodeCounters,
                       parts: list) -> None:
     """Frames of a message wider than 8 bytes: the service's decoder, one frame at a time."""
@@ -190,5 +223,5 @@ def _decode_per_frame(decoder: FrameDecoder, frames: FrameTable, idx: np.ndarray
     finally:
         decoder.counters = saved
     for name in ("decoded", "unmapped", "bad_mux", "decode_error", "non_finite", "out_of_range",
-                 "not_available", "flagged_invalid", "internal_error"):
+                 "not_available", "flagged_invalid", "e2e_counter", "e2e_crc", "internal_error"):
         setattr(c, name, getattr(c, name) + getattr(per, name))

@@ -12,7 +12,7 @@ series pack of ``n_cells`` such cells would put on the project's CAN bus
 frame               period      content
 ==================  ==========  ==========================================================
 PackMeasurement     10 ms       pack current (= the cell current, series pack) and pack
-                                voltage (sum of the cell voltages), rolling counter
+                                voltage (sum of the cell voltages), alive counter, CRC-8
 CellVoltages        100 ms      3 cells per frame, ``CellIndexBase`` = 0, 3, 6, ...; the
                                 ``ceil(n/3)`` frames of one round are spread evenly over
                                 the 100 ms
@@ -25,6 +25,11 @@ Time base: frame times are integer microseconds from ``t0_s`` (default 0, so the
 file only keeps times relative to its start). Sample ``k`` of the recording covers
 ``[t0 + k dt, t0 + (k+1) dt)``; every frame in that interval carries sample ``k``.
 At equal times the order is current, voltages, temperatures.
+
+End-to-end protection: every frame carries the DBC's alive counter, +1 per frame of its
+id and ``CellIndexBase`` from 0, and PackMeasurement its CRC-8, written by
+:class:`~bms_estimator.can.e2e.E2EStamper` from the project preset's ``[e2e.*]`` checks, so
+the service's default mapping accepts every frame.
 
 Current (charge-exact). The recording's sample is the mean current over its
 period. The 10 ms frames hold it, dithered by at most 1 mA so that the charge is
@@ -98,6 +103,7 @@ from ..analysis import (
     soc_lookup_table,
 )
 from ..can.dbc import load_project_db
+from ..can.e2e import E2EStamper
 from ..can.signals import SignalCodec
 from ..core.ocv import OcvCurve
 from ..data import CellRecording, load_recording
@@ -523,14 +529,13 @@ def frame_arrays(
     raw_i = np.clip(raw_i, lo, hi)
     k_cur = t_cur // dt_us
     pack_v = np.sum(trace.cell_voltage_v, axis=1)
-    counter = (np.arange(mc) % 16).astype(np.int64)
-    d_cur = _pack(m_cur, {
+    stamper = E2EStamper(db, "default")  # alive counters and CRC (module docstring)
+    d_cur = stamper.stamp_rows(m_cur.frame_id, _pack(m_cur, {
         "PackCurrent": raw_i,
         "PackVoltage": _raw(m_cur.get_signal_by_name("PackVoltage"), pack_v[k_cur]),
-        "MeasurementCounter": counter,
         "CurrentInvalid": np.zeros(mc, np.int64),
         "VoltageInvalid": np.zeros(mc, np.int64),
-    }, mc)
+    }, mc))
 
     # ---- cell voltages: ceil(N/3) frames per round, spread over the round
     def cell_frames(db_msg, prefix: str, per_frame: int, period_us: int, values: np.ndarray | None):
@@ -552,7 +557,7 @@ def frame_arrays(
                 phys = values[k, np.minimum(cell, N - 1)]
             phys = np.where(cell < N, phys, np.nan)
             raws[sig.name] = _raw(sig, phys)
-        return t, _pack(db_msg, raws, t.size)
+        return t, stamper.stamp_rows(db_msg.frame_id, _pack(db_msg, raws, t.size))
 
     t_v, d_v = cell_frames(m_v, "CellVoltage", 3, v_us, trace.cell_voltage_v)
     t_t, d_t = cell_frames(m_t, "CellTemperature", 6, t_us_period, trace.temperature_c)

@@ -190,8 +190,9 @@ class MqttPublisher:
             send = self._due_cells(snap, final=final)
             items = []
             if send.any():
-                cells = schema.snapshot_cell_payloads(snap)
-                items = [(self._cell_topics[i], schema.dumps(cells[i]), False) for i in np.flatnonzero(send)]
+                due = np.flatnonzero(send)
+                texts = schema.snapshot_cell_payload_texts(snap, due)  # one JSON build for all cells
+                items = [(self._cell_topics[i], text, False) for i, text in zip(due.tolist(), texts)]
             if self._pack_due(snap.t_s, final=final):
                 items.append((self.pack_topic, schema.dumps(schema.pack_payload(snap)), False))
             if items:
@@ -240,8 +241,8 @@ class MqttPublisher:
         if not self.cfg.enabled or self._closing:
             return
         try:
-            cells = schema.cell_payloads(t_s, arrays, self.n_cells)
-            self._put([(self._cell_topics[i], schema.dumps(p), False) for i, p in enumerate(cells)])
+            texts = schema.cell_payload_texts(t_s, arrays, self.n_cells)
+            self._put([(self._cell_topics[i], text, False) for i, text in enumerate(texts)])
         except Exception as exc:  # noqa: BLE001 - must never raise into the estimator
             self._submit_failed("submit_cells", exc)
 

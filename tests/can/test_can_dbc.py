@@ -74,8 +74,22 @@ def test_multiplexers_cover_2000_cells(project_db):
     for name in ["CellVoltages", "CellTemperatures", "CellStateA", "CellStateB"]:
         m = project_db.get_message_by_name(name)
         for s in m.signals:
-            if not s.is_multiplexer:
+            if not s.is_multiplexer and s.name not in ("VoltageCounter", "TemperatureCounter"):
                 assert set(range(2000)) <= set(s.multiplexer_ids), f"{name}.{s.name}"
+        mux = next(s for s in m.signals if s.is_multiplexer)
+        assert (1 << mux.length) > 1999  # CellIndexBase's 12 bits (inputs) still reach cell 1999
+
+
+def test_every_input_frame_has_an_alive_counter_and_pack_measurement_a_crc(project_db):
+    """The end-to-end signals of issue 16, sent with every frame (not multiplexed); the CRC byte-aligned."""
+    for name, counter in [("PackMeasurement", "MeasurementCounter"), ("CellVoltages", "VoltageCounter"),
+                          ("CellTemperatures", "TemperatureCounter")]:
+        sig = project_db.get_message_by_name(name).get_signal_by_name(counter)
+        assert (sig.length, sig.is_signed, sig.multiplexer_ids) == (4, False, None), name
+    crc = project_db.get_message_by_name("PackMeasurement").get_signal_by_name("MeasurementCrc")
+    assert (crc.start, crc.length) == (56, 8)
+    cur = project_db.get_message_by_name("PackMeasurement").get_signal_by_name("PackCurrent")
+    assert (cur.length, cur.minimum, cur.maximum) == (24, -8388.607, 8388.607)  # the output's range
 
 
 @pytest.mark.parametrize("message,signal,typical", TYPICAL)
@@ -174,9 +188,13 @@ def test_pack_and_status_frames_round_trip(project_db):
 def test_input_frames_round_trip(project_db):
     for name, values in [
         ("PackMeasurement", {"PackCurrent": -250.125, "PackVoltage": 812.345, "MeasurementCounter": 7,
-                             "CurrentInvalid": 0, "VoltageInvalid": 1}),
-        ("CellVoltages", {"CellIndexBase": 1998, "CellVoltage0": 3.1234, "CellVoltage1": 0.0, "CellVoltage2": 6.5534}),
-        ("CellTemperatures", {"CellIndexBase": 6, **{f"CellTemperature{j}": -40 + 25.5 * j for j in range(6)}}),
+                             "CurrentInvalid": 0, "VoltageInvalid": 1, "MeasurementCrc": 0xA5}),
+        ("PackMeasurement", {"PackCurrent": -8388.607, "PackVoltage": 16777.214, "MeasurementCounter": 15,
+                             "CurrentInvalid": 1, "VoltageInvalid": 0, "MeasurementCrc": 255}),
+        ("CellVoltages", {"CellIndexBase": 1998, "VoltageCounter": 15, "CellVoltage0": 3.1234, "CellVoltage1": 0.0,
+                          "CellVoltage2": 6.5534}),
+        ("CellTemperatures", {"CellIndexBase": 6, "TemperatureCounter": 9,
+                              **{f"CellTemperature{j}": -40 + 25.5 * j for j in range(6)}}),
     ]:
         data = project_db.encode_message(name, values)
         back = project_db.decode_message(name, data, decode_choices=False)

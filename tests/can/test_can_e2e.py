@@ -52,9 +52,97 @@ def test_a_skipped_or_repeated_counter_value_is_dropped_and_counted(project_db, 
 
 
 def test_without_e2e_the_counter_is_not_evaluated(project_db):
-    dec = FrameDecoder(project_db, "default", 1)
+    dec = FrameDecoder(project_db, _with_e2e("default", {}), 1)
     assert all(dec.decode(_own(project_db, 1.0, 0)) for _ in range(3))
     assert dec.counters.e2e_counter == 0
+
+
+def test_the_project_preset_checks_every_input_frame_by_default():
+    e2e = load_mapping("default").e2e
+    assert {k: (v.counter, v.crc, v.crc_algorithm if v.crc else None) for k, v in e2e.items()} == {
+        "PackMeasurement": ("MeasurementCounter", "MeasurementCrc", "crc8_sae_j1850"),
+        "CellVoltages": ("VoltageCounter", None, None),
+        "CellTemperatures": ("TemperatureCounter", None, None),
+    }
+    assert load_mapping("bms_estimator") == load_mapping("default")
+
+
+def _stamped_current(db, stamper, current_a: float, t: float) -> can.Message:
+    m = db.get_message_by_name("PackMeasurement")
+    data = m.encode({"PackCurrent": current_a, "PackVoltage": 400.0, "MeasurementCounter": 0, "CurrentInvalid": 0,
+                     "VoltageInvalid": 0, "MeasurementCrc": 0})
+    return can.Message(timestamp=t, arbitration_id=m.frame_id, is_extended_id=True,
+                       data=stamper.stamp(m.frame_id, data))
+
+
+@pytest.mark.parametrize("spoof_a", [5000.0, -5000.0, 4999.999])
+def test_a_spoofed_in_range_current_never_reaches_a_sample(project_db, spoof_a):
+    """The default mapping on the project DBC: an injected frame with an in-range +-5000 A current
+    and a wrong CRC (the sender's next counter value, as a spoofer would guess it) is dropped and
+    counted; the 1 s sample's current is the real sender's 10 A."""
+    from bms_estimator.can.e2e import E2EStamper
+    from bms_estimator.can.sampler import SampleAssembler
+
+    stamper = E2EStamper(project_db, "default")
+    dec, smp = FrameDecoder(project_db, "default", 1), SampleAssembler(1)
+    m = project_db.get_message_by_name("PackMeasurement")
+    samples = []
+    for k in range(201):
+        t = 100.0 + 0.01 * k
+        samples += smp.feed_frame(dec.decode(_stamped_current(project_db, stamper, 10.0, t)), t)
+        if k in (30, 130):
+            real = bytearray(m.encode({"PackCurrent": spoof_a, "PackVoltage": 400.0, "MeasurementCounter": 0,
+                                       "CurrentInvalid": 0, "VoltageInvalid": 0, "MeasurementCrc": 0}))
+            real = bytearray(stamper.stamp(m.frame_id, bytes(real)))
+            stamper.stamp(m.frame_id, bytes(real), counter=(real[6] & 0xF) - 1)  # the spoofer's guess is not sent
+            real[7] ^= 0x5A  # ...and its CRC is wrong
+            samples += smp.feed_frame(dec.decode(can.Message(timestamp=t + 0.005, arbitration_id=m.frame_id,
+                                                             is_extended_id=True, data=bytes(real))), t + 0.005)
+    assert dec.counters.e2e_crc == 2 and dec.counters.e2e_counter == 0 and dec.counters.errors == 2
+    assert len(samples) == 2 and all(s.current_a == pytest.approx(10.0) for s in samples)
+
+
+def test_a_skipped_counter_value_on_the_default_mapping_is_counted(project_db):
+    from bms_estimator.can.e2e import E2EStamper
+
+    stamper = E2EStamper(project_db, "default")
+    dec = FrameDecoder(project_db, "default", 1)
+    got = []
+    for k in range(6):
+        msg = _stamped_current(project_db, stamper, float(k), 0.01 * k)
+        if k == 3:
+            _stamped_current(project_db, stamper, 0.0, 0.0)  # one frame lost on the bus
+            msg = _stamped_current(project_db, stamper, float(k), 0.01 * k)
+        got.append([e.value for e in dec.decode(msg) if e.kind == EventKind.CURRENT])
+    assert got == [[0.0], [1.0], [2.0], [], [4.0], [5.0]]
+    assert dec.counters.e2e_counter == 1 and dec.counters.e2e_crc == 0
+
+
+def test_the_stamper_writes_what_the_decoder_checks(project_db):
+    """E2EStamper's scalar and array forms give the same bytes; crc_rows equals the scalar CRC."""
+    import numpy as np
+
+    from bms_estimator.can.e2e import CRC_ALGORITHMS, E2EStamper, crc_rows
+
+    rng = np.random.default_rng(4)
+    rows = rng.integers(0, 256, (300, 7), dtype=np.uint8)
+    for name, fn in CRC_ALGORITHMS.items():
+        assert crc_rows(name, rows).tolist() == [fn(bytes(r)) for r in rows], name
+    for name in ("PackMeasurement", "CellVoltages"):
+        fid = project_db.get_message_by_name(name).frame_id
+        payload = rng.integers(0, 2**63, 200, dtype=np.int64).astype(np.uint64)
+        if name == "CellVoltages":
+            payload &= ~np.uint64(0xFFF)
+            payload |= rng.integers(0, 4, 200).astype(np.uint64)  # four multiplexer values
+        a, b = E2EStamper(project_db), E2EStamper(project_db)
+        bulk = a.stamp_rows(fid, payload[:120])
+        bulk = np.concatenate([bulk, a.stamp_rows(fid, payload[120:])])  # the counters run on
+        one = [b.stamp(fid, int(p).to_bytes(8, "little")) for p in payload]
+        assert [int(x).to_bytes(8, "little") for x in bulk] == one
+        dec = FrameDecoder(project_db, "default", 12)
+        for d in one:
+            dec.decode(can.Message(arbitration_id=fid, is_extended_id=True, data=d))
+        assert (dec.counters.e2e_counter, dec.counters.e2e_crc) == (0, 0)
 
 
 def test_foxbms_ivt_message_counter(foxbms_db):

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 
 from bms_estimator.can.dbc import load_project_db
 from bms_estimator.can.decoder import FrameDecoder
+from bms_estimator.can.e2e import E2EStamper
 from bms_estimator.fleet.assemble import assemble_samples
 from bms_estimator.fleet.decode import decode_frames
 from bms_estimator.fleet.frames import EXTENDED_FLAG, FrameTable, read_frames
@@ -31,20 +32,32 @@ VOLTS = DB.get_message_by_name("CellVoltages")
 TEMPS = DB.get_message_by_name("CellTemperatures")
 
 
-def _payload(kind: int, draw_int, rnd_bytes: bytes) -> tuple[int, bytes]:
+def _stamped(stamper: E2EStamper, msg, data: bytes, draw_int) -> bytes:
+    """The sender's alive counter and CRC; now and then a skipped counter value or a corrupted CRC."""
+    fault = draw_int(0, 24)
+    if fault == 0:  # a counter value out of sequence
+        return stamper.stamp(msg.frame_id, data, counter=draw_int(0, 15))
+    out = bytearray(stamper.stamp(msg.frame_id, data))
+    if fault == 1:  # a corrupted frame: the CRC byte (where there is one) or a counter nibble flipped
+        out[7 if msg is PACK else 1] ^= 1 << draw_int(0, 7 if msg is PACK else 3) + (0 if msg is PACK else 4)
+    return bytes(out)
+
+
+def _payload(kind: int, draw_int, rnd_bytes: bytes, stamper: E2EStamper) -> tuple[int, bytes]:
     if kind == 0:
-        return PACK.frame_id | EXTENDED_FLAG, PACK.encode(
+        return PACK.frame_id | EXTENDED_FLAG, _stamped(stamper, PACK, PACK.encode(
             {"PackCurrent": draw_int(-3000, 3000) / 1000.0, "PackVoltage": 14.8 + draw_int(0, 100) / 100,
              "MeasurementCounter": 0, "CurrentInvalid": int(draw_int(0, 20) == 0),
-             "VoltageInvalid": int(draw_int(0, 20) == 0)}, scaling=True)
+             "VoltageInvalid": int(draw_int(0, 20) == 0), "MeasurementCrc": 0}, scaling=True), draw_int)
     if kind == 1:
         base = (0, 3, 6)[draw_int(0, 2)]  # 6: cells beyond the pack (unmapped)
-        return VOLTS.frame_id | EXTENDED_FLAG, VOLTS.encode(
-            {"CellIndexBase": base, "CellVoltage0": 3.0 + draw_int(0, 12000) / 10000,
-             "CellVoltage1": 3.1, "CellVoltage2": (0.2, 3.6)[draw_int(0, 1)]}, strict=False)
+        return VOLTS.frame_id | EXTENDED_FLAG, _stamped(stamper, VOLTS, VOLTS.encode(
+            {"CellIndexBase": base, "VoltageCounter": 0, "CellVoltage0": 3.0 + draw_int(0, 12000) / 10000,
+             "CellVoltage1": 3.1, "CellVoltage2": (0.2, 3.6)[draw_int(0, 1)]}, strict=False), draw_int)
     if kind == 2:
-        return TEMPS.frame_id | EXTENDED_FLAG, TEMPS.encode(
-            {"CellIndexBase": 0, **{f"CellTemperature{j}": 20 + draw_int(0, 20) / 2 for j in range(6)}})
+        return TEMPS.frame_id | EXTENDED_FLAG, _stamped(stamper, TEMPS, TEMPS.encode(
+            {"CellIndexBase": 0, "TemperatureCounter": 0,
+             **{f"CellTemperature{j}": 20 + draw_int(0, 20) / 2 for j in range(6)}}), draw_int)
     if kind == 3:  # random bytes on a mapped id: bad mux, out of range, flags
         key = (PACK.frame_id, VOLTS.frame_id, TEMPS.frame_id)[draw_int(0, 2)] | EXTENDED_FLAG
         return key, rnd_bytes
@@ -58,6 +71,7 @@ def frame_tables(draw) -> FrameTable:
     n = draw(st.integers(1, 400))
     t = draw(st.floats(-3.0, 1e6, allow_nan=False)) if draw(st.booleans()) else 0.0
     ts, keys, payloads = [], [], []
+    stamper = E2EStamper(DB, "default")
 
     def draw_int(lo, hi):
         return draw(st.integers(lo, hi))
@@ -72,7 +86,7 @@ def frame_tables(draw) -> FrameTable:
         else:
             ts.append(t)
         kind = draw(st.sampled_from([0, 0, 0, 1, 1, 1, 2, 3, 4, 5]))
-        key, data = _payload(kind, draw_int, draw(st.binary(min_size=8, max_size=8)))
+        key, data = _payload(kind, draw_int, draw(st.binary(min_size=8, max_size=8)), stamper)
         keys.append(key)
         payloads.append(bytes(data))
     return FrameTable._build(ts, keys, [len(p) for p in payloads], [False] * n, payloads)
@@ -96,10 +110,12 @@ def test_bulk_equals_service_on_crafted_frames(frames, period):
 
 def test_anomalies_are_counted_like_the_service():
     """A hand-made sequence with each anomaly once: the counters name it, as the service's do."""
+    stamper = E2EStamper(DB, "default")
+
     def frame(t, cur=1.0):
-        return t, PACK.frame_id | EXTENDED_FLAG, PACK.encode({"PackCurrent": cur, "PackVoltage": 15.0,
-                                                              "MeasurementCounter": 0, "CurrentInvalid": 0,
-                                                              "VoltageInvalid": 0})
+        return t, PACK.frame_id | EXTENDED_FLAG, stamper.stamp(PACK.frame_id, PACK.encode(
+            {"PackCurrent": cur, "PackVoltage": 15.0, "MeasurementCounter": 0, "CurrentInvalid": 0,
+             "VoltageInvalid": 0, "MeasurementCrc": 0}))
     rows = [frame(0.01 * k) for k in range(300)]  # 0 .. 2.99 s
     rows += [frame(2.5)]  # backward by 0.49 s: ignored
     rows += [frame(3.0 + 0.01 * k) for k in range(100)]
@@ -115,6 +131,38 @@ def test_anomalies_are_counted_like_the_service():
     assert (c["backward_frames"], c["time_jumps"], c["rewinds"], c["bad_timestamps"]) == (1, 1, 1, 1)
     assert {**dc.as_dict(), **c} == ref.counters
     assert np.all(~sa.valid)  # no cell voltage ever: every cell stale
+
+
+def test_e2e_failures_are_dropped_and_counted_like_the_service():
+    """A corrupted CRC (a spoofed 4999 A current) and a skipped alive counter value, per cell group too:
+    the bulk decode drops the same frames and counts them as the service's decoder does."""
+    stamper = E2EStamper(DB, "default")
+    rows = []
+    for k in range(40):
+        t = 0.01 * k
+        data = stamper.stamp(PACK.frame_id, PACK.encode({"PackCurrent": 1.0, "PackVoltage": 15.0, "MeasurementCounter": 0,
+                                                         "CurrentInvalid": 0, "VoltageInvalid": 0, "MeasurementCrc": 0}))
+        if k == 10:  # spoofed: an in-range current with the old CRC
+            data = PACK.encode({**PACK.decode(data, decode_choices=False), "PackCurrent": 4999.0})
+        if k == 20:
+            stamper.stamp(PACK.frame_id, data)  # one frame never sent: the next skips a value
+        rows.append((t, PACK.frame_id | EXTENDED_FLAG, data))
+        volts = VOLTS.encode({"CellIndexBase": 3 * (k % 2), "VoltageCounter": 0, "CellVoltage0": 3.5,
+                              "CellVoltage1": 3.5, "CellVoltage2": 3.5})
+        if k == 31:  # base 3: its counter skips; base 0 goes on undisturbed
+            stamper.stamp(VOLTS.frame_id, volts)
+        rows.append((t + 0.001, VOLTS.frame_id | EXTENDED_FLAG, stamper.stamp(VOLTS.frame_id, volts)))
+    ts, keys, data = zip(*rows)
+    frames = FrameTable._build(list(ts), list(keys), [8] * len(ts), [False] * len(ts), list(data))
+    ref_dec = FrameDecoder(DB, "default", N_CELLS)
+    ref = service_samples(ref_dec, service_sampler(N_CELLS), messages(frames))
+    ev, dc = decode_frames(FrameDecoder(DB, "default", N_CELLS), frames)
+    # the CRC-dropped frame counts as lost, so the frame after it skips a value too
+    assert (dc.e2e_crc, dc.e2e_counter) == (1, 3)
+    assert dc.as_dict() == ref_dec.counters.as_dict()
+    assert np.all(ev.value[ev.kind == 0] == 1.0)  # the spoofed 4999 A never became a current event
+    sa = assemble_samples(frames.t_s, ev, service_sampler(N_CELLS))
+    assert_same_samples(sa, ref)
 
 
 def test_candump_bulk_reader_equals_python_can(tmp_path):

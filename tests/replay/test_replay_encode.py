@@ -92,6 +92,32 @@ def test_frame_rates_per_message_and_mux(decoded):
         assert firsts[0] == 0.0 and 0 < firsts[-1] < period
     counters = [sig["MeasurementCounter"] for _, sig in decoded["PackMeasurement"][:20]]
     assert counters == [k % 16 for k in range(20)]
+    for name, counter in (("CellVoltages", "VoltageCounter"), ("CellTemperatures", "TemperatureCounter")):
+        runs = defaultdict(list)
+        for _, sig in decoded[name]:
+            runs[sig["CellIndexBase"]].append(sig[counter])
+        assert all(c == [k % 16 for k in range(len(c))] for c in runs.values()), name  # per CellIndexBase
+
+
+def test_encode_log_output_passes_the_default_end_to_end_checks(encoded):
+    """Every frame encode-log writes is accepted by the service's default mapping: no CRC or
+    counter failure, every frame decoded; and a frame with one flipped bit is not."""
+    from bms_estimator.can.decoder import FrameDecoder
+
+    dec = FrameDecoder(load_project_db(), "default", N_CELLS)
+    msgs = list(can.LogReader(str(encoded["log"])))
+    for msg in msgs:
+        dec.decode(msg)
+    c = dec.counters
+    assert (c.e2e_crc, c.e2e_counter, c.errors) == (0, 0, 0)
+    assert c.decoded == c.frames == len(msgs)
+    first = msgs[0]  # a PackMeasurement frame (current first at equal times)
+    assert first.arbitration_id == load_project_db().get_message_by_name("PackMeasurement").frame_id
+    data = bytearray(first.data)
+    data[1] ^= 0x04  # 1.024 A more current: the CRC no longer matches
+    fresh = FrameDecoder(load_project_db(), "default", N_CELLS)
+    assert fresh.decode(can.Message(arbitration_id=first.arbitration_id, is_extended_id=True, data=bytes(data))) == []
+    assert fresh.counters.e2e_crc == 1 and fresh.decode(first) != []
 
 
 def test_cell0_is_the_measured_voltage_and_padding_is_not_available(decoded, cell_voltages, measured):

@@ -34,6 +34,7 @@ from can.interfaces.virtual import VirtualBus
 
 from bms_estimator.can.dbc import load_project_db
 from bms_estimator.can.decoder import FrameDecoder
+from bms_estimator.can.e2e import E2EStamper
 from bms_estimator.can.encoder import StateEncoder
 from bms_estimator.can.sampler import SampleAssembler
 from bms_estimator.cli.__main__ import main as cli_main
@@ -77,17 +78,29 @@ def ocv() -> OcvCurve:
 
 
 # ------------------------------------------------------------------ frames
+STAMPER = E2EStamper(DB, "default")  # the sender side of the default mapping's end-to-end checks
+
+
 def msg(name: str, values: dict[str, Any], t: float, *, scaling: bool = True) -> can.Message:
+    """A frame as the BMS sends it: alive counter (next value unless ``values`` names it) and CRC."""
     m = MSG[name]
     return can.Message(timestamp=t, arbitration_id=m.frame_id, is_extended_id=m.is_extended_frame,
-                       data=m.encode(values, scaling=scaling, strict=False))
+                       data=STAMPER.encode(name, values, scaling=scaling, strict=False))
+
+
+def restamp(frames: list[can.Message]) -> list[can.Message]:
+    """``frames`` as one sender sends them in this order: alive counters in list order, CRCs
+    (for a test that inserts or replaces frames after building them)."""
+    stamper = E2EStamper(DB, "default")
+    return [can.Message(timestamp=f.timestamp, arbitration_id=f.arbitration_id, is_extended_id=f.is_extended_id,
+                        data=stamper.stamp(f.arbitration_id, bytes(f.data))) for f in frames]
 
 
 def current_frame(t: float, current_a: float, *, raw: int | None = None, invalid: bool = False) -> can.Message:
     if raw is not None:  # e.g. the NotAvailable raw value
-        return msg("PackMeasurement", {"PackCurrent": raw, "PackVoltage": 24_000, "MeasurementCounter": 0,
+        return msg("PackMeasurement", {"PackCurrent": raw, "PackVoltage": 24_000,
                                        "CurrentInvalid": 0, "VoltageInvalid": 0}, t, scaling=False)
-    return msg("PackMeasurement", {"PackCurrent": current_a, "PackVoltage": 3.7 * N, "MeasurementCounter": 0,
+    return msg("PackMeasurement", {"PackCurrent": current_a, "PackVoltage": 3.7 * N,
                                    "CurrentInvalid": int(invalid), "VoltageInvalid": 0}, t)
 
 
@@ -533,13 +546,42 @@ def test_undecodable_and_unmapped_mux_values_are_counted(tmp_path):
     np.testing.assert_array_equal(ref.est.soc, Offline().feed(clean).est.soc)
 
 
+def test_spoofed_frames_and_a_lost_frame_are_dropped_by_the_default_end_to_end_checks(tmp_path):
+    """The shipped default mapping checks the project DBC's CRC and alive counters. Injected
+    PackMeasurement frames with an in-range +-5000 A current and a wrong CRC (the counter value the
+    sender sends next, as a spoofer would guess it) are dropped, counted, and leave the estimate
+    bit-identical to the clean run; a current frame lost on the bus makes the next one skip a value,
+    which is dropped and counted too."""
+    clean = rows(0, 30)
+    frames = list(clean)
+    cur = [k for k, f in enumerate(clean) if f.arbitration_id == MSG["PackMeasurement"].frame_id]
+    spoofs = []
+    for n, k in enumerate(cur[20:200:45]):  # four spoofs, +5000 and -5000 A in turn
+        real = clean[cur[cur.index(k) + 1]]  # the sender's next current frame: its counter value
+        d = MSG["PackMeasurement"].decode(real.data, decode_choices=False)
+        d.update(PackCurrent=5000.0 if n % 2 == 0 else -5000.0, MeasurementCrc=real.data[7] ^ 0x3C)
+        spoofs.append(msg("PackMeasurement", d, clean[k].timestamp + 0.001))
+    frames += spoofs
+    frames.sort(key=lambda m: m.timestamp)  # stable: each spoof right after its real frame
+    metrics, ref, _ = run_bad_input(tmp_path, frames, 30)
+    assert metrics['bms_decode_problems_total{reason="e2e_crc"}'] == len(spoofs) == 4
+    assert metrics['bms_decode_problems_total{reason="e2e_counter"}'] == 0
+    np.testing.assert_array_equal(ref.est.soc, Offline().feed(clean).est.soc)  # the spoofs reached nothing
+
+    lost = [f for k, f in enumerate(clean) if k != cur[57]]  # one current frame never arrives
+    metrics, ref, _ = run_bad_input(tmp_path / "lost", lost, 30)
+    assert metrics['bms_decode_problems_total{reason="e2e_counter"}'] == 1
+    assert metrics['bms_decode_problems_total{reason="e2e_crc"}'] == 0
+    assert metrics["bms_decode_problems_total"] == 1
+
+
 def test_not_available_out_of_range_and_invalid_values(tmp_path):
     frames: list[can.Message] = []
     for k in range(40):
         if k in (10, 11):  # two seconds without a usable current: NotAvailable, then flagged invalid
             for f in row_frames(k):
                 if f.arbitration_id == MSG["PackMeasurement"].frame_id:
-                    f = current_frame(f.timestamp, 0.0, raw=-(2**31)) if k == 10 else current_frame(f.timestamp, 1.0, invalid=True)
+                    f = current_frame(f.timestamp, 0.0, raw=-(2**23)) if k == 10 else current_frame(f.timestamp, 1.0, invalid=True)
                 frames.append(f)
         elif 20 <= k < 26:  # cell 4 reads 6 V (above valid_max 5.5 V), cell 1 NotAvailable
             for f in row_frames(k, volts_override={4: 6.0}):
@@ -551,7 +593,7 @@ def test_not_available_out_of_range_and_invalid_values(tmp_path):
         else:
             frames += row_frames(k)
     frames.append(current_frame(T0 + 40, float(cycle().current_a[40])))
-    metrics, ref, svc = run_bad_input(tmp_path, frames, 40)
+    metrics, ref, svc = run_bad_input(tmp_path, restamp(frames), 40)
     assert metrics['bms_decode_problems_total{reason="not_available"}'] == 10 + 60
     assert metrics['bms_decode_problems_total{reason="flagged_invalid"}'] == 10
     assert metrics['bms_decode_problems_total{reason="out_of_range"}'] == 60
@@ -570,6 +612,7 @@ def test_gaps_backward_and_rewound_time(tmp_path):
     at = len(frames) - 150
     frames.insert(at, current_frame(frames[at - 1].timestamp - 1.0, 5.0))  # 1 s in the past: ignored
     frames += rows(40, 20, t_shift=-5000.0)  # a new log from an older time: sampler reset
+    frames = restamp(frames)
     metrics, ref, _ = run_bad_input(tmp_path, frames, len(Offline().feed(frames).steps))
     assert metrics['bms_sample_anomalies_total{kind="time_jump"}'] == 1
     assert metrics['bms_sample_anomalies_total{kind="backward_frame"}'] == 1
@@ -791,7 +834,7 @@ def test_restart_resumes_from_saved_state(tmp_path):
     ch = channel()
     cfg = make_cfg(tmp_path, ch)
     first, second = list(cached_rows(0, 150)), rows(150, 150)
-    whole = Offline().feed(first[:-1] + second)  # the uninterrupted run over the same data
+    whole = Offline().feed(restamp(first[:-1] + second))  # the uninterrupted run over the same data
     assert len(whole.steps) == 300
 
     async def one_run(frames, n):

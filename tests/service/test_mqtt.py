@@ -637,3 +637,35 @@ def test_a_socket_closed_before_its_registration_logs_no_asyncio_error():
     assert any("Bad file descriptor" in e for e in errors)
     errors, registered = asyncio.run(closed_before_registration(MqttClient))
     assert errors == [] and registered
+
+
+def test_cell_payload_texts_are_the_per_cell_dumps_byte_for_byte():
+    """The one-build-per-tick JSON (one encoder pass per column, a template per cell) gives exactly
+    the text of building and dumping each cell's payload dict: NaN/inf as null, numpy and
+    broadcast scalars, R*C for a missing tau, extra keys, stale flags, awkward floats."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from bms_estimator.service import schema
+
+    floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+    @settings(max_examples=60, deadline=None)
+    @given(n=st.integers(1, 12), data=st.data())
+    def check(n, data):
+        cells = {"soc": np.array(data.draw(st.lists(floats, min_size=n, max_size=n))),
+                 "r1_ohm": np.array(data.draw(st.lists(floats, min_size=n, max_size=n))),
+                 "c1_f": np.float32(data.draw(st.floats(width=32))),  # a scalar, broadcast to every cell
+                 "capacity_ah": 2.5,
+                 "x_extra%s": np.arange(n),  # a key outside the schema, a % in it
+                 "stale": np.array(data.draw(st.lists(st.booleans(), min_size=n, max_size=n)))}
+        t_s = data.draw(floats)
+        want = [schema.dumps(p) for p in schema.cell_payloads(t_s, cells, n)]
+        assert schema.cell_payload_texts(t_s, cells, n) == want
+        which = sorted(set(data.draw(st.lists(st.integers(0, n - 1), max_size=n))))
+        assert schema.cell_payload_texts(t_s, cells, n, np.array(which, dtype=np.int64)) == [want[i] for i in which]
+        assert all(json.loads(w)["t_s"] == schema.json_number(t_s) for w in want)
+
+    check()
+    with pytest.raises(ValueError, match="expected 3"):
+        schema.cell_payload_texts(0.0, {"soc": np.zeros(2)}, 3)
