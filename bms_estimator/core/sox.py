@@ -26,7 +26,8 @@ import numpy as np
 
 from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from .soh import ResistanceSoh, SohConfig, capacity_soh
-from .sop import SopConfig, pack_limits, sop_limits
+from .ocv_surface import OcvAtTemperatures
+from .sop import SopConfig, sop_and_pack_limits
 
 __all__ = ["SoxConfig", "SoxEstimator"]
 
@@ -67,20 +68,15 @@ class SoxEstimator:
 
     # ---------------------------------------------------------------- OCV at the cells' temperatures
     @staticmethod
-    def ocv_functions(est):
-        """(OCV, dOCV/dSOC) of SOC arrays whose last axis is the cells, at each cell's temperature."""
-        ocv = est.ocv
-        t = np.asarray(est.temperature_c, dtype=float)
-        if hasattr(ocv, "temperatures_c"):
-            def f(s):  # s: (..., N), the last axis the cells
-                s = np.asarray(s, dtype=float)
-                return ocv.ocv(s, np.broadcast_to(t, s.shape))
+    def ocv_at(est) -> OcvAtTemperatures:
+        """OCV and slope of SOC arrays whose last axis is the cells, at each cell's temperature now."""
+        return OcvAtTemperatures(est.ocv, est.temperature_c)
 
-            def g(s):
-                s = np.asarray(s, dtype=float)
-                return ocv.docv_dsoc(s, np.broadcast_to(t, s.shape))
-            return f, g
-        return ocv.ocv, ocv.docv_dsoc
+    @classmethod
+    def ocv_functions(cls, est):
+        """(OCV, dOCV/dSOC) of SOC arrays whose last axis is the cells, at each cell's temperature."""
+        f = cls.ocv_at(est)
+        return f.ocv, f.slope
 
     def update(self, est, current_a, voltage_v, valid=None) -> None:
         """One period, after ``est.update`` with the same current and voltages: track, then compute."""
@@ -153,15 +149,15 @@ class SoxEstimator:
     def compute(self, est) -> None:
         """SOP, SOE and SOH from the tracked state (after :meth:`track`)."""
         cfg = self.config
-        ocv, slope = self.ocv_functions(est)
+        f = self.ocv_at(est)
+        ocv = f.ocv
         kw = self.model(est)
         soc, q, r = kw["soc"], kw["capacity_ah"], kw["r_ohm"]
         p = est.params
-        res = sop_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=slope, config=cfg.sop,
-                         v_margin=self.v_margin, **kw)
+        res, self.pack = sop_and_pack_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=f.slope,
+                                             ocv_slope=f.ocv_slope, config=cfg.sop, v_margin=self.v_margin,
+                                             n_parallel=cfg.sop.n_parallel, valid=np.isfinite(self.v_anchor), **kw)
         self.sop = res
-        self.pack = pack_limits(res, ocv=ocv, n_parallel=cfg.sop.n_parallel,
-                                valid=np.isfinite(self.v_anchor), **kw)
         r_ss = p["r0_ohm"] + r.sum(axis=1)
         e_left, z_cut = energy_left_wh(soc, q, r_ss, ocv, v_min=cfg.sop.v_min, soc_min=cfg.sop.soc_min, config=cfg.soe)
         tte = time_to_empty_s(soc, z_cut, q, self.mean_current_a, idle_current_c=cfg.soe.idle_current_c)
