@@ -7,7 +7,8 @@ Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``s
     RC voltages   x_j[k+1] = p_j x_j[k] + R_j (1 - p_j) i[k],  p_j = exp(-Ts/tau_j)   (identified R_j, tau_j)
     SOP           core.sop.sop_limits at the start of the next period (x_j[k+1], v[k] moved by it)
     SOE           core.soe.energy_left_wh at SoeConfig.rate_c; time to empty/full at the mean
-                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m)
+                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m); these and the capacity SOH are
+                  recomputed every SoxConfig.slow_period_s (10 s) and held in between
     energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing); E_net (Wh out since
                   the last full cell, soc >= full_soc) goes down again with charge
     SOH           core.soh: capacity SOH (once justified) and resistance SOH at the reference point
@@ -21,8 +22,10 @@ as core.ecm), so this module does not depend on how the SOC filter keeps its own
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge
 
 from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from .soh import ResistanceSoh, SohConfig, capacity_soh
@@ -38,6 +41,9 @@ class SoxConfig:
     soe: SoeConfig = field(default_factory=SoeConfig)
     soh: SohConfig = field(default_factory=SohConfig)
     full_soc: float = 0.99  # the net energy delivered restarts at this SOC
+    # energy left, time to empty/full and capacity SOH are recomputed every slow_period_s and held
+    # in between (they move by well under 1 % in 10 s; the SOP and the energy counters run every sample)
+    slow_period_s: Annotated[float, Ge(0)] = 10.0
 
 
 class SoxEstimator:
@@ -65,6 +71,9 @@ class SoxEstimator:
         self._b_hist = np.full((int(self._lag.max()) + 1, self.n_cells), np.nan)
         self._b_head = 0
         self.error_ms_v2 = np.zeros((len(hz), self.n_cells))  # mean square n-step error per horizon
+        self._slow_every = max(int(round(config.slow_period_s / self.dt_s)), 1)  # samples
+        self._slow_due = 0
+        self._slow: dict[str, np.ndarray] = {}
 
     # ---------------------------------------------------------------- OCV at the cells' temperatures
     @staticmethod
@@ -80,11 +89,14 @@ class SoxEstimator:
 
     def update(self, est, current_a, voltage_v, valid=None) -> None:
         """One period, after ``est.update`` with the same current and voltages: track, then compute."""
-        self.track(est, current_a, voltage_v, valid)
-        self.compute(est)
+        f = self.ocv_at(est)  # the cells' temperatures located once for both
+        self.track(est, current_a, voltage_v, valid, ocv_at=f)
+        self.compute(est, ocv_at=f)
 
-    def track(self, est, current_a, voltage_v, valid=None) -> None:
-        """The per-sample states only (RC voltages, mean current, energy, R0 history); cheap."""
+    def track(self, est, current_a, voltage_v, valid=None, *, ocv_at: OcvAtTemperatures | None = None) -> None:
+        """The per-sample states only (RC voltages, mean current, energy, R0 history); cheap.
+
+        ``ocv_at``: :meth:`ocv_at` of ``est`` now, when the caller has it already."""
         n = self.n_cells
         i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
         v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
@@ -102,7 +114,8 @@ class SoxEstimator:
         x_next = pj * self.x_v + np.where(good[:, None], r, 0.0) * (1.0 - pj) * i_use[:, None]
         self.x_v = np.where(good[:, None], x_next, 0.0)
         # the voltage at the next period's start at this period's current: v moved by the RC change
-        self.v_anchor = np.where(ok, v + (self.x_v - self._x_prev).sum(axis=1), self.v_anchor)
+        dx = self.x_v - self._x_prev
+        self.v_anchor = np.where(ok, v + dx[:, 0] + dx[:, 1], self.v_anchor)
         self.i_anchor = np.where(ok, i_use, self.i_anchor)
         # the SOC at the next period's start
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -113,15 +126,16 @@ class SoxEstimator:
         self.energy_discharged_wh += np.maximum(-e, 0.0)
         soc = np.asarray(est.soc, dtype=float)
         self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
-        self._track_error(est, p, i_use, v, ok)
+        self._track_error(est, p, i_use, v, ok, ocv_at)
         identified = np.asarray(getattr(est.identifier, "identified", np.ones(n, bool)), dtype=bool)
         self.resistance.update(p["r0_ohm"], est.temperature_c, soc, identified & ok)
 
-    def _track_error(self, est, p, i_use, v, ok) -> None:
+    def _track_error(self, est, p, i_use, v, ok, ocv_at=None) -> None:
         """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon."""
-        ocv, _ = self.ocv_functions(est)
+        f = self.ocv_at(est) if ocv_at is None else ocv_at
+        x = self._x_prev
         with np.errstate(invalid="ignore"):
-            b = v - ocv(np.asarray(est.soc, dtype=float)) - p["r0_ohm"] * i_use - self._x_prev.sum(axis=1)
+            b = v - f.ocv(np.asarray(est.soc, dtype=float)) - p["r0_ohm"] * i_use - (x[:, 0] + x[:, 1])
         b = np.where(ok, b, np.nan)
         size = self._b_hist.shape[0]
         self._b_head = (self._b_head + 1) % size
@@ -146,19 +160,41 @@ class SoxEstimator:
                     r_ohm=np.stack([p["r1_ohm"], p["r2_ohm"]], axis=1),
                     tau_s=np.stack([p["tau1_s"], p["tau2_s"]], axis=1), x_v=self.x_v)
 
-    def compute(self, est) -> None:
+    def compute(self, est, *, ocv_at: OcvAtTemperatures | None = None) -> None:
         """SOP, SOE and SOH from the tracked state (after :meth:`track`)."""
         cfg = self.config
-        f = self.ocv_at(est)
+        f = self.ocv_at(est) if ocv_at is None else ocv_at
         ocv = f.ocv
         kw = self.model(est)
-        soc, q, r = kw["soc"], kw["capacity_ah"], kw["r_ohm"]
-        p = est.params
         res, self.pack = sop_and_pack_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=f.slope,
                                              ocv_slope=f.ocv_slope, config=cfg.sop, v_margin=self.v_margin,
                                              n_parallel=cfg.sop.n_parallel, valid=np.isfinite(self.v_anchor), **kw)
         self.sop = res
-        r_ss = p["r0_ohm"] + r.sum(axis=1)
+        if self._slow_due <= 0 or not self._slow:
+            self._slow = self._energy_and_capacity(est, f.ocv, kw)
+            self._slow_due = self._slow_every
+        self._slow_due -= 1
+        out = {}
+        for h, d in enumerate(res.horizons_s):
+            tag = f"{d:g}s"
+            out[f"i_discharge_max_{tag}_a"] = res.discharge_a[h]
+            out[f"i_charge_max_{tag}_a"] = res.charge_a[h]
+            out[f"p_discharge_max_{tag}_w"] = res.discharge_w[h]
+            out[f"p_charge_max_{tag}_w"] = res.charge_w[h]
+        out.update(self._slow)
+        out.update(
+            energy_delivered_wh=self.energy_delivered_wh.copy(),
+            energy_discharged_wh=self.energy_discharged_wh.copy(),
+            soh_resistance=self.resistance.ratio,
+            r0_ref_ohm=self.resistance.r0_ref_ohm.copy(),
+        )
+        self.outputs = out
+
+    def _energy_and_capacity(self, est, ocv, kw) -> dict[str, np.ndarray]:
+        """The slow outputs (every ``SoxConfig.slow_period_s``): energy left, time to empty/full, capacity SOH."""
+        cfg = self.config
+        soc, q, r = kw["soc"], kw["capacity_ah"], kw["r_ohm"]
+        r_ss = kw["r0_ohm"] + r[:, 0] + r[:, 1]
         e_left, z_cut = energy_left_wh(soc, q, r_ss, ocv, v_min=cfg.sop.v_min, soc_min=cfg.sop.soc_min, config=cfg.soe)
         tte = time_to_empty_s(soc, z_cut, q, self.mean_current_a, idle_current_c=cfg.soe.idle_current_c)
         ttf = time_to_full_s(soc, q, self.mean_current_a, soc_max=cfg.sop.soc_max, idle_current_c=cfg.soe.idle_current_c)
@@ -168,25 +204,8 @@ class SoxEstimator:
             else np.full(self.n_cells, np.nan)
         soh_q, soh_q_sigma = capacity_soh(est.capacity_ah, est.capacity_stated_ah, rel_sigma * est.capacity_ah,
                                           est.capacity_estimated)
-        out = {}
-        for h, d in enumerate(res.horizons_s):
-            tag = f"{d:g}s"
-            out[f"i_discharge_max_{tag}_a"] = res.discharge_a[h]
-            out[f"i_charge_max_{tag}_a"] = res.charge_a[h]
-            out[f"p_discharge_max_{tag}_w"] = res.discharge_w[h]
-            out[f"p_charge_max_{tag}_w"] = res.charge_w[h]
-        out.update(
-            energy_left_wh=e_left,
-            energy_delivered_wh=self.energy_delivered_wh.copy(),
-            energy_discharged_wh=self.energy_discharged_wh.copy(),
-            time_to_empty_s=tte,
-            time_to_full_s=ttf,
-            soh_capacity=soh_q,
-            soh_capacity_sigma=soh_q_sigma,
-            soh_resistance=self.resistance.ratio,
-            r0_ref_ohm=self.resistance.r0_ref_ohm.copy(),
-        )
-        self.outputs = out
+        return dict(energy_left_wh=e_left, time_to_empty_s=tte, time_to_full_s=ttf, soh_capacity=soh_q,
+                    soh_capacity_sigma=soh_q_sigma)
 
     def pack_outputs(self) -> dict[str, float]:
         """Pack figures: the SOP per horizon, and the sums/extremes of the cell figures."""
