@@ -171,17 +171,17 @@ def _solve(g0, r_d, s, c, sign, cap, ocv: OcvFn, ocv_slope, ocv_s, slope_s, step
     the cap, the unconverged Newton step landed elsewhere and a colder cell's 30 s limit
     came out 0.1 % higher than a warmer one's.  A row already past its bound
     (``g0 >= 0``) gets 0.  ``ocv_slope`` gives (OCV, slope) at one array in one call.
+    Runs inside the caller's ``np.errstate`` (a division by a zero R_D gives inf, capped).
     """
     sc = sign * c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = -g0 / (r_d + c * slope_s)
-        np.maximum(x, 0.0, out=x)
-        for _ in range(steps):
-            o, d = ocv_slope(s + sc * x)
-            gx = g0 + sign * (o - ocv_s) + r_d * x
-            x = np.maximum(x - gx / (r_d + c * d), 0.0)
-        gx = g0 + sign * (ocv(s + sc * x) - ocv_s) + r_d * x
-        x = np.minimum(np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x), cap)
+    x = -g0 / (r_d + c * slope_s)
+    np.maximum(x, 0.0, out=x)
+    for _ in range(steps):
+        o, d = ocv_slope(s + sc * x)
+        gx = g0 + sign * (o - ocv_s) + r_d * x
+        x = np.maximum(x - gx / (r_d + c * d), 0.0)
+    gx = g0 + sign * (ocv(s + sc * x) - ocv_s) + r_d * x
+    x = np.minimum(np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x), cap)
     return np.where(g0 >= 0.0, 0.0, x)
 
 
@@ -241,6 +241,13 @@ def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: O
         raise ValueError(f"method must be 'model' or 'hppc', got {method!r}")
     if pack is not None and method != "model":
         raise ValueError("pack limits are the model method's")
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # one context for the whole solve
+        return _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv, docv_dsoc, r0_ohm, r_ohm,
+                            tau_s, x_v, config, method, v_margin, ocv_slope, pack)
+
+
+def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv, docv_dsoc, r0_ohm, r_ohm, tau_s,
+                 x_v, config, method, v_margin, ocv_slope, pack):
     cfg = config
     v = np.asarray(voltage_v, dtype=float)
     n = v.shape[0]
@@ -250,9 +257,11 @@ def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: O
     x_rc = np.asarray(x_v, float)
     if x_rc.shape != r_rc.shape:
         x_rc = np.broadcast_to(x_rc, r_rc.shape)
-    with np.errstate(invalid="ignore"):
-        ok = (np.isfinite(v) & np.isfinite(i_now) & np.isfinite(s) & (q > 0) & np.isfinite(q) & (r0 > 0)
-              & np.isfinite(r0) & ((r_rc >= 0) & (tau_rc > 0) & np.isfinite(r_rc + tau_rc + x_rc)).all(axis=1))
+    # finite (a NaN or inf anywhere makes the sum non-finite) and positive; the per-cell test of
+    # the RC columns (a reduction over the short axis) only when some entry fails
+    ok = np.isfinite(v + i_now + s + q + r0 + (r_rc + tau_rc + x_rc) @ np.ones(r_rc.shape[1])) & (np.minimum(q, r0) > 0)
+    if not ((r_rc >= 0).all() and (tau_rc > 0).all()):
+        ok &= ((r_rc >= 0) & (tau_rc > 0)).all(axis=1)
     all_ok = bool(ok.all())
     if not all_ok:  # a cell that cannot be predicted gets no current: harmless numbers, zeroed at the end
         v, s, q, r0, i_now = (np.where(ok, a, d) for a, d in ((v, cfg.v_min), (s, 0.0), (q, 1.0), (r0, 1.0),
@@ -264,8 +273,7 @@ def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: O
     if ocv_slope is None:
         def ocv_slope(z):
             return ocv(z), docv_dsoc(z)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        qd = 1.0 - np.exp(-hz3 / tau_rc)  # (2H, N, m): 1 - p_j per row
+    qd = 1.0 - np.exp(-hz3 / tau_rc)  # (2H, N, m): 1 - p_j per row
     r_d = r0 + np.einsum("hnm,nm->hn", qd, r_rc)  # (2H, N): R_D
     c = hz3[:, :, 0] / (3600.0 * q)  # (2H, N): SOC per A over the horizon
     ocv_s, slope_s = ocv_slope(s)  # (N,): one evaluation serves every row
@@ -279,8 +287,7 @@ def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: O
     t = _per_cell(temperature_c, n)
     design = np.where(dis, cfg.i_discharge_max_a * derate(t, t_tab, dis_tab), cfg.i_charge_max_a * derate(t, t_tab, chg_tab))
     room = np.maximum(np.where(dis, s - cfg.soc_min, cfg.soc_max - s), 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cap = np.minimum(design, room / c)
+    cap = np.minimum(design, room / c)
     if v_margin is not None:
         m = np.asarray(v_margin, dtype=float)
         m = np.where(m > 0.0, m, 0.0)  # NaN -> 0
@@ -307,16 +314,14 @@ def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: O
         o_lim, o_pack = o[:2 * nh], o[2 * nh:]
     else:
         o_lim = ocv(s + sc * lim)
-    with np.errstate(invalid="ignore"):
-        v_at = target + sign * np.minimum(g0 + sign * (o_lim - ocv_s) + r_d * lim, 0.0)
+    v_at = target + sign * np.minimum(g0 + sign * (o_lim - ocv_s) + r_d * lim, 0.0)
     v_at = np.where(lim > 0.0, v_at, base)
     p = np.where(np.isfinite(v_at), np.maximum(lim * v_at, 0.0), 0.0)
     res = SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:])
     if pack is None:
         return res, None
-    with np.errstate(invalid="ignore"):
-        v_pack = base + (o_pack - ocv_s) + r_d * i2
-        p_pack = i_pack * n_par * np.sum(np.where(use & np.isfinite(v_pack), v_pack, 0.0), axis=1)
+    v_pack = base + (o_pack - ocv_s) + r_d * i2
+    p_pack = i_pack * n_par * np.sum(np.where(use & np.isfinite(v_pack), v_pack, 0.0), axis=1)
     p_pack = np.maximum(p_pack, 0.0)
     return res, {"discharge_a": i_pack[:nh] * n_par, "charge_a": i_pack[nh:] * n_par,
                  "discharge_w": p_pack[:nh], "charge_w": p_pack[nh:]}

@@ -98,44 +98,55 @@ class SoxEstimator:
 
         ``ocv_at``: :meth:`ocv_at` of ``est`` now, when the caller has it already."""
         n = self.n_cells
-        i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
-        v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
-        ok = np.isfinite(v) & np.isfinite(i)
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            self._track(est, current_a, voltage_v, valid, ocv_at, n)
+
+    def _track(self, est, current_a, voltage_v, valid, ocv_at, n) -> None:
+        if np.ndim(current_a) == 0:  # one pack current (the usual case): no per-cell broadcast
+            i0 = float(current_a)
+            i_use = np.full(n, i0 if np.isfinite(i0) else 0.0)
+            v = np.asarray(voltage_v, dtype=float)
+            if v.shape != (n,):
+                v = np.broadcast_to(v, (n,))
+            ok = np.isfinite(v) if np.isfinite(i0) else np.zeros(n, dtype=bool)
+        else:
+            i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
+            v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
+            ok = np.isfinite(v) & np.isfinite(i)
+            i_use = np.where(np.isfinite(i), i, 0.0)
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
-        i_use = np.where(np.isfinite(i), i, 0.0)
         p = est.params
         r = np.stack([p["r1_ohm"], p["r2_ohm"]], axis=1)
         tau = np.stack([p["tau1_s"], p["tau2_s"]], axis=1)
-        good = np.all(np.isfinite(r) & np.isfinite(tau) & (tau > 0), axis=1)
-        with np.errstate(invalid="ignore", over="ignore"):
-            pj = np.exp(-self.dt_s / np.where(good[:, None], tau, 1.0))
-        self._x_prev = self.x_v.copy()
-        x_next = pj * self.x_v + np.where(good[:, None], r, 0.0) * (1.0 - pj) * i_use[:, None]
-        self.x_v = np.where(good[:, None], x_next, 0.0)
+        good = np.isfinite(r[:, 0] + r[:, 1] + tau[:, 0] + tau[:, 1]) & (np.minimum(tau[:, 0], tau[:, 1]) > 0)
+        all_good = bool(good.all())
+        pj = np.exp(-self.dt_s / (tau if all_good else np.where(good[:, None], tau, 1.0)))
+        x_prev = self._x_prev = self.x_v
+        x_next = pj * x_prev + (r if all_good else np.where(good[:, None], r, 0.0)) * (1.0 - pj) * i_use[:, None]
+        self.x_v = x_next if all_good else np.where(good[:, None], x_next, 0.0)
         # the voltage at the next period's start at this period's current: v moved by the RC change
-        dx = self.x_v - self._x_prev
+        dx = self.x_v - x_prev
         self.v_anchor = np.where(ok, v + dx[:, 0] + dx[:, 1], self.v_anchor)
         self.i_anchor = np.where(ok, i_use, self.i_anchor)
         # the SOC at the next period's start
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.soc_anchor = np.asarray(est.soc, float) + i_use * self.dt_s / (3600.0 * np.asarray(est.counting_capacity_ah, float))
+        soc = np.asarray(est.soc, dtype=float)
+        self.soc_anchor = soc + i_use * self.dt_s / (3600.0 * np.asarray(est.counting_capacity_ah, float))
         a = 1.0 - np.exp(-self.dt_s / self.config.soe.mean_current_tau_s)
         self.mean_current_a = self.mean_current_a + a * (i_use - self.mean_current_a)
         e = np.where(ok, v * i_use * self.dt_s / 3600.0, 0.0)
         self.energy_discharged_wh += np.maximum(-e, 0.0)
-        soc = np.asarray(est.soc, dtype=float)
         self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
         self._track_error(est, p, i_use, v, ok, ocv_at)
         identified = np.asarray(getattr(est.identifier, "identified", np.ones(n, bool)), dtype=bool)
         self.resistance.update(p["r0_ohm"], est.temperature_c, soc, identified & ok)
 
     def _track_error(self, est, p, i_use, v, ok, ocv_at=None) -> None:
-        """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon."""
+        """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon.
+        (Inside :meth:`track`'s errstate.)"""
         f = self.ocv_at(est) if ocv_at is None else ocv_at
         x = self._x_prev
-        with np.errstate(invalid="ignore"):
-            b = v - f.ocv(np.asarray(est.soc, dtype=float)) - p["r0_ohm"] * i_use - (x[:, 0] + x[:, 1])
+        b = v - f.ocv(np.asarray(est.soc, dtype=float)) - p["r0_ohm"] * i_use - (x[:, 0] + x[:, 1])
         b = np.where(ok, b, np.nan)
         size = self._b_hist.shape[0]
         self._b_head = (self._b_head + 1) % size
