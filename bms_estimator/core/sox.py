@@ -74,12 +74,23 @@ class SoxEstimator:
         self._slow_every = max(int(round(config.slow_period_s / self.dt_s)), 1)  # samples
         self._slow_due = 0
         self._slow: dict[str, np.ndarray] = {}
+        self._ocv_at_last = None
 
     # ---------------------------------------------------------------- OCV at the cells' temperatures
     @staticmethod
     def ocv_at(est) -> OcvAtTemperatures:
         """OCV and slope of SOC arrays whose last axis is the cells, at each cell's temperature now."""
         return OcvAtTemperatures(est.ocv, est.temperature_c)
+
+    def _ocv_at_cached(self, est) -> OcvAtTemperatures:
+        """:meth:`ocv_at`, kept while the temperatures (and the OCV object) are the same as last sample's."""
+        t = np.asarray(est.temperature_c, dtype=float)
+        c = self._ocv_at_last
+        if c is not None and c[0] is est.ocv and c[1].shape == t.shape and np.array_equal(c[1], t):
+            return c[2]
+        f = self.ocv_at(est)
+        self._ocv_at_last = (est.ocv, t.copy(), f)
+        return f
 
     @classmethod
     def ocv_functions(cls, est):
@@ -89,7 +100,7 @@ class SoxEstimator:
 
     def update(self, est, current_a, voltage_v, valid=None) -> None:
         """One period, after ``est.update`` with the same current and voltages: track, then compute."""
-        f = self.ocv_at(est)  # the cells' temperatures located once for both
+        f = self._ocv_at_cached(est)  # the cells' temperatures located once for both
         self.track(est, current_a, voltage_v, valid, ocv_at=f)
         self.compute(est, ocv_at=f)
 
