@@ -125,6 +125,9 @@ class SopResult:
     charge_a: np.ndarray
     discharge_w: np.ndarray
     charge_w: np.ndarray
+    #: the model method's prediction basis per horizon (core.sop_residual learns from it):
+    #: v_base (H, N), the identified R_D (H, N), OCV(s) (N,); None for the HPPC method
+    basis: tuple | None = None
 
 
 def derate(temperature_c: np.ndarray, temperatures_c, factors) -> np.ndarray:
@@ -146,8 +149,11 @@ def _horizon_terms(r0, r_rc, tau_rc, x_rc, horizons_s):
 
 
 def predict_voltage(current_a, horizon_s, *, voltage_v, current_now_a, soc, capacity_ah, ocv: OcvFn,
-                    r0_ohm, r_ohm, tau_s, x_v) -> np.ndarray:
-    """``v(D, I)`` of the module docstring for a constant current ``I`` (per cell) over ``D`` s."""
+                    r0_ohm, r_ohm, tau_s, x_v, dr_ohm=None) -> np.ndarray:
+    """``v(D, I)`` of the module docstring for a constant current ``I`` (per cell) over ``D`` s.
+
+    ``dr_ohm`` (per cell, optional): the learnt correction of ``R_D`` (core.sop_residual),
+    used as ``max(R_D + dR, R_D / 2)``."""
     r0 = np.asarray(r0_ohm, dtype=float)
     r_d, decay = _horizon_terms(r0, np.asarray(r_ohm, float), np.asarray(tau_s, float), np.asarray(x_v, float),
                                 [float(horizon_s)])
@@ -155,7 +161,13 @@ def predict_voltage(current_a, horizon_s, *, voltage_v, current_now_a, soc, capa
     s = np.asarray(soc, dtype=float)
     c = float(horizon_s) / (3600.0 * np.asarray(capacity_ah, dtype=float))
     base = np.asarray(voltage_v, float) - r0 * np.asarray(current_now_a, float) - decay[0]
-    return base + (ocv(s + c * i) - ocv(s)) + r_d[0] * i
+    r_d = r_d[0] if dr_ohm is None else _corrected(r_d[0], np.asarray(dr_ohm, dtype=float))
+    return base + (ocv(s + c * i) - ocv(s)) + r_d * i
+
+
+def _corrected(r_d: np.ndarray, dr: np.ndarray) -> np.ndarray:
+    """``max(R_D + dR, R_D / 2)``: the learnt correction, floored so that v(D, I) stays increasing."""
+    return np.maximum(r_d + np.where(np.isfinite(dr), dr, 0.0), 0.5 * r_d)
 
 
 def _solve(g0, r_d, s, c, sign, cap, ocv: OcvFn, ocv_slope, ocv_s, slope_s, steps: int):
@@ -206,7 +218,7 @@ def _per_cell(a, n: int) -> np.ndarray:
 
 def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
                r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model",
-               v_margin=None, ocv_slope=None) -> SopResult:
+               v_margin=None, ocv_slope=None, dr_ohm=None) -> SopResult:
     """Discharge and charge current and power limits per horizon and cell (module docstring).
 
     ``v_margin`` (V, ``(H, N)`` or broadcastable, >= 0): the model's own error margin; the
@@ -217,8 +229,10 @@ def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv
     ``ocv_slope`` (optional) gives both at once (e.g.
     :meth:`~bms_estimator.core.ocv_surface.OcvAtTemperatures.ocv_slope`).
     ``method`` = ``"model"`` (Plett's, the default) or ``"hppc"`` (the static-resistance baseline).
+    ``dr_ohm`` (``(2H, N)``: discharge horizons, then charge; optional, model method): the learnt
+    correction of each row's ``R_D`` (core.sop_residual), used as ``max(R_D + dR, R_D / 2)``.
     """
-    return _limits(voltage_v=voltage_v, current_now_a=current_now_a, soc=soc, capacity_ah=capacity_ah,
+    return _limits(dr_ohm=dr_ohm, voltage_v=voltage_v, current_now_a=current_now_a, soc=soc, capacity_ah=capacity_ah,
                    temperature_c=temperature_c, ocv=ocv, docv_dsoc=docv_dsoc, r0_ohm=r0_ohm, r_ohm=r_ohm,
                    tau_s=tau_s, x_v=x_v, config=config, method=method, v_margin=v_margin, ocv_slope=ocv_slope)[0]
 
@@ -235,7 +249,7 @@ def sop_and_pack_limits(*, n_parallel: int = 1, valid=None, **kwargs) -> tuple[S
 
 def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
             r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model",
-            v_margin=None, ocv_slope=None, pack=None):
+            v_margin=None, ocv_slope=None, pack=None, dr_ohm=None):
     """The limits of all horizons and both directions as one ``(2H, N)`` solve (rows: :func:`_rows`)."""
     if method not in ("model", "hppc"):
         raise ValueError(f"method must be 'model' or 'hppc', got {method!r}")
@@ -243,11 +257,11 @@ def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: O
         raise ValueError("pack limits are the model method's")
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # one context for the whole solve
         return _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv, docv_dsoc, r0_ohm, r_ohm,
-                            tau_s, x_v, config, method, v_margin, ocv_slope, pack)
+                            tau_s, x_v, config, method, v_margin, ocv_slope, pack, dr_ohm)
 
 
 def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv, docv_dsoc, r0_ohm, r_ohm, tau_s,
-                 x_v, config, method, v_margin, ocv_slope, pack):
+                 x_v, config, method, v_margin, ocv_slope, pack, dr_ohm):
     cfg = config
     v = np.asarray(voltage_v, dtype=float)
     n = v.shape[0]
@@ -278,9 +292,13 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
     c = hz3[:, :, 0] / (3600.0 * q)  # (2H, N): SOC per A over the horizon
     ocv_s, slope_s = ocv_slope(s)  # (N,): one evaluation serves every row
     ocv_s, slope_s = np.asarray(ocv_s, dtype=float), np.asarray(slope_s, dtype=float)
+    basis = None
     if method == "model":
         base = (v - r0 * i_now) - np.einsum("hnm,nm->hn", qd, x_rc)
         c_use = c
+        basis = (base[:nh], r_d[:nh], ocv_s)  # the identified model's, before any correction
+        if dr_ohm is not None:
+            r_d = _corrected(r_d, np.asarray(dr_ohm, dtype=float))
     else:
         base = np.broadcast_to(ocv_s, c.shape)  # at rest, and the OCV held
         c_use = np.zeros_like(c)
@@ -317,7 +335,7 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
     v_at = target + sign * np.minimum(g0 + sign * (o_lim - ocv_s) + r_d * lim, 0.0)
     v_at = np.where(lim > 0.0, v_at, base)
     p = np.where(np.isfinite(v_at), np.maximum(lim * v_at, 0.0), 0.0)
-    res = SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:])
+    res = SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:], basis)
     if pack is None:
         return res, None
     v_pack = base + (o_pack - ocv_s) + r_d * i2

@@ -31,6 +31,7 @@ from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from .soh import ResistanceSoh, SohConfig, capacity_soh
 from .ocv_surface import OcvAtTemperatures
 from .sop import SopConfig, sop_and_pack_limits
+from .sop_residual import ResidualConfig, ResidualResistance
 
 __all__ = ["SoxConfig", "SoxEstimator"]
 
@@ -40,6 +41,7 @@ class SoxConfig:
     sop: SopConfig = field(default_factory=SopConfig)
     soe: SoeConfig = field(default_factory=SoeConfig)
     soh: SohConfig = field(default_factory=SohConfig)
+    residual: ResidualConfig = field(default_factory=ResidualConfig)  # the learnt R_D correction (core.sop_residual)
     full_soc: float = 0.99  # the net energy delivered restarts at this SOC
     # energy left, time to empty/full and capacity SOH are recomputed every slow_period_s and held
     # in between (they move by well under 1 % in 10 s; the SOP and the energy counters run every sample)
@@ -75,6 +77,10 @@ class SoxEstimator:
         self._slow_due = 0
         self._slow: dict[str, np.ndarray] = {}
         self._ocv_at_last = None
+        self.residual = ResidualResistance(self.n_cells, self.dt_s, hz, config.residual)
+        self._basis = None  # the last SOP's prediction basis, for the residual's windows
+        self._dr = None  # its correction now, (2H, N) or None
+        self._dr_seen = -1
 
     # ---------------------------------------------------------------- OCV at the cells' temperatures
     @staticmethod
@@ -148,16 +154,18 @@ class SoxEstimator:
         e = np.where(ok, v * i_use * self.dt_s / 3600.0, 0.0)
         self.energy_discharged_wh += np.maximum(-e, 0.0)
         self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
-        self._track_error(est, p, i_use, v, ok, ocv_at)
+        ocv_soc = self._track_error(est, p, i_use, v, ok, ocv_at)
+        self.residual.sample(np.where(ok, i_use, np.nan), v, ocv_soc, soc, est.counting_capacity_ah, self._basis)
         identified = np.asarray(getattr(est.identifier, "identified", np.ones(n, bool)), dtype=bool)
         self.resistance.update(p["r0_ohm"], est.temperature_c, soc, identified & ok)
 
-    def _track_error(self, est, p, i_use, v, ok, ocv_at=None) -> None:
+    def _track_error(self, est, p, i_use, v, ok, ocv_at=None) -> np.ndarray:
         """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon.
-        (Inside :meth:`track`'s errstate.)"""
+        Returns OCV(s) (inside :meth:`track`'s errstate)."""
         f = self.ocv_at(est) if ocv_at is None else ocv_at
         x = self._x_prev
-        b = v - f.ocv(np.asarray(est.soc, dtype=float)) - p["r0_ohm"] * i_use - (x[:, 0] + x[:, 1])
+        ocv_soc = f.ocv(np.asarray(est.soc, dtype=float))
+        b = v - ocv_soc - p["r0_ohm"] * i_use - (x[:, 0] + x[:, 1])
         b = np.where(ok, b, np.nan)
         size = self._b_hist.shape[0]
         self._b_head = (self._b_head + 1) % size
@@ -168,6 +176,7 @@ class SoxEstimator:
         fresh = np.isfinite(e)
         self.error_ms_v2 = np.where(fresh, self.error_ms_v2 + a * (np.where(fresh, e, 0.0) ** 2 - self.error_ms_v2),
                                     self.error_ms_v2)
+        return ocv_soc
 
     @property
     def v_margin(self) -> np.ndarray:
@@ -188,11 +197,17 @@ class SoxEstimator:
         f = self.ocv_at(est) if ocv_at is None else ocv_at
         ocv = f.ocv
         kw = self.model(est)
+        slow = self._slow_due <= 0 or not self._slow
+        if slow or self.residual.windows_scored != self._dr_seen:  # a new dR, or its age/SOC checked on the slow cadence
+            self._dr = self.residual.correction(kw["soc"])
+            self._dr_seen = self.residual.windows_scored
         res, self.pack = sop_and_pack_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=f.slope,
                                              ocv_slope=f.ocv_slope, config=cfg.sop, v_margin=self.v_margin,
-                                             n_parallel=cfg.sop.n_parallel, valid=np.isfinite(self.v_anchor), **kw)
+                                             n_parallel=cfg.sop.n_parallel, valid=np.isfinite(self.v_anchor),
+                                             dr_ohm=self._dr, **kw)
         self.sop = res
-        if self._slow_due <= 0 or not self._slow:
+        self._basis = res.basis
+        if slow:
             self._slow = self._energy_and_capacity(est, f.ocv, kw)
             self._slow_due = self._slow_every
         self._slow_due -= 1
