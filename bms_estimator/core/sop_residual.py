@@ -69,7 +69,8 @@ class ResidualResistance:
         shape = (self.n_h, self.n_cells)
         self.dr_ohm = np.full((2,) + shape, np.nan)
         self.dr_soc = np.full((2,) + shape, np.nan)
-        self.dr_age_s = np.full((2,) + shape, np.inf)
+        self.dr_seen_k = np.full((2,) + shape, -np.inf)  # the sample each dR was seen at
+        self._k = 0
         self._age = np.full(shape, -1, dtype=np.int64)  # samples seen of the open window, -1 none
         self._base = np.zeros(shape)
         self._r_d = np.zeros(shape)
@@ -89,7 +90,7 @@ class ResidualResistance:
         """
         cfg = self.config
         i = np.asarray(current_a, dtype=float)
-        self.dr_age_s += self.dt_s
+        self._k += 1
         step = np.abs(i - self._i_last) >= cfg.step_c * np.asarray(capacity_ah, dtype=float)  # NaN -> False
         self._i_last = i
         if basis is not None and step.any():
@@ -130,15 +131,15 @@ class ResidualResistance:
             m = use & side
             self.dr_ohm[row] = np.where(m, dr, self.dr_ohm[row])
             self.dr_soc[row] = np.where(m, s, self.dr_soc[row])
-            self.dr_age_s[row] = np.where(m, 0.0, self.dr_age_s[row])
+            self.dr_seen_k[row] = np.where(m, self._k, self.dr_seen_k[row])
         self.windows_scored += int(np.count_nonzero(use))
 
     def correction(self, soc) -> np.ndarray | None:
         """(2H, N) dR in ohm for the SOP's rows (discharge horizons, then charge); None when none applies."""
         if not self.config.enabled:
             return None
-        fresh = (self.dr_age_s <= self.config.max_age_s) & (np.abs(self.dr_soc - np.asarray(soc, float))
-                                                            <= self.config.soc_band)
+        fresh = (((self._k - self.dr_seen_k) * self.dt_s <= self.config.max_age_s)
+                 & (np.abs(self.dr_soc - np.asarray(soc, float)) <= self.config.soc_band))
         if not fresh.any():
             return None
         return np.where(fresh, self.dr_ohm, 0.0).reshape(2 * self.n_h, self.n_cells)
