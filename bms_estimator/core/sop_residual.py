@@ -9,9 +9,13 @@ cell the online identifier's slow branch wanders between pulses and the cell's
 resistance falls with current, so ``R_D`` misses the cell's real D-second response by
 a few milliohm (on the Panasonic 18650PF HPPC at 25 degC the model's 10 s pulse
 prediction is 17 mV off in the median).  This module measures that miss on the cell
-itself, every time the cell does what the SOP predicts: a current step held for D s.
+itself, every time the cell does what the SOP predicts from a known state: a current step out of
+rest held for D s.  (Learning from every held step of a drive as well made the drive-cycle
+back-test worse: the 10 s windows of a drive that hold their current start from RC states
+the model tracks less well, and their dR carried that error to the next windows.)
 
-Window.  At a sample ``a`` where the current steps, ``|i_a - i_{a-1}| >= step_c Q``, the
+Window.  At a sample ``a`` where the current steps out of rest, ``|i_a - i_{a-1}| >= step_c Q``
+after ``rest_s`` of ``|i| < rest_c Q`` (a pulse from rest, as core.pulse_resistance), the
 prediction basis of the period starting at ``a`` (``v_base``, ``R_D``, ``OCV(s)`` per
 horizon, from the SOP of the sample before) is kept.  The window is scored when ``D``
 samples of it have been seen, if the current held: every sample but the first (a
@@ -51,6 +55,10 @@ __all__ = ["ResidualConfig", "ResidualResistance"]
 class ResidualConfig:
     enabled: bool = True
     step_c: Annotated[float, Gt(0)] = 0.25  # C: the current step that opens a window, and the least |I_w|
+    # the step must come out of rest: |i| < rest_c C for rest_s before it (core.pulse_resistance's and the
+    # back-test's pulse from rest)
+    rest_c: Annotated[float, Gt(0)] = 0.02
+    rest_s: Annotated[float, Ge(0)] = 60.0
     hold: Annotated[float, Ge(0)] = 0.5  # every sample of a window within (1 +- hold) I_w
     max_age_s: Annotated[float, Gt(0)] = 3600.0  # a dR older than this is not used
     soc_band: Annotated[float, Gt(0)] = 0.1  # nor one seen further than this from the SOC now
@@ -79,6 +87,8 @@ class ResidualResistance:
         self._i_min = np.zeros(shape)
         self._i_max = np.zeros(shape)
         self._i_last = np.full(self.n_cells, np.nan)
+        self._rest_n = np.zeros(self.n_cells)  # samples at rest before this one
+        self._rest_need = round(config.rest_s / self.dt_s)
         self.windows_scored = 0
 
     def sample(self, current_a, voltage_v, ocv_end_v, soc, capacity_ah, basis) -> None:
@@ -91,8 +101,10 @@ class ResidualResistance:
         cfg = self.config
         i = np.asarray(current_a, dtype=float)
         self._k += 1
-        step = np.abs(i - self._i_last) >= cfg.step_c * np.asarray(capacity_ah, dtype=float)  # NaN -> False
+        q = np.asarray(capacity_ah, dtype=float)
+        step = (np.abs(i - self._i_last) >= cfg.step_c * q) & (self._rest_n >= self._rest_need)  # NaN -> False
         self._i_last = i
+        self._rest_n = np.where(np.abs(i) < cfg.rest_c * q, self._rest_n + 1, 0.0)
         if basis is not None and step.any():
             new = step & (self._age < 0)  # a step inside an open window does not restart it
             if new.any():

@@ -27,7 +27,7 @@ def test_a_held_step_teaches_the_missed_resistance_after_the_window_only():
     r_d = np.array([[0.030, 0.040]])
     ocv0 = np.array([3.68, 3.64])
     ocv_end = ocv0 - 0.002
-    rest = [np.zeros(2)] * 3
+    rest = [np.zeros(2)] * 61  # a minute at rest before the step
     # cell 0 discharges, cell 1 charges; the logger spreads the step over two samples (a ramp-in
     # sample, itself a step): the window starts there and holds
     pulse = [np.array([-1.0, 1.0])] + [np.array([-3.0, 2.0])] * 9
@@ -50,6 +50,10 @@ def test_a_window_whose_current_did_not_hold_or_was_too_small_is_not_used():
     kw = dict(base=np.array([[3.7, 3.7]]), r_d=np.array([[0.03, 0.03]]), ocv0=np.array([3.7, 3.7]),
               true_extra=np.array([0.01, 0.01]), ocv_end=np.array([3.7, 3.7]))
     pulse = [np.array([-3.0, -0.3])] * 5 + [np.array([-0.5, -0.3])] * 5  # cell 0 drops to 1/6; cell 1 below 0.25C
-    _feed(res, [np.zeros(2)] * 2 + pulse, **kw)
+    _feed(res, [np.zeros(2)] * 61 + pulse, **kw)
     assert np.all(np.isnan(res.dr_ohm)) and res.windows_scored == 0
+    # a step that holds but does not come out of a minute's rest (a drive's) is not learnt from
+    res = ResidualResistance(2, 1.0, (10.0,))
+    _feed(res, [np.zeros(2)] * 30 + [np.array([-3.0, 2.0])] * 10, **kw)
+    assert res.windows_scored == 0
     assert ResidualResistance(2, 1.0, (10.0,), ResidualConfig(enabled=False)).correction(np.zeros(2)) is None
