@@ -27,6 +27,7 @@ and then held.  Then::
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -86,10 +87,14 @@ class ResistanceSoh:
         use = np.asarray(identified, dtype=bool) & np.isfinite(r) & (r > 0) & (s >= c.soc_lo) & (s <= c.soc_hi)
         if not use.any():
             return
-        a = 1.0 - np.exp(-self.dt_s / c.smoothing_s)
-        first = use & ~np.isfinite(self.r0_ref_ohm)
-        self.r0_ref_ohm = np.where(first, r, np.where(use, self.r0_ref_ohm + a * (r - self.r0_ref_ohm), self.r0_ref_ohm))
-        todo = use & ~np.isfinite(self.r0_commissioning_ohm)
+        a = 1.0 - math.exp(-self.dt_s / c.smoothing_s)
+        smoothed = np.where(use, self.r0_ref_ohm + a * (r - self.r0_ref_ohm), self.r0_ref_ohm)
+        known = np.isfinite(self.r0_ref_ohm)
+        self.r0_ref_ohm = smoothed if known.all() else np.where(use & ~known, r, smoothed)
+        commissioned = np.isfinite(self.r0_commissioning_ohm)
+        if commissioned.all():  # held from then on: nothing more to count
+            return
+        todo = use & ~commissioned
         self._c_sum = np.where(todo, self._c_sum + r, self._c_sum)
         self._c_n = np.where(todo, self._c_n + 1, self._c_n)
         done = todo & (self._c_n >= c.commissioning_samples)

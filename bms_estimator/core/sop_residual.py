@@ -102,10 +102,11 @@ class ResidualResistance:
         i = np.asarray(current_a, dtype=float)
         self._k += 1
         q = np.asarray(capacity_ah, dtype=float)
-        step = (np.abs(i - self._i_last) >= cfg.step_c * q) & (self._rest_n >= self._rest_need)  # NaN -> False
+        rested = self._rest_n >= self._rest_need
+        step = (np.abs(i - self._i_last) >= cfg.step_c * q) & rested if rested.any() else None  # NaN -> False
         self._i_last = i
         self._rest_n = np.where(np.abs(i) < cfg.rest_c * q, self._rest_n + 1, 0.0)
-        if basis is not None and step.any():
+        if basis is not None and step is not None and step.any():
             new = step & (self._age < 0)  # a step inside an open window does not restart it
             if new.any():
                 base, r_d, ocv0 = basis

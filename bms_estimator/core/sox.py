@@ -93,6 +93,9 @@ class SoxEstimator:
         self._slow_due = 0
         self._slow: dict[str, np.ndarray] = {}
         self._ocv_at_last = None
+        self._limit_keys = [tuple(f"{k}_max_{d:g}s_{u}" for k, u in (("i_discharge", "a"), ("i_charge", "a"),
+                                                                     ("p_discharge", "w"), ("p_charge", "w")))
+                            for d in hz]
         self.residual = ResidualResistance(self.n_cells, self.dt_s, hz, config.residual)
         self._basis = None  # the last SOP's prediction basis, for the residual's windows
         self._dr = None  # its correction now, (2H, N) or None
@@ -228,12 +231,11 @@ class SoxEstimator:
             self._slow_due = self._slow_every
         self._slow_due -= 1
         out = {}
-        for h, d in enumerate(res.horizons_s):
-            tag = f"{d:g}s"
-            out[f"i_discharge_max_{tag}_a"] = res.discharge_a[h]
-            out[f"i_charge_max_{tag}_a"] = res.charge_a[h]
-            out[f"p_discharge_max_{tag}_w"] = res.discharge_w[h]
-            out[f"p_charge_max_{tag}_w"] = res.charge_w[h]
+        for h, (k_ia, k_ic, k_pa, k_pc) in enumerate(self._limit_keys):
+            out[k_ia] = res.discharge_a[h]
+            out[k_ic] = res.charge_a[h]
+            out[k_pa] = res.discharge_w[h]
+            out[k_pc] = res.charge_w[h]
         out.update(self._slow)
         out.update(
             energy_delivered_wh=self.energy_delivered_wh.copy(),
