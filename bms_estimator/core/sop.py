@@ -211,6 +211,21 @@ def _rows(cfg: SopConfig) -> tuple:
     return hz, sign, target, np.concatenate([hz, hz])[:, None, None], sign < 0.0, tables
 
 
+_DESIGN_MEMO: list = [None]  # (config, temperatures, limits) of the last call
+
+
+def _design_limits(t: np.ndarray, cfg: SopConfig, dis, t_tab, dis_tab, chg_tab) -> np.ndarray:
+    """(2H, N) derated design current limits; the last call's kept while the temperatures are equal
+    (per sample they mostly are: CAN temperatures are quantised and slow)."""
+    memo = _DESIGN_MEMO[0]
+    if memo is not None and memo[0] is cfg and memo[1].shape == t.shape and np.array_equal(memo[1], t):
+        return memo[2]
+    design = np.where(dis, cfg.i_discharge_max_a * derate(t, t_tab, dis_tab), cfg.i_charge_max_a * derate(t, t_tab, chg_tab))
+    design.setflags(write=False)
+    _DESIGN_MEMO[0] = (cfg, t.copy(), design)
+    return design
+
+
 def _per_cell(a, n: int) -> np.ndarray:
     a = np.asarray(a, dtype=float)
     return a if a.shape == (n,) else np.broadcast_to(a, (n,))
@@ -287,14 +302,20 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
     if ocv_slope is None:
         def ocv_slope(z):
             return ocv(z), docv_dsoc(z)
-    qd = 1.0 - np.exp(-hz3 / tau_rc)  # (2H, N, m): 1 - p_j per row
-    r_d = r0 + np.einsum("hnm,nm->hn", qd, r_rc)  # (2H, N): R_D
-    c = hz3[:, :, 0] / (3600.0 * q)  # (2H, N): SOC per A over the horizon
+    # per RC pair j (a Python loop over the 2 pairs: whole-row operations beat a reduction over
+    # the short pair axis): q_j = 1 - p_j per row, R_D and the RC voltages' change over D
+    hz2 = hz3[:, :, 0]
+    r_d, decay = r0, 0.0
+    for j in range(r_rc.shape[1]):
+        qj = 1.0 - np.exp(-hz2 / tau_rc[:, j])  # (2H, N)
+        r_d = r_d + r_rc[:, j] * qj
+        decay = decay + x_rc[:, j] * qj
+    c = hz2 / (3600.0 * q)  # (2H, N): SOC per A over the horizon
     ocv_s, slope_s = ocv_slope(s)  # (N,): one evaluation serves every row
     ocv_s, slope_s = np.asarray(ocv_s, dtype=float), np.asarray(slope_s, dtype=float)
     basis = None
     if method == "model":
-        base = (v - r0 * i_now) - np.einsum("hnm,nm->hn", qd, x_rc)
+        base = (v - r0 * i_now) - decay
         c_use = c
         basis = (base[:nh], r_d[:nh], ocv_s)  # the identified model's, before any correction
         if dr_ohm is not None:
@@ -302,8 +323,7 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
     else:
         base = np.broadcast_to(ocv_s, c.shape)  # at rest, and the OCV held
         c_use = np.zeros_like(c)
-    t = _per_cell(temperature_c, n)
-    design = np.where(dis, cfg.i_discharge_max_a * derate(t, t_tab, dis_tab), cfg.i_charge_max_a * derate(t, t_tab, chg_tab))
+    design = _design_limits(_per_cell(temperature_c, n), cfg, dis, t_tab, dis_tab, chg_tab)
     room = np.maximum(np.where(dis, s - cfg.soc_min, cfg.soc_max - s), 0.0)
     cap = np.minimum(design, room / c)
     if v_margin is not None:
@@ -339,7 +359,10 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
     if pack is None:
         return res, None
     v_pack = base + (o_pack - ocv_s) + r_d * i2
-    p_pack = i_pack * n_par * np.sum(np.where(use & np.isfinite(v_pack), v_pack, 0.0), axis=1)
+    p_pack = v_pack.sum(axis=1)
+    if not (use.all() and np.isfinite(p_pack).all()):
+        p_pack = np.sum(np.where(use & np.isfinite(v_pack), v_pack, 0.0), axis=1)
+    p_pack = i_pack * n_par * p_pack
     p_pack = np.maximum(p_pack, 0.0)
     return res, {"discharge_a": i_pack[:nh] * n_par, "charge_a": i_pack[nh:] * n_par,
                  "discharge_w": p_pack[:nh], "charge_w": p_pack[nh:]}
