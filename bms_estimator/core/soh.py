@@ -80,7 +80,10 @@ class ResistanceSoh:
         self._c_sum = np.zeros(self.n_cells)
         self._c_n = np.zeros(self.n_cells, dtype=np.int64)
 
-    def update(self, r0_ohm, temperature_c, soc, identified) -> None:
+    def update(self, r0_ohm, temperature_c, soc, identified, samples: int = 1) -> None:
+        """One R0 reading per cell; ``samples``: how many samples it stands for (a caller that
+        updates every k-th sample, with ``dt_s`` = k Ts, passes k: the commissioning count stays
+        in samples)."""
         c = self.config
         r = r0_at_reference(r0_ohm, temperature_c, c)
         s = np.asarray(soc, dtype=float)
@@ -95,8 +98,8 @@ class ResistanceSoh:
         if commissioned.all():  # held from then on: nothing more to count
             return
         todo = use & ~commissioned
-        self._c_sum = np.where(todo, self._c_sum + r, self._c_sum)
-        self._c_n = np.where(todo, self._c_n + 1, self._c_n)
+        self._c_sum = np.where(todo, self._c_sum + samples * r, self._c_sum)
+        self._c_n = np.where(todo, self._c_n + samples, self._c_n)
         done = todo & (self._c_n >= c.commissioning_samples)
         with np.errstate(divide="ignore", invalid="ignore"):
             self.r0_commissioning_ohm = np.where(done, self._c_sum / self._c_n, self.r0_commissioning_ohm)

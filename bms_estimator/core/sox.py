@@ -12,6 +12,7 @@ Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``s
     energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing); E_net (Wh out since
                   the last full cell, soc >= full_soc) goes down again with charge
     SOH           core.soh: capacity SOH (once justified) and resistance SOH at the reference point
+                  (both on the slow cadence, the R0 reading counting for slow_period_s of samples)
     margin        b = v - OCV(s) - R0 i - sum_j x_j; rms_D^2 += a (b_k - b_{k-D/Ts})^2 - ...: the model's
                   D-second error, which moves the SOP bounds inward (core.sop, "Model-error margin")
 
@@ -75,7 +76,10 @@ class SoxEstimator:
         self.mean_current_a = np.zeros(self.n_cells)
         self.energy_discharged_wh = np.zeros(self.n_cells)
         self.energy_delivered_wh = np.zeros(self.n_cells)  # net, since the last full cell
-        self.resistance = ResistanceSoh(self.n_cells, self.dt_s, config.soh)
+        self._slow_every = max(int(round(config.slow_period_s / self.dt_s)), 1)  # samples
+        # the resistance SOH is updated on the slow cadence, each reading standing for that many samples
+        self.resistance = ResistanceSoh(self.n_cells, self.dt_s * self._slow_every, config.soh)
+        self._ok = np.zeros(self.n_cells, dtype=bool)
         self.v_anchor = np.full(self.n_cells, np.nan)  # the voltage at the next period's start, at i_anchor
         self.i_anchor = np.zeros(self.n_cells)
         self.soc_anchor = np.full(self.n_cells, np.nan)
@@ -89,7 +93,6 @@ class SoxEstimator:
         self._b_hist = np.full((int(self._lag.max()) + 1, self.n_cells), np.nan)
         self._b_head = 0
         self.error_ms_v2 = np.zeros((len(hz), self.n_cells))  # mean square n-step error per horizon
-        self._slow_every = max(int(round(config.slow_period_s / self.dt_s)), 1)  # samples
         self._slow_due = 0
         self._slow: dict[str, np.ndarray] = {}
         self._ocv_at_last = None
@@ -130,7 +133,7 @@ class SoxEstimator:
         self.compute(est, ocv_at=f)
 
     def track(self, est, current_a, voltage_v, valid=None, *, ocv_at: OcvAtTemperatures | None = None) -> None:
-        """The per-sample states only (RC voltages, mean current, energy, R0 history); cheap.
+        """The per-sample states only (RC voltages, mean current, energy, model error, learnt R_D); cheap.
 
         ``ocv_at``: :meth:`ocv_at` of ``est`` now, when the caller has it already."""
         n = self.n_cells
@@ -175,8 +178,7 @@ class SoxEstimator:
         self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
         ocv_soc = self._track_error(est, p, i_use, v, ok, ocv_at)
         self.residual.sample(np.where(ok, i_use, np.nan), v, ocv_soc, soc, est.counting_capacity_ah, self._basis)
-        identified = np.asarray(getattr(est.identifier, "identified", np.ones(n, bool)), dtype=bool)
-        self.resistance.update(p["r0_ohm"], est.temperature_c, soc, identified & ok)
+        self._ok = ok
 
     def _track_error(self, est, p, i_use, v, ok, ocv_at=None) -> np.ndarray:
         """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon.
@@ -228,6 +230,9 @@ class SoxEstimator:
         self._basis = res.basis
         if slow:
             self._slow = self._energy_and_capacity(est, f.ocv, kw)
+            identified = np.asarray(getattr(est.identifier, "identified", np.ones(self.n_cells, bool)), dtype=bool)
+            self.resistance.update(kw["r0_ohm"], est.temperature_c, est.soc, identified & self._ok,
+                                   samples=self._slow_every)
             self._slow_due = self._slow_every
         self._slow_due -= 1
         out = {}
