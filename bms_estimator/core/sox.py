@@ -32,8 +32,8 @@ Newton solve; the OCV and its slope share one grid location
 per sample and kept while unchanged); the pack's power comes out of the cells' last OCV call;
 the RC sums are ``einsum``/column adds; one ``errstate`` per solve; 5 OCV calls per sample
 instead of 10.  The limits are unchanged (bit-identical on the bench pack; the powers
-to 1e-15).  The energy left, time to empty/full and capacity SOH (slow quantities) are
-recomputed every ``slow_period_s``.
+to 1e-15).  The energy left, time to empty/full and both SOH figures (slow quantities)
+are recomputed every ``slow_period_s``.  After it: 0.44 ms (0.68 ms on the 10 s refresh).
 """
 
 from __future__ import annotations
