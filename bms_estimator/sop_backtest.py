@@ -10,7 +10,9 @@ over the recording sample by sample.  Windows of ``n = horizon_s / Ts`` samples:
 
 At the start ``a`` of each window (the estimator has seen the samples before ``a``):
 
-    predicted   v_hat = v(D, I_w) of core.sop, I_w = the window's mean current, D = n Ts
+    predicted   v_hat = v(D, I_w) of core.sop, I_w = the window's mean current, D = n Ts, with R_D
+                corrected by what the cell's own earlier current steps showed it to miss
+                (core.sop_residual; ``residual=ResidualConfig(enabled=False)``: the model alone)
     measured    v     = the voltage of the window's last sample;   error = v_hat - v
                 (scored over the windows under load, |I_w| >= REST_C C: a rest is predicted trivially)
     limits      I_dis, I_chg at D (Plett's model with its model-error margin, and the HPPC
@@ -32,6 +34,7 @@ import numpy as np
 from .core.soc import SocConfig, SocEstimator
 from .core.soe import SoeConfig, energy_left_wh
 from .core.sop import SopConfig, predict_voltage, sop_limits
+from .core.sop_residual import ResidualConfig
 from .core.sox import SoxConfig, SoxEstimator
 
 __all__ = ["BacktestResult", "find_pulses", "run_backtest", "summary"]
@@ -101,7 +104,7 @@ def find_pulses(current_a: np.ndarray, dt_s: float, capacity_ah: float) -> list[
 def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity_ah: float, *,
                  horizon_s: float = 10.0, initial_soc: float | None = 1.0, soc_config: SocConfig = SocConfig(),
                  sop_config: SopConfig | None = None, mode: str = "auto",
-                 extra_v_min: tuple[float, ...] = ()) -> BacktestResult:
+                 extra_v_min: tuple[float, ...] = (), residual: ResidualConfig = ResidualConfig()) -> BacktestResult:
     """Run the estimator over the recording and score every window (module docstring).
 
     ``extra_v_min``: further cut-offs to compute the model's discharge limits for and check.
@@ -127,7 +130,7 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
     sop_cfg = sop_config or SopConfig()
     sop_cfg = SopConfig(**{**sop_cfg.__dict__, "horizons_s": (d,)})
     est = SocEstimator(1, ocv, capacity_ah, dt_s, initial_soc=initial_soc, config=soc_config)
-    sox = SoxEstimator(1, dt_s, SoxConfig(sop=sop_cfg))
+    sox = SoxEstimator(1, dt_s, SoxConfig(sop=sop_cfg, residual=residual))
     rows: dict[str, list[float]] = {k: [] for k in (
         "start_s", "current_a", "soc", "temperature_c", "v_pred", "v_meas", "v_min_meas", "v_max_meas",
         "i_dis_a", "i_chg_a", "i_dis_hppc_a", "i_chg_hppc_a", "energy_left_wh")}
@@ -141,15 +144,18 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
             kw = sox.model(est)
             seg = slice(k, k + n_w)
             i_w = float(np.mean(i[seg]))
-            v_hat = float(predict_voltage(np.array([i_w]), d, ocv=ocv_f, **kw)[0])
+            dr = sox.residual.correction(kw["soc"])  # the learnt R_D correction, (2, 1): discharge, charge
+            dr_w = None if dr is None else dr[0 if i_w < 0 else 1]
+            v_hat = float(predict_voltage(np.array([i_w]), d, ocv=ocv_f, dr_ohm=dr_w, **kw)[0])
             lim = sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f, config=sop_cfg,
-                             v_margin=sox.v_margin, **kw)
+                             v_margin=sox.v_margin, dr_ohm=dr, **kw)
             base = sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f, config=sop_cfg,
                               method="hppc", **kw)
             for vm in extra:
                 cfg_vm = SopConfig(**{**sop_cfg.__dict__, "v_min": vm})
                 extra[vm].append(float(sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f,
-                                                  config=cfg_vm, v_margin=sox.v_margin, **kw).discharge_a[0, 0]))
+                                                  config=cfg_vm, v_margin=sox.v_margin, dr_ohm=dr,
+                                                  **kw).discharge_a[0, 0]))
             rate = max(-float(sox.mean_current_a[0]), 0.0) / float(kw["capacity_ah"][0])
             e_left, _ = energy_left_wh(kw["soc"], kw["capacity_ah"], kw["r0_ohm"] + kw["r_ohm"].sum(axis=1),
                                        lambda z: ocv_f(z), v_min=sop_cfg.v_min, config=SoeConfig(rate_c=rate))
@@ -164,7 +170,7 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
         if t1 is not None:
             t1[0] = temp[k]
         est.update(i[k], v1, temperature_c=t1)
-        sox.track(est, i[k], v1)
+        sox.update(est, i[k], v1)  # track, and the SOP whose basis the learnt correction needs
     if not rows["start_s"]:
         raise ValueError("no window could be scored (the voltage is never finite before a window)")
     r = {k: np.asarray(x) for k, x in rows.items()}

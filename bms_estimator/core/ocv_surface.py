@@ -84,7 +84,7 @@ import numpy as np
 
 from .ocv import GRID_POINTS, MIN_SLOPE_V, OcvCurve, _as_float_array, _strictly_increasing
 
-__all__ = ["OcvSurface", "REFERENCE_TEMPERATURE_C"]
+__all__ = ["OcvSurface", "OcvAtTemperatures", "REFERENCE_TEMPERATURE_C"]
 
 #: ``relative_capacity`` is relative to the capacity of the table nearest this temperature [degC].
 REFERENCE_TEMPERATURE_C = 25.0
@@ -150,6 +150,13 @@ class _Blend:
         Outside the grid (or NaN) the end value is returned; the caller adds its
         extension.
         """
+        a, f, inside = self.locate_s(s, jg)
+        return self.at(a, f, w), inside
+
+    def locate_s(self, s: np.ndarray, jg: Any) -> tuple[np.ndarray, np.ndarray, bool]:
+        """(flat index ``jG + k`` of row j, fraction ``f``, all inside) for any-shaped ``s``
+        whose last axis matches ``jg``'s (or scalar ``jg``): the part of :meth:`__call__` two
+        tables on this grid (OCV and slope) can share."""
         u = s - self.s0
         u *= self.inv_h
         inside = bool(u.min() >= 0.0 and u.max() <= self.g - 1)  # False for NaN too
@@ -158,17 +165,20 @@ class _Blend:
         k = u.astype(np.intp)
         np.minimum(k, self.g - 2, out=k)
         f = u - k
-        a = k + jg
-        y, dy = self.y, self.dy
-        v = y.take(a)
-        v += dy.take(a) * f
-        a += self.g
-        v1 = y.take(a)
-        v1 += dy.take(a) * f
+        k += jg
+        return k, f, inside
+
+    def at(self, a: np.ndarray, f: np.ndarray, w: Any) -> np.ndarray:
+        """The blended table at the location :meth:`locate_s` gave (the end values outside)."""
+        v = self.y.take(a)
+        v += self.dy.take(a) * f
+        a1 = a + self.g
+        v1 = self.y.take(a1)
+        v1 += self.dy.take(a1) * f
         v1 -= v
         v1 *= w
         v += v1
-        return v, inside
+        return v
 
     def scalar(self, x: float, jg: int, w: float) -> tuple[float, int]:
         """One query (Python floats): (blended table value, -1/0/+1 for below/inside/above the grid)."""
@@ -346,6 +356,10 @@ class OcvSurface:
                 seen[t] = p
         return cls(curves, temps if len(paths) > 1 or temperatures_c is not None else None,
                    default_temperature_c=default_temperature_c)
+
+    def at_temperatures(self, temperature_c: Any) -> "OcvAtTemperatures":
+        """OCV and slope at fixed per-cell temperatures, located once (for many calls in one step)."""
+        return OcvAtTemperatures(self, temperature_c)
 
     # ------------------------------------------------------------- properties
     @property
@@ -526,3 +540,61 @@ class OcvSurface:
         if self._cap.size == 0:
             return 1.0 if np.ndim(q) == 0 else np.ones(np.shape(q))
         return q / self._cap_ref
+
+
+class OcvAtTemperatures:
+    """``OCV(s, T_n)`` and ``dOCV/dSOC(s, T_n)`` with the cells' temperatures ``T_n`` fixed.
+
+    The queries are arrays whose last axis is the cells (``(..., N)``, ``N`` = the
+    temperatures' length).  The temperature location (``j``, ``w``, item 1 of the module
+    docstring) is found once here, and :meth:`ocv_slope` locates the SOC on the grid once
+    for both tables (they share it).  Values are those of :meth:`OcvSurface.ocv` and
+    :meth:`OcvSurface.docv_dsoc` at the same points (same arithmetic); a per-sample SOP
+    (core.sop) asks 4 such calls per step, so the per-call overhead matters.
+    """
+
+    def __init__(self, surface: OcvSurface | OcvCurve, temperature_c: Any) -> None:
+        self.surface = surface
+        self._single = surface if isinstance(surface, OcvCurve) else surface._single  # T ignored
+        if self._single is not None:
+            return
+        t = surface._temperature(temperature_c)
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        b = surface._ocv
+        self._jg, self._w = b.locate_t(t.copy() if t.ndim == 1 else t.ravel())
+        self._ends_ocv = b.ends(self._jg, self._w)
+        self._ends_slope = surface._slope.ends(self._jg, self._w)
+
+    def ocv(self, soc: Any) -> np.ndarray:
+        if self._single is not None:
+            return np.asarray(self._single.ocv(soc))
+        s = np.asarray(soc, dtype=np.float64)
+        b = self.surface._ocv
+        a, f, inside = b.locate_s(s, self._jg)
+        v = b.at(a, f, self._w)
+        if not inside:
+            lo, hi = self._ends_ocv
+            v += lo * np.minimum(s - b.s0, 0.0) + hi * np.maximum(s - b.s1, 0.0)
+        return v
+
+    __call__ = ocv
+
+    def slope(self, soc: Any) -> np.ndarray:
+        return self.ocv_slope(soc)[1]
+
+    def ocv_slope(self, soc: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(OCV, dOCV/dSOC) at ``soc``, the grid location shared."""
+        if self._single is not None:
+            return np.asarray(self._single.ocv(soc)), np.asarray(self._single.docv_dsoc(soc))
+        s = np.asarray(soc, dtype=np.float64)
+        b, bs = self.surface._ocv, self.surface._slope
+        a, f, inside = b.locate_s(s, self._jg)
+        v = b.at(a, f, self._w)
+        d = bs.at(a, f, self._w)
+        if not inside:
+            lo, hi = self._ends_ocv
+            v += lo * np.minimum(s - b.s0, 0.0) + hi * np.maximum(s - b.s1, 0.0)
+            lo, hi = self._ends_slope
+            d = np.where(s < bs.s0, lo, np.where(s > bs.s1, hi, d))
+            d[np.isnan(s)] = math.nan
+        return v, d

@@ -23,6 +23,7 @@ Everything is vectorised over cells; no I/O.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Annotated, Callable
 
 import numpy as np
@@ -41,29 +42,16 @@ class SoeConfig:
     mean_current_tau_s: Annotated[float, Gt(0)] = 300.0  # the "recent" mean current's time constant
 
 
-def _grid(soc: np.ndarray, soc_min: float, n: int) -> np.ndarray:
-    """(N, n) SOC points from soc_min to each cell's SOC."""
+@lru_cache(maxsize=8)
+def _fractions(n: int) -> np.ndarray:
     f = np.linspace(0.0, 1.0, n)
-    lo = np.full_like(soc, soc_min)
-    hi = np.maximum(soc, lo)
-    return lo[:, None] + (hi - lo)[:, None] * f[None, :]
+    f.setflags(write=False)
+    return f
 
 
-def _cut_soc(z: np.ndarray, v: np.ndarray, v_min: float) -> np.ndarray:
-    """The SOC where v falls to v_min below the top, interpolated between grid points (per row);
-    the lowest grid SOC when it never does, the top when the top is already below."""
-    below = v < v_min
-    rev = below[:, ::-1]
-    any_below = rev.any(axis=1)
-    # the highest grid index below v_min; the crossing lies between it and the next
-    k = np.where(any_below, z.shape[1] - 1 - np.argmax(rev, axis=1), 0)
-    k1 = np.minimum(k + 1, z.shape[1] - 1)
-    za, zb = np.take_along_axis(z, k[:, None], 1)[:, 0], np.take_along_axis(z, k1[:, None], 1)[:, 0]
-    va, vb = np.take_along_axis(v, k[:, None], 1)[:, 0], np.take_along_axis(v, k1[:, None], 1)[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        f = np.clip((v_min - va) / (vb - va), 0.0, 1.0)
-    cut = np.where(k1 > k, za + f * (zb - za), zb)
-    return np.where(any_below, cut, z[:, 0])
+def _cells(a, shape) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    return a if a.shape == shape else np.broadcast_to(a, shape)
 
 
 def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_min: float = 0.0,
@@ -72,20 +60,37 @@ def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_
 
     ``ocv`` maps a ``(K, N)`` SOC array to volts (each column at its cell's temperature).
     Non-finite inputs give NaN for that cell.
+
+    The grid is ``(K, N)``, the cells along the last axis: the loaded voltage ``v_k`` at
+    ``z_k = soc_min + (s - soc_min) k / (K - 1)``; the cut-off lies between the highest
+    grid point below v_min and the next (linear there); the lowest grid SOC when no point
+    is below, the top when the top already is.
     """
     s = np.asarray(soc, dtype=float)
-    q = np.broadcast_to(np.asarray(capacity_ah, float), s.shape)
-    r = np.broadcast_to(np.asarray(r_ss_ohm, float), s.shape)
+    q = _cells(capacity_ah, s.shape)
+    r = _cells(r_ss_ohm, s.shape)
     ok = np.isfinite(s) & np.isfinite(q) & (q > 0) & np.isfinite(r)
     s_u = np.where(ok, s, soc_min)
-    z = _grid(s_u, soc_min, int(config.n_points))
-    v = np.asarray(ocv(z.T), dtype=float).T - np.where(ok, r, 0.0)[:, None] * (config.rate_c * np.where(ok, q, 0.0))[:, None]
-    z_cut = _cut_soc(z, v, v_min)
+    k_pts = int(config.n_points)
+    frac = _fractions(k_pts)
+    span = np.maximum(s_u, soc_min) - soc_min
+    z = soc_min + span * frac[:, None]  # (K, N)
+    v = np.asarray(ocv(z), dtype=float) - np.where(ok, r, 0.0) * (config.rate_c * np.where(ok, q, 0.0))
+    below = v < v_min
+    any_below = below.any(axis=0)
+    k = np.where(any_below, k_pts - 1 - np.argmax(below[::-1], axis=0), 0)
+    k1 = np.minimum(k + 1, k_pts - 1)
+    cells = np.arange(v.shape[1])
+    va, vb = v[k, cells], v[k1, cells]
+    za, zb = soc_min + span * frac[k], soc_min + span * frac[k1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.clip((v_min - va) / (vb - va), 0.0, 1.0)
+    z_cut = np.where(any_below, np.where(k1 > k, za + f * (zb - za), zb), z[0])
     # trapezoid over each grid interval's part above the cut (the voltage there >= v_min)
-    lo = np.maximum(z[:, :-1], z_cut[:, None])
-    width = np.maximum(z[:, 1:] - lo, 0.0)
-    seg = 0.5 * (np.maximum(v[:, 1:], v_min) + np.maximum(v[:, :-1], v_min)) * width
-    e = np.where(ok, q * seg.sum(axis=1), np.nan)
+    width = np.maximum(z[1:] - np.maximum(z[:-1], z_cut), 0.0)
+    vm = np.maximum(v, v_min)
+    seg = 0.5 * (vm[1:] + vm[:-1]) * width
+    e = np.where(ok, q * seg.sum(axis=0), np.nan)
     return e, np.where(ok, z_cut, np.nan)
 
 

@@ -27,6 +27,7 @@ and then held.  Then::
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -79,19 +80,26 @@ class ResistanceSoh:
         self._c_sum = np.zeros(self.n_cells)
         self._c_n = np.zeros(self.n_cells, dtype=np.int64)
 
-    def update(self, r0_ohm, temperature_c, soc, identified) -> None:
+    def update(self, r0_ohm, temperature_c, soc, identified, samples: int = 1) -> None:
+        """One R0 reading per cell; ``samples``: how many samples it stands for (a caller that
+        updates every k-th sample, with ``dt_s`` = k Ts, passes k: the commissioning count stays
+        in samples)."""
         c = self.config
         r = r0_at_reference(r0_ohm, temperature_c, c)
         s = np.asarray(soc, dtype=float)
         use = np.asarray(identified, dtype=bool) & np.isfinite(r) & (r > 0) & (s >= c.soc_lo) & (s <= c.soc_hi)
         if not use.any():
             return
-        a = 1.0 - np.exp(-self.dt_s / c.smoothing_s)
-        first = use & ~np.isfinite(self.r0_ref_ohm)
-        self.r0_ref_ohm = np.where(first, r, np.where(use, self.r0_ref_ohm + a * (r - self.r0_ref_ohm), self.r0_ref_ohm))
-        todo = use & ~np.isfinite(self.r0_commissioning_ohm)
-        self._c_sum = np.where(todo, self._c_sum + r, self._c_sum)
-        self._c_n = np.where(todo, self._c_n + 1, self._c_n)
+        a = 1.0 - math.exp(-self.dt_s / c.smoothing_s)
+        smoothed = np.where(use, self.r0_ref_ohm + a * (r - self.r0_ref_ohm), self.r0_ref_ohm)
+        known = np.isfinite(self.r0_ref_ohm)
+        self.r0_ref_ohm = smoothed if known.all() else np.where(use & ~known, r, smoothed)
+        commissioned = np.isfinite(self.r0_commissioning_ohm)
+        if commissioned.all():  # held from then on: nothing more to count
+            return
+        todo = use & ~commissioned
+        self._c_sum = np.where(todo, self._c_sum + samples * r, self._c_sum)
+        self._c_n = np.where(todo, self._c_n + samples, self._c_n)
         done = todo & (self._c_n >= c.commissioning_samples)
         with np.errstate(divide="ignore", invalid="ignore"):
             self.r0_commissioning_ohm = np.where(done, self._c_sum / self._c_n, self.r0_commissioning_ohm)

@@ -65,12 +65,14 @@ negative and never NaN: a cell whose inputs or model are not finite gets 0.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Annotated, Callable
 
 import numpy as np
 from annotated_types import Ge, Gt
 
-__all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", "hppc_limits", "pack_limits"]
+__all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", "sop_and_pack_limits", "hppc_limits",
+           "pack_limits"]
 
 OcvFn = Callable[[np.ndarray], np.ndarray]
 
@@ -123,13 +125,17 @@ class SopResult:
     charge_a: np.ndarray
     discharge_w: np.ndarray
     charge_w: np.ndarray
+    #: the model method's prediction basis per horizon (core.sop_residual learns from it):
+    #: v_base (H, N), the identified R_D (H, N), OCV(s) (N,); None for the HPPC method
+    basis: tuple | None = None
 
 
 def derate(temperature_c: np.ndarray, temperatures_c, factors) -> np.ndarray:
     """Derating factor at each temperature (linear, held beyond the ends; NaN -> 0)."""
     t = np.asarray(temperature_c, dtype=float)
-    d = np.interp(np.where(np.isfinite(t), t, 0.0), np.asarray(temperatures_c, float), np.asarray(factors, float))
-    return np.where(np.isfinite(t), d, 0.0)
+    d = np.interp(t, np.asarray(temperatures_c, float), np.asarray(factors, float))
+    fin = np.isfinite(t)
+    return d if fin.all() else np.where(fin, d, 0.0)
 
 
 def _horizon_terms(r0, r_rc, tau_rc, x_rc, horizons_s):
@@ -137,14 +143,17 @@ def _horizon_terms(r0, r_rc, tau_rc, x_rc, horizons_s):
     d = np.asarray(horizons_s, dtype=float)[:, None, None]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         q = 1.0 - np.exp(-d / tau_rc[None])  # (H, N, m)
-    r_d = r0[None] + np.sum(r_rc[None] * q, axis=-1)
-    decay = np.sum(x_rc[None] * q, axis=-1)
+    r_d = r0[None] + np.einsum("hnm,nm->hn", q, r_rc)  # (a sum over the short last axis is 4x slower)
+    decay = np.einsum("hnm,nm->hn", q, x_rc)
     return r_d, decay
 
 
 def predict_voltage(current_a, horizon_s, *, voltage_v, current_now_a, soc, capacity_ah, ocv: OcvFn,
-                    r0_ohm, r_ohm, tau_s, x_v) -> np.ndarray:
-    """``v(D, I)`` of the module docstring for a constant current ``I`` (per cell) over ``D`` s."""
+                    r0_ohm, r_ohm, tau_s, x_v, dr_ohm=None) -> np.ndarray:
+    """``v(D, I)`` of the module docstring for a constant current ``I`` (per cell) over ``D`` s.
+
+    ``dr_ohm`` (per cell, optional): the learnt correction of ``R_D`` (core.sop_residual),
+    used as ``max(R_D + dR, R_D / 2)``."""
     r0 = np.asarray(r0_ohm, dtype=float)
     r_d, decay = _horizon_terms(r0, np.asarray(r_ohm, float), np.asarray(tau_s, float), np.asarray(x_v, float),
                                 [float(horizon_s)])
@@ -152,12 +161,19 @@ def predict_voltage(current_a, horizon_s, *, voltage_v, current_now_a, soc, capa
     s = np.asarray(soc, dtype=float)
     c = float(horizon_s) / (3600.0 * np.asarray(capacity_ah, dtype=float))
     base = np.asarray(voltage_v, float) - r0 * np.asarray(current_now_a, float) - decay[0]
-    return base + (ocv(s + c * i) - ocv(s)) + r_d[0] * i
+    r_d = r_d[0] if dr_ohm is None else _corrected(r_d[0], np.asarray(dr_ohm, dtype=float))
+    return base + (ocv(s + c * i) - ocv(s)) + r_d * i
 
 
-def _solve(target, base, r_d, s, c, sign, cap, ocv: OcvFn, slope: OcvFn, ocv_s, steps: int):
-    """The root ``I`` in ``[0, cap]`` of ``g(I) = sign (base + OCV(s + sign c I) - OCV(s) - target) + R_D I``.
+def _corrected(r_d: np.ndarray, dr: np.ndarray) -> np.ndarray:
+    """``max(R_D + dR, R_D / 2)``: the learnt correction, floored so that v(D, I) stays increasing."""
+    return np.maximum(r_d + np.where(np.isfinite(dr), dr, 0.0), 0.5 * r_d)
 
+
+def _solve(g0, r_d, s, c, sign, cap, ocv: OcvFn, ocv_slope, ocv_s, slope_s, steps: int):
+    """The root ``I`` in ``[0, cap]`` of ``g(I) = g0 + sign (OCV(s + sign c I) - OCV(s)) + R_D I``, every row at once.
+
+    ``g0 = sign (base - target)``; rows are (direction, horizon) pairs, columns cells.
     ``g`` is increasing with ``g' >= R_D``.  Start: Plett's linearised root
     ``-g(0) / (R_D + c OCV'(s))``; then ``steps`` Newton steps; then, if ``g(I) > 0``
     (an overshoot), ``I -= g(I) / R_D``, which by ``g' >= R_D`` makes ``g(I) <= 0``: the
@@ -165,86 +181,191 @@ def _solve(target, base, r_d, s, c, sign, cap, ocv: OcvFn, slope: OcvFn, ocv_s, 
     (``g`` stays <= 0 below a safe ``I``).  The root is found without the cap, so a lower
     cap (a colder cell's derating) can only lower the limit: with the iterates clipped to
     the cap, the unconverged Newton step landed elsewhere and a colder cell's 30 s limit
-    came out 0.1 % higher than a warmer one's.
+    came out 0.1 % higher than a warmer one's.  A row already past its bound
+    (``g0 >= 0``) gets 0.  ``ocv_slope`` gives (OCV, slope) at one array in one call.
+    Runs inside the caller's ``np.errstate`` (a division by a zero R_D gives inf, capped).
     """
-    g0 = sign * (base - target)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = np.maximum(-g0 / (r_d + c * slope(s)), 0.0)
-        for _ in range(steps):
-            z = s + sign * c * x
-            gx = g0 + sign * (ocv(z) - ocv_s) + r_d * x
-            x = np.maximum(x - gx / (r_d + c * slope(z)), 0.0)
-        gx = g0 + sign * (ocv(s + sign * c * x) - ocv_s) + r_d * x
-        x = np.minimum(np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x), cap)
-        gx = g0 + sign * (ocv(s + sign * c * x) - ocv_s) + r_d * x
-    # the predicted voltage at x is target + sign g(x); after a step back g <= 0, taken as 0 (the
-    # bound itself: the lower voltage for a discharge, within the step for a charge)
-    return np.where(g0 >= 0.0, 0.0, x), target + sign * np.minimum(gx, 0.0)
+    sc = sign * c
+    x = -g0 / (r_d + c * slope_s)
+    np.maximum(x, 0.0, out=x)
+    for _ in range(steps):
+        o, d = ocv_slope(s + sc * x)
+        gx = g0 + sign * (o - ocv_s) + r_d * x
+        x = np.maximum(x - gx / (r_d + c * d), 0.0)
+    gx = g0 + sign * (ocv(s + sc * x) - ocv_s) + r_d * x
+    x = np.minimum(np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x), cap)
+    return np.where(g0 >= 0.0, 0.0, x)
+
+
+@lru_cache(maxsize=32)
+def _rows(cfg: SopConfig) -> tuple:
+    """Constants of the stacked solve: horizons (H,), sign (2H, 1), bound (2H, 1), horizons
+    (2H, 1, 1), discharge rows (2H, 1) bool, the derating tables as arrays.  The H discharge
+    rows (sign -1, v_min) first, then the H charge rows (+1, v_max)."""
+    hz = np.asarray(cfg.horizons_s, dtype=float)
+    nh = hz.size
+    sign = np.repeat([-1.0, 1.0], nh)[:, None]
+    target = np.repeat([cfg.v_min, cfg.v_max], nh)[:, None]
+    tables = (np.asarray(cfg.derate_temperatures_c, float), np.asarray(cfg.discharge_derate, float),
+              np.asarray(cfg.charge_derate, float))
+    return hz, sign, target, np.concatenate([hz, hz])[:, None, None], sign < 0.0, tables
+
+
+_DESIGN_MEMO: list = [None]  # (config, temperatures, limits) of the last call
+
+
+def _design_limits(t: np.ndarray, cfg: SopConfig, dis, t_tab, dis_tab, chg_tab) -> np.ndarray:
+    """(2H, N) derated design current limits; the last call's kept while the temperatures are equal
+    (per sample they mostly are: CAN temperatures are quantised and slow)."""
+    memo = _DESIGN_MEMO[0]
+    if memo is not None and memo[0] is cfg and memo[1].shape == t.shape and np.array_equal(memo[1], t):
+        return memo[2]
+    design = np.where(dis, cfg.i_discharge_max_a * derate(t, t_tab, dis_tab), cfg.i_charge_max_a * derate(t, t_tab, chg_tab))
+    design.setflags(write=False)
+    _DESIGN_MEMO[0] = (cfg, t.copy(), design)
+    return design
+
+
+def _per_cell(a, n: int) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    return a if a.shape == (n,) else np.broadcast_to(a, (n,))
 
 
 def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
                r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model",
-               v_margin=None) -> SopResult:
+               v_margin=None, ocv_slope=None, dr_ohm=None) -> SopResult:
     """Discharge and charge current and power limits per horizon and cell (module docstring).
 
     ``v_margin`` (V, ``(H, N)`` or broadcastable, >= 0): the model's own error margin; the
     limits keep the predicted voltage within ``[v_min + margin, v_max - margin]``.
 
     Args are per cell (``(N,)``; ``r_ohm``, ``tau_s``, ``x_v`` are ``(N, m)``); ``ocv`` and
-    ``docv_dsoc`` map an SOC array of shape ``(K, N)`` to volts (at each cell's temperature).
+    ``docv_dsoc`` map an SOC array of shape ``(K, N)`` to volts (at each cell's temperature);
+    ``ocv_slope`` (optional) gives both at once (e.g.
+    :meth:`~bms_estimator.core.ocv_surface.OcvAtTemperatures.ocv_slope`).
     ``method`` = ``"model"`` (Plett's, the default) or ``"hppc"`` (the static-resistance baseline).
+    ``dr_ohm`` (``(2H, N)``: discharge horizons, then charge; optional, model method): the learnt
+    correction of each row's ``R_D`` (core.sop_residual), used as ``max(R_D + dR, R_D / 2)``.
     """
+    return _limits(dr_ohm=dr_ohm, voltage_v=voltage_v, current_now_a=current_now_a, soc=soc, capacity_ah=capacity_ah,
+                   temperature_c=temperature_c, ocv=ocv, docv_dsoc=docv_dsoc, r0_ohm=r0_ohm, r_ohm=r_ohm,
+                   tau_s=tau_s, x_v=x_v, config=config, method=method, v_margin=v_margin, ocv_slope=ocv_slope)[0]
+
+
+def sop_and_pack_limits(*, n_parallel: int = 1, valid=None, **kwargs) -> tuple[SopResult, dict[str, np.ndarray]]:
+    """:func:`sop_limits` (model method) and :func:`pack_limits` of its result in one pass.
+
+    The same numbers as the two calls (tests/core/test_sop_fast.py), with the OCV
+    evaluated at the cells' limits (for the power) and at the pack's limit (for the pack
+    power) in one stacked call: per sample this is the service's SOP.
+    """
+    return _limits(pack=(int(n_parallel), valid), **kwargs)
+
+
+def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
+            r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model",
+            v_margin=None, ocv_slope=None, pack=None, dr_ohm=None):
+    """The limits of all horizons and both directions as one ``(2H, N)`` solve (rows: :func:`_rows`)."""
+    if method not in ("model", "hppc"):
+        raise ValueError(f"method must be 'model' or 'hppc', got {method!r}")
+    if pack is not None and method != "model":
+        raise ValueError("pack limits are the model method's")
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # one context for the whole solve
+        return _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv, docv_dsoc, r0_ohm, r_ohm,
+                            tau_s, x_v, config, method, v_margin, ocv_slope, pack, dr_ohm)
+
+
+def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv, docv_dsoc, r0_ohm, r_ohm, tau_s,
+                 x_v, config, method, v_margin, ocv_slope, pack, dr_ohm):
     cfg = config
     v = np.asarray(voltage_v, dtype=float)
     n = v.shape[0]
-    i_now = np.broadcast_to(np.asarray(current_now_a, float), (n,))
-    s = np.broadcast_to(np.asarray(soc, float), (n,))
-    q = np.broadcast_to(np.asarray(capacity_ah, float), (n,))
-    r0 = np.broadcast_to(np.asarray(r0_ohm, float), (n,))
+    i_now, s, q, r0 = (_per_cell(a, n) for a in (current_now_a, soc, capacity_ah, r0_ohm))
     r_rc = np.asarray(r_ohm, float).reshape(n, -1)
     tau_rc = np.asarray(tau_s, float).reshape(n, -1)
-    x_rc = np.broadcast_to(np.asarray(x_v, float), r_rc.shape)
-    hz = np.asarray(cfg.horizons_s, dtype=float)
-    with np.errstate(invalid="ignore"):
-        ok = (np.isfinite(v) & np.isfinite(i_now) & np.isfinite(s) & (q > 0) & np.isfinite(q) & (r0 > 0)
-              & np.isfinite(r0) & ((r_rc >= 0) & (tau_rc > 0) & np.isfinite(r_rc + tau_rc + x_rc)).all(axis=1))
-    if not ok.all():  # a cell that cannot be predicted gets no current: harmless numbers, zeroed at the end
+    x_rc = np.asarray(x_v, float)
+    if x_rc.shape != r_rc.shape:
+        x_rc = np.broadcast_to(x_rc, r_rc.shape)
+    # finite (a NaN or inf anywhere makes the sum non-finite) and positive; the per-cell test of
+    # the RC columns (a reduction over the short axis) only when some entry fails
+    ok = np.isfinite(v + i_now + s + q + r0 + (r_rc + tau_rc + x_rc) @ np.ones(r_rc.shape[1])) & (np.minimum(q, r0) > 0)
+    if not ((r_rc >= 0).all() and (tau_rc > 0).all()):
+        ok &= ((r_rc >= 0) & (tau_rc > 0)).all(axis=1)
+    all_ok = bool(ok.all())
+    if not all_ok:  # a cell that cannot be predicted gets no current: harmless numbers, zeroed at the end
         v, s, q, r0, i_now = (np.where(ok, a, d) for a, d in ((v, cfg.v_min), (s, 0.0), (q, 1.0), (r0, 1.0),
                                                                (i_now, 0.0)))
         okc = ok[:, None]
         r_rc, tau_rc, x_rc = np.where(okc, r_rc, 0.0), np.where(okc, tau_rc, 1.0), np.where(okc, x_rc, 0.0)
-    r_d, decay = _horizon_terms(r0, r_rc, tau_rc, x_rc, hz)  # (H, N)
-    c = hz[:, None] / (3600.0 * q[None])  # (H, N): SOC per A over the horizon
-    nh = len(hz)
-    # discharge rows first, then charge: one OCV evaluation serves both directions
-    s2 = np.broadcast_to(s, (2 * nh, n))
-    ocv_s = np.asarray(ocv(s2), dtype=float)
+    hz, sign, target, hz3, dis, (t_tab, dis_tab, chg_tab) = _rows(cfg)
+    nh = hz.size
+    if ocv_slope is None:
+        def ocv_slope(z):
+            return ocv(z), docv_dsoc(z)
+    # per RC pair j (a Python loop over the 2 pairs: whole-row operations beat a reduction over
+    # the short pair axis): q_j = 1 - p_j per row, R_D and the RC voltages' change over D
+    hz2 = hz3[:, :, 0]
+    r_d, decay = r0, 0.0
+    for j in range(r_rc.shape[1]):
+        qj = 1.0 - np.exp(-hz2 / tau_rc[:, j])  # (2H, N)
+        r_d = r_d + r_rc[:, j] * qj
+        decay = decay + x_rc[:, j] * qj
+    c = hz2 / (3600.0 * q)  # (2H, N): SOC per A over the horizon
+    ocv_s, slope_s = ocv_slope(s)  # (N,): one evaluation serves every row
+    ocv_s, slope_s = np.asarray(ocv_s, dtype=float), np.asarray(slope_s, dtype=float)
+    basis = None
     if method == "model":
-        base = (v - r0 * i_now)[None] - decay
+        base = (v - r0 * i_now) - decay
         c_use = c
-    elif method == "hppc":
-        base = ocv_s[:nh]  # at rest, and the OCV held
-        c_use = np.zeros_like(c)
+        basis = (base[:nh], r_d[:nh], ocv_s)  # the identified model's, before any correction
+        if dr_ohm is not None:
+            r_d = _corrected(r_d, np.asarray(dr_ohm, dtype=float))
     else:
-        raise ValueError(f"method must be 'model' or 'hppc', got {method!r}")
-    t = np.broadcast_to(np.asarray(temperature_c, float), (n,))
-    cap_dis = cfg.i_discharge_max_a * derate(t, cfg.derate_temperatures_c, cfg.discharge_derate)
-    cap_chg = cfg.i_charge_max_a * derate(t, cfg.derate_temperatures_c, cfg.charge_derate)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cap = np.concatenate([np.minimum(cap_dis[None], np.maximum(s - cfg.soc_min, 0.0)[None] / c),
-                              np.minimum(cap_chg[None], np.maximum(cfg.soc_max - s, 0.0)[None] / c)])
-    sign = np.concatenate([np.full((nh, 1), -1.0), np.ones((nh, 1))])
-    target = np.concatenate([np.full((nh, 1), cfg.v_min), np.full((nh, 1), cfg.v_max)])
+        base = np.broadcast_to(ocv_s, c.shape)  # at rest, and the OCV held
+        c_use = np.zeros_like(c)
+    design = _design_limits(_per_cell(temperature_c, n), cfg, dis, t_tab, dis_tab, chg_tab)
+    room = np.maximum(np.where(dis, s - cfg.soc_min, cfg.soc_max - s), 0.0)
+    cap = np.minimum(design, room / c)
     if v_margin is not None:
-        m = np.broadcast_to(np.nan_to_num(np.maximum(np.asarray(v_margin, dtype=float), 0.0)), (nh, n))
-        target = target + np.concatenate([m, -m])
-    base2, r_d2, c2 = np.concatenate([base, base]), np.concatenate([r_d, r_d]), np.concatenate([c_use, c_use])
-    lim, v_at = _solve(target, base2, r_d2, s2, c2, sign, cap, ocv, docv_dsoc, ocv_s, cfg.newton_steps)
-    # a zero limit (past the bound, no current allowed) has the voltage at zero current
-    v_at = np.where(lim > 0.0, v_at, base2 + sign * 0.0)
-    lim = np.where(ok[None] & np.isfinite(lim), np.maximum(lim, 0.0), 0.0)
+        m = np.asarray(v_margin, dtype=float)
+        m = np.where(m > 0.0, m, 0.0)  # NaN -> 0
+        if m.shape != (nh, n):
+            m = np.broadcast_to(m, (nh, n))
+        target = target - sign * np.concatenate([m, m])  # moved inward
+    g0 = sign * (base - target)
+    x = _solve(g0, r_d, s, c_use, sign, cap, ocv, ocv_slope, ocv_s, slope_s, cfg.newton_steps)
+    lim = x if all_ok else np.where(ok, x, 0.0)
+    lim = np.where(np.isfinite(lim), np.maximum(lim, 0.0), 0.0)
+    sc = sign * c_use
+    # the predicted voltage at each limit (a zero limit: at zero current) and, for the pack,
+    # every cell's at the weakest cell's limit: one OCV call on both stacked
+    if pack is not None:
+        n_par, valid = pack
+        use = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+        if not use.any():
+            i_pack = np.zeros(2 * nh)
+        else:  # the weakest cell's limit (a cell that cannot be predicted has 0)
+            i_pack = lim.min(axis=1) if use.all() else lim[:, use].min(axis=1)
+        use = use & ok
+        i2 = sign * i_pack[:, None]  # (2H, 1) signed cell current
+        o = ocv(np.concatenate([s + sc * lim, s + c_use * i2]))
+        o_lim, o_pack = o[:2 * nh], o[2 * nh:]
+    else:
+        o_lim = ocv(s + sc * lim)
+    v_at = target + sign * np.minimum(g0 + sign * (o_lim - ocv_s) + r_d * lim, 0.0)
+    v_at = np.where(lim > 0.0, v_at, base)
     p = np.where(np.isfinite(v_at), np.maximum(lim * v_at, 0.0), 0.0)
-    return SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:])
+    res = SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:], basis)
+    if pack is None:
+        return res, None
+    v_pack = base + (o_pack - ocv_s) + r_d * i2
+    p_pack = v_pack.sum(axis=1)
+    if not (use.all() and np.isfinite(p_pack).all()):
+        p_pack = np.sum(np.where(use & np.isfinite(v_pack), v_pack, 0.0), axis=1)
+    p_pack = i_pack * n_par * p_pack
+    p_pack = np.maximum(p_pack, 0.0)
+    return res, {"discharge_a": i_pack[:nh] * n_par, "charge_a": i_pack[nh:] * n_par,
+                 "discharge_w": p_pack[:nh], "charge_w": p_pack[nh:]}
 
 
 def pack_limits(result: SopResult, *, voltage_v, current_now_a, soc, capacity_ah, ocv: OcvFn,

@@ -7,26 +7,48 @@ Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``s
     RC voltages   x_j[k+1] = p_j x_j[k] + R_j (1 - p_j) i[k],  p_j = exp(-Ts/tau_j)   (identified R_j, tau_j)
     SOP           core.sop.sop_limits at the start of the next period (x_j[k+1], v[k] moved by it)
     SOE           core.soe.energy_left_wh at SoeConfig.rate_c; time to empty/full at the mean
-                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m)
+                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m); these and the capacity SOH are
+                  recomputed every SoxConfig.slow_period_s (10 s) and held in between
     energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing); E_net (Wh out since
                   the last full cell, soc >= full_soc) goes down again with charge
     SOH           core.soh: capacity SOH (once justified) and resistance SOH at the reference point
+                  (both on the slow cadence, the R0 reading counting for slow_period_s of samples)
     margin        b = v - OCV(s) - R0 i - sum_j x_j; rms_D^2 += a (b_k - b_{k-D/Ts})^2 - ...: the model's
                   D-second error, which moves the SOP bounds inward (core.sop, "Model-error margin")
 
 The RC voltages are tracked here from the identified parameters (the same ZOH recursion
 as core.ecm), so this module does not depend on how the SOC filter keeps its own.
+
+Speed (200 cells, ``bms-estimator bench``'s ``sox_ms_200_cells``).  Profiled with cProfile
+and per-line timing, the SOX part cost 1.21 ms per sample: the SOP 0.44 ms (6 OCV table
+calls on ``(6, 200)`` arrays), its pack pass 0.16 ms (2 more), the SOE 0.18 ms (a
+``(21, 200)`` OCV grid and four ``take_along_axis``), the tracking 0.14 ms (one more OCV
+call), the rest the outputs.  Almost none of it was arithmetic: numpy's per-call cost
+on small arrays was (a sum over the 2-element RC axis 20 us, five of them; ``nan_to_num``
+9 us; 23 ``broadcast_to`` and 20 ``errstate`` contexts 2-5 us each; every OCV call re-located
+the cells' temperatures).  Now: every horizon and both directions are one ``(6, N)``
+Newton solve; the OCV and its slope share one grid location
+(:class:`~bms_estimator.core.ocv_surface.OcvAtTemperatures`, the temperatures located once
+per sample and kept while unchanged); the pack's power comes out of the cells' last OCV call;
+the RC sums are ``einsum``/column adds; one ``errstate`` per solve; 5 OCV calls per sample
+instead of 10.  The limits are unchanged (bit-identical on the bench pack; the powers
+to 1e-15).  The energy left, time to empty/full and both SOH figures (slow quantities)
+are recomputed every ``slow_period_s``.  After it: 0.44 ms (0.68 ms on the 10 s refresh).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge
 
 from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from .soh import ResistanceSoh, SohConfig, capacity_soh
-from .sop import SopConfig, pack_limits, sop_limits
+from .ocv_surface import OcvAtTemperatures
+from .sop import SopConfig, sop_and_pack_limits
+from .sop_residual import ResidualConfig, ResidualResistance
 
 __all__ = ["SoxConfig", "SoxEstimator"]
 
@@ -36,7 +58,11 @@ class SoxConfig:
     sop: SopConfig = field(default_factory=SopConfig)
     soe: SoeConfig = field(default_factory=SoeConfig)
     soh: SohConfig = field(default_factory=SohConfig)
+    residual: ResidualConfig = field(default_factory=ResidualConfig)  # the learnt R_D correction (core.sop_residual)
     full_soc: float = 0.99  # the net energy delivered restarts at this SOC
+    # energy left, time to empty/full and capacity SOH are recomputed every slow_period_s and held
+    # in between (they move by well under 1 % in 10 s; the SOP and the energy counters run every sample)
+    slow_period_s: Annotated[float, Ge(0)] = 10.0
 
 
 class SoxEstimator:
@@ -50,7 +76,10 @@ class SoxEstimator:
         self.mean_current_a = np.zeros(self.n_cells)
         self.energy_discharged_wh = np.zeros(self.n_cells)
         self.energy_delivered_wh = np.zeros(self.n_cells)  # net, since the last full cell
-        self.resistance = ResistanceSoh(self.n_cells, self.dt_s, config.soh)
+        self._slow_every = max(int(round(config.slow_period_s / self.dt_s)), 1)  # samples
+        # the resistance SOH is updated on the slow cadence, each reading standing for that many samples
+        self.resistance = ResistanceSoh(self.n_cells, self.dt_s * self._slow_every, config.soh)
+        self._ok = np.zeros(self.n_cells, dtype=bool)
         self.v_anchor = np.full(self.n_cells, np.nan)  # the voltage at the next period's start, at i_anchor
         self.i_anchor = np.zeros(self.n_cells)
         self.soc_anchor = np.full(self.n_cells, np.nan)
@@ -64,68 +93,100 @@ class SoxEstimator:
         self._b_hist = np.full((int(self._lag.max()) + 1, self.n_cells), np.nan)
         self._b_head = 0
         self.error_ms_v2 = np.zeros((len(hz), self.n_cells))  # mean square n-step error per horizon
+        self._slow_due = 0
+        self._slow: dict[str, np.ndarray] = {}
+        self._ocv_at_last = None
+        self._limit_keys = [tuple(f"{k}_max_{d:g}s_{u}" for k, u in (("i_discharge", "a"), ("i_charge", "a"),
+                                                                     ("p_discharge", "w"), ("p_charge", "w")))
+                            for d in hz]
+        self.residual = ResidualResistance(self.n_cells, self.dt_s, hz, config.residual)
+        self._basis = None  # the last SOP's prediction basis, for the residual's windows
+        self._dr = None  # its correction now, (2H, N) or None
+        self._dr_seen = -1
 
     # ---------------------------------------------------------------- OCV at the cells' temperatures
     @staticmethod
-    def ocv_functions(est):
-        """(OCV, dOCV/dSOC) of SOC arrays whose last axis is the cells, at each cell's temperature."""
-        ocv = est.ocv
-        t = np.asarray(est.temperature_c, dtype=float)
-        if hasattr(ocv, "temperatures_c"):
-            def f(s):  # s: (..., N), the last axis the cells
-                s = np.asarray(s, dtype=float)
-                return ocv.ocv(s, np.broadcast_to(t, s.shape))
+    def ocv_at(est) -> OcvAtTemperatures:
+        """OCV and slope of SOC arrays whose last axis is the cells, at each cell's temperature now."""
+        return OcvAtTemperatures(est.ocv, est.temperature_c)
 
-            def g(s):
-                s = np.asarray(s, dtype=float)
-                return ocv.docv_dsoc(s, np.broadcast_to(t, s.shape))
-            return f, g
-        return ocv.ocv, ocv.docv_dsoc
+    def _ocv_at_cached(self, est) -> OcvAtTemperatures:
+        """:meth:`ocv_at`, kept while the temperatures (and the OCV object) are the same as last sample's."""
+        t = np.asarray(est.temperature_c, dtype=float)
+        c = self._ocv_at_last
+        if c is not None and c[0] is est.ocv and c[1].shape == t.shape and np.array_equal(c[1], t):
+            return c[2]
+        f = self.ocv_at(est)
+        self._ocv_at_last = (est.ocv, t.copy(), f)
+        return f
+
+    @classmethod
+    def ocv_functions(cls, est):
+        """(OCV, dOCV/dSOC) of SOC arrays whose last axis is the cells, at each cell's temperature."""
+        f = cls.ocv_at(est)
+        return f.ocv, f.slope
 
     def update(self, est, current_a, voltage_v, valid=None) -> None:
         """One period, after ``est.update`` with the same current and voltages: track, then compute."""
-        self.track(est, current_a, voltage_v, valid)
-        self.compute(est)
+        f = self._ocv_at_cached(est)  # the cells' temperatures located once for both
+        self.track(est, current_a, voltage_v, valid, ocv_at=f)
+        self.compute(est, ocv_at=f)
 
-    def track(self, est, current_a, voltage_v, valid=None) -> None:
-        """The per-sample states only (RC voltages, mean current, energy, R0 history); cheap."""
+    def track(self, est, current_a, voltage_v, valid=None, *, ocv_at: OcvAtTemperatures | None = None) -> None:
+        """The per-sample states only (RC voltages, mean current, energy, model error, learnt R_D); cheap.
+
+        ``ocv_at``: :meth:`ocv_at` of ``est`` now, when the caller has it already."""
         n = self.n_cells
-        i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
-        v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
-        ok = np.isfinite(v) & np.isfinite(i)
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            self._track(est, current_a, voltage_v, valid, ocv_at, n)
+
+    def _track(self, est, current_a, voltage_v, valid, ocv_at, n) -> None:
+        if np.ndim(current_a) == 0:  # one pack current (the usual case): no per-cell broadcast
+            i0 = float(current_a)
+            i_use = np.full(n, i0 if np.isfinite(i0) else 0.0)
+            v = np.asarray(voltage_v, dtype=float)
+            if v.shape != (n,):
+                v = np.broadcast_to(v, (n,))
+            ok = np.isfinite(v) if np.isfinite(i0) else np.zeros(n, dtype=bool)
+        else:
+            i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
+            v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
+            ok = np.isfinite(v) & np.isfinite(i)
+            i_use = np.where(np.isfinite(i), i, 0.0)
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
-        i_use = np.where(np.isfinite(i), i, 0.0)
         p = est.params
         r = np.stack([p["r1_ohm"], p["r2_ohm"]], axis=1)
         tau = np.stack([p["tau1_s"], p["tau2_s"]], axis=1)
-        good = np.all(np.isfinite(r) & np.isfinite(tau) & (tau > 0), axis=1)
-        with np.errstate(invalid="ignore", over="ignore"):
-            pj = np.exp(-self.dt_s / np.where(good[:, None], tau, 1.0))
-        self._x_prev = self.x_v.copy()
-        x_next = pj * self.x_v + np.where(good[:, None], r, 0.0) * (1.0 - pj) * i_use[:, None]
-        self.x_v = np.where(good[:, None], x_next, 0.0)
+        good = np.isfinite(r[:, 0] + r[:, 1] + tau[:, 0] + tau[:, 1]) & (np.minimum(tau[:, 0], tau[:, 1]) > 0)
+        all_good = bool(good.all())
+        pj = np.exp(-self.dt_s / (tau if all_good else np.where(good[:, None], tau, 1.0)))
+        x_prev = self._x_prev = self.x_v
+        x_next = pj * x_prev + (r if all_good else np.where(good[:, None], r, 0.0)) * (1.0 - pj) * i_use[:, None]
+        self.x_v = x_next if all_good else np.where(good[:, None], x_next, 0.0)
         # the voltage at the next period's start at this period's current: v moved by the RC change
-        self.v_anchor = np.where(ok, v + (self.x_v - self._x_prev).sum(axis=1), self.v_anchor)
+        dx = self.x_v - x_prev
+        self.v_anchor = np.where(ok, v + dx[:, 0] + dx[:, 1], self.v_anchor)
         self.i_anchor = np.where(ok, i_use, self.i_anchor)
         # the SOC at the next period's start
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.soc_anchor = np.asarray(est.soc, float) + i_use * self.dt_s / (3600.0 * np.asarray(est.counting_capacity_ah, float))
+        soc = np.asarray(est.soc, dtype=float)
+        self.soc_anchor = soc + i_use * self.dt_s / (3600.0 * np.asarray(est.counting_capacity_ah, float))
         a = 1.0 - np.exp(-self.dt_s / self.config.soe.mean_current_tau_s)
         self.mean_current_a = self.mean_current_a + a * (i_use - self.mean_current_a)
         e = np.where(ok, v * i_use * self.dt_s / 3600.0, 0.0)
         self.energy_discharged_wh += np.maximum(-e, 0.0)
-        soc = np.asarray(est.soc, dtype=float)
         self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
-        self._track_error(est, p, i_use, v, ok)
-        identified = np.asarray(getattr(est.identifier, "identified", np.ones(n, bool)), dtype=bool)
-        self.resistance.update(p["r0_ohm"], est.temperature_c, soc, identified & ok)
+        ocv_soc = self._track_error(est, p, i_use, v, ok, ocv_at)
+        self.residual.sample(np.where(ok, i_use, np.nan), v, ocv_soc, soc, est.counting_capacity_ah, self._basis)
+        self._ok = ok
 
-    def _track_error(self, est, p, i_use, v, ok) -> None:
-        """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon."""
-        ocv, _ = self.ocv_functions(est)
-        with np.errstate(invalid="ignore"):
-            b = v - ocv(np.asarray(est.soc, dtype=float)) - p["r0_ohm"] * i_use - self._x_prev.sum(axis=1)
+    def _track_error(self, est, p, i_use, v, ok, ocv_at=None) -> np.ndarray:
+        """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon.
+        Returns OCV(s) (inside :meth:`track`'s errstate)."""
+        f = self.ocv_at(est) if ocv_at is None else ocv_at
+        x = self._x_prev
+        ocv_soc = f.ocv(np.asarray(est.soc, dtype=float))
+        b = v - ocv_soc - p["r0_ohm"] * i_use - (x[:, 0] + x[:, 1])
         b = np.where(ok, b, np.nan)
         size = self._b_hist.shape[0]
         self._b_head = (self._b_head + 1) % size
@@ -136,6 +197,7 @@ class SoxEstimator:
         fresh = np.isfinite(e)
         self.error_ms_v2 = np.where(fresh, self.error_ms_v2 + a * (np.where(fresh, e, 0.0) ** 2 - self.error_ms_v2),
                                     self.error_ms_v2)
+        return ocv_soc
 
     @property
     def v_margin(self) -> np.ndarray:
@@ -150,19 +212,49 @@ class SoxEstimator:
                     r_ohm=np.stack([p["r1_ohm"], p["r2_ohm"]], axis=1),
                     tau_s=np.stack([p["tau1_s"], p["tau2_s"]], axis=1), x_v=self.x_v)
 
-    def compute(self, est) -> None:
+    def compute(self, est, *, ocv_at: OcvAtTemperatures | None = None) -> None:
         """SOP, SOE and SOH from the tracked state (after :meth:`track`)."""
         cfg = self.config
-        ocv, slope = self.ocv_functions(est)
+        f = self.ocv_at(est) if ocv_at is None else ocv_at
+        ocv = f.ocv
         kw = self.model(est)
-        soc, q, r = kw["soc"], kw["capacity_ah"], kw["r_ohm"]
-        p = est.params
-        res = sop_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=slope, config=cfg.sop,
-                         v_margin=self.v_margin, **kw)
+        slow = self._slow_due <= 0 or not self._slow
+        if slow or self.residual.windows_scored != self._dr_seen:  # a new dR, or its age/SOC checked on the slow cadence
+            self._dr = self.residual.correction(kw["soc"])
+            self._dr_seen = self.residual.windows_scored
+        res, self.pack = sop_and_pack_limits(temperature_c=est.temperature_c, ocv=ocv, docv_dsoc=f.slope,
+                                             ocv_slope=f.ocv_slope, config=cfg.sop, v_margin=self.v_margin,
+                                             n_parallel=cfg.sop.n_parallel, valid=np.isfinite(self.v_anchor),
+                                             dr_ohm=self._dr, **kw)
         self.sop = res
-        self.pack = pack_limits(res, ocv=ocv, n_parallel=cfg.sop.n_parallel,
-                                valid=np.isfinite(self.v_anchor), **kw)
-        r_ss = p["r0_ohm"] + r.sum(axis=1)
+        self._basis = res.basis
+        if slow:
+            self._slow = self._energy_and_capacity(est, f.ocv, kw)
+            identified = np.asarray(getattr(est.identifier, "identified", np.ones(self.n_cells, bool)), dtype=bool)
+            self.resistance.update(kw["r0_ohm"], est.temperature_c, est.soc, identified & self._ok,
+                                   samples=self._slow_every)
+            self._slow_due = self._slow_every
+        self._slow_due -= 1
+        out = {}
+        for h, (k_ia, k_ic, k_pa, k_pc) in enumerate(self._limit_keys):
+            out[k_ia] = res.discharge_a[h]
+            out[k_ic] = res.charge_a[h]
+            out[k_pa] = res.discharge_w[h]
+            out[k_pc] = res.charge_w[h]
+        out.update(self._slow)
+        out.update(
+            energy_delivered_wh=self.energy_delivered_wh.copy(),
+            energy_discharged_wh=self.energy_discharged_wh.copy(),
+            soh_resistance=self.resistance.ratio,
+            r0_ref_ohm=self.resistance.r0_ref_ohm.copy(),
+        )
+        self.outputs = out
+
+    def _energy_and_capacity(self, est, ocv, kw) -> dict[str, np.ndarray]:
+        """The slow outputs (every ``SoxConfig.slow_period_s``): energy left, time to empty/full, capacity SOH."""
+        cfg = self.config
+        soc, q, r = kw["soc"], kw["capacity_ah"], kw["r_ohm"]
+        r_ss = kw["r0_ohm"] + r[:, 0] + r[:, 1]
         e_left, z_cut = energy_left_wh(soc, q, r_ss, ocv, v_min=cfg.sop.v_min, soc_min=cfg.sop.soc_min, config=cfg.soe)
         tte = time_to_empty_s(soc, z_cut, q, self.mean_current_a, idle_current_c=cfg.soe.idle_current_c)
         ttf = time_to_full_s(soc, q, self.mean_current_a, soc_max=cfg.sop.soc_max, idle_current_c=cfg.soe.idle_current_c)
@@ -172,25 +264,8 @@ class SoxEstimator:
             else np.full(self.n_cells, np.nan)
         soh_q, soh_q_sigma = capacity_soh(est.capacity_ah, est.capacity_stated_ah, rel_sigma * est.capacity_ah,
                                           est.capacity_estimated)
-        out = {}
-        for h, d in enumerate(res.horizons_s):
-            tag = f"{d:g}s"
-            out[f"i_discharge_max_{tag}_a"] = res.discharge_a[h]
-            out[f"i_charge_max_{tag}_a"] = res.charge_a[h]
-            out[f"p_discharge_max_{tag}_w"] = res.discharge_w[h]
-            out[f"p_charge_max_{tag}_w"] = res.charge_w[h]
-        out.update(
-            energy_left_wh=e_left,
-            energy_delivered_wh=self.energy_delivered_wh.copy(),
-            energy_discharged_wh=self.energy_discharged_wh.copy(),
-            time_to_empty_s=tte,
-            time_to_full_s=ttf,
-            soh_capacity=soh_q,
-            soh_capacity_sigma=soh_q_sigma,
-            soh_resistance=self.resistance.ratio,
-            r0_ref_ohm=self.resistance.r0_ref_ohm.copy(),
-        )
-        self.outputs = out
+        return dict(energy_left_wh=e_left, time_to_empty_s=tte, time_to_full_s=ttf, soh_capacity=soh_q,
+                    soh_capacity_sigma=soh_q_sigma)
 
     def pack_outputs(self) -> dict[str, float]:
         """Pack figures: the SOP per horizon, and the sums/extremes of the cell figures."""

@@ -1,0 +1,59 @@
+"""The learnt R_D correction (core.sop_residual): what it learns, when, and where it applies."""
+
+import numpy as np
+
+from bms_estimator.core.sop_residual import ResidualConfig, ResidualResistance
+
+Q = np.array([3.0, 3.0])
+
+
+def _feed(res, currents, *, base, r_d, ocv0, true_extra, soc=0.5, ocv_end=None):
+    """Feed samples; the voltage each sample is what a cell with R_D + true_extra shows under a
+    current held since the window's start (the window's end value is the one scored)."""
+    seen = []
+    basis = (base, r_d, ocv0)
+    i_w = np.mean([c for c in currents if np.any(c)], axis=0)  # the window's mean current
+    for i in currents:
+        i = np.asarray(i, dtype=float)
+        v = base[0] + (ocv_end - ocv0) + (r_d[0] + true_extra) * i_w
+        res.sample(i, v, ocv_end, soc, Q, basis)
+        seen.append(res.dr_ohm[:, 0].copy())
+    return seen
+
+
+def test_a_held_step_teaches_the_missed_resistance_after_the_window_only():
+    res = ResidualResistance(2, 1.0, (10.0,))
+    base = np.array([[3.70, 3.65]])
+    r_d = np.array([[0.030, 0.040]])
+    ocv0 = np.array([3.68, 3.64])
+    ocv_end = ocv0 - 0.002
+    rest = [np.zeros(2)] * 61  # a minute at rest before the step
+    # cell 0 discharges, cell 1 charges; the logger spreads the step over two samples (a ramp-in
+    # sample, itself a step): the window starts there and holds
+    pulse = [np.array([-1.0, 1.0])] + [np.array([-3.0, 2.0])] * 9
+    seen = _feed(res, rest + pulse, base=base, r_d=r_d, ocv0=ocv0, true_extra=np.array([0.004, -0.006]),
+                 ocv_end=ocv_end)
+    assert np.all(np.isnan(seen[-2]))  # 9 samples of the window: nothing learnt yet (causal)
+    np.testing.assert_allclose(res.dr_ohm[0, 0, 0], 0.004, rtol=1e-9)  # discharge row of cell 0
+    np.testing.assert_allclose(res.dr_ohm[1, 0, 1], -0.006, rtol=1e-9)  # charge row of cell 1
+    assert np.isnan(res.dr_ohm[1, 0, 0]) and np.isnan(res.dr_ohm[0, 0, 1])
+    corr = res.correction(np.array([0.52, 0.45]))
+    np.testing.assert_allclose(corr, [[0.004, 0.0], [0.0, -0.006]], rtol=1e-9)
+    assert res.correction(np.array([0.75, 0.2])) is None  # seen 0.25 SOC away: not used
+    for _ in range(3601):
+        res.sample(np.zeros(2), base[0], ocv_end, 0.5, Q, None)
+    assert res.correction(np.array([0.5, 0.5])) is None  # older than an hour
+
+
+def test_a_window_whose_current_did_not_hold_or_was_too_small_is_not_used():
+    res = ResidualResistance(2, 1.0, (10.0,))
+    kw = dict(base=np.array([[3.7, 3.7]]), r_d=np.array([[0.03, 0.03]]), ocv0=np.array([3.7, 3.7]),
+              true_extra=np.array([0.01, 0.01]), ocv_end=np.array([3.7, 3.7]))
+    pulse = [np.array([-3.0, -0.3])] * 5 + [np.array([-0.5, -0.3])] * 5  # cell 0 drops to 1/6; cell 1 below 0.25C
+    _feed(res, [np.zeros(2)] * 61 + pulse, **kw)
+    assert np.all(np.isnan(res.dr_ohm)) and res.windows_scored == 0
+    # a step that holds but does not come out of a minute's rest (a drive's) is not learnt from
+    res = ResidualResistance(2, 1.0, (10.0,))
+    _feed(res, [np.zeros(2)] * 30 + [np.array([-3.0, 2.0])] * 10, **kw)
+    assert res.windows_scored == 0
+    assert ResidualResistance(2, 1.0, (10.0,), ResidualConfig(enabled=False)).correction(np.zeros(2)) is None
