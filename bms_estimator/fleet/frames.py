@@ -189,7 +189,7 @@ def _read_candump_bulk(path: Path) -> FrameTable | None:
     opener = gzip.open if path.suffix.lower() == ".gz" else open
     with opener(path, "rb") as fh:
         raw = fh.read()
-    if not raw.strip():
+    if not raw or raw.isspace():  # (not raw.strip(): that copies the whole file)
         return FrameTable._build([], [], [], [], [])
     if b"\r" in raw:
         raw = raw.replace(b"\r\n", b"\n")
