@@ -442,3 +442,24 @@ def test_real_hppc_agrees_with_c20_at_25degC() -> None:
     grid = np.linspace(0.1, 0.9, 81)
     diff_mv = 1e3 * (hc.ocv(grid) - c20.ocv(grid))
     assert np.max(np.abs(diff_mv)) < 25.0, np.round(diff_mv, 1)
+
+
+def test_tables_sharing_a_locator_answer_as_if_each_located_its_own_query() -> None:
+    """The OCV, slope and hysteresis tables share one grid locator that keeps the last query's answer:
+    equal queries, a query changed in place, NaN, other shapes and an inverse in between all give
+    exactly what a fresh curve gives."""
+    curve, fresh = knot_curve(), knot_curve
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-0.05, 1.05, 96)
+    x[3] = np.nan
+    got = [curve.ocv(x), curve.hysteresis(x), curve.docv_dsoc(x)]
+    want = [fresh().ocv(x), fresh().hysteresis(x), fresh().docv_dsoc(x)]
+    for g, w in zip(got, want):
+        assert np.array_equal(g, w, equal_nan=True)
+    assert np.array_equal(curve.soc_from_ocv(curve.ocv(x)), fresh().soc_from_ocv(fresh().ocv(x)), equal_nan=True)
+    x += 0.01  # in place: the same object, other values
+    assert np.array_equal(curve.docv_dsoc(x), fresh().docv_dsoc(x), equal_nan=True)
+    assert np.array_equal(curve.ocv(x[:10].reshape(2, 5)), fresh().ocv(x[:10].reshape(2, 5)), equal_nan=True)
+    v = curve.ocv(x[:5])  # the inverse moves segment indices of its own: the kept answer stays intact
+    curve.soc_from_ocv(v + 0.2)
+    assert np.array_equal(curve.ocv(x[:5]), v, equal_nan=True)

@@ -33,6 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .cells import cell_vector
+
 __all__ = [
     "HysteresisParams",
     "hysteresis_trajectory",
@@ -166,7 +168,7 @@ class HysteresisState:
 
     def update(self, current_a: float | np.ndarray) -> np.ndarray:
         """Hysteresis voltage ``H[k]`` of this sample (then the state moves on with its current)."""
-        i = np.broadcast_to(np.asarray(current_a, dtype=float), (self.n_cells,))
+        i = cell_vector(current_a, self.n_cells)
         i = np.where(np.isfinite(i), i, 0.0)
         sg = np.sign(i)
         self.s = np.where(np.abs(i) > self.rest_a, sg, self.s)

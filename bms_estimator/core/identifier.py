@@ -29,6 +29,7 @@ from typing import Annotated, Literal
 import numpy as np
 from annotated_types import Ge, Gt, Interval
 
+from .cells import cell_vector
 from .lif import LifHistory
 from .params import (
     PhysicalParams,
@@ -195,13 +196,13 @@ class Identifier:
                 regressor window is marked contaminated and they do not learn
                 until it has been flushed).
         """
-        i = np.broadcast_to(np.asarray(current_a, dtype=float), (self.n_cells,))
+        i = cell_vector(current_a, self.n_cells)
         v = np.asarray(v_o, dtype=float)
         ok = np.isfinite(v) & np.isfinite(i)
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
         y, phi, ready = self._regress(i, v, ok)
-        learn = ready & np.isfinite(y) & np.all(np.isfinite(phi), axis=1)
+        learn = ready & np.isfinite(y) & np.logical_and.reduce(np.isfinite(phi), axis=1)
         was_init = self.rls.initialised.copy()
         self.error = self._learn(phi, np.where(learn, y, 0.0), learn)
         if self.config.c0_prior_weight > 0:
@@ -223,10 +224,13 @@ class Identifier:
             give_up = bad_start & ~grow
             theta[give_up] = self._prior_theta_s[give_up]
         rejected = self.rls.initialised & ~params.admissible & ~new
-        self.rejections += rejected
         if rejected.any():
+            self.rejections += rejected
             self.rls.reset_theta(rejected, self.theta_good)
-        self._rejected_run = np.where(rejected, self._rejected_run + 1, np.where(good & learn, 0, self._rejected_run))
+            self._rejected_run = np.where(rejected, self._rejected_run + 1,
+                                          np.where(good & learn, 0, self._rejected_run))
+        else:  # the usual sample: nothing rejected
+            self._rejected_run = np.where(good & learn, 0, self._rejected_run)
         n_stuck = self.config.restart_after_rejections
         if n_stuck > 0:
             stuck = self._rejected_run >= n_stuck
@@ -235,9 +239,14 @@ class Identifier:
                 self._rejected_run[stuck] = 0
                 self.restarts += stuck
         self.accepted = good & learn
-        self.theta_good = np.where(good[:, None], theta, self.theta_good)
-        self.identified |= good
-        self.params = params.select(good, self.params) if good.any() else self.params
+        if good.all():  # every cell admissible (the usual sample): the selects below would copy
+            self.theta_good = theta.copy()  # (theta is the RLS's own, updated in place)
+            self.identified[:] = True
+            self.params = params
+        else:
+            self.theta_good = np.where(good[:, None], theta, self.theta_good)
+            self.identified |= good
+            self.params = params.select(good, self.params) if good.any() else self.params
         self.updates += 1
 
     def _learn(self, phi: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:

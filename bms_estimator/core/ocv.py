@@ -50,6 +50,8 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
+from .cells import clip
+
 __all__ = ["OcvCurve", "MIN_SLOPE_V", "median_temperature_c"]
 
 #: Floor of ``docv_dsoc`` [V per unit SOC].
@@ -175,13 +177,14 @@ class OcvCurve:
             gv[-1] = max(gv[-1], self._v1)
             self._v1 = float(gv[-1])
         self._fwd = _UniformTable(self._s0, self._s1, gv)
-        self._slope = _UniformTable(self._s0, self._s1, np.maximum(spline.derivative()(grid), MIN_SLOPE_V))
+        on_grid = self._fwd._locate  # the SOC tables share a grid: one locator (a query is located once)
+        self._slope = _UniformTable(self._s0, self._s1, np.maximum(spline.derivative()(grid), MIN_SLOPE_V), on_grid)
         # inverse seed table: exact inverse of the forward table sampled at uniform OCVs
         vgrid = np.linspace(self._v0, self._v1, INVERSE_GRID_POINTS)
         self._inv = _UniformTable(self._v0, self._v1, np.interp(vgrid, gv, grid))
         if self.hysteresis_v is not None:
             hp = PchipInterpolator(s, self.hysteresis_v)
-            self._hyst = _UniformTable(self._s0, self._s1, np.maximum(hp(grid), 0.0))
+            self._hyst = _UniformTable(self._s0, self._s1, np.maximum(hp(grid), 0.0), on_grid)
         else:
             self._hyst = None
 
@@ -627,32 +630,61 @@ class OcvCurve:
 # helpers
 
 
+class _GridLocator:
+    """Segment index and fraction ``(k, f)`` of queries on a uniform grid of ``n`` points over ``[x0, x1]``.
+
+    The tables of one curve share a grid (OCV, slope, hysteresis) and the estimator reads
+    them at the same SOCs in one sample, so the last query's answer is kept, keyed by the
+    query's bytes (shape and dtype included): an equal query gets the same ``(k, f)``
+    without recomputing, bit for bit what it would compute. The answer must not be
+    modified by the caller.
+    """
+
+    _MEMO_MAX = 4096  # larger queries are not kept (keying them costs more than it saves)
+
+    def __init__(self, x0: float, x1: float, n: int) -> None:
+        self.x0 = float(x0)
+        self.n = int(n)
+        self.inv_h = (self.n - 1) / (float(x1) - self.x0)
+        self._memo: tuple | None = None  # (key, k, f), replaced as one object (threads see a whole one)
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = (x.shape, x.dtype.str, x.tobytes()) if x.size <= self._MEMO_MAX else None
+        memo = self._memo
+        if key is not None and memo is not None and memo[0] == key:
+            return memo[1], memo[2]
+        u = (x - self.x0) * self.inv_h
+        k = np.floor(u)
+        clip(k, 0, self.n - 2, out=k)
+        nan = np.isnan(k)
+        if nan.any():
+            k[nan] = 0
+        f = u - k
+        clip(f, 0.0, 1.0, out=f)  # NaN stays NaN
+        k = k.astype(np.intp)
+        if key is not None:
+            self._memo = (key, k, f)
+        return k, f
+
+
 class _UniformTable:
     """Piecewise-linear interpolation on a uniform grid by direct indexing (O(1) per query).
 
     ``np.interp`` binary-searches each query; for 2000 unsorted queries on a
     2001-point table that is ~140 us, direct indexing ~20 us.  Queries outside
     ``[x0, x1]`` get the end values (callers add their own extrapolation); NaN
-    propagates.
+    propagates.  Tables on the same grid can share one ``locator`` (:class:`_GridLocator`).
     """
 
-    def __init__(self, x0: float, x1: float, y: np.ndarray) -> None:
+    def __init__(self, x0: float, x1: float, y: np.ndarray, locator: _GridLocator | None = None) -> None:
         self.x0 = float(x0)
         self.n = int(y.size)
         self.inv_h = (self.n - 1) / (float(x1) - self.x0)
         self.y = np.ascontiguousarray(y, dtype=np.float64)
         self.dy = np.diff(self.y)
-
-    def _locate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        u = (x - self.x0) * self.inv_h
-        k = np.floor(u)
-        np.clip(k, 0, self.n - 2, out=k)
-        nan = np.isnan(k)
-        if nan.any():
-            k[nan] = 0
-        f = u - k
-        np.clip(f, 0.0, 1.0, out=f)  # NaN stays NaN
-        return k.astype(np.intp), f
+        if locator is not None and (locator.x0, locator.n, locator.inv_h) != (self.x0, self.n, self.inv_h):
+            raise ValueError("a shared locator must be on the table's own grid")
+        self._locate = locator if locator is not None else _GridLocator(x0, x1, self.n)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         x1 = np.atleast_1d(x)
@@ -680,6 +712,7 @@ class _UniformTable:
         dy = self.dy[k]
         off = (r < 0) | (r > dy)
         if off.any():
+            k = k.copy()  # the locator's answer is shared: not to be modified
             k[off] = np.clip(np.searchsorted(self.y, y1[off], side="right") - 1, 0, self.n - 2)
             r[off] = y1[off] - self.y[k[off]]
             dy[off] = self.dy[k[off]]

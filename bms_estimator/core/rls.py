@@ -113,17 +113,18 @@ class WeightedRls:
             self._err2[:, h] = np.where(run, e * e, self._err2[:, h])
             self._err_head = (h + 1) % cfg.error_window
             self._err_count += run
-            filled = np.minimum(self._err_count, cfg.error_window)
-            rms = np.sqrt(self._err2.sum(axis=1) / np.maximum(filled, 1))
-            if cfg.error_on > 0:
+            if cfg.error_on > 0:  # the RMS only switches adaptation when a threshold is set
+                filled = np.minimum(self._err_count, cfg.error_window)
+                rms = np.sqrt(self._err2.sum(axis=1) / np.maximum(filled, 1))
                 self.adapting = np.where(
                     rms > cfg.error_on, True, np.where(rms < cfg.error_off, False, self.adapting)
                 )
             w = run & self.adapting
             if w.any():
                 self._rls_step(phi, e, w, lam)
-        e = np.where(self.initialised | init_now, e, np.nan)
-        return e
+        if self.initialised.all():  # every cell running (the usual sample): no NaN to put in
+            return e
+        return np.where(self.initialised | init_now, e, np.nan)
 
     def _rls_step(self, phi: np.ndarray, e: np.ndarray, w: np.ndarray, lam: float) -> None:
         P = self._pt  # (p, p, N)

@@ -45,6 +45,7 @@ from typing import Annotated, Literal, get_args
 import numpy as np
 from annotated_types import Ge, Gt
 
+from .cells import cell_vector, clip
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
@@ -285,10 +286,10 @@ class SocEstimator:
     ) -> None:
         """One sample period: mean current over the period, the cell voltages and temperatures."""
         n = self.n_cells
-        i = np.broadcast_to(np.asarray(current_a, dtype=float), (n,))
-        v = np.broadcast_to(np.asarray(voltage_v, dtype=float), (n,))
+        i = cell_vector(current_a, n)
+        v = cell_vector(voltage_v, n)
         if temperature_c is not None and self._t_aware:
-            t = np.broadcast_to(np.asarray(temperature_c, dtype=float), (n,))
+            t = cell_vector(temperature_c, n)
             self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last
             self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
         ok = np.isfinite(v)
@@ -312,8 +313,10 @@ class SocEstimator:
         dq = self._i_prev * (self.dt_s / 3600.0)
         dz = dq / q_now
         have_soc = np.isfinite(self.soc)
+        every_soc = bool(have_soc.all())  # the usual sample: no select needed below
         # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
-        self.soc = np.where(have_soc, np.clip(self.soc + dz, 0.0, 1.0), self.soc)
+        counted = clip(self.soc + dz, 0.0, 1.0)
+        self.soc = counted if every_soc else np.where(have_soc, counted, self.soc)
         self.charge_ah += dq
         self._charge_ref_ah += dq / self._rel_q
         i_prev = self._i_prev
@@ -324,7 +327,8 @@ class SocEstimator:
             self.hysteresis_state = self._hyst.update(i_use)
         # 2. overpotential at the middle of the period (the voltage is a period mean)
         soc_mid = self.soc + i_use * (0.5 * self.dt_s / 3600.0) / q_now
-        soc_mid = np.where(have_soc, soc_mid, 0.5)
+        if not every_soc:
+            soc_mid = np.where(have_soc, soc_mid, 0.5)
         ocv_v = self._ocv(soc_mid)
         self.v_o = v - ocv_v
         use = ok & i_ok & have_soc
@@ -342,8 +346,10 @@ class SocEstimator:
     def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, soc_mid: np.ndarray,
                   use: np.ndarray) -> None:
         p = self.identifier.params
-        r = np.stack([p.r1_ohm, p.r2_ohm], axis=1)
-        tau = np.stack([p.tau1_s, p.tau2_s], axis=1)
+        r = np.empty((self.n_cells, 2))  # (N, 2) pairs, filled column by column (np.stack's values)
+        r[:, 0], r[:, 1] = p.r1_ohm, p.r2_ohm
+        tau = np.empty((self.n_cells, 2))
+        tau[:, 0], tau[:, 1] = p.tau1_s, p.tau2_s
         live = np.isfinite(self.soc)
         self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q, r, tau, live)
         overpotential = p.r0_ohm * i_now + self.ekf.v_rc[:, 0] + self.ekf.v_rc[:, 1]  # the identified model's
@@ -352,14 +358,14 @@ class SocEstimator:
         unsure = (1.0 - np.abs(self.hysteresis_state)) * self._h_gap if self._hyst is not None else 0.0
         ec = self.config.ekf
         rho = np.where(self.identifier.identified, ec.overpotential_sigma, ec.overpotential_sigma_prior)
-        d_soc, d_q = self.ekf.correct(innovation, slope, np.broadcast_to(unsure, (self.n_cells,)), use,
+        d_soc, d_q = self.ekf.correct(innovation, slope, cell_vector(unsure, self.n_cells), use,
                                       rho * np.abs(overpotential))
         if self.config.estimate_capacity:
             self.capacity_ah = self.capacity_ah * (1.0 + d_q)
             lo, hi = self.config.capacity_bounds
-            self.capacity_ah = np.clip(self.capacity_ah, lo * self.capacity_stated_ah, hi * self.capacity_stated_ah)
+            self.capacity_ah = clip(self.capacity_ah, lo * self.capacity_stated_ah, hi * self.capacity_stated_ah)
             self.capacity_estimated |= self.ekf.p[:, 3, 3] < (0.5 * self.config.ekf.capacity_sigma) ** 2
-        self.soc = np.clip(self.soc + d_soc, 0.0, 1.0)
+        self.soc = clip(self.soc + d_soc, 0.0, 1.0)
         # The OCV the identifier saw moves with the SOC, as in a c0 compensation: its history and
         # c0 shift with every EKF move, cell by cell.  (Shifting only once the pack's largest
         # pending move reached a millivolt saved a fifth of the update but made a cell's estimate

@@ -50,7 +50,8 @@ def _latest(t_ev: np.ndarray, cell_ev: np.ndarray, v_ev: np.ndarray, ends: np.nd
     vt = np.full((k, n), -np.inf)
     if t_ev.size == 0:
         return val, vt
-    order = np.argsort(cell_ev, kind="stable")  # time order (= apply order) kept within a cell
+    # time order (= apply order) kept within a cell; cell numbers as int16 sort by radix (the same order)
+    order = np.argsort(cell_ev.astype(np.int16) if n <= np.iinfo(np.int16).max else cell_ev, kind="stable")
     cells_sorted = cell_ev[order]
     bounds = np.searchsorted(cells_sorted, np.arange(n + 1))
     for c in range(n):

@@ -1,9 +1,18 @@
 """The service's estimator over :class:`~.samples.SampleArrays`: per-cell SOC and parameters of one drive, or a vehicle's drives chained.
 
-Each sample goes through :meth:`bms_estimator.service.pipeline.Pipeline.tick`, the
-service's own step (``SocEstimator.update`` when the current is valid, else skipped; the
-snapshot's per-cell values), so the results are the service's by construction: the
-estimator is vectorised over the cells and fed sample by sample, in time order.
+Each sample takes the service's step (:meth:`bms_estimator.service.pipeline.Pipeline.tick`
+without its outputs): ``SocEstimator.update(i, v, valid, T)`` when the current is valid and
+finite, else no update; then the per-cell values the service's snapshot would carry are
+written into row k of preallocated ``(K, N)`` arrays. The results are the service's: the
+same estimator object, fed the same arguments sample by sample, in time order. What the
+batch does not need per sample is left out: the snapshot object, its pack statistics and
+status counters, the output hooks (SOX is not part of the batch's outputs). Values that
+are functions of others are computed once over the whole drive, with the snapshot's own
+arithmetic: ``tau1_s = r1_ohm * c1_f``, ``tau2_s = r2_ohm * c2_f`` (elementwise, so bit
+for bit the per-sample values); ``voltage_v`` and ``temperature_c`` are the samples'.
+
+A sample whose update raises is logged and counted (``tick_errors``) and its row stays
+NaN, as the service's tick does (logged, no snapshot).
 
 Chaining: a vehicle's drives in time order, the estimator state carried from one drive to
 the next as the service carries it across a restart: ``SocEstimator.state_dict()`` at the
@@ -14,18 +23,23 @@ fresh, as after a restart.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import structlog
 
-from ..can.decoder import FrameDecoder
-from ..can.sampler import SampleAssembler
 from ..core.soc import SocEstimator
-from ..service.pipeline import Pipeline, Snapshot
+from ..service.schema import CELL_FIELDS
 from .samples import SampleArrays
 
 __all__ = ["DriveEstimate", "estimate_drive", "carry_state"]
+
+log = structlog.get_logger("bms.fleet")
+
+#: the identifier's parameters a snapshot carries (PhysicalParams attributes)
+PARAM_KEYS = ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v")
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,6 +51,7 @@ class DriveEstimate:
     valid: np.ndarray  # (K, N) bool
     cells: dict[str, np.ndarray]
     state: dict[str, np.ndarray] = field(repr=False)  # estimator state at the end (for the next drive)
+    tick_errors: int = 0  # samples whose update raised (their row is NaN)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -50,28 +65,55 @@ def carry_state(make_estimator: Callable[[], SocEstimator], state: dict[str, np.
     return est
 
 
-def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder: FrameDecoder,
-                   sampler: SampleAssembler) -> DriveEstimate:
-    """Run ``estimator`` over every sample of one drive (``decoder``/``sampler`` only feed the status counters)."""
-    pipe = Pipeline(decoder, sampler, estimator, clock=lambda: 0.0, wall_clock=lambda: 0.0)
+def _estimator_fields(est: SocEstimator) -> list[tuple[str, str]]:
+    """(key, attribute) of the further per-cell outputs the snapshot reads off the estimator (schema.CellField.estimator)."""
+    taken = {"soc", "capacity_ah", "tau1_s", "tau2_s", "voltage_v", "temperature_c", *PARAM_KEYS}
+    return [(f.key, f.estimator) for f in CELL_FIELDS
+            if f.estimator is not None and f.key not in taken and hasattr(est, f.estimator)]
+
+
+def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None, sampler=None) -> DriveEstimate:
+    """Run ``estimator`` over every sample of one drive; row k of each output is the service's snapshot after sample k.
+
+    (``decoder``/``sampler`` are accepted for the callers of the snapshot-based version and not used.)
+    """
     k, n = len(samples), samples.n_cells
-    store: dict[str, np.ndarray] = {}
-    row = [0]
-
-    def keep(snap: Snapshot) -> None:
-        i = row[0]
-        for key, value in snap.cells.items():
-            arr = store.get(key)
-            if arr is None:
-                arr = store[key] = np.full((k, n), np.nan)
-            arr[i] = value
-        row[0] = i + 1
-
-    pipe.add_hook(keep)
+    est = estimator
+    extra = _estimator_fields(est)
+    keys = ("soc", *PARAM_KEYS, "capacity_ah", *(key for key, _ in extra))
+    store = {key: np.full((k, n), np.nan) for key in keys}
+    soc_out, cap_out = store["soc"], store["capacity_ah"]
+    param_out = [store[key] for key in PARAM_KEYS]
+    extra_out = [(store[key], attr) for key, attr in extra]
+    current = samples.current_a.tolist()  # Python floats, as Sample carries them
+    current_valid = samples.current_valid.tolist()
+    volts, temps, valid = samples.cell_voltage_v, samples.cell_temperature_c, samples.valid
+    update, isfinite = est.update, math.isfinite
+    errors = 0
     for i in range(k):
-        before = row[0]
-        pipe.tick(samples.sample(i))
-        if row[0] == before:  # the tick failed (logged by the pipeline): keep the row aligned, NaN
-            row[0] += 1
+        try:
+            c = current[i]
+            if current_valid[i] and isfinite(c):
+                update(c, volts[i], valid[i], temperature_c=temps[i])
+            soc_out[i] = est.soc
+            p = est.identifier.params
+            for out, value in zip(param_out, (p.r0_ohm, p.r1_ohm, p.c1_f, p.r2_ohm, p.c2_f, p.c0_v)):
+                out[i] = value
+            cap_out[i] = est.capacity_ah
+            for out, attr in extra_out:
+                out[i] = getattr(est, attr)
+        except Exception as exc:  # noqa: BLE001 - the service's tick logs, counts and goes on; so does the batch
+            errors += 1
+            for out in store.values():
+                out[i] = np.nan
+            if errors <= 5:
+                log.error("estimator step failed", sample=i, t_s=float(samples.t_s[i]),
+                          error=f"{type(exc).__name__}: {exc}", exc_info=exc)
+    with np.errstate(all="ignore"):
+        store["tau1_s"] = store["r1_ohm"] * store["c1_f"]
+        store["tau2_s"] = store["r2_ohm"] * store["c2_f"]
+    store["voltage_v"] = np.array(volts, dtype=float, copy=True)
+    store["temperature_c"] = np.array(temps, dtype=float, copy=True)
     return DriveEstimate(t_s=samples.t_s.copy(), current_a=samples.current_a.copy(), valid=samples.valid.copy(),
-                         cells=store, state={key: np.array(v, copy=True) for key, v in pipe.estimator.state_dict().items()})
+                         cells=store, state={key: np.array(v, copy=True) for key, v in est.state_dict().items()},
+                         tick_errors=errors)

@@ -3,12 +3,13 @@
 Readers
 -------
 ``.log`` (candump -L)
-    Parsed in bulk with pyarrow's CSV reader (three space-separated columns), the hex
-    identifier and payload converted with a byte lookup table. Timestamps are cast by
-    Arrow's correctly rounded decimal parser, so they equal python-can's ``float()``
-    bit for bit. A file the bulk parser does not cover (CAN FD ``##``, remote ``R``,
-    error frames, an ``R``/``T`` direction column, an odd-length payload) is read by
-    python-can's :class:`can.io.CanutilsLogReader` instead, message by message. The
+    Parsed in bulk with numpy on the file's bytes: the fields are cut at the offsets of
+    ``(``, ``.``, ``)``, the spaces and ``#``, the hex identifier and payload converted with
+    a byte lookup table, the timestamp from its decimal digits by one exact division, so it
+    equals python-can's ``float()`` bit for bit (:func:`_read_candump_bulk`). A file the
+    bulk parser does not cover (CAN FD ``##``, remote ``R``, error frames, tabs or double
+    spaces, a mixed column count, an odd-length payload, more than 15 timestamp digits) is
+    read by python-can's :class:`can.io.CanutilsLogReader` instead, message by message. The
     optional direction column (``R``/``T``) is read and not used, as python-can does.
 ``.asc``, ``.blf``
     python-can's readers, message by message (the formats force it: ASC lines have
@@ -160,83 +161,132 @@ def _check_complete(path: Path, kind: str) -> None:
             raise DataError(f"{path}: truncated ASC file (no 'End TriggerBlock' at its end)")
 
 
-def _fixed_width(arr, width: int, pad_left: bool) -> np.ndarray | None:
-    """An Arrow string array padded to ``width`` characters as an (M, width) uint8 array (None if longer)."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
+#: lines parsed per block by the bulk candump reader (bounds its (lines, 16) temporaries to ~100 MB)
+_BLOCK_LINES = 1 << 20
+#: most decimal digits of a timestamp the bulk reader converts itself (mantissa < 2**53: exact in a float64)
+_TS_DIGITS = 15
 
-    if len(arr) == 0:
-        return np.zeros((0, width), np.uint8)
-    if pc.max(pc.utf8_length(arr)).as_py() > width:
-        return None
-    padded = (pc.utf8_lpad if pad_left else pc.utf8_rpad)(arr, width=width, padding="0")
-    padded = padded.combine_chunks() if isinstance(padded, pa.ChunkedArray) else padded
-    offsets = np.frombuffer(padded.buffers()[1], dtype=np.int32)[padded.offset: padded.offset + len(padded) + 1]
-    buf = np.frombuffer(padded.buffers()[2], dtype=np.uint8)
-    return buf[offsets[0]: offsets[0] + width * len(padded)].reshape(len(padded), width)
+
+def _positions(buf: np.ndarray, char: bytes, lines: int) -> np.ndarray | None:
+    """Offsets of ``char`` in ``buf``, when it occurs exactly ``lines`` times (once per line), else None."""
+    pos = np.flatnonzero(buf == ord(char))
+    return pos if pos.size == lines else None
 
 
 def _read_candump_bulk(path: Path) -> FrameTable | None:
-    """The common candump layout in bulk; None when the file needs python-can's per-line reader."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-    import pyarrow.csv as pcsv
+    """The common candump layout in bulk, with numpy on the raw bytes; None when a line needs python-can's reader.
 
+    Every line must be ``(SECONDS.FRACTION) CHANNEL ID#DATA`` with an optional ``R``/``T``
+    direction column (read, not used, as python-can does), single spaces, the same column
+    count on every line, an identifier of 1..8 and a payload of 0..16 hex digits. Fields are
+    found by the offsets of ``(``, ``.``, ``)``, the spaces and ``#`` (each once per line).
+
+    Timestamps: the digits give an integer mantissa ``m`` (at most 15 digits, so exact in a
+    float64) and a fraction length ``f``; ``m / 10**f`` is one IEEE division of two exact
+    numbers, hence the correctly rounded value of the decimal, which is what Python's
+    ``float()`` returns: bit for bit python-can's timestamp.
+    """
     opener = gzip.open if path.suffix.lower() == ".gz" else open
     with opener(path, "rb") as fh:
         raw = fh.read()
-    if not raw.strip():
+    if not raw or raw.isspace():  # (not raw.strip(): that copies the whole file)
         return FrameTable._build([], [], [], [], [])
-    first = raw.lstrip().split(b"\n", 1)[0].strip()
-    names = ["ts", "ch", "frame"] + (["dir"] if first[-2:].lower() in (b" r", b" t") else [])
-    try:
-        tab = pcsv.read_csv(
-            pa.py_buffer(raw),
-            read_options=pcsv.ReadOptions(column_names=names, block_size=1 << 24),
-            parse_options=pcsv.ParseOptions(delimiter=" ", quote_char=False, ignore_empty_lines=True),
-            convert_options=pcsv.ConvertOptions(column_types={n: pa.string() for n in names}),
-        )
-    except (pa.ArrowInvalid, pa.ArrowException):
-        return None  # another column count somewhere: the per-line reader decides
-    ts = tab.column("ts").combine_chunks()
-    frame = tab.column("frame").combine_chunks()
-    if ts.null_count or frame.null_count:
+    if b"\r" in raw:
+        raw = raw.replace(b"\r\n", b"\n")
+    if not raw.endswith(b"\n"):
+        raw += b"\n"
+    buf = np.frombuffer(raw, dtype=np.uint8)
+    ends = np.flatnonzero(buf == 10)
+    starts = np.concatenate(([0], ends[:-1] + 1))
+    if (ends == starts).any():  # blank lines: skip them, as python-can does
+        keep = ends > starts
+        raw = b"\n".join(raw[a:b] for a, b in zip(starts[keep].tolist(), ends[keep].tolist())) + b"\n"
+        buf = np.frombuffer(raw, dtype=np.uint8)
+        ends = np.flatnonzero(buf == 10)
+        starts = np.concatenate(([0], ends[:-1] + 1))
+    lines = ends.size
+    spaces = np.flatnonzero(buf == 32)
+    if spaces.size not in (2 * lines, 3 * lines):
         return None
-    if not (pc.all(pc.starts_with(ts, "(")).as_py() and pc.all(pc.ends_with(ts, ")")).as_py()):
+    spaces = spaces.reshape(lines, -1)
+    dots, hashes = _positions(buf, b".", lines), _positions(buf, b"#", lines)
+    if dots is None or hashes is None:
+        return None  # a CAN FD frame ('##'), a timestamp without a fraction, ...
+    frame_end = ends
+    if spaces.shape[1] == 3:  # the direction column: one character, R or T
+        frame_end = spaces[:, 2]
+        if ((ends - frame_end) != 2).any() or not np.isin(buf[ends - 1], np.frombuffer(b"RrTt", np.uint8)).all():
+            return None
+    close = spaces[:, 0] - 1
+    id_start = spaces[:, 1] + 1
+    if not ((buf[starts] == ord("(")).all() and (buf[close] == ord(")")).all()
+            and ((starts < dots) & (dots < close)).all() and ((id_start < hashes) & (hashes < frame_end)).all()):
         return None
-    try:
-        t = pc.cast(pc.utf8_slice_codeunits(ts, 1, -1), pa.float64()).to_numpy(zero_copy_only=False)
-    except (pa.ArrowInvalid, pa.ArrowException):
+    out = [_candump_block(buf, starts[a:a + _BLOCK_LINES], dots[a:a + _BLOCK_LINES], close[a:a + _BLOCK_LINES],
+                          id_start[a:a + _BLOCK_LINES], hashes[a:a + _BLOCK_LINES], frame_end[a:a + _BLOCK_LINES])
+           for a in range(0, lines, _BLOCK_LINES)]
+    if any(part is None for part in out):
         return None
-    hashpos = pc.find_substring(frame, "#").to_numpy(zero_copy_only=False)
-    if (hashpos < 0).any():
+    t, key, length, data = (np.concatenate(col) for col in zip(*out))
+    return FrameTable(t, key, length, data, np.zeros(lines, dtype=bool))
+
+
+def _by_length(first: np.ndarray, count: np.ndarray):
+    """Groups of the fields ``[first, first + count)`` of equal length: (length, line indices or slice, first)."""
+    present = np.flatnonzero(np.bincount(count))
+    if present.size == 1:
+        yield int(present[0]), slice(None), first
+        return
+    for c in present.tolist():
+        sel = np.flatnonzero(count == c)
+        yield c, sel, first[sel]
+
+
+def _rows(buf: np.ndarray, first: np.ndarray, width: int) -> np.ndarray:
+    """``buf[first[k]:first[k] + width]`` for every k, as a (len(first), width) array (one row copy each)."""
+    if width == 0:
+        return np.zeros((first.size, 0), np.uint8)
+    return np.lib.stride_tricks.sliding_window_view(buf, width)[first]
+
+
+_DEC = np.full(256, 255, dtype=np.uint8)
+_DEC[np.frombuffer(b"0123456789", np.uint8)] = np.arange(10, dtype=np.uint8)
+
+
+def _candump_block(buf, starts, dots, close, id_start, hashes, frame_end):
+    """Timestamps, keys, lengths and payloads of one block of candump lines (None: leave it to python-can)."""
+    m = starts.size
+    n_int, n_frac = dots - starts - 1, close - dots - 1
+    if (n_int < 1).any() or (n_int + n_frac > _TS_DIGITS).any():
         return None
-    id_len = hashpos
-    # split at the first '#': identifier before, payload after
-    parts = pc.split_pattern(frame, "#", max_splits=1)
-    id_str = pc.list_element(parts, 0)
-    data_str = pc.list_element(parts, 1)
-    id_chars = _fixed_width(id_str, 8, pad_left=True)
-    data_len = pc.utf8_length(data_str).to_numpy(zero_copy_only=False)
-    if id_chars is None or (data_len % 2).any():
-        return None  # an id longer than 8 hex digits, an FD frame ('##'), a remote frame 'R' (odd)
-    data_chars = _fixed_width(data_str, 16, pad_left=False)
-    if data_chars is None:
-        return None  # CAN FD payloads: the per-line reader
-    id_nib = _HEX[id_chars]
-    data_nib = _HEX[data_chars]
-    if (id_nib == 255).any() or (data_nib == 255).any():
-        return None  # not hex (a remote frame 'R', garbage): the per-line reader reports it
-    weights = (16 ** np.arange(7, -1, -1)).astype(np.int64)
-    can_id = id_nib.astype(np.int64) @ weights
+    t = np.empty(m)
+    # groups of equal width (dot included) and fraction length: key = width * 16 + n_frac (n_frac < 15)
+    for key, sel, first in _by_length(starts + 1, (close - starts - 1) * 16 + n_frac):
+        w, f = divmod(key, 16)
+        digits = _DEC[np.delete(_rows(buf, first, w), w - 1 - f, axis=1)]
+        if (digits == 255).any():
+            return None
+        mantissa = digits.astype(np.int64) @ (10 ** np.arange(w - 2, -1, -1, dtype=np.int64))
+        t[sel] = mantissa.astype(np.float64) / 10.0**f  # both exact: one correctly rounded division
+    id_len, data_len = hashes - id_start, frame_end - hashes - 1
+    if (id_len < 1).any() or (id_len > 8).any() or (data_len % 2).any() or (data_len > 16).any():
+        return None  # an empty or over-long id, a remote frame ('R': odd), a payload over 8 bytes
+    can_id = np.empty(m, np.int64)
+    for w, sel, first in _by_length(id_start, id_len):
+        nib = _HEX[_rows(buf, first, w)]
+        if (nib == 255).any():
+            return None
+        can_id[sel] = nib.astype(np.int64) @ (16 ** np.arange(w - 1, -1, -1, dtype=np.int64))
     if (can_id & _CAN_ERR_FLAG).any():
         return None  # error frames: the per-line reader's rules
-    extended = id_len > 3
-    data = (data_nib[:, 0::2] << 4) | data_nib[:, 1::2]
-    key = (can_id & 0x1FFFFFFF) | np.where(extended, EXTENDED_FLAG, 0)
-    m = len(t)
-    return FrameTable(t.astype(float), key.astype(np.int64), (data_len // 2).astype(np.int16),
-                      np.ascontiguousarray(data, dtype=np.uint8), np.zeros(m, dtype=bool))
+    data = np.zeros((m, 8), np.uint8)
+    for w, sel, first in _by_length(hashes + 1, data_len):
+        nib = _HEX[_rows(buf, first, w)]
+        if (nib == 255).any():
+            return None  # not hex (a remote frame 'R', garbage): the per-line reader reports it
+        data[sel, : w // 2] = (nib[:, 0::2] << 4) | nib[:, 1::2]
+    key = (can_id & 0x1FFFFFFF) | np.where(id_len > 3, EXTENDED_FLAG, 0)
+    return t, key.astype(np.int64), (data_len // 2).astype(np.int16), data
 
 
 def _read_mf4(path: Path) -> FrameTable:

@@ -182,6 +182,29 @@ def test_candump_bulk_reader_equals_python_can(tmp_path):
         assert np.array_equal(getattr(bulk_t, f), getattr(ref, f)), f
 
 
+def test_candump_bulk_reader_equals_python_can_on_hand_written_lines(tmp_path):
+    """Timestamps of every width and fraction length, short ids, empty payloads, CRLF and blank lines:
+    the bulk parser's frames are python-can's bit for bit, and it did parse them itself (no fallback)."""
+    from bms_estimator.fleet import frames as fr
+
+    rng = np.random.default_rng(3)
+    lines = []
+    for k in range(3000):
+        whole = str(int(rng.integers(0, 10 ** int(rng.integers(1, 11)))))
+        frac = "".join(rng.choice(list("0123456789"), int(rng.integers(1, 16 - len(whole)))))
+        ident = f"{int(rng.integers(0, 0x7FF)):03X}" if k % 3 else f"{int(rng.integers(0, 0x1FFFFFFF)):08x}"
+        payload = rng.integers(0, 256, int(rng.integers(0, 9)), dtype=np.uint8).tobytes().hex()
+        lines.append(f"({whole}.{frac}) can0 {ident}#{payload.upper() if k % 2 else payload}")
+    path = tmp_path / "hand.log"
+    path.write_bytes(("\r\n".join(lines[:1500]) + "\n\n" + "\n".join(lines[1500:])).encode())
+    bulk_t = fr._read_candump_bulk(path)
+    assert bulk_t is not None
+    ref = FrameTable.from_messages(can.LogReader(str(path)))
+    for f in ("t_s", "key", "length", "data", "ignored"):
+        assert np.array_equal(getattr(bulk_t, f), getattr(ref, f)), f
+    assert len(np.unique(bulk_t.t_s)) > 2900
+
+
 def test_foxbms_big_endian_signals_decode_like_cantools(foxbms_db):
     """Motorola signals, per-cell invalid flags and a negative current scale, on random payloads."""
     dec = FrameDecoder(foxbms_db, "foxbms", 18)

@@ -1,0 +1,40 @@
+"""Per-cell vectors in the estimators' hot paths, without numpy's Python-level call overhead.
+
+At N = 96 cells an elementwise operation costs well under a microsecond of arithmetic, and
+numpy's Python wrappers around some of them cost several: ``np.broadcast_to`` (~3 us) and
+``np.clip`` (~4 us: argument checks in Python before the ``clip`` ufunc). The estimator
+makes dozens of such calls per sample, so these two stand in for them with the same
+results, bit for bit:
+
+``cell_vector(x, n)``
+    ``x`` itself when it already is an ``(n,)`` float64 array; a Python float filled into a
+    new vector; else ``np.broadcast_to(np.asarray(x, dtype=float), (n,))`` (a read-only view).
+    The caller must not write to the result.
+``clip(a, lo, hi, out=None)``
+    numpy's ``clip`` ufunc, the one ``np.clip`` ends in: ``min(max(a, lo), hi)``
+    elementwise, NaN propagated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["cell_vector", "clip"]
+
+try:  # numpy >= 2: the ufunc behind np.clip
+    from numpy._core.umath import clip  # type: ignore[attr-defined]
+except ImportError:  # pragma: no cover - numpy 1.x keeps it here
+    from numpy.core.umath import clip  # type: ignore[no-redef]
+
+_F8 = np.dtype(np.float64)
+
+
+def cell_vector(x, n: int) -> np.ndarray:
+    """``x`` as an ``(n,)`` float64 vector (``x`` itself when it is one): not to be written to."""
+    if type(x) is np.ndarray and x.shape == (n,) and x.dtype == _F8:
+        return x
+    if type(x) is float:  # one value for every cell (a pack current): filled, as broadcasting would read
+        out = np.empty(n)
+        out.fill(x)
+        return out
+    return np.broadcast_to(np.asarray(x, dtype=float), (n,))
