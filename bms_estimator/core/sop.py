@@ -177,7 +177,10 @@ def _solve(g0, r_d, s, c, sign, cap, ocv: OcvFn, ocv_slope, ocv_s, slope_s, step
     ``g`` is increasing with ``g' >= R_D``.  Start: Plett's linearised root
     ``-g(0) / (R_D + c OCV'(s))``; then ``steps`` Newton steps; then, if ``g(I) > 0``
     (an overshoot), ``I -= g(I) / R_D``, which by ``g' >= R_D`` makes ``g(I) <= 0``: the
-    limit never lets the predicted voltage past the bound.  Last the cap, ``min(I, cap)``
+    limit never lets the predicted voltage past the bound.  The result is the larger of that
+    and the largest iterate seen with ``g <= 0`` (every such ``I`` is safe, ``g`` being
+    increasing): where the OCV table ends (SOC clamped, slope 0) Newton can overshoot far, and
+    with a small ``R_D`` the step back alone fell to 0 A from a full cell (found by Hypothesis).  Last the cap, ``min(I, cap)``
     (``g`` stays <= 0 below a safe ``I``).  The root is found without the cap, so a lower
     cap (a colder cell's derating) can only lower the limit: with the iterates clipped to
     the cap, the unconverged Newton step landed elsewhere and a colder cell's 30 s limit
@@ -188,12 +191,15 @@ def _solve(g0, r_d, s, c, sign, cap, ocv: OcvFn, ocv_slope, ocv_s, slope_s, step
     sc = sign * c
     x = -g0 / (r_d + c * slope_s)
     np.maximum(x, 0.0, out=x)
+    safe = np.zeros_like(x)  # the largest iterate seen with g <= 0
     for _ in range(steps):
         o, d = ocv_slope(s + sc * x)
         gx = g0 + sign * (o - ocv_s) + r_d * x
+        safe = np.where(gx <= 0.0, np.maximum(safe, x), safe)
         x = np.maximum(x - gx / (r_d + c * d), 0.0)
     gx = g0 + sign * (ocv(s + sc * x) - ocv_s) + r_d * x
-    x = np.minimum(np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x), cap)
+    x = np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x)
+    x = np.minimum(np.maximum(x, safe), cap)
     return np.where(g0 >= 0.0, 0.0, x)
 
 
