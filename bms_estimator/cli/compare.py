@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
-from ..analysis import DEFAULT_METHODS, compare_methods
+from ..analysis import DEFAULT_METHODS, RESISTANCE_ACTIVATION_K, compare_methods
 from ..core.identifier import METHODS
+from ..errors import UsageError
 from .common import (
     METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json,
 )
@@ -28,6 +30,10 @@ def add_parser(sub) -> None:
     p.add_argument("--method", dest="methods", action="append", choices=METHODS, default=None,
                    help=f"{METHOD_HELP}; repeat to compare several, the first one's model sets the effective "
                         f"capacity (default: {' '.join(DEFAULT_METHODS)})")
+    p.add_argument("--activation-k", type=float, default=RESISTANCE_ACTIVATION_K,
+                   help="E_a/R [K] bringing the training resistances to the validation file's cell temperature "
+                        "(temperature_c of both files; 0 = no correction; default %(default)g, the measured "
+                        "cells' Arrhenius line)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--plots", type=Path, default=None, help="folder for the figures (paper Figs 5-9)")
     add_c0_prior_option(p)
@@ -40,6 +46,8 @@ def run(args: argparse.Namespace) -> int:
     if abs(tr.dt_s - va.dt_s) > 1e-9:
         raise ValueError(f"training and validation files have different sample periods ({tr.dt_s} vs {va.dt_s} s)")
     ocv = load_ocv(args.ocv, tr)
+    if not (math.isfinite(args.activation_k) and args.activation_k >= 0):
+        raise UsageError(f"--activation-k must be a finite number >= 0 K, got {args.activation_k}")
     window = (0.0, 1.0) if args.full_range else (args.soc_min, args.soc_max)
     if not 0.0 <= window[0] < window[1] <= 1.0:
         raise ValueError(f"SOC window {window} must satisfy 0 <= min < max <= 1")
@@ -48,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         dt_s=tr.dt_s, initial_soc=args.initial_soc, soc_window=window, config=soc_config(args),
         names=(args.train.name, args.validate.name), c0_prior_weight=args.c0_prior,
         methods=tuple(dict.fromkeys(args.methods or DEFAULT_METHODS)),
+        temperatures_c=(tr.temperature_c, va.temperature_c), activation_k=args.activation_k,
     )
     m = res.metrics
     m["files"] = {"train": str(args.train), "validate": str(args.validate)}
