@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 from ..analysis import DEFAULT_METHODS, RESISTANCE_ACTIVATION_K, compare_methods
 from ..core.identifier import METHODS
-from ..errors import UsageError
 from .common import (
-    METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json,
+    METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, non_negative_float,
+    soc_config, write_json,
 )
 
 
@@ -30,7 +29,7 @@ def add_parser(sub) -> None:
     p.add_argument("--method", dest="methods", action="append", choices=METHODS, default=None,
                    help=f"{METHOD_HELP}; repeat to compare several, the first one's model sets the effective "
                         f"capacity (default: {' '.join(DEFAULT_METHODS)})")
-    p.add_argument("--activation-k", type=float, default=RESISTANCE_ACTIVATION_K,
+    p.add_argument("--activation-k", type=non_negative_float, default=RESISTANCE_ACTIVATION_K,
                    help="E_a/R [K] bringing the training resistances to the validation file's cell temperature "
                         "(temperature_c of both files; 0 = no correction; default %(default)g, the measured "
                         "cells' Arrhenius line)")
@@ -46,8 +45,6 @@ def run(args: argparse.Namespace) -> int:
     if abs(tr.dt_s - va.dt_s) > 1e-9:
         raise ValueError(f"training and validation files have different sample periods ({tr.dt_s} vs {va.dt_s} s)")
     ocv = load_ocv(args.ocv, tr)
-    if not (math.isfinite(args.activation_k) and args.activation_k >= 0):
-        raise UsageError(f"--activation-k must be a finite number >= 0 K, got {args.activation_k}")
     window = (0.0, 1.0) if args.full_range else (args.soc_min, args.soc_max)
     if not 0.0 <= window[0] < window[1] <= 1.0:
         raise ValueError(f"SOC window {window} must satisfy 0 <= min < max <= 1")
