@@ -16,7 +16,13 @@ How a recording is simulated (the paper's Section IV-A):
 * Validation simulation: the parameters are looked up by SOC in a table built
   from the training run (median per 2 % SOC bin over identified samples,
   interpolated), c0 included, so what the training run learnt about the cell at
-  each SOC carries over; nothing is learnt on the validation file.
+  each SOC carries over; nothing is learnt on the validation file.  Where both
+  files log the cell temperature the table holds the training temperature of
+  each bin too, and the looked-up resistances are brought from it to the
+  validation file's temperature at each sample by Arrhenius
+  (:mod:`bms_estimator.core.arrhenius`, ``B = RESISTANCE_ACTIVATION_K``, the
+  time constants kept): an aggressive cycle heats the cell by 2-5 K more than a
+  gentle one, which lowers its resistances by 5-15 %.
 * One-step-ahead (OSA) error: the ZOH-discretised model of the previous
   second predicts the voltage from the measured past (same predictor for both
   methods, so CT and DT are comparable).
@@ -30,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .core.arrhenius import resistances_at
 from .core.ecm import EcmParams, simulate_ecm
 from .core.identifier import IdentifierConfig, make_identifier
 from .core.lif_bv import kinetic_input
@@ -50,6 +57,11 @@ IDENTIFICATION_METHOD = "lif-iv"
 # what compare runs by default: the CT default first (its model gives the capacity), the other CT, DT
 DEFAULT_METHODS = (IDENTIFICATION_METHOD, "lif", "arx")
 
+# B = E_a / R_gas of the resistances for the validation simulation's temperature correction: the
+# measured cells' Arrhenius line of R0 across ambients (README, diagnose findings: E_a = 19 kJ/mol
+# Panasonic, 22 kJ/mol LG, i.e. 2300-2650 K), rounded; not fitted to the compare table
+RESISTANCE_ACTIVATION_K = 2500.0
+
 PARAM_KEYS = ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "tau1_s", "tau2_s")
 
 __all__ = [
@@ -66,6 +78,7 @@ __all__ = [
     "rmse_mv",
     "IDENTIFICATION_METHOD",
     "DEFAULT_METHODS",
+    "RESISTANCE_ACTIVATION_K",
     "compare_methods",
     "train_methods",
     "validate_methods",
@@ -299,11 +312,22 @@ def one_step_ahead(
     return pred + ocv.ocv(soc)
 
 
-def soc_lookup_table(run: IdentificationRun, bin_width: float = 0.02) -> dict[str, np.ndarray]:
-    """Median parameters per SOC bin over the identified samples of a run."""
+def soc_lookup_table(run: IdentificationRun, bin_width: float = 0.02,
+                     temperature_c: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Median parameters per SOC bin over the identified samples of a run.
+
+    With the run's cell temperature (per sample) the table holds each bin's median
+    temperature too (``temperature_c``: where the parameters were identified).
+    """
     sel = run.identified & np.isfinite(run.soc)
     edges = np.arange(0.0, 1.0 + bin_width, bin_width)
-    keys = tuple(run.params)
+    series = dict(run.params)
+    if temperature_c is not None:
+        t = np.asarray(temperature_c, dtype=float)
+        if t.shape != run.soc.shape:
+            raise ValueError(f"temperature has {t.size} samples, the run {run.soc.size}")
+        series["temperature_c"] = t
+    keys = tuple(series)
     centers, rows = [], {k: [] for k in keys}
     for lo, hi in zip(edges[:-1], edges[1:]):
         m = sel & (run.soc >= lo) & (run.soc < hi)
@@ -311,12 +335,15 @@ def soc_lookup_table(run: IdentificationRun, bin_width: float = 0.02) -> dict[st
             continue
         centers.append(0.5 * (lo + hi))
         for k in keys:
-            rows[k].append(float(np.median(run.params[k][m])))
+            x = series[k][m]
+            if k == "temperature_c":  # a logged temperature may have gaps
+                x = x[np.isfinite(x)] if np.isfinite(x).any() else np.array([np.nan])
+            rows[k].append(float(np.median(x)))
     if not centers:
         # nothing identified: the last parameters are all there is
         centers = [0.5]
         for k in keys:
-            rows[k].append(float(run.params[k][-1]))
+            rows[k].append(float(series[k][-1]))
     table = {k: np.asarray(v) for k, v in rows.items()}
     table["soc"] = np.asarray(centers)
     return table
@@ -396,8 +423,13 @@ def train_methods(
     methods: tuple[str, ...] = DEFAULT_METHODS,
     name: str = "train",
     c0_prior_weight: float = KNOWN_SOC_C0_PRIOR_WEIGHT,
+    temperature_c: np.ndarray | None = None,
 ) -> Training:
-    """The training half of :func:`compare_methods` (one training file, any number of validations)."""
+    """The training half of :func:`compare_methods` (one training file, any number of validations).
+
+    ``temperature_c`` (the training file's cell temperature per sample, optional) goes into
+    the SOC tables, for :func:`validate_methods`' temperature correction.
+    """
     i_tr, v_tr = (np.asarray(x, dtype=float) for x in train)
     ident_cfg = config.identifier.with_(c0_prior_weight=c0_prior_weight)
     q_eff, profile = output_error_capacity(i_tr, v_tr, ocv, capacity_ah, initial_soc, dt_s,
@@ -411,21 +443,31 @@ def train_methods(
         res.params[method] = run.params
         res.simulated_v[method] = simulate_with_params(i_tr, soc_tr, ocv, run.params, dt_s)
         res.osa_v[method] = one_step_ahead(i_tr, v_tr, soc_tr, ocv, run.params, dt_s)
-        tables[method] = soc_lookup_table(run)
+        tables[method] = soc_lookup_table(run, temperature_c=temperature_c)
     return Training(q_eff, profile, f"output error of the {methods[0]} model on the training file", res, runs,
                     tables)
 
 
 def validate_methods(
     training: Training, validate: tuple[np.ndarray, np.ndarray], ocv: OcvCurve, *, dt_s: float = 1.0,
-    initial_soc: float = 1.0, name: str = "validate",
+    initial_soc: float = 1.0, name: str = "validate", temperature_c: np.ndarray | None = None,
+    activation_k: float = RESISTANCE_ACTIVATION_K,
 ) -> FileResult:
-    """Simulate a validation file with each method's training parameters looked up by SOC (nothing learnt)."""
+    """Simulate a validation file with each method's training parameters looked up by SOC (nothing learnt).
+
+    With the validation file's cell temperature (``temperature_c``) and a training table that
+    holds its own, the resistances are brought to the validation temperature at each sample
+    (:func:`~bms_estimator.core.arrhenius.resistances_at`, ``activation_k``; 0 = no correction).
+    """
     i_va, v_va = (np.asarray(x, dtype=float) for x in validate)
     soc_va = reference_soc(i_va, dt_s, training.capacity_ah, initial_soc)
+    if temperature_c is not None and np.shape(temperature_c) != i_va.shape:
+        raise ValueError(f"validation temperature has {np.size(temperature_c)} samples, the file {i_va.size}")
     res = FileResult(name, soc_va, v_va)
     for method, table in training.tables.items():
         p_va = lookup_params(table, soc_va)
+        if temperature_c is not None and "temperature_c" in p_va and activation_k > 0:
+            p_va = resistances_at(p_va, temperature_c, p_va["temperature_c"], activation_k)
         res.params[method] = p_va
         res.simulated_v[method] = simulate_with_params(i_va, soc_va, ocv, p_va, dt_s)
         res.osa_v[method] = one_step_ahead(i_va, v_va, soc_va, ocv, p_va, dt_s)
@@ -445,6 +487,8 @@ def compare_methods(
     methods: tuple[str, ...] = ("lif", "arx"),
     names: tuple[str, str] = ("train", "validate"),
     c0_prior_weight: float = KNOWN_SOC_C0_PRIOR_WEIGHT,
+    temperatures_c: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
+    activation_k: float = RESISTANCE_ACTIVATION_K,
 ) -> Comparison:
     """The paper's Section IV-A on any pair of recordings (current, voltage at dt_s).
 
@@ -452,11 +496,15 @@ def compare_methods(
     training file's output-error capacity (:func:`output_error_capacity`, of
     the first method's model);
     since that SOC is given, the identifiers carry a prior c0 = 0 of weight
-    ``c0_prior_weight`` (0 = the paper's plain estimate).
+    ``c0_prior_weight`` (0 = the paper's plain estimate).  ``temperatures_c``: the cell
+    temperature of each file (per sample, or None), for the validation simulation's
+    Arrhenius correction (:func:`validate_methods`).
     """
     tr = train_methods(train, ocv, capacity_ah, dt_s=dt_s, initial_soc=initial_soc, soc_window=soc_window,
-                       config=config, methods=methods, name=names[0], c0_prior_weight=c0_prior_weight)
-    res_va = validate_methods(tr, validate, ocv, dt_s=dt_s, initial_soc=initial_soc, name=names[1])
+                       config=config, methods=methods, name=names[0], c0_prior_weight=c0_prior_weight,
+                       temperature_c=temperatures_c[0])
+    res_va = validate_methods(tr, validate, ocv, dt_s=dt_s, initial_soc=initial_soc, name=names[1],
+                              temperature_c=temperatures_c[1], activation_k=activation_k)
     res_tr = tr.result
     q_rest, rest_source = reference_capacity(np.asarray(train[0], dtype=float), np.asarray(train[1], dtype=float),
                                              dt_s, ocv, capacity_ah, initial_soc)

@@ -4,7 +4,8 @@
 Every ordered pair of drive cycles of the same cell at the same ambient in ../shared/data:
 train on one, validate on the other (the paper's Section IV-A, as `bms-estimator compare`:
 SOC by coulomb counting from full with the training file's output-error capacity, the
-known-SOC c0 prior, training parameters looked up by SOC on the validation file). Each
+known-SOC c0 prior, training parameters looked up by SOC on the validation file and brought
+to its cell temperature by Arrhenius, ``analysis.RESISTANCE_ACTIVATION_K``). Each
 training file is identified once per method and validated on every other file of its
 ambient. Validation simulation RMSE over the 20-90 % SOC window.
 
@@ -83,7 +84,7 @@ def one(job, methods=TABLE_METHODS) -> list[dict]:
     ocv, ocv_source = ocv_for(data / cell, amb)
     tr = load_recording(data / cell / amb / f"{train}.csv.gz")
     training = train_methods((tr.current_a, tr.voltage_v), ocv, STATED_AH[cell], dt_s=tr.dt_s, methods=methods,
-                             name=train)
+                             name=train, temperature_c=tr.temperature_c)
     mid = (training.result.soc >= 0.2) & (training.result.soc <= 0.9)
     r_total = {}
     for m, run in training.runs.items():
@@ -93,7 +94,8 @@ def one(job, methods=TABLE_METHODS) -> list[dict]:
     rows = []
     for val in vals:
         va = load_recording(data / cell / amb / f"{val}.csv.gz")
-        res = validate_methods(training, (va.current_a, va.voltage_v), ocv, dt_s=va.dt_s, name=val)
+        res = validate_methods(training, (va.current_a, va.voltage_v), ocv, dt_s=va.dt_s, name=val,
+                               temperature_c=va.temperature_c)
         inside = (res.soc >= 0.2) & (res.soc <= 0.9)
         rows.append({
             "cell": cell, "ambient": amb, "train": train, "validate": val, "ocv": ocv_source,

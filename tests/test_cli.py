@@ -203,3 +203,20 @@ def test_fit_and_compare_take_the_kinetic_term(tmp_path, capsys):
     assert set(m["validate"]) == {"lif-iv-bv", "lif-iv"}
     assert 0 < m["validate"]["lif-iv-bv"]["sim_rmse_mv"] < 30
     assert m["validate"]["lif-iv-bv"]["sim_rmse_mv"] != m["validate"]["lif-iv"]["sim_rmse_mv"]
+
+
+def test_compare_brings_the_resistances_to_the_validation_temperature(tmp_path, capsys):
+    """Both shipped LG files log temperature_c: the default corrects, --activation-k 0 does not."""
+    common = ["compare", "--train", str(drive_cycle("lg-hg2", "udds")), "--validate",
+              str(drive_cycle("lg-hg2", "la92")), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0",
+              "--method", "lif-iv"]
+    figs = {}
+    for k in ("2500", "0"):
+        out = tmp_path / f"cmp_{k}.json"
+        assert main([*common, "--activation-k", k, "--json", str(out)]) == 0
+        figs[k] = json.loads(out.read_text())["validate"]["lif-iv"]["sim_rmse_mv"]
+    assert 0 < figs["2500"] <= 25.0 and 0 < figs["0"] <= 25.0
+    assert figs["2500"] != figs["0"]  # the option reaches the validation simulation
+    with pytest.raises(SystemExit) as exc:
+        main([*common, "--activation-k", "-5"])
+    assert exc.value.code == 2 and "--activation-k" in capsys.readouterr().err

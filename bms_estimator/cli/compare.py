@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..analysis import DEFAULT_METHODS, compare_methods
+from ..analysis import DEFAULT_METHODS, RESISTANCE_ACTIVATION_K, compare_methods
 from ..core.identifier import METHODS
 from .common import (
-    METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, soc_config, write_json,
+    METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, non_negative_float,
+    soc_config, write_json,
 )
 
 
@@ -28,6 +29,10 @@ def add_parser(sub) -> None:
     p.add_argument("--method", dest="methods", action="append", choices=METHODS, default=None,
                    help=f"{METHOD_HELP}; repeat to compare several, the first one's model sets the effective "
                         f"capacity (default: {' '.join(DEFAULT_METHODS)})")
+    p.add_argument("--activation-k", type=non_negative_float, default=RESISTANCE_ACTIVATION_K,
+                   help="E_a/R [K] bringing the training resistances to the validation file's cell temperature "
+                        "(temperature_c of both files; 0 = no correction; default %(default)g, the measured "
+                        "cells' Arrhenius line)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--plots", type=Path, default=None, help="folder for the figures (paper Figs 5-9)")
     add_c0_prior_option(p)
@@ -48,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         dt_s=tr.dt_s, initial_soc=args.initial_soc, soc_window=window, config=soc_config(args),
         names=(args.train.name, args.validate.name), c0_prior_weight=args.c0_prior,
         methods=tuple(dict.fromkeys(args.methods or DEFAULT_METHODS)),
+        temperatures_c=(tr.temperature_c, va.temperature_c), activation_k=args.activation_k,
     )
     m = res.metrics
     m["files"] = {"train": str(args.train), "validate": str(args.validate)}

@@ -34,9 +34,9 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge, Gt
 
-__all__ = ["SohConfig", "ResistanceSoh", "capacity_soh", "r0_at_reference"]
+from .arrhenius import KELVIN, arrhenius_factor
 
-KELVIN = 273.15
+__all__ = ["SohConfig", "ResistanceSoh", "capacity_soh", "r0_at_reference"]
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,9 @@ def r0_at_reference(r0_ohm, temperature_c, config: SohConfig = SohConfig()) -> n
     t = np.asarray(temperature_c, dtype=float) + KELVIN
     t_ref = config.reference_temperature_c + KELVIN
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return np.asarray(r0_ohm, dtype=float) * np.exp(-config.r0_activation_k * (1.0 / t - 1.0 / t_ref))
+        # exp(-B (1/T - 1/T_ref)), NaN where T is not (the SOH skips those samples)
+        f = arrhenius_factor(config.reference_temperature_c, temperature_c, config.r0_activation_k)
+        return np.where(np.isfinite(t) & (t > 0.0), np.asarray(r0_ohm, dtype=float) * f, np.nan)
 
 
 class ResistanceSoh:

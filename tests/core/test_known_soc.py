@@ -112,3 +112,45 @@ def test_reference_capacity_trusts_only_a_long_relaxed_rest(nmc_like_ocv):
     # a 300 s rest is too short to trust here: the stated capacity is all this function has
     i3, v3 = i[: n + 300], v[: n + 300]
     assert reference_capacity(i3, v3, 1.0, nmc_like_ocv, 2.9)[1].startswith("stated")
+
+
+def test_validation_resistances_follow_the_cell_temperature(nmc_like_ocv):
+    """A warmer validation cell (self-heating on an aggressive cycle) has lower resistances.
+
+    Trained at 25 degC, validated on the same cell at 33 degC whose R0, R1, R2 are the
+    Arrhenius factor (B = 2500 K, 0.80) lower: the correction brings the validation
+    error down to what identification leaves; without it the 25 degC resistances
+    over-predict the polarisation.
+    """
+    from bms_estimator.core.arrhenius import arrhenius_factor
+
+    n = 2 * 3600
+    i_tr = _discharge(n, 5, 0.4)
+    i_va = _discharge(n, 6, 0.4)
+    f = float(arrhenius_factor(33.0, 25.0, 2500.0))
+    rng = np.random.default_rng(7)
+    v = []
+    for i, scale in ((i_tr, 1.0), (i_va, f)):
+        p = EcmParams.from_rc(0.02 * scale, [0.01 * scale, 0.015 * scale], [10.0, 200.0])
+        sim = simulate_ecm(i, 1.0, p, nmc_like_ocv.ocv, soc0=1.0, capacity_ah=2.6, output="mean")
+        v.append(sim.voltage_v + 3e-4 * rng.standard_normal(n))
+    temps = (np.full(n, 25.0), np.full(n, 33.0))
+    kw = dict(methods=("lif-iv",), soc_window=(0.3, 0.9))
+    plain = compare_methods((i_tr, v[0]), (i_va, v[1]), nmc_like_ocv, 2.6, **kw)
+    warm = compare_methods((i_tr, v[0]), (i_va, v[1]), nmc_like_ocv, 2.6, temperatures_c=temps, **kw)
+    off = compare_methods((i_tr, v[0]), (i_va, v[1]), nmc_like_ocv, 2.6, temperatures_c=temps, activation_k=0.0,
+                          **kw)
+    e_plain = plain.metrics["validate"]["lif-iv"]["sim_rmse_mv"]
+    e_warm = warm.metrics["validate"]["lif-iv"]["sim_rmse_mv"]
+    e_train = warm.metrics["train"]["lif-iv"]["sim_rmse_mv"]
+    assert off.metrics["validate"]["lif-iv"]["sim_rmse_mv"] == e_plain  # activation 0 = no correction
+    assert e_warm < 0.5 * e_plain, (e_warm, e_plain)
+    assert e_warm < 2.0 * e_train + 0.5, (e_warm, e_train)
+    # the table holds where the parameters were identified
+    assert np.allclose(warm.validate.params["lif-iv"]["temperature_c"], 25.0)
+
+
+def test_validation_temperature_of_the_wrong_length_is_named(nmc_like_ocv):
+    i, v = _cell(_discharge(1200, 1, 0.5), nmc_like_ocv, 2.6)
+    with pytest.raises(ValueError, match="validation temperature has 3 samples"):
+        compare_methods((i, v), (i, v), nmc_like_ocv, 2.6, methods=("lif",), temperatures_c=(None, np.ones(3)))

@@ -1,0 +1,57 @@
+"""Arrhenius temperature scaling of the equivalent circuit's resistances.
+
+Ohmic conduction and charge transfer both slow down as the cell cools; over the
+range of a drive cycle's self-heating one activation temperature ``B = E_a / R_gas``
+describes both well enough::
+
+    f(T; T_ref) = exp(B (1/T - 1/T_ref))            (T, T_ref in kelvin)
+    R(T)        = f(T; T_ref) R(T_ref)
+
+Applied to a 2-RC parameter set (:func:`resistances_at`) every resistance is scaled by
+``f`` (R0, R1, R2 and a kinetic term's K1, K2) and the time constants are kept
+(``C_j = tau_j / R_j`` takes ``1/f``): the RC branches respond as fast but with a
+smaller (warmer) or larger (cooler) polarisation.  Where either temperature is not
+finite the factor is 1 (no correction).  Pure numpy, no I/O.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["KELVIN", "arrhenius_factor", "resistances_at", "SCALED_RESISTANCES"]
+
+KELVIN = 273.15
+
+#: the parameter-dict keys that are resistances (scaled by f); capacitances take 1/f
+SCALED_RESISTANCES = ("r0_ohm", "r1_ohm", "r2_ohm", "k1_ohm", "k2_ohm")
+_CAPACITANCES = ("c1_f", "c2_f")
+
+
+def arrhenius_factor(temperature_c, reference_c, activation_k: float) -> np.ndarray:
+    """``exp(B (1/T - 1/T_ref))`` with the temperatures in degC; 1 where either is not finite.
+
+    ``activation_k`` (B = E_a / R_gas, kelvin) must be finite and >= 0.
+    """
+    b = float(activation_k)
+    if not (np.isfinite(b) and b >= 0.0):
+        raise ValueError(f"activation temperature must be a finite number >= 0 K, got {activation_k}")
+    t = np.asarray(temperature_c, dtype=float) + KELVIN
+    t_ref = np.asarray(reference_c, dtype=float) + KELVIN
+    ok = np.isfinite(t) & np.isfinite(t_ref) & (t > 0.0) & (t_ref > 0.0)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        f = np.exp(b * (1.0 / t - 1.0 / t_ref))
+    return np.where(ok & np.isfinite(f), f, 1.0)
+
+
+def resistances_at(params: dict[str, np.ndarray], temperature_c, reference_c,
+                   activation_k: float) -> dict[str, np.ndarray]:
+    """A copy of ``params`` (identified at ``reference_c``) brought to ``temperature_c`` (module docstring)."""
+    f = arrhenius_factor(temperature_c, reference_c, activation_k)
+    out = dict(params)
+    for key in SCALED_RESISTANCES:
+        if key in out:
+            out[key] = np.asarray(out[key], dtype=float) * f
+    for key in _CAPACITANCES:
+        if key in out:
+            out[key] = np.asarray(out[key], dtype=float) / f
+    return out
