@@ -8,6 +8,10 @@ the file's full start, :mod:`bms_estimator.scoring`):
 * ``mid+10``    at 25 % of the file with the reference + 10 %
 * ``mid-10``    at 25 % of the file with the reference - 10 %
 
+and, asked for by name (``--starts``), ``atP+E`` / ``atP-E``: at P % of the file
+with the reference + or - E % (``at75-5``: three quarters through, 5 % low), the
+starts a hidden recording may bring that the four above do not.
+
 OCV: every table the cell has (C/20 tests, and HPPC rests where an ambient has no
 C/20 test), interpolated by the cell temperature.  Where the file's own ambient
 has a table, the run is repeated with that table left out (``own table out``), as
@@ -22,6 +26,7 @@ writes the README table from it; ``tests/core/test_measured_soc.py`` checks it.
 from __future__ import annotations
 
 import fnmatch
+import re
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -34,7 +39,8 @@ from .core.soc import SocConfig, SocEstimator
 from .data import load_recording
 from .scoring import counted_soc, soc_error_figures, soc_reference
 
-__all__ = ["CELLS", "STARTS", "build_tables", "run_cell", "summary_lines", "summary_table", "markdown"]
+__all__ = ["CELLS", "STARTS", "build_tables", "check_start", "run_cell", "start_point", "summary_lines", "summary_table",
+           "markdown"]
 
 CELLS = {"lg-hg2": 3.0, "panasonic-18650pf": 2.9}  # stated (nominal) capacity, Ah
 STARTS = ("full", "full-20", "mid+10", "mid-10")
@@ -119,10 +125,35 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
     return out, est
 
 
+_AT = re.compile(r"at(\d+(?:\.\d+)?)([+-]\d+(?:\.\d+)?)")
+
+
+def check_start(name: str) -> str:
+    """``name`` if it is a start this module knows (module docstring), else ValueError naming it."""
+    m = _AT.fullmatch(name)
+    if name in STARTS or (m and 0.0 <= float(m.group(1)) < 100.0):
+        return name
+    raise ValueError(f"unknown start {name!r}: use {', '.join(STARTS)} or atP+E / atP-E (P % of the file, E % off)")
+
+
+def start_point(name: str, n: int, base_at) -> tuple[int, float]:
+    """(sample, SOC told to the estimator) of a start; ``base_at(k)`` is the reference SOC at sample k."""
+    if name == "full":
+        return 0, 1.0
+    if name == "full-20":
+        return 0, 0.8
+    if name in ("mid+10", "mid-10"):
+        k, err = n // 4, (0.1 if name == "mid+10" else -0.1)
+    else:
+        m = _AT.fullmatch(check_start(name))
+        k, err = int(n * float(m.group(1)) / 100.0), float(m.group(2)) / 100.0
+    return k, float(np.clip(base_at(k) + err, 0.0, 1.0))
+
+
 def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,
-             overrides: dict | None = None) -> list[dict]:
-    """Every drive cycle of ``cell`` under ``data`` matching ``pattern`` (cell/ambient/file), four starts
-    each, per SOC method: one row of figures per run."""
+             overrides: dict | None = None, start_names: tuple[str, ...] = STARTS) -> list[dict]:
+    """Every drive cycle of ``cell`` under ``data`` matching ``pattern`` (cell/ambient/file), each of
+    ``start_names``, per SOC method: one row of figures per run."""
     stated = CELLS[cell]
     tables = build_tables(data, cell)
     rows = []
@@ -168,18 +199,10 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                 for j in idx:
                     amb, name, rec = files[j]
                     ref = refs[j]
-                    ref_soc = ref.soc if ref is not None else None
-                    k_mid = len(rec) // 4
-                    for start in STARTS:
-                        if start == "full":
-                            st = (0, 1.0)
-                        elif start == "full-20":
-                            st = (0, 0.8)
-                        else:
-                            base = ref_soc[k_mid] if ref_soc is not None else None
-                            if base is None:  # no reference: start from the stated-capacity count
-                                base = counted_soc(rec.current_a, rec.dt_s, stated)[k_mid]
-                            st = (k_mid, float(np.clip(base + (0.1 if start == "mid+10" else -0.1), 0, 1)))
+                    # no reference: a mid-file start is told the stated-capacity count
+                    base = ref.soc if ref is not None else counted_soc(rec.current_a, rec.dt_s, stated)
+                    for start in start_names:
+                        st = start_point(start, len(rec), base.__getitem__)
                         recs.append(rec)
                         starts.append(st)
                         meta.append((j, start))

@@ -2,6 +2,7 @@
 """The SOC matrix over ../shared/data, and the README table (:mod:`bms_estimator.soc_matrix`).
 
     python scripts/soc_matrix.py [--readme] [--json OUT] [--methods c0,ekf] [--files GLOB] [--set KEY=VALUE]
+                                 [--starts full,full-20,mid+10,mid-10,at50+20,at75-5,...]
 """
 
 from __future__ import annotations
@@ -16,7 +17,15 @@ sys.path.insert(0, str(ROOT))
 
 from bms_estimator.core.soc import SOC_METHODS  # noqa: E402
 from bms_estimator.data import shared_data_dir  # noqa: E402
-from bms_estimator.soc_matrix import CELLS, markdown, run_cell, summary_lines, summary_table  # noqa: E402
+from bms_estimator.soc_matrix import (  # noqa: E402
+    CELLS,
+    STARTS,
+    check_start,
+    markdown,
+    run_cell,
+    summary_lines,
+    summary_table,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -26,6 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-leave-out", action="store_true", help="skip the runs with the file's own table left out")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="an estimator setting to try (SocConfig field, or ekf.FIELD / identifier.FIELD)")
+    ap.add_argument("--starts", default=",".join(STARTS),
+                    help="comma-separated starts (default: the README's four); atP+E / atP-E = at P %% of the file, "
+                         "the reference + or - E %%")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--readme", action="store_true",
                     help="write the summary into README.md between its markers and every run into docs/soc_matrix.md")
@@ -40,9 +52,17 @@ def main(argv: list[str] | None = None) -> int:
         print("no ../shared/data (or BMS_SHARED_DATA): the matrix needs the measured data", file=sys.stderr)
         return 2
     methods = args.methods.split(",") if args.methods else list(SOC_METHODS)
+    try:
+        starts = tuple(check_start(s.strip()) for s in args.starts.split(","))
+    except ValueError as exc:
+        print(f"--starts: {exc}", file=sys.stderr)
+        return 2
+    if args.readme and starts != STARTS:
+        print("--readme writes the README's four starts only; drop --starts or --readme", file=sys.stderr)
+        return 2
     rows = []
     for cell in CELLS:
-        rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides)
+        rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides, starts)
     for line in summary_lines(rows):
         print(line)
     if args.json:

@@ -8,11 +8,13 @@ Panasonic has no C/20 test at its other ambients).  The figures asserted here ar
 README's (``python scripts/soc_matrix.py --readme``), with a margin.
 """
 
+import re
+
 import numpy as np
 import pytest
 
 from bms_estimator.core.soc import SocConfig
-from bms_estimator.soc_matrix import run_cell
+from bms_estimator.soc_matrix import check_start, run_cell, start_point
 from tests.conftest import SHARED, needs_shared
 
 DEFAULT = SocConfig().soc_method
@@ -68,3 +70,18 @@ def test_soc_from_any_start_at_0_degc(rows):
     assert e30.size == 4 * 4
     assert np.median(e30) <= 2.5, np.median(e30)  # measured 1.8 %
     assert e30.max() <= 6.0, e30.max()  # measured 5.0 %
+
+
+def test_start_names_place_the_start_and_an_unknown_one_is_named():
+    ref = np.linspace(1.0, 0.0, 1001)
+    at = ref.__getitem__
+    assert start_point("full", 1001, at) == (0, 1.0)
+    assert start_point("full-20", 1001, at) == (0, 0.8)
+    k, soc = start_point("mid-10", 1001, at)
+    assert k == 250 and soc == pytest.approx(ref[250] - 0.1)
+    k, soc = start_point("at75-5", 1001, at)
+    assert k == 750 and soc == pytest.approx(ref[750] - 0.05)
+    assert start_point("at10+20", 1001, at) == (100, 1.0)  # clipped to full
+    for bad in ("late", "at100+5", "at50", "at50*5"):
+        with pytest.raises(ValueError, match=re.escape(repr(bad))):
+            check_start(bad)
