@@ -247,12 +247,20 @@ def summary_lines(rows: list[dict]) -> list[str]:
             sel = [r for r in scored if r["method"] == method and r["ocv"] == variant]
             if not sel:
                 continue
-            e30 = np.array([r["rmse_30min_pct"] for r in sel])
-            e1h = np.array([r["rmse_1h_pct"] for r in sel])
+            e30 = np.array([r["rmse_30min_pct"] for r in sel], dtype=float)
+            e1h = np.array([r["rmse_1h_pct"] for r in sel], dtype=float)
+            short = int(np.sum(~np.isfinite(e30)))  # a late start with under 30 min of file left
+            e30 = e30[np.isfinite(e30)]
+            if not e30.size:
+                continue
             ok = int(np.sum(e30 <= 2.0))
-            lines.append(f"{method}, {variant}: {ok}/{len(sel)} runs within 2 % from 30 min after the start "
-                         f"(median {np.median(e30):.2f} %, worst {np.max(e30):.2f} %); after 1 h median "
-                         f"{np.nanmedian(e1h):.2f} %, worst {np.nanmax(e1h):.2f} %")
+            line = (f"{method}, {variant}: {ok}/{e30.size} runs within 2 % from 30 min after the start "
+                    f"(median {np.median(e30):.2f} %, worst {np.max(e30):.2f} %)")
+            if np.isfinite(e1h).any():
+                line += f"; after 1 h median {np.nanmedian(e1h):.2f} %, worst {np.nanmax(e1h):.2f} %"
+            if short:
+                line += f"; {short} more started under 30 min before the end: not scored"
+            lines.append(line)
     return lines
 
 
