@@ -197,7 +197,7 @@ def test_the_filter_equals_the_dense_textbook_ekf(capacity_learns):
     slope = rng.uniform(0.3, 2.0, n)
     unsure = np.full(n, 0.005)
     d_soc, d_q = ekf.correct(e, slope, unsure, np.ones(n, bool))
-    r_v = cfg.voltage_sigma_v**2 * cfg.correlation_s + unsure**2
+    r_v = (cfg.voltage_sigma_v**2 + (cfg.ocv_table_sigma_soc * slope) ** 2) * cfg.correlation_s + unsure**2
     for j in range(n):
         c = np.array([slope[j], 1, 0, 0])
         k = p1[j] @ c / (c @ p1[j] @ c + r_v[j])
