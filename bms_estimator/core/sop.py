@@ -221,6 +221,7 @@ def _rows(cfg: SopConfig) -> tuple:
     return hz, sign, target, np.concatenate([hz, hz])[:, None, None], sign < 0.0, tables
 
 
+_ROWS_LAST: list = [None]  # (config, _rows(config)) of the last call
 _DESIGN_MEMO: list = [None]  # (config, temperatures, limits) of the last call
 
 
@@ -320,7 +321,10 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
         okc = ok[:, None]
         r_rc, tau_rc, x_rc = np.where(okc, r_rc, 0.0), np.where(okc, tau_rc, 1.0), np.where(okc, x_rc, 0.0)
         ocv_slope_s = None  # evaluated at the replaced SOC below
-    hz, sign, target, hz3, dis, (t_tab, dis_tab, chg_tab) = _rows(cfg)
+    memo = _ROWS_LAST[0]  # the last config's rows by identity: hashing the frozen config costs more
+    if memo is None or memo[0] is not cfg:
+        memo = _ROWS_LAST[0] = (cfg, _rows(cfg))
+    hz, sign, target, hz3, dis, (t_tab, dis_tab, chg_tab) = memo[1]
     nh = hz.size
     if ocv_slope is None:
         def ocv_slope(z):
