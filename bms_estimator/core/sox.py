@@ -39,7 +39,7 @@ capacity are read once per sample for both halves; the OCV at the SOC now (the m
 and the OCV and slope at the next period's start (the SOP's anchor) are one ``(2, N)`` lookup;
 masked updates are skipped while every cell is valid; the resistance SOH's outputs are held
 with the slow ones (it only changes on the slow cadence).  Bit-identical outputs
-(tests/core/test_sop_fast.py); 0.39-0.48 ms against 0.45-0.47 ms before, measured
+(tests/core/test_sop_fast.py); 0.39-0.48 ms against 0.45-0.50 ms before, measured
 interleaved under load.
 """
 
