@@ -157,8 +157,7 @@ class _Blend:
         """(flat index ``jG + k`` of row j, fraction ``f``, all inside) for any-shaped ``s``
         whose last axis matches ``jg``'s (or scalar ``jg``): the part of :meth:`__call__` two
         tables on this grid (OCV and slope) can share."""
-        u = s - self.s0
-        u *= self.inv_h
+        u = s * self.inv_h if self.s0 == 0.0 else (s - self.s0) * self.inv_h  # s - 0.0 is s
         inside = bool(u.min() >= 0.0 and u.max() <= self.g - 1)  # False for NaN too
         if not inside:
             u = np.fmin(np.fmax(u, 0.0), self.g - 1.0)  # NaN -> 0 (a safe index)
@@ -168,11 +167,14 @@ class _Blend:
         k += jg
         return k, f, inside
 
-    def at(self, a: np.ndarray, f: np.ndarray, w: Any) -> np.ndarray:
-        """The blended table at the location :meth:`locate_s` gave (the end values outside)."""
+    def at(self, a: np.ndarray, f: np.ndarray, w: Any, a1: np.ndarray | None = None) -> np.ndarray:
+        """The blended table at the location :meth:`locate_s` gave (the end values outside).
+
+        ``a1``: ``a + G`` (the next temperature's row), when the caller has it already."""
         v = self.y.take(a)
         v += self.dy.take(a) * f
-        a1 = a + self.g
+        if a1 is None:
+            a1 = a + self.g
         v1 = self.y.take(a1)
         v1 += self.dy.take(a1) * f
         v1 -= v
@@ -589,8 +591,9 @@ class OcvAtTemperatures:
         s = np.asarray(soc, dtype=np.float64)
         b, bs = self.surface._ocv, self.surface._slope
         a, f, inside = b.locate_s(s, self._jg)
-        v = b.at(a, f, self._w)
-        d = bs.at(a, f, self._w)
+        a1 = a + b.g  # the same grid: the next temperature's row, for both tables
+        v = b.at(a, f, self._w, a1)
+        d = bs.at(a, f, self._w, a1)
         if not inside:
             lo, hi = self._ends_ocv
             v += lo * np.minimum(s - b.s0, 0.0) + hi * np.maximum(s - b.s1, 0.0)

@@ -191,15 +191,19 @@ def _solve(g0, r_d, s, c, sign, cap, ocv: OcvFn, ocv_slope, ocv_s, slope_s, step
     sc = sign * c
     x = -g0 / (r_d + c * slope_s)
     np.maximum(x, 0.0, out=x)
-    safe = np.zeros_like(x)  # the largest iterate seen with g <= 0
+    safe = None  # the largest iterate seen with g <= 0 (None: none yet, i.e. 0)
     for _ in range(steps):
         o, d = ocv_slope(s + sc * x)
         gx = g0 + sign * (o - ocv_s) + r_d * x
-        safe = np.where(gx <= 0.0, np.maximum(safe, x), safe)
-        x = np.maximum(x - gx / (r_d + c * d), 0.0)
+        # x >= 0 here, so max(0, x) = x where g <= 0 on the first pass
+        safe = np.where(gx <= 0.0, x, 0.0) if safe is None else np.where(gx <= 0.0, np.maximum(safe, x), safe)
+        x = x - gx / (r_d + c * d)
+        np.maximum(x, 0.0, out=x)
     gx = g0 + sign * (ocv(s + sc * x) - ocv_s) + r_d * x
     x = np.where(gx > 0.0, np.maximum(x - gx / r_d, 0.0), x)
-    x = np.minimum(np.maximum(x, safe), cap)
+    if safe is not None:
+        np.maximum(x, safe, out=x)
+    np.minimum(x, cap, out=x)
     return np.where(g0 >= 0.0, 0.0, x)
 
 
@@ -217,6 +221,7 @@ def _rows(cfg: SopConfig) -> tuple:
     return hz, sign, target, np.concatenate([hz, hz])[:, None, None], sign < 0.0, tables
 
 
+_ROWS_LAST: list = [None]  # (config, _rows(config)) of the last call
 _DESIGN_MEMO: list = [None]  # (config, temperatures, limits) of the last call
 
 
@@ -270,31 +275,43 @@ def sop_and_pack_limits(*, n_parallel: int = 1, valid=None, **kwargs) -> tuple[S
 
 def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
             r0_ohm, r_ohm, tau_s, x_v, config: SopConfig = SopConfig(), method: str = "model",
-            v_margin=None, ocv_slope=None, pack=None, dr_ohm=None):
-    """The limits of all horizons and both directions as one ``(2H, N)`` solve (rows: :func:`_rows`)."""
+            v_margin=None, ocv_slope=None, pack=None, dr_ohm=None, ocv_slope_s=None):
+    """The limits of all horizons and both directions as one ``(2H, N)`` solve (rows: :func:`_rows`).
+
+    ``ocv_slope_s``: ``ocv_slope(soc)``, when the caller has it already."""
     if method not in ("model", "hppc"):
         raise ValueError(f"method must be 'model' or 'hppc', got {method!r}")
     if pack is not None and method != "model":
         raise ValueError("pack limits are the model method's")
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # one context for the whole solve
         return _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv, docv_dsoc, r0_ohm, r_ohm,
-                            tau_s, x_v, config, method, v_margin, ocv_slope, pack, dr_ohm)
+                            tau_s, x_v, config, method, v_margin, ocv_slope, pack, dr_ohm, ocv_slope_s)
 
 
 def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv, docv_dsoc, r0_ohm, r_ohm, tau_s,
-                 x_v, config, method, v_margin, ocv_slope, pack, dr_ohm):
+                 x_v, config, method, v_margin, ocv_slope, pack, dr_ohm, ocv_slope_s=None):
     cfg = config
     v = np.asarray(voltage_v, dtype=float)
     n = v.shape[0]
-    i_now, s, q, r0 = (_per_cell(a, n) for a in (current_now_a, soc, capacity_ah, r0_ohm))
+    i_now, s, q, r0 = _per_cell(current_now_a, n), _per_cell(soc, n), _per_cell(capacity_ah, n), _per_cell(r0_ohm, n)
     r_rc = np.asarray(r_ohm, float).reshape(n, -1)
     tau_rc = np.asarray(tau_s, float).reshape(n, -1)
     x_rc = np.asarray(x_v, float)
     if x_rc.shape != r_rc.shape:
         x_rc = np.broadcast_to(x_rc, r_rc.shape)
+    m_rc = r_rc.shape[1]
     # finite (a NaN or inf anywhere makes the sum non-finite) and positive; the per-cell test of
     # the RC columns (a reduction over the short axis) only when some entry fails
-    ok = np.isfinite(v + i_now + s + q + r0 + (r_rc + tau_rc + x_rc) @ np.ones(r_rc.shape[1])) & (np.minimum(q, r0) > 0)
+    tot = v + i_now
+    tot += s
+    tot += q
+    tot += r0
+    for j in range(m_rc):  # whole columns: cheaper than a reduction over the short pair axis
+        tot += r_rc[:, j]
+        tot += tau_rc[:, j]
+        tot += x_rc[:, j]
+    ok = np.isfinite(tot)
+    ok &= np.minimum(q, r0) > 0
     if not ((r_rc >= 0).all() and (tau_rc > 0).all()):
         ok &= ((r_rc >= 0) & (tau_rc > 0)).all(axis=1)
     all_ok = bool(ok.all())
@@ -303,21 +320,27 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
                                                                (i_now, 0.0)))
         okc = ok[:, None]
         r_rc, tau_rc, x_rc = np.where(okc, r_rc, 0.0), np.where(okc, tau_rc, 1.0), np.where(okc, x_rc, 0.0)
-    hz, sign, target, hz3, dis, (t_tab, dis_tab, chg_tab) = _rows(cfg)
+        ocv_slope_s = None  # evaluated at the replaced SOC below
+    memo = _ROWS_LAST[0]  # the last config's rows by identity: hashing the frozen config costs more
+    if memo is None or memo[0] is not cfg:
+        memo = _ROWS_LAST[0] = (cfg, _rows(cfg))
+    hz, sign, target, hz3, dis, (t_tab, dis_tab, chg_tab) = memo[1]
     nh = hz.size
     if ocv_slope is None:
         def ocv_slope(z):
             return ocv(z), docv_dsoc(z)
     # per RC pair j (a Python loop over the 2 pairs: whole-row operations beat a reduction over
     # the short pair axis): q_j = 1 - p_j per row, R_D and the RC voltages' change over D
-    hz2 = hz3[:, :, 0]
+    neg_hz2 = -hz3[:, :, 0]
     r_d, decay = r0, 0.0
-    for j in range(r_rc.shape[1]):
-        qj = 1.0 - np.exp(-hz2 / tau_rc[:, j])  # (2H, N)
+    for j in range(m_rc):
+        qj = np.exp(neg_hz2 / tau_rc[:, j])  # (2H, N): p_j, then q_j = 1 - p_j
+        np.subtract(1.0, qj, out=qj)
         r_d = r_d + r_rc[:, j] * qj
         decay = decay + x_rc[:, j] * qj
-    c = hz2 / (3600.0 * q)  # (2H, N): SOC per A over the horizon
-    ocv_s, slope_s = ocv_slope(s)  # (N,): one evaluation serves every row
+    c = hz3[:, :, 0] / (3600.0 * q)  # (2H, N): SOC per A over the horizon
+    # (N,): one evaluation serves every row (given by the caller when it has it)
+    ocv_s, slope_s = ocv_slope(s) if ocv_slope_s is None else ocv_slope_s
     ocv_s, slope_s = np.asarray(ocv_s, dtype=float), np.asarray(slope_s, dtype=float)
     basis = None
     if method == "model":
@@ -330,8 +353,10 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
         base = np.broadcast_to(ocv_s, c.shape)  # at rest, and the OCV held
         c_use = np.zeros_like(c)
     design = _design_limits(_per_cell(temperature_c, n), cfg, dis, t_tab, dis_tab, chg_tab)
-    room = np.maximum(np.where(dis, s - cfg.soc_min, cfg.soc_max - s), 0.0)
-    cap = np.minimum(design, room / c)
+    room = np.where(dis, s - cfg.soc_min, cfg.soc_max - s)
+    np.maximum(room, 0.0, out=room)
+    room /= c
+    cap = np.minimum(design, room)
     if v_margin is not None:
         m = np.asarray(v_margin, dtype=float)
         m = np.where(m > 0.0, m, 0.0)  # NaN -> 0
@@ -341,32 +366,55 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
     g0 = sign * (base - target)
     x = _solve(g0, r_d, s, c_use, sign, cap, ocv, ocv_slope, ocv_s, slope_s, cfg.newton_steps)
     lim = x if all_ok else np.where(ok, x, 0.0)
-    lim = np.where(np.isfinite(lim), np.maximum(lim, 0.0), 0.0)
+    fin = np.isfinite(lim)
+    if fin.all():  # _solve's result is >= 0 or NaN
+        np.maximum(lim, 0.0, out=lim)
+    else:
+        lim = np.where(fin, np.maximum(lim, 0.0), 0.0)
     sc = sign * c_use
     # the predicted voltage at each limit (a zero limit: at zero current) and, for the pack,
     # every cell's at the weakest cell's limit: one OCV call on both stacked
     if pack is not None:
         n_par, valid = pack
         use = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
-        if not use.any():
+        use_all = bool(use.all())
+        if not use_all and not use.any():
             i_pack = np.zeros(2 * nh)
         else:  # the weakest cell's limit (a cell that cannot be predicted has 0)
-            i_pack = lim.min(axis=1) if use.all() else lim[:, use].min(axis=1)
-        use = use & ok
+            i_pack = lim.min(axis=1) if use_all else lim[:, use].min(axis=1)
+        if not all_ok:
+            use = use & ok
+            use_all = False
         i2 = sign * i_pack[:, None]  # (2H, 1) signed cell current
-        o = ocv(np.concatenate([s + sc * lim, s + c_use * i2]))
+        z = np.empty((4 * nh, n))
+        np.multiply(sc, lim, out=z[:2 * nh])
+        z[:2 * nh] += s
+        np.multiply(c_use, i2, out=z[2 * nh:])
+        z[2 * nh:] += s
+        o = ocv(z)
         o_lim, o_pack = o[:2 * nh], o[2 * nh:]
     else:
         o_lim = ocv(s + sc * lim)
-    v_at = target + sign * np.minimum(g0 + sign * (o_lim - ocv_s) + r_d * lim, 0.0)
+    gl = o_lim - ocv_s
+    gl *= sign
+    gl += g0
+    gl += r_d * lim
+    np.minimum(gl, 0.0, out=gl)
+    gl *= sign
+    v_at = target + gl
     v_at = np.where(lim > 0.0, v_at, base)
-    p = np.where(np.isfinite(v_at), np.maximum(lim * v_at, 0.0), 0.0)
+    p = lim * v_at
+    np.maximum(p, 0.0, out=p)  # NaN stays NaN
+    if not np.isfinite(p).all():
+        p = np.where(np.isfinite(v_at), p, 0.0)
     res = SopResult(hz, lim[:nh], lim[nh:], p[:nh], p[nh:], basis)
     if pack is None:
         return res, None
-    v_pack = base + (o_pack - ocv_s) + r_d * i2
+    v_pack = o_pack - ocv_s
+    v_pack += base
+    v_pack += r_d * i2
     p_pack = v_pack.sum(axis=1)
-    if not (use.all() and np.isfinite(p_pack).all()):
+    if not (use_all and np.isfinite(p_pack).all()):
         p_pack = np.sum(np.where(use & np.isfinite(v_pack), v_pack, 0.0), axis=1)
     p_pack = i_pack * n_par * p_pack
     p_pack = np.maximum(p_pack, 0.0)

@@ -155,3 +155,38 @@ def test_energy_left_and_capacity_soh_refresh_every_slow_period_the_sop_every_sa
     assert np.all(held == held[:, :1])  # held for the 9 samples in between
     assert np.all(np.diff(e_left[::10][5:]) < 0)  # and falling as the cell discharges
     assert np.count_nonzero(np.diff(i_lim)) > 300  # the SOP (here the 20 A-capped power) moves every sample
+
+
+def test_per_sample_update_equals_track_then_compute():
+    """SoxEstimator.update (the estimator read once, the OCV at the SOC now and at the next
+    period's start in one lookup, masked updates skipped while every cell is valid) gives
+    exactly what track() then compute() give, each reading the estimator on its own: over a
+    discharge with per-cell temperatures across the OCV tables and cells losing their reading."""
+    from bms_estimator.core.soc import SocEstimator
+    from bms_estimator.core.sox import SoxEstimator
+
+    n, steps = 12, 160
+    rng = np.random.default_rng(7)
+    temps = np.linspace(-15.0, 40.0, n)
+    est = SocEstimator(n, _surface(), 3.0, 1.0, initial_soc=0.9)
+    fast, plain = SoxEstimator(n, 1.0), SoxEstimator(n, 1.0)
+    compared = 0
+    for k in range(steps):
+        i = -3.0 if (k // 20) % 2 else 0.5
+        v = 3.6 + 0.02 * i + 0.002 * rng.standard_normal(n)
+        if k % 17 == 5:
+            v[rng.integers(0, n, 2)] = np.nan  # no reading from two cells this sample
+        t = temps + 2.0 * np.sin(k / 15.0)
+        est.update(i, v, temperature_c=t)
+        fast.update(est, i, v)
+        plain.track(est, i, v)
+        plain.compute(est)
+        assert fast.outputs.keys() == plain.outputs.keys()
+        for key in fast.outputs:
+            np.testing.assert_array_equal(fast.outputs[key], plain.outputs[key], err_msg=f"{key} at sample {k}")
+        pf, pp = fast.pack_outputs(), plain.pack_outputs()
+        assert pf.keys() == pp.keys()
+        np.testing.assert_array_equal(list(pf.values()), list(pp.values()))  # NaN (no SOH yet) equals NaN
+        compared += 1
+    assert compared == steps
+    assert np.any(fast.outputs["i_discharge_max_10s_a"] > 0)  # limits that were actually computed
