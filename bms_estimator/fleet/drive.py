@@ -362,7 +362,7 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
             outs: list[DriveEstimate | None] = estimate_stacked([g[3] for g in group], _stack_factory(svc))
             wall, cpu = (time.perf_counter() - t0) / len(group), (time.process_time() - c0) / len(group)
             together = len(group)
-        except StackError as exc:
+        except (StackError, MemoryError) as exc:  # then one by one (each with the service's error handling)
             _log.warning("drives run one by one", reason=str(exc))
             outs, together = [None] * len(group), 1
         for (res, path, _svc, samples), out in zip(group, outs):
