@@ -102,7 +102,7 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
     in_db = np.isin(frames.key, known)
     c.unknown_id = int(np.count_nonzero(~in_plan & ~in_db))
     c.unmapped = int(np.count_nonzero(~in_plan & in_db))
-    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # frame, order, kind, cell, value
+    parts: list[tuple[np.ndarray, int, int, int, np.ndarray]] = []  # frame indices, order, kind, cell, values
     # the frames of each planned id, in frame order: one stable sort of the plan index (radix, int16)
     # instead of a pass over all frames per id
     pos = np.searchsorted(planned, frames.key)
@@ -190,16 +190,17 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
                 else:
                     k = np.flatnonzero(keep)
                     frame_of, value = idx[rows[k]], si[k]
-                n_ev = frame_of.size
-                parts.append((frame_of, np.full(n_ev, order_base + j, np.int64),
-                              np.full(n_ev, int(kind), np.int8), np.full(n_ev, cell, np.int32), value))
+                parts.append((frame_of, order_base + j, int(kind), cell, value))
             order_base += len(entries)
     if parts:
+        # events of part q carry its (order, kind, cell): one small table, read through the part index
         frame = np.concatenate([p[0] for p in parts])
-        order = np.concatenate([p[1] for p in parts])
-        perm = np.lexsort((order, frame))
-        ev = EventArrays(frame[perm], np.concatenate([p[2] for p in parts])[perm],
-                         np.concatenate([p[3] for p in parts])[perm], np.concatenate([p[4] for p in parts])[perm])
+        part = np.repeat(np.arange(len(parts), dtype=np.int32), [p[0].size for p in parts])
+        table = lambda k, dtype: np.array([p[k] for p in parts], dtype=dtype)  # noqa: E731
+        perm = np.lexsort((table(1, np.int64)[part], frame))
+        part = part[perm]
+        ev = EventArrays(frame[perm], table(2, np.int8)[part], table(3, np.int32)[part],
+                         np.concatenate([p[4] for p in parts])[perm])
     else:
         ev = EventArrays(np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0, np.int32), np.zeros(0))
     c.events = int(ev.frame.size)
@@ -243,8 +244,7 @@ def _decode_per_frame(decoder: FrameDecoder, frames: FrameTable, idx: np.ndarray
                               is_extended_id=bool(key & 0x8000_0000), is_fd=True,
                               data=bytes(frames.data[i, : int(frames.length[i])]))
             for j, (kind, cell, value) in enumerate(decoder.decode(msg)):
-                parts.append((np.array([i]), np.array([j]), np.array([int(kind)], np.int8),
-                              np.array([cell], np.int32), np.array([value])))
+                parts.append((np.array([i]), j, int(kind), cell, np.array([value])))
         per = decoder.counters
     finally:
         decoder.counters = saved
