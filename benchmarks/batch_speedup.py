@@ -16,6 +16,12 @@ Figures:
     the same against this process's CPU seconds (``time.process_time``): what the drive
     costs on a core of its own; on a machine that other jobs load, wall time also holds
     the waits for a core.
+``batch_speedup_stack4`` / ``batch_speedup_stack4_cpu``
+    throughput of one worker when its task holds 4 such drives (``batch``'s default
+    ``--stack 4``): 4 x log seconds / the wall (CPU) seconds of :func:`~bms_estimator.fleet.drive.run_drives`
+    on them (each drive read, decoded and assembled on its own, the estimation stacked;
+    Parquet writing not included). The 4 drives are copies of the same log: equal lengths,
+    the best case; drives of different lengths run the longest one's steps.
 ``batch_scaling_2_workers``
     drives per second of ``run_batch`` on a ``LocalCluster`` of 2 worker processes over
     the same with 1 worker (4 drives of ``scaling_hours`` each, cluster start-up excluded).
@@ -61,6 +67,10 @@ class BatchBenchResult:
     drive_s_one_worker: float  # wall time of one (hours, n_cells) drive on one worker (.log)
     speedup_log_cpu: float = 0.0  # log seconds / CPU seconds of this process (.log): the figure on a core of its own
     speedup_mf4_cpu: float = 0.0
+    stack: int = 4
+    speedup_stack: float = 0.0  # stack x log seconds / wall seconds of one task of `stack` drives (.log)
+    speedup_stack_cpu: float = 0.0
+    seconds_stack: dict[str, float] | None = None  # summed over the stacked drives
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -77,7 +87,9 @@ def estimate_text(r: BatchBenchResult, drives: int = 10_000) -> str:
     return (f"{drives:,} drives of {r.hours:g} h x {r.n_cells} cells: {drives * r.drive_s_one_worker / 3600:,.1f} "
             f"worker-hours of wall time here; " + ", ".join(parts) + f" (efficiency "
             f"{min(1.0, r.scaling_2_workers / 2):.2f} measured on 2 workers, assumed for more); {cpu_h:,.1f} "
-            f"CPU-hours (on workers with a core each: {cpu_h / 16:,.1f} h on 16, {cpu_h / 64:,.1f} h on 64)")
+            f"CPU-hours (on workers with a core each: {cpu_h / 16:,.1f} h on 16, {cpu_h / 64:,.1f} h on 64)"
+            + (f"; stacked {r.stack} drives per task: {drives * r.hours / r.speedup_stack:,.1f} worker-hours of wall "
+               f"time, {drives * r.hours / r.speedup_stack_cpu:,.1f} CPU-hours" if r.speedup_stack else ""))
 
 
 def _frame_table(fa):
@@ -117,6 +129,25 @@ def _one_worker(path: Path, cfg: Path) -> tuple[float, dict[str, float]]:
     secs = {k: v for k, v in res.seconds.items() if k != "write"}
     wall = sum(v for k, v in secs.items() if k != "cpu")
     return res.duration_s / wall, secs
+
+
+def _stacked(path: Path, cfg: Path, stack: int) -> tuple[float, float, dict[str, float]]:
+    """(log seconds / wall seconds, log seconds / CPU seconds, summed stage seconds) of ``stack`` copies of
+    ``path`` in one stacked task (:func:`~bms_estimator.fleet.drive.run_drives`, no Parquet)."""
+    from bms_estimator.fleet.drive import run_drives
+
+    results = run_drives([(str(path), "bench")] * stack, str(cfg), path.parent, write=False)
+    bad = [r.error for r in results if r.status != "ok"]
+    if bad or any(r.counters.get("stacked_with") != stack for r in results):
+        raise RuntimeError(bad[0] if bad else "the drives did not run stacked")
+    secs: dict[str, float] = {}
+    for r in results:
+        for k, v in r.seconds.items():
+            if k != "write":
+                secs[k] = secs.get(k, 0.0) + v
+    wall = sum(v for k, v in secs.items() if k != "cpu")
+    log_s = sum(r.duration_s for r in results)
+    return log_s / wall, log_s / secs["cpu"], secs
 
 
 def _scaling(tmp: Path, cfg: Path, hours: float, n_cells: int, drives: int) -> tuple[float, float]:
@@ -160,8 +191,8 @@ def _scaling(tmp: Path, cfg: Path, hours: float, n_cells: int, drives: int) -> t
 
 
 def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
-                scaling_hours: float = 0.5) -> BatchBenchResult:
-    key = (hours, n_cells, scaling_drives, scaling_hours)
+                scaling_hours: float = 0.5, stack: int = 4) -> BatchBenchResult:
+    key = (hours, n_cells, scaling_drives, scaling_hours, stack)
     if key in _CACHE:
         return _CACHE[key]
     with tempfile.TemporaryDirectory(prefix="bms-batch-bench-") as tmpdir:
@@ -170,10 +201,12 @@ def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
         _one_worker(log, cfg)  # warm: imports, the configuration's Service (cached per process)
         sp_log, s_log = _one_worker(log, cfg)
         sp_mf4, s_mf4 = _one_worker(mf4, cfg)
+        sp_stack, sp_stack_cpu, s_stack = _stacked(log, cfg, stack)
         w1, w2 = _scaling(tmp, cfg, scaling_hours, n_cells, scaling_drives)
     r = BatchBenchResult(hours, n_cells, frames, sp_log, sp_mf4, s_log, s_mf4, w1 / w2, scaling_drives,
                          scaling_hours, w1, w2, hours * 3600 / sp_log,
-                         hours * 3600 / s_log["cpu"], hours * 3600 / s_mf4["cpu"])
+                         hours * 3600 / s_log["cpu"], hours * 3600 / s_mf4["cpu"], stack, sp_stack, sp_stack_cpu,
+                         s_stack)
     _CACHE[key] = r
     return r
 
@@ -212,12 +245,13 @@ def main() -> None:
     ap.add_argument("--cells", type=int, default=96)
     ap.add_argument("--scaling-drives", type=int, default=4)
     ap.add_argument("--scaling-hours", type=float, default=0.5)
+    ap.add_argument("--stack", type=int, default=4)
     ap.add_argument("--read-cost", action="store_true", help="only the per-frame read cost of each format")
     a = ap.parse_args()
     if a.read_cost:
         print(json.dumps(bench_read_cost(), indent=1))
         return
-    r = bench_batch(a.hours, a.cells, a.scaling_drives, a.scaling_hours)
+    r = bench_batch(a.hours, a.cells, a.scaling_drives, a.scaling_hours, a.stack)
     print(json.dumps(r.as_dict(), indent=1))
     print(estimate_text(r))
 

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from ..errors import DataError, UsageError
+from ..fleet.batch import DEFAULT_STACK
 
 
 def _workers(text: str) -> int:
@@ -48,6 +49,10 @@ def add_parser(sub) -> None:
     p.add_argument("--diagnose", action="store_true",
                    help="also name each cell's model error with 'diagnose' (summary column 'cause'; on the cell's "
                         "longest stretch of valid samples, at least 30 min; slow: seconds per cell-hour)")
+    p.add_argument("--stack", type=_workers, default=DEFAULT_STACK, metavar="S",
+                   help="unchained drives per task, estimated side by side as one vectorised estimator (each drive's "
+                        f"results are its own, bit for bit; it shares the per-sample overhead; default {DEFAULT_STACK}, "
+                        "1 = one drive per task)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -98,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         result = run_batch(logs, str(args.config.resolve()), args.out, chain=args.chain, scheduler=args.scheduler,
-                           workers=args.workers, progress=progress, diagnose=args.diagnose) if logs else None
+                           workers=args.workers, progress=progress, diagnose=args.diagnose,
+                           stack=args.stack) if logs else None
     finally:
         if bar is not None:
             bar.stop()

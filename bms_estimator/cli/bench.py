@@ -20,7 +20,9 @@ Figures (one core, this machine, one run):
 * ``batch_speedup`` / ``batch_speedup_mf4``: times faster than real time that a 4-hour,
   96-cell log (candump ``.log`` / MF4) goes through ``batch``'s bulk decode and the
   estimator on one worker (goal: 2000x); ``batch_speedup_cpu`` / ``batch_speedup_mf4_cpu``
-  the same against the process's CPU time (the figure on a core of its own).
+  the same against the process's CPU time (the figure on a core of its own);
+  ``batch_speedup_stack4`` / ``batch_speedup_stack4_cpu``: one worker's throughput (times real
+  time) when its task holds 4 such drives, their estimation stacked (``batch --stack 4``).
 * ``batch_scaling_2_workers``: ``batch`` throughput on a 2-process Dask LocalCluster over
   1 process; ``batch_10k_drives_worker_h``: the measured cost of 10,000 such 4-hour drives
   in worker-hours (the estimate for N workers is printed on stderr).
@@ -50,8 +52,8 @@ def add_parser(sub) -> None:
                    help="comma-separated subset (default all: " + ", ".join(
                        ["cell_updates_per_s", "cell_updates_per_s_lif_iv", "tick_ms_200_cells", "frames_per_s", "publish_latency_ms_p99",
                         "replay_speedup", "diagnose_4h_s", "batch_speedup", "batch_speedup_mf4",
-                        "batch_speedup_cpu", "batch_speedup_mf4_cpu",
-                        "batch_scaling_2_workers", "batch_10k_drives_worker_h"])
+                        "batch_speedup_cpu", "batch_speedup_mf4_cpu", "batch_speedup_stack4",
+                        "batch_speedup_stack4_cpu", "batch_scaling_2_workers", "batch_10k_drives_worker_h"])
                    + "); replay_speedup and the batch figures take a few minutes each")
     p.set_defaults(func=run)
 
@@ -193,6 +195,7 @@ def _batch(figure: str) -> float:
         return 10_000 * r.drive_s_one_worker / 3600.0
     return {"batch_speedup": r.speedup_log, "batch_speedup_mf4": r.speedup_mf4,
             "batch_speedup_cpu": r.speedup_log_cpu, "batch_speedup_mf4_cpu": r.speedup_mf4_cpu,
+            "batch_speedup_stack4": r.speedup_stack, "batch_speedup_stack4_cpu": r.speedup_stack_cpu,
             "batch_scaling_2_workers": r.scaling_2_workers}[figure]
 
 
@@ -214,6 +217,8 @@ FIGURES = {
     "batch_speedup_mf4": lambda args: _batch("batch_speedup_mf4"),
     "batch_speedup_cpu": lambda args: _batch("batch_speedup_cpu"),
     "batch_speedup_mf4_cpu": lambda args: _batch("batch_speedup_mf4_cpu"),
+    "batch_speedup_stack4": lambda args: _batch("batch_speedup_stack4"),
+    "batch_speedup_stack4_cpu": lambda args: _batch("batch_speedup_stack4_cpu"),
     "batch_scaling_2_workers": lambda args: _batch("batch_scaling_2_workers"),
     "batch_10k_drives_worker_h": lambda args: _batch("batch_10k_drives_worker_h"),
 }

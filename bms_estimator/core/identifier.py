@@ -267,6 +267,16 @@ class Identifier:
         h[:, 5] = np.sqrt(self.config.c0_prior_weight) / np.where(ok, g, 1.0)  # h' theta = sqrt(w) c0
         self.rls.pseudo_update(h, np.zeros(self.n_cells), ok)
 
+    def set_groups(self, sizes) -> None:
+        """Cells in consecutive groups of ``sizes``, independent packs side by side (the batch's stacked
+        drives): what is shared across the cells (the RLS error window's head, a step taken when any
+        cell learns, the LIF product's width) is then kept per group, so each group's results are
+        the ones it has alone, bit for bit. On a fresh identifier."""
+        self.rls.set_groups(sizes)
+        history = getattr(self, "history", None)
+        if history is not None:
+            history.set_groups(sizes)
+
     def shift_bias(self, dv: np.ndarray, cells: np.ndarray | None = None) -> None:
         """Move an OCV bias ``dv`` (V, per cell) out of the model: v_o history and c0 both shift.
 
@@ -275,13 +285,17 @@ class Identifier:
         drop by dv too, or the correction would be applied twice.
         """
         d = np.broadcast_to(np.asarray(dv, dtype=float), (self.n_cells,))
+        # the callers shift when any cell has a shift (``cells`` given: any of those): with groups of
+        # independent packs (rls.set_groups) a group without one keeps its parameters, as alone
+        moved = self.rls.group_any(d.astype(bool) if cells is None else cells)
         if cells is not None:
             d = np.where(np.asarray(cells, dtype=bool), d, 0.0)
         d = np.where(np.isfinite(d), d, 0.0)
         self._shift_history(d)
         self._shift_theta(self.rls.theta, d)
         self._shift_theta(self.theta_good, d)
-        self.params = self._physical(self.theta_good)
+        params = self._physical(self.theta_good)
+        self.params = params if moved is None or moved.all() else params.select(moved, self.params)
 
     @property
     def c0_v(self) -> np.ndarray:

@@ -124,6 +124,17 @@ class LifHistory:
         self._fx = np.zeros((self.n_cells, 3))
         self.head = -1
         self.count = 0
+        self._groups: list[slice] | None = None  # see set_groups
+
+    def set_groups(self, sizes) -> None:
+        """Cells in consecutive groups of ``sizes`` (independent packs side by side): the filter
+        product is then taken group by group, each with its own group's width. (BLAS picks its
+        kernels by the matrix width, and for narrow ones a cell's result moves in the last bit
+        with the width: per group, each group's filtered values are those it has alone.)"""
+        bounds = np.concatenate(([0], np.cumsum(np.asarray(sizes, dtype=np.int64))))
+        if bounds[-1] != self.n_cells or np.any(np.diff(bounds) < 1):
+            raise ValueError(f"groups of {np.diff(bounds).tolist()} cells do not make the {self.n_cells} cells")
+        self._groups = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
     @property
     def scale(self) -> np.ndarray:
@@ -145,7 +156,11 @@ class LifHistory:
         if self.extra_inputs:
             buf[2 + self._aux:, self.head] = extra
         self.count += 1
-        f = self._rolled[self.head] @ buf  # (signals, 3, N)
+        if self._groups is None:
+            f = self._rolled[self.head] @ buf  # (signals, 3, N)
+        else:
+            k = self._rolled[self.head]
+            f = np.concatenate([k @ np.ascontiguousarray(buf[:, :, g]) for g in self._groups], axis=2)
         if self._aux:
             self._fx = f[2].T
         fv, fi = f[0], f[1]

@@ -80,6 +80,19 @@ class WeightedRls:
         self._err_head = 0
         self._err_count = np.zeros(n, dtype=np.int64)
         self._eye = np.eye(p)
+        self._group_starts: np.ndarray | None = None  # see set_groups
+
+    def set_groups(self, sizes) -> None:
+        """Cells in consecutive groups of ``sizes`` (independent packs side by side, e.g. the batch's
+        stacked drives): the error window's ring head, which advances when any cell learns, is
+        then kept per group, so that each group's results are those it has alone. On a fresh RLS."""
+        sizes = np.asarray(sizes, dtype=np.int64)
+        if sizes.sum() != self.n_cells or np.any(sizes < 1):
+            raise ValueError(f"groups of {sizes.tolist()} cells do not make the {self.n_cells} cells")
+        self._group_starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
+        self._group_of = np.repeat(np.arange(sizes.size), sizes)
+        self._rows = np.arange(self.n_cells)
+        self._err_head = np.full(sizes.size, int(self._err_head), dtype=np.int64)
 
     @property
     def P(self) -> np.ndarray:
@@ -110,8 +123,14 @@ class WeightedRls:
         if run.any():
             # windowed error RMS drives turn-on/turn-off (only from learning samples)
             h = self._err_head
-            self._err2[:, h] = np.where(run, e * e, self._err2[:, h])
-            self._err_head = (h + 1) % cfg.error_window
+            if self._group_starts is None:
+                self._err2[:, h] = np.where(run, e * e, self._err2[:, h])
+                self._err_head = (h + 1) % cfg.error_window
+            else:  # a head per group, advanced when a cell of that group learns
+                at = (self._rows, h[self._group_of])
+                self._err2[at] = np.where(run, e * e, self._err2[at])
+                self._err_head = np.where(np.logical_or.reduceat(run, self._group_starts),
+                                          (h + 1) % cfg.error_window, h)
             self._err_count += run
             if cfg.error_on > 0:  # the RMS only switches adaptation when a threshold is set
                 filled = np.minimum(self._err_count, cfg.error_window)
@@ -126,7 +145,26 @@ class WeightedRls:
             return e
         return np.where(self.initialised | init_now, e, np.nan)
 
+    def group_any(self, mask: np.ndarray) -> np.ndarray | None:
+        """With groups (:meth:`set_groups`): per cell, whether any cell of its group is in ``mask``; else None."""
+        if self._group_starts is None:
+            return None
+        return np.logical_or.reduceat(np.asarray(mask, dtype=bool), self._group_starts)[self._group_of]
+
     def _rls_step(self, phi: np.ndarray, e: np.ndarray, w: np.ndarray, lam: float) -> None:
+        # A step runs when any cell learns and touches the others too (gain 0, but the trace
+        # limit); with groups, a group none of whose cells learns is left exactly as it was,
+        # as it is when it runs alone
+        live = self.group_any(w)
+        hold = None if live is None or live.all() else ~live
+        if hold is not None:
+            theta_held, p_held = self.theta[hold], self._pt[:, :, hold]
+        self._rls_step_all(phi, e, w, lam)
+        if hold is not None:
+            self.theta[hold] = theta_held
+            self._pt[:, :, hold] = p_held
+
+    def _rls_step_all(self, phi: np.ndarray, e: np.ndarray, w: np.ndarray, lam: float) -> None:
         P = self._pt  # (p, p, N)
         phi_t = phi.T
         pphi = np.einsum("ijn,jn->in", P, phi_t)
@@ -219,7 +257,9 @@ class WeightedRls:
             "r": self._r.copy(),
             "init_count": self._init_count.copy(),
             "err2": self._err2.copy(),
-            "err_head": np.array(self._err_head),
+            # (with groups: per cell, its group's head)
+            "err_head": (np.array(self._err_head) if self._group_starts is None
+                         else self._err_head[self._group_of].copy()),
             "err_count": self._err_count.copy(),
         }
 

@@ -1,10 +1,16 @@
-"""Many drives on Dask distributed: one task per drive, or per vehicle when its drives are chained.
+"""Many drives on Dask distributed: one task per few drives (stacked), or per vehicle when its drives are chained.
 
 ``run_batch`` submits :func:`~.drive.run_drive` (or :func:`~.drive.run_vehicle`) to a
 ``dask.distributed`` client: by default a ``LocalCluster`` of single-threaded worker
 processes, one per core (``os.cpu_count()``; the estimator holds the GIL); with
 ``scheduler`` an existing cluster (then every worker must see the log files and the
 output directory at the same paths: a shared file system). No other pool is made here.
+
+Unchained drives go to the workers in groups of up to ``stack`` (fewer when there are
+fewer drives than ``stack`` per worker), and a task runs its group's estimation stacked
+(:func:`~.drive.run_drives`, :mod:`.stack`): the results are each drive's own, bit for
+bit, the estimator's per-sample overhead shared. Chained drives stay one task per vehicle,
+in order (each drive starts from the state the one before left).
 
 Results do not depend on the number of workers: each task is a pure function of its
 files (a drive's estimate depends only on its log, the configuration and, when chained,
@@ -25,10 +31,10 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UsageError
-from .drive import DriveResult, run_drive, run_vehicle
+from .drive import DriveResult, run_drives, run_vehicle
 from .frames import FRAME_SUFFIXES
 
-__all__ = ["BatchResult", "expand_inputs", "run_batch", "summary_rows", "vehicle_of"]
+__all__ = ["BatchResult", "DEFAULT_STACK", "expand_inputs", "run_batch", "stack_groups", "summary_rows", "vehicle_of"]
 
 
 def vehicle_of(path: str | Path) -> str:
@@ -66,6 +72,19 @@ def _is_log(path: Path) -> bool:
     return name.endswith(FRAME_SUFFIXES) or name.endswith(".csv")
 
 
+#: unchained drives per task by default (estimated stacked; see bms_estimator/fleet/stack.py)
+DEFAULT_STACK = 4
+
+
+def stack_groups(logs: list[str], stack: int, workers: int) -> list[list[tuple[str, str]]]:
+    """The logs as (log, vehicle) groups of at most ``stack``, and no more than keep every worker busy:
+    ``min(stack, ceil(len(logs) / workers))`` each, in the given order."""
+    if not logs:
+        return []
+    size = max(1, min(int(stack), -(-len(logs) // max(1, workers))))
+    return [[(log, vehicle_of(log)) for log in logs[i:i + size]] for i in range(0, len(logs), size)]
+
+
 @dataclass
 class BatchResult:
     drives: list[DriveResult]
@@ -97,8 +116,10 @@ def _client(scheduler: str | None, workers: int | None):
 def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain: bool = False,
               scheduler: str | None = None, workers: int | None = None,
               progress: Callable[[int, int, DriveResult | None], None] | None = None,
-              client: Any = None, diagnose: bool = False) -> BatchResult:
+              client: Any = None, diagnose: bool = False, stack: int = DEFAULT_STACK) -> BatchResult:
     """Every log through bulk decode and the estimator on Dask; never raises for a bad log.
+
+    ``stack``: at most this many unchained drives per task, estimated side by side (1: one per task).
 
     ``progress(done_drives, total_drives, last_result)`` is called as tasks finish.
     ``client``: an existing ``dask.distributed.Client`` (then ``scheduler``/``workers`` are unused).
@@ -124,9 +145,9 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
                                      key=f"vehicle-{vehicle}-{i}", pure=False)
                        for i, (vehicle, paths) in enumerate(sorted(by_vehicle.items()))]
         else:
-            futures = [client.submit(_drive_only, log, config, out_dir, vehicle_of(log), diagnose,
-                                     key=f"drive-{i}-{Path(log).name}", pure=False)
-                       for i, log in enumerate(logs)]
+            futures = [client.submit(_drives_task, group, config, out_dir, diagnose,
+                                     key=f"drives-{i}-{Path(group[0][0]).name}", pure=False)
+                       for i, group in enumerate(stack_groups(logs, stack, max(n_workers, 1)))]
         results: list[DriveResult] = []
         total = len(logs)
         if progress is not None:
@@ -168,9 +189,10 @@ def _quiet_worker() -> None:
     configure_logging(level="WARNING", fmt="console", stream=sys.stderr)
 
 
-def _drive_only(log: str, config: str | None, out_dir: str, vehicle: str, diagnose: bool = False) -> DriveResult:
+def _drives_task(group: list[tuple[str, str]], config: str | None, out_dir: str,
+                 diagnose: bool = False) -> list[DriveResult]:
     _quiet_worker()
-    return run_drive(log, config, out_dir, vehicle, diagnose=diagnose)[0]
+    return run_drives(group, config, out_dir, diagnose=diagnose)
 
 
 def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: str,

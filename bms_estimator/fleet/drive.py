@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import structlog
 
 from ..errors import BmsEstimatorError, DataError, one_line_error
 from .assemble import assemble_samples
@@ -41,13 +42,15 @@ from .estimate import DriveEstimate, carry_state, estimate_drive
 from .frames import read_frames
 from .samples import SampleArrays
 
-__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_vehicle", "parquet_path"]
+__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_drives", "run_vehicle", "parquet_path"]
 
 #: per-cell series written to each drive's Parquet (besides t_s, cell, valid, current_a)
 PARQUET_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s", "c0_v", "capacity_ah",
                 "temperature_c", "voltage_v")
 
 _SETUPS: dict[tuple[str, float], Any] = {}
+
+_log = structlog.get_logger("bms.fleet")
 
 
 @dataclass
@@ -231,28 +234,18 @@ def _write_parquet(path: Path, est: DriveEstimate) -> None:
     tmp.replace(path)
 
 
-def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle: str,
-              state: dict[str, np.ndarray] | None = None, *, write: bool = True, diagnose: bool = False,
-              ) -> tuple[DriveResult, dict[str, np.ndarray] | None, DriveEstimate | None]:
-    """One drive; never raises for a bad log (the result says what was wrong).
+def _samples_of(log: Path, config: str | None, res: DriveResult):
+    """(service, samples) of one log: read, decode, assemble; fills ``res`` (frames, counters, seconds).
 
-    ``diagnose``: also name each cell's model error with ``diagnose`` (:func:`_diagnose_cells`;
-    slow: seconds per cell-hour).
-
-    Returns the result, the estimator state at the end (``state`` unchanged when the
-    drive was skipped) and the estimate itself (None when skipped).
+    Raises for a log to skip (:class:`~bms_estimator.errors.DataError` naming the problem).
     """
-    log = Path(log)
-    res = DriveResult(vehicle=vehicle, path=str(log), status="skipped")
     secs = res.seconds
-    secs["cpu"] = time.process_time()  # start; _estimate makes it the CPU seconds spent
-    try:
-        if is_recording(log):  # one measured cell: its samples directly, a one-cell pack
-            svc = _service(config, n_cells=1)
-            t0 = time.perf_counter()
-            samples = _recording_samples(log, svc)
-            secs["read"] = time.perf_counter() - t0
-            return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, time.perf_counter(), diagnose)
+    if is_recording(log):  # one measured cell: its samples directly, a one-cell pack
+        svc = _service(config, n_cells=1)
+        t0 = time.perf_counter()
+        samples = _recording_samples(log, svc)
+        secs["read"] = time.perf_counter() - t0
+    else:
         svc = _service(config)
         t0 = time.perf_counter()
         frames = read_frames(log)
@@ -272,33 +265,125 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
             raise DataError(f"{log}: none of its {res.frames} frames is a message the configured DBC and mapping "
                             "decode (recorded with another DBC?)")
         samples = assemble_samples(frames.t_s, events, svc.sampler)  # only its settings are read
-        t3 = time.perf_counter()
-        secs["assemble"] = t3 - t2
+        secs["assemble"] = time.perf_counter() - t2
         res.counters = {**dcount.as_dict(), **samples.counters}
         if samples.counters["rewinds"]:
             raise DataError(f"{log}: timestamps go back by more than the rewind limit "
                             f"({samples.counters['rewinds']} time(s)): not one drive")
-        return _estimate(res, log, svc, samples, state, out_dir, vehicle, write, t3, diagnose)
-    except BmsEstimatorError as exc:
-        res.error = exc.header if not exc.problems else f"{exc.header} {'; '.join(exc.problems)}"
-    except MemoryError:
-        res.error = f"{log}: out of memory"
-    except Exception as exc:  # noqa: BLE001 - one drive must never stop the batch
-        res.error = f"{log}: {one_line_error(exc)}"
-    secs.pop("cpu", None)  # a skipped drive: no cost to report
-    return res, state, None
-
-
-def _estimate(res: DriveResult, log: Path, svc, samples: SampleArrays, state, out_dir, vehicle: str, write: bool,
-              t3: float, diagnose: bool = False) -> tuple[DriveResult, dict[str, np.ndarray], DriveEstimate]:
     if len(samples) == 0:
         raise DataError(f"{log}: no complete sample period ({res.frames} frames)")
     res.counters = res.counters or dict(samples.counters)
-    est = carry_state(svc._new_estimator, state)  # noqa: SLF001 - the service's own factory
-    out = estimate_drive(samples, est, svc.decoder, svc.sampler)
+    return svc, samples
+
+
+def _skipped(res: DriveResult, exc: BaseException) -> DriveResult:
+    """``res`` as a skipped drive, its error the one line that says why."""
+    log = res.path
+    if isinstance(exc, BmsEstimatorError):
+        res.error = exc.header if not exc.problems else f"{exc.header} {'; '.join(exc.problems)}"
+    elif isinstance(exc, MemoryError):
+        res.error = f"{log}: out of memory"
+    else:
+        res.error = f"{log}: {one_line_error(exc)}"
+    res.status = "skipped"
+    res.seconds.pop("cpu", None)  # a skipped drive: no cost to report
+    return res
+
+
+def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle: str,
+              state: dict[str, np.ndarray] | None = None, *, write: bool = True, diagnose: bool = False,
+              ) -> tuple[DriveResult, dict[str, np.ndarray] | None, DriveEstimate | None]:
+    """One drive; never raises for a bad log (the result says what was wrong).
+
+    ``diagnose``: also name each cell's model error with ``diagnose`` (:func:`_diagnose_cells`;
+    slow: seconds per cell-hour).
+
+    Returns the result, the estimator state at the end (``state`` unchanged when the
+    drive was skipped) and the estimate itself (None when skipped).
+    """
+    log = Path(log)
+    res = DriveResult(vehicle=vehicle, path=str(log), status="skipped")
+    res.seconds["cpu"] = time.process_time()  # start; _finish makes it the CPU seconds spent
+    try:
+        svc, samples = _samples_of(log, config, res)
+        t3 = time.perf_counter()
+        est = carry_state(svc._new_estimator, state)  # noqa: SLF001 - the service's own factory
+        out = estimate_drive(samples, est, svc.decoder, svc.sampler)
+        res.seconds["estimate"] = time.perf_counter() - t3
+        res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
+        _finish(res, log, svc, samples, out, out_dir, vehicle, write, diagnose)
+        return res, out.state, out
+    except Exception as exc:  # noqa: BLE001 - one drive must never stop the batch
+        return _skipped(res, exc), state, None
+
+
+def _stack_factory(svc):
+    """``n`` -> a fresh estimator of ``n`` cells made as the service makes its own (the service's for its ``n``)."""
+    from ..core.soc import SocEstimator
+
+    def make(n: int):
+        if n == svc.n_cells:
+            return svc._new_estimator()  # noqa: SLF001 - the service's own factory
+        return SocEstimator(n, svc.ocv, svc.cfg.pack.capacity_ah, svc.period_s, initial_soc=None,
+                            config=svc.soc_config)
+    return make
+
+
+def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | Path, *, write: bool = True,
+               diagnose: bool = False) -> list[DriveResult]:
+    """Independent drives ((log, vehicle) each, every one from a fresh estimator), their estimation stacked.
+
+    Each drive is read, decoded and assembled on its own; then the drives of one pack layout
+    run side by side as the cells of one estimator (:func:`.stack.estimate_stacked`: each
+    drive's results are those it has alone, bit for bit), which shares the estimator's
+    per-sample overhead among them. A drive's ``seconds["estimate"]`` and its CPU seconds hold
+    its share (1/S) of the stacked run; ``counters["stacked_with"]`` says how many ran together.
+    If the drives cannot run stacked, they run one by one. Never raises for a bad log.
+    """
+    from .stack import StackError, estimate_stacked
+
+    results: list[DriveResult] = []
+    ready: dict[int, list[tuple[DriveResult, Path, Any, SampleArrays]]] = {}
+    for log, vehicle in logs:
+        res = DriveResult(vehicle=vehicle, path=str(log), status="skipped")
+        res.seconds["cpu"] = time.process_time()
+        results.append(res)
+        try:
+            svc, samples = _samples_of(Path(log), config, res)
+        except Exception as exc:  # noqa: BLE001 - one drive must never stop the batch
+            _skipped(res, exc)
+            continue
+        res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
+        ready.setdefault(id(svc), []).append((res, Path(log), svc, samples))
+    for group in ready.values():
+        svc = group[0][2]
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            outs: list[DriveEstimate | None] = estimate_stacked([g[3] for g in group], _stack_factory(svc))
+            wall, cpu = (time.perf_counter() - t0) / len(group), (time.process_time() - c0) / len(group)
+            together = len(group)
+        except (StackError, MemoryError) as exc:  # then one by one (each with the service's error handling)
+            _log.warning("drives run one by one", reason=str(exc))
+            outs, together = [None] * len(group), 1
+        for (res, path, _svc, samples), out in zip(group, outs):
+            try:
+                if out is None:
+                    t0, c0 = time.perf_counter(), time.process_time()
+                    out = estimate_drive(samples, svc._new_estimator())  # noqa: SLF001
+                    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+                res.seconds["estimate"] = wall
+                res.seconds["cpu"] += cpu
+                res.counters["stacked_with"] = together
+                _finish(res, path, svc, samples, out, out_dir, res.vehicle, write, diagnose)
+            except Exception as exc:  # noqa: BLE001 - one drive must never stop the batch
+                _skipped(res, exc)
+    return results
+
+
+def _finish(res: DriveResult, log: Path, svc, samples: SampleArrays, out: DriveEstimate, out_dir, vehicle: str,
+            write: bool, diagnose: bool = False) -> None:
+    """Summary values, optionally the diagnosis, and the Parquet of one estimated drive; ``res`` made "ok"."""
     t4 = time.perf_counter()
-    res.seconds["estimate"] = t4 - t3
-    res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
     res.samples = len(samples)
     res.duration_s = len(samples) * samples.period_s
     res.cells = _summary(out, log, samples.period_s)
@@ -313,7 +398,6 @@ def _estimate(res: DriveResult, log: Path, svc, samples: SampleArrays, state, ou
         res.parquet = str(p)
     res.seconds["write"] = time.perf_counter() - t4
     res.status = "ok"
-    return res, out.state, out
 
 
 def run_vehicle(logs: list[str], config: str | None, out_dir: str | Path, vehicle: str,

@@ -34,7 +34,7 @@ from ..core.soc import SocEstimator
 from ..service.schema import CELL_FIELDS
 from .samples import SampleArrays
 
-__all__ = ["DriveEstimate", "estimate_drive", "carry_state"]
+__all__ = ["DriveEstimate", "estimate_drive", "carry_state", "finish_estimate", "output_getters"]
 
 log = structlog.get_logger("bms.fleet")
 
@@ -72,19 +72,41 @@ def _estimator_fields(est: SocEstimator) -> list[tuple[str, str]]:
             if f.estimator is not None and f.key not in taken and hasattr(est, f.estimator)]
 
 
+def output_getters(est: SocEstimator) -> list[tuple[str, Callable[[], np.ndarray]]]:
+    """(key, call) per per-cell value the snapshot reads off the estimator after a step: soc, the
+    identifier's parameters, capacity_ah and the further schema fields; each call returns the (N,) value now."""
+    def param(name: str) -> Callable[[], np.ndarray]:
+        return lambda: getattr(est.identifier.params, name)
+
+    def attr(name: str) -> Callable[[], np.ndarray]:
+        return lambda: getattr(est, name)
+
+    return [("soc", attr("soc")), *((key, param(key)) for key in PARAM_KEYS), ("capacity_ah", attr("capacity_ah")),
+            *((key, attr(name)) for key, name in _estimator_fields(est))]
+
+
+def finish_estimate(samples: SampleArrays, cells: dict[str, np.ndarray], state: dict[str, np.ndarray],
+                    errors: int) -> DriveEstimate:
+    """The drive's estimate from the per-step outputs ``cells`` ((K, N) each): the derived and input columns added."""
+    with np.errstate(all="ignore"):
+        cells["tau1_s"] = cells["r1_ohm"] * cells["c1_f"]
+        cells["tau2_s"] = cells["r2_ohm"] * cells["c2_f"]
+    cells["voltage_v"] = np.array(samples.cell_voltage_v, dtype=float, copy=True)
+    cells["temperature_c"] = np.array(samples.cell_temperature_c, dtype=float, copy=True)
+    return DriveEstimate(t_s=samples.t_s.copy(), current_a=samples.current_a.copy(), valid=samples.valid.copy(),
+                         cells=cells, state=state, tick_errors=errors)
+
+
 def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None, sampler=None) -> DriveEstimate:
     """Run ``estimator`` over every sample of one drive; row k of each output is the service's snapshot after sample k.
 
     (``decoder``/``sampler`` are accepted for the callers of the snapshot-based version and not used.)
     """
-    k, n = len(samples), samples.n_cells
+    k = len(samples)
     est = estimator
-    extra = _estimator_fields(est)
-    keys = ("soc", *PARAM_KEYS, "capacity_ah", *(key for key, _ in extra))
-    store = {key: np.full((k, n), np.nan) for key in keys}
-    soc_out, cap_out = store["soc"], store["capacity_ah"]
-    param_out = [store[key] for key in PARAM_KEYS]
-    extra_out = [(store[key], attr) for key, attr in extra]
+    getters = output_getters(est)
+    store = {key: np.full((k, samples.n_cells), np.nan) for key, _ in getters}
+    targets = [(store[key], get) for key, get in getters]
     current = samples.current_a.tolist()  # Python floats, as Sample carries them
     current_valid = samples.current_valid.tolist()
     volts, temps, valid = samples.cell_voltage_v, samples.cell_temperature_c, samples.valid
@@ -95,13 +117,8 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
             c = current[i]
             if current_valid[i] and isfinite(c):
                 update(c, volts[i], valid[i], temperature_c=temps[i])
-            soc_out[i] = est.soc
-            p = est.identifier.params
-            for out, value in zip(param_out, (p.r0_ohm, p.r1_ohm, p.c1_f, p.r2_ohm, p.c2_f, p.c0_v)):
-                out[i] = value
-            cap_out[i] = est.capacity_ah
-            for out, attr in extra_out:
-                out[i] = getattr(est, attr)
+            for out, get in targets:
+                out[i] = get()
         except Exception as exc:  # noqa: BLE001 - the service's tick logs, counts and goes on; so does the batch
             errors += 1
             for out in store.values():
@@ -109,11 +126,5 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
             if errors <= 5:
                 log.error("estimator step failed", sample=i, t_s=float(samples.t_s[i]),
                           error=f"{type(exc).__name__}: {exc}", exc_info=exc)
-    with np.errstate(all="ignore"):
-        store["tau1_s"] = store["r1_ohm"] * store["c1_f"]
-        store["tau2_s"] = store["r2_ohm"] * store["c2_f"]
-    store["voltage_v"] = np.array(volts, dtype=float, copy=True)
-    store["temperature_c"] = np.array(temps, dtype=float, copy=True)
-    return DriveEstimate(t_s=samples.t_s.copy(), current_a=samples.current_a.copy(), valid=samples.valid.copy(),
-                         cells=store, state={key: np.array(v, copy=True) for key, v in est.state_dict().items()},
-                         tick_errors=errors)
+    state = {key: np.array(v, copy=True) for key, v in est.state_dict().items()}
+    return finish_estimate(samples, store, state, errors)

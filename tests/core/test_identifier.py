@@ -220,3 +220,39 @@ def test_a_cell_stuck_against_the_guard_restarts_its_identification():
     assert runs[300][1] > 1.2 * runs[0][1]  # it learns on more samples
     with pytest.raises(ValueError, match="restart_after_rejections"):
         IdentifierConfig(restart_after_rejections=-1)
+
+
+@pytest.mark.parametrize("cls, method", [(LifEstimator, "lif"), (LifIvEstimator, "lif-iv"), (ArxEstimator, "arx")])
+def test_groups_give_each_pack_the_results_it_has_alone(cls, method):
+    """Two packs side by side in one identifier (set_groups) learn exactly as each does alone, although
+    at many steps one pack's cells learn and the other's do not (invalid samples), and only one pack's
+    OCV bias shifts: the error window, the trace limit, the parameters and the LIF product stay per pack."""
+    n = 1500
+    packs = []
+    for seed, cells in ((0, 2), (1, 3)):
+        i, v = synthetic_overpotential(n, seed=seed, noise_v=2e-4, noise_a=0.01)
+        ok = np.ones((n, cells), dtype=bool)
+        ok[200 + 300 * seed: 260 + 300 * seed] = False  # the pack's samples invalid for a minute
+        ok[700:705, 0] = False
+        packs.append((i, v[:, None] + 1e-3 * np.arange(cells), ok))
+    cfg = IdentifierConfig(method=method, init_samples=60)
+    sizes = [p[1].shape[1] for p in packs]
+    both = cls(sum(sizes), 1.0, 3.0, cfg)
+    both.set_groups(sizes)
+    alone = [cls(s, 1.0, 3.0, cfg) for s in sizes]
+    for k in range(n):
+        for est, (i, v, ok) in zip(alone, packs):
+            est.update(i[k], v[k], ok[k])
+            if k % 97 == 0 and est is alone[0]:
+                est.shift_bias(np.full(sizes[0], 1e-4))
+        both.update(np.concatenate([np.full(s, p[0][k]) for s, p in zip(sizes, packs)]),
+                    np.concatenate([p[1][k] for p in packs]), np.concatenate([p[2][k] for p in packs]))
+        if k % 97 == 0:
+            both.shift_bias(np.concatenate([np.full(sizes[0], 1e-4), np.zeros(sizes[1])]))
+    cols = [slice(0, sizes[0]), slice(sizes[0], sum(sizes))]
+    for est, c in zip(alone, cols):
+        for key in ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v"):
+            assert np.array_equal(getattr(est.params, key), getattr(both.params, key)[c], equal_nan=True), key
+        assert np.array_equal(est.rls.theta, both.rls.theta[c]) and np.array_equal(est.rls.P, both.rls.P[c])
+        assert np.array_equal(est.rls.state_dict()["err2"], both.rls.state_dict()["err2"][c])
+    assert both.identified.all()

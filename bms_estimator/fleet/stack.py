@@ -1,0 +1,174 @@
+"""Several independent drives as the cells of ONE vectorised estimator: the per-sample overhead shared.
+
+A 96-cell update of :class:`~bms_estimator.core.soc.SocEstimator` costs mostly per-call
+numpy overhead, not per-cell arithmetic, so ``S`` drives of ``n`` cells run side by side
+as one ``S n``-cell estimator cost little more per sample than one drive. This is exact,
+not an approximation, because every cell's estimate is a function of that cell's inputs
+alone (the EKF shifts each cell's own identifier history:
+``tests/core/test_soc_ekf.py::test_a_cell_estimates_the_same_alone_and_beside_other_cells``);
+the results are checked bit for bit against the solo run in ``tests/fleet/test_fleet_stack.py``.
+
+What a drive sees, step by step. :func:`~.estimate.estimate_drive` calls
+``update(i, v, valid, T)`` for sample ``k`` iff its current is valid and finite, and
+otherwise leaves the estimator untouched (row ``k`` repeats the state). So drive ``d`` is
+a sequence of ``m_d`` *updates* at its samples ``u_d = {k : current valid and finite}``,
+and the estimator's shared scalar counters (sample count, the LIF ring's head and fill,
+the RLS error window's head) after ``j`` updates are the same for every drive. The
+stack therefore runs step ``j`` as update ``j`` of every drive at once, the current a
+per-cell vector (drive ``d``'s current on its cells; a Python float and a vector filled
+with it give the same values), and maps back::
+
+    row k of drive d  =  outputs after update  c_k - 1,   c_k = #{j in u_d : j <= k}
+                         (the fresh estimator's values when c_k = 0)
+
+A drive with fewer updates than the longest is fed, after its last, a filler (current 0,
+no valid cell, no temperature); what its cells do then is never read: its outputs stop
+at step ``m_d`` and its final state (``state_dict`` sliced to its cells, scalar counters
+included) is taken right after update ``m_d``. The drives therefore must start from the
+same state (all fresh: chained drives of a vehicle stay sequential, see :mod:`.drive`),
+and the stacked estimator's fresh state must be the solo one repeated ``S`` times, which
+is checked once per stack.
+
+Anything unusual (an update that raises, a state that does not split by cells) raises
+:class:`StackError`; the caller then runs the drives one by one (the service's per-sample
+error handling applies there).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ..core.soc import SocEstimator
+from .estimate import DriveEstimate, finish_estimate, output_getters
+from .samples import SampleArrays
+
+__all__ = ["StackError", "estimate_stacked"]
+
+
+class StackError(RuntimeError):
+    """The drives cannot run stacked (the caller runs them one by one)."""
+
+
+#: a state field that is one value in a solo estimator and one per cell (its group's) in a stacked one
+PER_GROUP = -1
+
+
+def _cell_axes(solo: dict[str, np.ndarray], stacked: dict[str, np.ndarray], s: int) -> dict[str, int | None]:
+    """Per state field, the axis that holds the cells (None: a scalar shared by all cells; ``PER_GROUP``:
+    a scalar per drive); checks that the stacked fresh state is the solo fresh state repeated ``s`` times."""
+    axes: dict[str, int | None] = {}
+    if solo.keys() != stacked.keys():
+        raise StackError("the stacked estimator's state has other fields than the solo one")
+    for key, a in solo.items():
+        a, b = np.asarray(a), np.asarray(stacked[key])
+        if a.ndim == 0 and b.ndim == 1 and s > 1:
+            ax: int | None = PER_GROUP
+            want = np.full(b.shape, a)
+        else:
+            diff = [i for i in range(a.ndim) if a.shape[i] != b.shape[i]] if a.ndim == b.ndim else None
+            if diff is None or len(diff) > 1 or (not diff and a.ndim and s > 1):
+                raise StackError(f"state field {key!r} does not split by cells ({a.shape} alone, {b.shape} stacked)")
+            ax = diff[0] if diff else None
+            want = a if ax is None else np.concatenate([a] * s, axis=ax)
+        if not np.array_equal(want, b, equal_nan=True):
+            raise StackError(f"state field {key!r} of a fresh stacked estimator is not the solo one repeated")
+        axes[key] = ax
+    return axes
+
+
+def _slice_state(state: dict[str, np.ndarray], axes: dict[str, int | None], cols: slice) -> dict[str, np.ndarray]:
+    """One drive's state (its cells ``cols``) out of the stacked estimator's, in the solo estimator's form."""
+    out = {}
+    for key, v in state.items():
+        ax = axes[key]
+        v = np.asarray(v)
+        if ax is None:
+            out[key] = np.array(v, copy=True)
+        elif ax == PER_GROUP:
+            out[key] = np.array(v[cols][0], copy=True)
+        else:
+            idx = [slice(None)] * v.ndim
+            idx[ax] = cols
+            out[key] = np.array(v[tuple(idx)], copy=True)
+    return out
+
+
+def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int], SocEstimator],
+                     ) -> list[DriveEstimate]:
+    """Each drive's :func:`~.estimate.estimate_drive` result from a fresh ``make_estimator(n)``, run stacked.
+
+    ``make_estimator(n_cells)`` builds a fresh estimator of ``n_cells`` cells (the same
+    configuration for every size). All drives must have the same number of cells and
+    sample period. Raises :class:`StackError` when they cannot run stacked.
+    """
+    if not drives:
+        return []
+    n = drives[0].n_cells
+    if any(d.n_cells != n or d.period_s != drives[0].period_s for d in drives):
+        raise StackError("stacked drives must have the same cells and sample period")
+    s = len(drives)
+    big = n * s
+    solo = make_estimator(n)
+    est = make_estimator(big)
+    if s > 1:
+        if not hasattr(est.identifier, "set_groups"):
+            raise StackError("the identifier cannot keep the drives apart")
+        est.identifier.set_groups([n] * s)  # what the cells share is kept per drive, as in each drive alone
+    axes = _cell_axes(solo.state_dict(), est.state_dict(), s)
+    fresh_state = {k: np.array(v, copy=True) for k, v in solo.state_dict().items()}
+
+    steps = [np.flatnonzero(d.current_valid & np.isfinite(d.current_a)) for d in drives]
+    counts = [int(u.size) for u in steps]
+    length = max(counts)
+    # stacked inputs, row j = update j of every drive; after a drive's last update: the filler
+    current = np.zeros((length, big))
+    volts = np.full((length, big), np.nan)
+    temps = np.full((length, big), np.nan)
+    valid = np.zeros((length, big), dtype=bool)
+    for d, (dr, u) in enumerate(zip(drives, steps)):
+        cols, m = slice(d * n, (d + 1) * n), u.size
+        current[:m, cols] = dr.current_a[u][:, None]
+        volts[:m, cols] = dr.cell_voltage_v[u]
+        temps[:m, cols] = dr.cell_temperature_c[u]
+        valid[:m, cols] = dr.valid[u]
+
+    getters = output_getters(est)
+    first = {key: np.array(get(), dtype=float) for key, get in getters}  # the fresh estimator's values
+    store = {key: np.empty((length, big)) for key in first}
+    targets = [(store[key], get) for key, get in getters]
+    ends: dict[int, list[int]] = {}
+    for d, m in enumerate(counts):
+        ends.setdefault(m, []).append(d)
+    states: list[dict[str, np.ndarray] | None] = [None] * s
+    for d in ends.get(0, []):
+        states[d] = {k: np.array(v, copy=True) for k, v in fresh_state.items()}
+    update = est.update
+    try:
+        for j in range(length):
+            update(current[j], volts[j], valid[j], temperature_c=temps[j])
+            for out, get in targets:
+                out[j] = get()
+            done = ends.get(j + 1)
+            if done:
+                full = est.state_dict()
+                for d in done:
+                    states[d] = _slice_state(full, axes, slice(d * n, (d + 1) * n))
+    except Exception as exc:  # noqa: BLE001 - one by one, the service's per-sample error handling applies
+        raise StackError(f"a stacked update failed ({type(exc).__name__}: {exc})") from exc
+
+    results = []
+    for d, (dr, u) in enumerate(zip(drives, steps)):
+        cols = slice(d * n, (d + 1) * n)
+        # c_k: updates done by sample k; row 0 of `full` is the fresh estimator's values
+        c = np.zeros(len(dr), dtype=np.int64)
+        c[u] = 1
+        c = np.cumsum(c)
+        cells = {}
+        for key, arr in store.items():
+            full = np.concatenate((first[key][None, cols], arr[: counts[d], cols]))
+            cells[key] = full[c]
+        results.append(finish_estimate(dr, cells, states[d], 0))
+    return results
+

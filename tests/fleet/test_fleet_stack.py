@@ -1,0 +1,159 @@
+"""Drives stacked as the cells of one estimator give each drive its own results, bit for bit."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bms_estimator.data import load_recording
+from bms_estimator.fleet.batch import stack_groups
+from bms_estimator.fleet.drive import _service, _stack_factory, run_drive, run_drives
+from bms_estimator.fleet.estimate import estimate_drive
+from bms_estimator.fleet.samples import SampleArrays
+from bms_estimator.fleet.stack import StackError, estimate_stacked
+from bms_estimator.replay.encode_log import encode_log
+
+N_CELLS = 3
+SAMPLES = Path(__file__).parents[2] / "bms_estimator" / "samples"
+SRC = SAMPLES / "lg-hg2_25degC_udds_1s.csv.gz"
+
+
+@pytest.fixture(scope="module")
+def svc(tmp_path_factory):
+    d = tmp_path_factory.mktemp("stack")
+    cfg = d / "config.toml"
+    cfg.write_text(f'[pack]\nn_cells = {N_CELLS}\ncapacity_ah = 3.0\nocv_csv = "{SAMPLES / "lg-hg2_25degC_ocv.csv"}"\n'
+                   '[can]\ninterface = "virtual"\n[mqtt]\nenabled = false\n')
+    return _service(str(cfg)), cfg
+
+
+def _drive(base: SampleArrays, a: int, b: int, rng, stale: float = 0.0, bad_rows: int = 0,
+           nan_frac: float = 0.0) -> SampleArrays:
+    """Samples a..b of ``base`` with the anomalies the sampler produces: current-invalid rows, stale cells
+    (runs of invalid samples), lost voltage and temperature readings."""
+    k = b - a
+    cur_ok = base.current_valid[a:b].copy()
+    cur_ok[rng.integers(0, k, bad_rows)] = False
+    valid = base.valid[a:b].copy()
+    for _ in range(int(stale * k)):
+        r, c, n = rng.integers(0, k), rng.integers(0, base.n_cells), rng.integers(1, 40)
+        valid[r:r + n, c] = False
+    volts = base.cell_voltage_v[a:b].copy()
+    volts[rng.random(volts.shape) < nan_frac] = np.nan
+    temps = base.cell_temperature_c[a:b].copy()
+    temps[rng.random(temps.shape) < nan_frac] = np.nan
+    return dataclasses.replace(base, t_s=base.t_s[a:b], current_a=base.current_a[a:b], current_valid=cur_ok,
+                               current_coverage=base.current_coverage[a:b], cell_voltage_v=volts,
+                               cell_temperature_c=temps, valid=valid & cur_ok[:, None] & np.isfinite(volts),
+                               pack_voltage_v=base.pack_voltage_v[a:b])
+
+
+def _pack(seconds: int) -> SampleArrays:
+    """The shipped LG HG2 UDDS recording as a 3-cell pack (cells a few mV and 0.5 degC apart)."""
+    one = SampleArrays.from_recording(load_recording(SRC, resample_s=1.0), 1.0)
+    k = min(seconds, len(one))
+    offset = np.array([0.0, 0.004, -0.003])
+    volts = one.cell_voltage_v[:k] + offset
+    temps = np.full((k, N_CELLS), 25.0) + np.array([0.0, 0.5, -0.5])
+    return SampleArrays(t_s=one.t_s[:k], current_a=one.current_a[:k], current_valid=one.current_valid[:k],
+                        current_coverage=one.current_coverage[:k], cell_voltage_v=volts, cell_temperature_c=temps,
+                        valid=np.repeat(one.valid[:k], N_CELLS, axis=1), pack_voltage_v=volts.sum(axis=1), period_s=1.0)
+
+
+def _assert_same(a, b) -> None:
+    assert a.cells.keys() == b.cells.keys()
+    for key in a.cells:
+        assert np.array_equal(a.cells[key], b.cells[key], equal_nan=True), key
+    assert a.state.keys() == b.state.keys()
+    for key in a.state:
+        assert np.shape(a.state[key]) == np.shape(b.state[key]), key
+        assert np.array_equal(a.state[key], b.state[key], equal_nan=True), key
+    assert np.array_equal(a.t_s, b.t_s) and np.array_equal(a.valid, b.valid)
+
+
+def test_stacked_drives_give_each_drive_its_solo_results(svc):
+    """Different lengths and anomalies per drive (so at many steps one drive's cells learn and another's
+    do not, which moved the shared RLS error-window head and trace limit before they were kept per drive),
+    a one-sample drive and a drive without a single valid current: every output and the final state equal."""
+    service, _ = svc
+    base = _pack(4000)
+    rng = np.random.default_rng(7)
+    k = len(base)
+    drives = [_drive(base, 0, k, rng),
+              _drive(base, 300, k - 700, rng, stale=0.05, bad_rows=5, nan_frac=0.003),
+              _drive(base, 900, 2600, rng, stale=0.15, bad_rows=20, nan_frac=0.01),
+              _drive(base, 50, 51, rng),
+              _drive(base, 10, 40, rng, bad_rows=200)]
+    assert not (drives[4].current_valid.any())  # no update at all: the fresh estimator's values throughout
+    solo = [estimate_drive(d, service._new_estimator()) for d in drives]
+    stacked = estimate_stacked(drives, _stack_factory(service))
+    assert len(stacked) == len(drives)
+    for a, b in zip(solo, stacked):
+        _assert_same(a, b)
+    # the drives really ran as one estimator and differ from each other (not a trivial equality)
+    assert not np.array_equal(solo[0].cells["soc"][-1], solo[1].cells["soc"][-1])
+    assert np.isfinite(solo[2].cells["r0_ohm"][-1]).all()
+
+
+def test_a_stacked_drive_carries_on_like_a_solo_one(svc):
+    """The state a stacked drive ends with resumes a next drive exactly as the solo state does (chaining)."""
+    service, _ = svc
+    base = _pack(3000)
+    rng = np.random.default_rng(3)
+    first, other = _drive(base, 0, 1200, rng, stale=0.05), _drive(base, 100, 2900, rng)
+    nxt = _drive(base, 1200, 3000, rng)
+    stacked = estimate_stacked([first, other], _stack_factory(service))[0]
+    solo = estimate_drive(first, service._new_estimator())
+    est_a, est_b = service._new_estimator(), service._new_estimator()
+    est_a.load_state_dict(solo.state)
+    est_b.load_state_dict(stacked.state)
+    _assert_same(estimate_drive(nxt, est_a), estimate_drive(nxt, est_b))
+
+
+def test_drives_of_other_packs_are_refused(svc):
+    service, _ = svc
+    base = _pack(100)
+    one = dataclasses.replace(base, cell_voltage_v=base.cell_voltage_v[:, :1], cell_temperature_c=base.cell_temperature_c[:, :1],
+                              valid=base.valid[:, :1])
+    with pytest.raises(StackError, match="same cells"):
+        estimate_stacked([base, one], _stack_factory(service))
+
+
+def test_run_drives_writes_what_run_drive_writes(svc, tmp_path):
+    """The batch task: stacked logs (and a bad one among them) give the solo Parquet and summary."""
+    import pyarrow.parquet as pq
+
+    _, cfg = svc
+    logs = []
+    for i, dur in enumerate((300.0, 180.0, 240.0)):
+        p = tmp_path / "logs" / f"car{i}" / "drive.log"
+        p.parent.mkdir(parents=True)
+        encode_log(SRC, p, N_CELLS, initial_soc=0.9 - 0.1 * i, duration_s=dur, reference_capacity_ah=3.0, seed=i)
+        logs.append((str(p), f"car{i}"))
+    bad = tmp_path / "logs" / "car9" / "empty.log"
+    bad.parent.mkdir()
+    bad.write_bytes(b"")
+    logs.insert(1, (str(bad), "car9"))
+    stacked = run_drives(logs, str(cfg), tmp_path / "stacked")
+    assert [r.status for r in stacked] == ["ok", "skipped", "ok", "ok"]
+    assert "empty log" in stacked[1].error
+    assert all(r.counters["stacked_with"] == 3 for r in stacked if r.status == "ok")
+    for (log, vehicle), got in zip(logs, stacked):
+        want = run_drive(log, str(cfg), tmp_path / "solo", vehicle)[0]
+        assert want.status == got.status
+        assert want.cells == got.cells and want.samples == got.samples
+        if want.status == "ok":
+            assert pq.read_table(want.parquet).equals(pq.read_table(got.parquet))
+
+
+def test_stack_groups_keep_every_worker_busy():
+    logs = [f"/fleet/car{i}/d.log" for i in range(10)]
+    assert [len(g) for g in stack_groups(logs, 4, 1)] == [4, 4, 2]
+    assert [len(g) for g in stack_groups(logs, 4, 4)] == [3, 3, 3, 1]
+    assert [len(g) for g in stack_groups(logs, 1, 1)] == [1] * 10
+    assert [log for g in stack_groups(logs, 4, 2) for log, _ in g] == logs
+    assert stack_groups(logs, 4, 2)[0][0] == ("/fleet/car0/d.log", "car0")
+    assert stack_groups([], 4, 2) == []
