@@ -97,7 +97,10 @@ def estimator_config(method: str, overrides: dict | None = None) -> SocConfig:
 
 def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
               temperature: bool = True) -> tuple[np.ndarray, SocEstimator]:
-    """One estimator, one cell per (recording, start); returns SOC (n_max, n_cells), NaN before a start."""
+    """One estimator, one cell per (recording, start); returns SOC (n_max, n_cells), NaN before a start.
+
+    The estimator's 1-sigma SOC uncertainty at every sample is kept as ``est.sigma_trace`` (same shape;
+    NaN where the method reports none)."""
     n_cells = len(recs)
     n_max = max(len(r) for r in recs)
     cur = np.full((n_max, n_cells), np.nan)
@@ -113,6 +116,7 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
     est = SocEstimator(n_cells, ocv, stated_ah, 1.0, initial_soc=np.where(k_start == 0, soc_start, np.nan),
                        config=config)
     out = np.full((n_max, n_cells), np.nan)
+    sigma = np.full((n_max, n_cells), np.nan)
     for k in range(n_max):
         before = k < k_start
         starting = k == k_start
@@ -122,6 +126,8 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
         v = np.where(before, np.nan, vol[k])
         est.update(i, v, temperature_c=tmp[k] if temperature else None)
         out[k] = np.where(before, np.nan, est.soc)
+        sigma[k] = np.where(before, np.nan, est.soc_sigma)
+    est.sigma_trace = sigma
     return out, est
 
 
@@ -229,6 +235,8 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                         cnt[k0:] = counted_soc(rec.current_a[k0:], rec.dt_s, stated, s0)
                         base = soc_error_figures(cnt, ref.soc, t, k0 * rec.dt_s)
                         row.update({k: v for k, v in figs.items()})
+                        row["within_sigma_pct"], row["within_2sigma_pct"] = _sigma_coverage(
+                            soc[:n, c], est.sigma_trace[:n, c], ref.soc, k0 + int(round(1800.0 / rec.dt_s)))
                         row["counting_rmse_30min_pct"] = base["rmse_30min_pct"]
                         row["counting_rmse_1h_pct"] = base["rmse_1h_pct"]
                         row.update(capacity_ah_reference=ref.capacity_ah, reference_relaxed=ref.relaxed,
@@ -237,6 +245,16 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                         row.update(reference_relaxed=False, reference="no C/20 test at this ambient: no reference")
                     rows.append(row)
     return rows
+
+
+def _sigma_coverage(soc: np.ndarray, sigma: np.ndarray, ref: np.ndarray, k_from: int) -> tuple[float, float]:
+    """Percent of the samples from ``k_from`` on whose |SOC error| is within 1 and 2 reported sigma (NaN: none)."""
+    e = np.abs(soc[k_from:] - ref[k_from:])
+    s = sigma[k_from:]
+    ok = np.isfinite(e) & np.isfinite(s)
+    if not ok.any():
+        return float("nan"), float("nan")
+    return float(100.0 * np.mean(e[ok] <= s[ok])), float(100.0 * np.mean(e[ok] <= 2.0 * s[ok]))
 
 
 def summary_lines(rows: list[dict]) -> list[str]:
@@ -260,6 +278,10 @@ def summary_lines(rows: list[dict]) -> list[str]:
                 line += f"; after 1 h median {np.nanmedian(e1h):.2f} %, worst {np.nanmax(e1h):.2f} %"
             if short:
                 line += f"; {short} more started under 30 min before the end: not scored"
+            cover = np.array([[r.get("within_sigma_pct", np.nan), r.get("within_2sigma_pct", np.nan)] for r in sel])
+            if np.isfinite(cover).any():
+                line += (f"; the error within the reported 1 / 2 sigma {np.nanmean(cover[:, 0]):.0f} / "
+                         f"{np.nanmean(cover[:, 1]):.0f} % of the time (mean over runs)")
             lines.append(line)
     return lines
 

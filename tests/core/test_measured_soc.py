@@ -106,3 +106,16 @@ def test_starts_later_in_a_drive():
     assert np.mean(e30 <= 2.0) >= 0.42, np.sort(e30)
     assert np.median(e30) <= 2.3, np.median(e30)
     assert np.mean(e30 < cnt) >= 0.93, np.mean(e30 < cnt)
+
+
+def test_sigma_coverage_counts_the_samples_within_one_and_two_sigma():
+    from bms_estimator.soc_matrix import _sigma_coverage
+
+    ref = np.full(10, 0.5)
+    soc = ref + np.array([0.0, 0.0, 0.005, -0.005, 0.015, -0.015, 0.03, -0.03, np.nan, 0.0])
+    sigma = np.full(10, 0.01)
+    sigma[9] = np.nan  # no sigma: not counted
+    # from sample 2 on, 6 counted: |err| 0.005 twice within 1 sigma; 0.015 twice within 2; 0.03 beyond
+    one, two = _sigma_coverage(soc, sigma, ref, 2)
+    assert one == pytest.approx(100 * 2 / 6) and two == pytest.approx(100 * 4 / 6)
+    assert np.isnan(_sigma_coverage(soc, np.full(10, np.nan), ref, 0)[0])
