@@ -125,16 +125,38 @@ class LifHistory:
         self.head = -1
         self.count = 0
         self._groups: list[slice] | None = None  # see set_groups
+        self._gbuf: np.ndarray | None = None  # equal groups: the ring buffer group-major, (group, signal, slot, cell)
 
     def set_groups(self, sizes) -> None:
         """Cells in consecutive groups of ``sizes`` (independent packs side by side): the filter
         product is then taken group by group, each with its own group's width. (BLAS picks its
         kernels by the matrix width, and for narrow ones a cell's result moves in the last bit
         with the width: per group, each group's filtered values are those it has alone.)"""
+        if self._gbuf is not None:  # grouped before: back to the shared layout first
+            self._buf = np.ascontiguousarray(self.buffer.transpose(0, 2, 1))
+            self._gbuf = None
         bounds = np.concatenate(([0], np.cumsum(np.asarray(sizes, dtype=np.int64))))
         if bounds[-1] != self.n_cells or np.any(np.diff(bounds) < 1):
             raise ValueError(f"groups of {np.diff(bounds).tolist()} cells do not make the {self.n_cells} cells")
         self._groups = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+        sizes = np.diff(bounds)
+        if sizes.size > 1 and (sizes == sizes[0]).all():
+            # groups of equal size (the batch's stack): each group's history contiguous, so the product
+            # reads it in place instead of copying it out of the shared buffer on every push
+            self._gbuf = self._group_major(self._buf)
+            self._buf = None
+
+    def _group_major(self, buf: np.ndarray) -> np.ndarray:
+        """(signal, slot, cell) -> contiguous (group, signal, slot, cell of the group); equal groups."""
+        g = len(self._groups)
+        return np.ascontiguousarray(buf.reshape(buf.shape[0], buf.shape[1], g, -1).transpose(2, 0, 1, 3))
+
+    def _by_group(self, x, rows: int | None = None) -> np.ndarray:
+        """A per-cell vector (or ``rows`` of them) as (group, [rows,] cell of the group)."""
+        g = len(self._groups)
+        if rows is None:
+            return np.broadcast_to(np.asarray(x, dtype=float), (self.n_cells,)).reshape(g, -1)
+        return np.broadcast_to(np.asarray(x, dtype=float), (rows, self.n_cells)).reshape(rows, g, -1).transpose(1, 0, 2)
 
     @property
     def scale(self) -> np.ndarray:
@@ -148,6 +170,8 @@ class LifHistory:
     def push(self, v_o: np.ndarray, current_a: np.ndarray, aux: np.ndarray | None = None,
              extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         self.head = (self.head + 1) % self.length
+        if self._gbuf is not None:
+            return self._push_group_major(v_o, current_a, aux, extra)
         buf = self._buf
         buf[0, self.head] = v_o
         buf[1, self.head] = current_a
@@ -161,6 +185,23 @@ class LifHistory:
         else:
             k = self._rolled[self.head]
             f = np.concatenate([k @ np.ascontiguousarray(buf[:, :, g]) for g in self._groups], axis=2)
+        return self._regressors(f)
+
+    def _push_group_major(self, v_o, current_a, aux, extra) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`push` on the group-major buffer: the same products, on the same values, without copies."""
+        gbuf = self._gbuf
+        gbuf[:, 0, self.head] = self._by_group(v_o)
+        gbuf[:, 1, self.head] = self._by_group(current_a)
+        if aux is not None:
+            gbuf[:, 2, self.head] = self._by_group(aux)
+        if self.extra_inputs:
+            gbuf[:, 2 + self._aux:, self.head] = self._by_group(extra, self.extra_inputs)
+        self.count += 1
+        k = self._rolled[self.head]
+        return self._regressors(np.concatenate([k @ gbuf[g] for g in range(gbuf.shape[0])], axis=2))
+
+    def _regressors(self, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(filtered v_o, phi_s) from the filter products ``f`` (signals, 3, N)."""
         if self._aux:
             self._fx = f[2].T
         fv, fi = f[0], f[1]
@@ -185,13 +226,29 @@ class LifHistory:
     def shift_v_o(self, dv: np.ndarray) -> None:
         """Subtract dv from the stored v_o (and auxiliary-model) history."""
         d = np.asarray(dv, dtype=float)
+        if self._gbuf is not None:
+            if d.ndim == 0 or d.shape == (self.n_cells,):
+                d = self._by_group(d)[:, None, :]  # (group, slot, cell): the same element-wise subtraction
+                self._gbuf[:, 0] -= d
+                if self._aux:
+                    self._gbuf[:, 2] -= d
+                return
+            buf = self.buffer.transpose(0, 2, 1).copy()
+            buf[0] -= d
+            if self._aux:
+                buf[2] -= d
+            self._gbuf = self._group_major(buf)
+            return
         self._buf[0] -= d
         if self._aux:
             self._buf[2] -= d
 
     @property
     def buffer(self) -> np.ndarray:
-        """The ring buffer as (signal, cell, slot) (a view)."""
+        """The ring buffer as (signal, cell, slot) (a view; a copy with equal groups)."""
+        if self._gbuf is not None:
+            g = self._gbuf
+            return g.transpose(1, 0, 3, 2).reshape(g.shape[1], self.n_cells, self.length)
         return self._buf.transpose(0, 2, 1)
 
     def state_dict(self) -> dict[str, np.ndarray]:
@@ -202,5 +259,8 @@ class LifHistory:
         if buf.shape != self.buffer.shape:
             raise ValueError(f"LIF history shape {buf.shape} does not match {self.buffer.shape}")
         self._buf = np.ascontiguousarray(buf.transpose(0, 2, 1))
+        if self._gbuf is not None:
+            self._gbuf = self._group_major(self._buf)
+            self._buf = None
         self.head = int(state["head"])
         self.count = int(state["count"])

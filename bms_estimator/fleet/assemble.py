@@ -42,28 +42,25 @@ from .samples import SampleArrays
 __all__ = ["assemble_samples"]
 
 
-def _latest(t_ev: np.ndarray, cell_ev: np.ndarray, v_ev: np.ndarray, ends: np.ndarray,
-            n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(K, n) latest value and its time with ``t < end`` per cell (NaN / -inf if none)."""
-    k = ends.shape[0]
+def _latest(t_sorted: np.ndarray, v_sorted: np.ndarray, bounds: np.ndarray, ends: np.ndarray,
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(K, n) latest value and its time with ``t < end`` per cell (NaN / -inf if none).
+
+    ``t_sorted``/``v_sorted`` hold the events grouped by cell, each group in apply order;
+    cell ``c``'s group is ``[bounds[c], bounds[c+1])`` (``n = len(bounds) - 1``).
+    """
+    k, n = ends.shape[0], bounds.shape[0] - 1
     val = np.full((k, n), np.nan)
     vt = np.full((k, n), -np.inf)
-    if t_ev.size == 0:
-        return val, vt
-    # time order (= apply order) kept within a cell; cell numbers as int16 sort by radix (the same order)
-    order = np.argsort(cell_ev.astype(np.int16) if n <= np.iinfo(np.int16).max else cell_ev, kind="stable")
-    cells_sorted = cell_ev[order]
-    bounds = np.searchsorted(cells_sorted, np.arange(n + 1))
     for c in range(n):
-        lo, hi = bounds[c], bounds[c + 1]
+        lo, hi = int(bounds[c]), int(bounds[c + 1])
         if lo == hi:
             continue
-        sel = order[lo:hi]
-        tc = t_ev[sel]
+        tc = t_sorted[lo:hi]
         pos = np.searchsorted(tc, ends, side="left") - 1
         has = pos >= 0
         p = np.where(has, pos, 0)
-        val[:, c] = np.where(has, v_ev[sel][p], np.nan)
+        val[:, c] = np.where(has, v_sorted[lo:hi][p], np.nan)
         vt[:, c] = np.where(has, tc[p], -np.inf)
     return val, vt
 
@@ -155,8 +152,11 @@ def assemble_samples(t_frames: np.ndarray, events: EventArrays, sampler: SampleA
         starts = ks.astype(float) * p
         ends = (ks + 1).astype(float) * p
         mine = ev_reset == r
-        blocks.append(_block(ev_t[mine], events.kind[mine], events.cell[mine], events.value[mine],
-                             starts, ends, n, sampler))
+        if mine.all():  # one reset segment and every event's frame accepted: no copies
+            blocks.append(_block(ev_t, events.kind, events.cell, events.value, starts, ends, n, sampler))
+        else:
+            blocks.append(_block(ev_t[mine], events.kind[mine], events.cell[mine], events.value[mine],
+                                 starts, ends, n, sampler))
 
     k_total = sum(b["t_s"].size for b in blocks)
     if blocks:
@@ -181,14 +181,23 @@ def _block(t: np.ndarray, kind: np.ndarray, cell: np.ndarray, value: np.ndarray,
            ends: np.ndarray, n: int, sampler: SampleAssembler) -> dict[str, np.ndarray]:
     """Samples of one reset segment (its events in apply order, its period starts and ends)."""
     p = sampler.period_s
-    is_v = kind == int(EventKind.CELL_VOLTAGE)
-    volts, v_t = _latest(t[is_v], cell[is_v], value[is_v], ends, n)
-    is_t = kind == int(EventKind.CELL_TEMPERATURE)
-    temps, temp_t = _latest(t[is_t], cell[is_t], value[is_t], ends, n)
-    is_p = kind == int(EventKind.PACK_VOLTAGE)
-    pv, pv_t = _latest(t[is_p], np.zeros(int(np.count_nonzero(is_p)), np.int64), value[is_p], ends, 1)
-    is_i = kind == int(EventKind.CURRENT)
-    ct, cv = t[is_i], value[is_i]
+    # one stable sort by (kind, cell) groups every signal's events, each group in apply order (a radix
+    # sort on int16 keys): the slices below replace a mask per kind and a sort per kind
+    key = kind.astype(np.int64) * (n + 1) + (cell.astype(np.int64) + 1)
+    if key.size and int(key.max()) <= np.iinfo(np.int16).max:
+        key = key.astype(np.int16)
+    order = np.argsort(key, kind="stable")
+    ts, vs = t[order], value[order]
+    bounds = np.searchsorted(key[order], np.arange(4 * (n + 1) + 1, dtype=key.dtype), side="left")
+
+    def rows(kind_: EventKind) -> np.ndarray:  # the group bounds of kind_'s cells 0..n-1 (or its cell -1)
+        return bounds[int(kind_) * (n + 1):(int(kind_) + 1) * (n + 1) + 1]
+
+    volts, v_t = _latest(ts, vs, rows(EventKind.CELL_VOLTAGE)[1:], ends)
+    temps, temp_t = _latest(ts, vs, rows(EventKind.CELL_TEMPERATURE)[1:], ends)
+    pv, pv_t = _latest(ts, vs, rows(EventKind.PACK_VOLTAGE)[:2], ends)
+    i_lo, i_hi = rows(EventKind.CURRENT)[:2]
+    ct, cv = ts[i_lo:i_hi], vs[i_lo:i_hi]
 
     # current: zero-order-hold pieces per period, summed in the sampler's order
     k = ends.size
