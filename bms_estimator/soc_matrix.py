@@ -30,6 +30,7 @@ import re
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -95,12 +96,17 @@ def estimator_config(method: str, overrides: dict | None = None) -> SocConfig:
     return cfg
 
 
-def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
-              temperature: bool = True) -> tuple[np.ndarray, SocEstimator]:
-    """One estimator, one cell per (recording, start); returns SOC (n_max, n_cells), NaN before a start.
+class GroupRun(NamedTuple):
+    """What :func:`run_group` returns: per sample and cell (n_max, n_cells), NaN before a start."""
 
-    The estimator's 1-sigma SOC uncertainty at every sample is kept as ``est.sigma_trace`` (same shape;
-    NaN where the method reports none)."""
+    soc: np.ndarray
+    soc_sigma: np.ndarray  # the estimator's 1-sigma SOC uncertainty (NaN where the method reports none)
+    capacity_ah: np.ndarray  # (n_cells,) the capacity the count uses at the end
+
+
+def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
+              temperature: bool = True) -> GroupRun:
+    """One estimator, one cell per (recording, start), run over the samples of all of them."""
     n_cells = len(recs)
     n_max = max(len(r) for r in recs)
     cur = np.full((n_max, n_cells), np.nan)
@@ -127,8 +133,7 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
         est.update(i, v, temperature_c=tmp[k] if temperature else None)
         out[k] = np.where(before, np.nan, est.soc)
         sigma[k] = np.where(before, np.nan, est.soc_sigma)
-    est.sigma_trace = sigma
-    return out, est
+    return GroupRun(out, sigma, est.counting_capacity_ah.copy())
 
 
 _AT = re.compile(r"at(\d+(?:\.\d+)?)([+-]\d+(?:\.\d+)?)")
@@ -142,8 +147,9 @@ def check_start(name: str) -> str:
     raise ValueError(f"unknown start {name!r}: use {', '.join(STARTS)} or atP+E / atP-E (P % of the file, E % off)")
 
 
-def start_point(name: str, n: int, base_at) -> tuple[int, float]:
-    """(sample, SOC told to the estimator) of a start; ``base_at(k)`` is the reference SOC at sample k."""
+def start_point(name: str, base_soc: np.ndarray) -> tuple[int, float]:
+    """(sample, SOC told to the estimator) of a start in a file whose reference SOC is ``base_soc``."""
+    n = len(base_soc)
     if name == "full":
         return 0, 1.0
     if name == "full-20":
@@ -153,7 +159,7 @@ def start_point(name: str, n: int, base_at) -> tuple[int, float]:
     else:
         m = _AT.fullmatch(check_start(name))
         k, err = int(n * float(m.group(1)) / 100.0), float(m.group(2)) / 100.0
-    return k, float(np.clip(base_at(k) + err, 0.0, 1.0))
+    return k, float(np.clip(base_soc[k] + err, 0.0, 1.0))
 
 
 def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,
@@ -208,12 +214,12 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                     # no reference: a mid-file start is told the stated-capacity count
                     base = ref.soc if ref is not None else counted_soc(rec.current_a, rec.dt_s, stated)
                     for start in start_names:
-                        st = start_point(start, len(rec), base.__getitem__)
+                        st = start_point(start, base)
                         recs.append(rec)
                         starts.append(st)
                         meta.append((j, start))
                 t0 = time.time()
-                soc, est = run_group(recs, starts, ocv, stated, estimator_config(method, overrides))
+                run = run_group(recs, starts, ocv, stated, estimator_config(method, overrides))
                 elapsed = time.time() - t0
                 for c, (j, start) in enumerate(meta):
                     amb, name, rec = files[j]
@@ -224,19 +230,19 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                         "cell": cell, "ambient": amb, "file": name, "method": method, "ocv": variant,
                         "start": start, "start_s": float(k0 * rec.dt_s), "start_soc": s0,
                         "tables": [f"{t.ambient}:{t.kind}" for t in tabs],
-                        "capacity_ah_estimated": float(est.counting_capacity_ah[c]),
+                        "capacity_ah_estimated": float(run.capacity_ah[c]),
                         "elapsed_s_group": elapsed,
                     }
                     if ref is not None:
                         t = rec.time_s - rec.time_s[0]
-                        figs = soc_error_figures(soc[:n, c], ref.soc, t, k0 * rec.dt_s)
+                        figs = soc_error_figures(run.soc[:n, c], ref.soc, t, k0 * rec.dt_s)
                         # plain counting with the stated capacity from the same start
                         cnt = np.full(n, np.nan)
                         cnt[k0:] = counted_soc(rec.current_a[k0:], rec.dt_s, stated, s0)
                         base = soc_error_figures(cnt, ref.soc, t, k0 * rec.dt_s)
                         row.update({k: v for k, v in figs.items()})
                         row["within_sigma_pct"], row["within_2sigma_pct"] = _sigma_coverage(
-                            soc[:n, c], est.sigma_trace[:n, c], ref.soc, k0 + int(round(1800.0 / rec.dt_s)))
+                            run.soc[:n, c], run.soc_sigma[:n, c], ref.soc, k0 + int(round(1800.0 / rec.dt_s)))
                         row["counting_rmse_30min_pct"] = base["rmse_30min_pct"]
                         row["counting_rmse_1h_pct"] = base["rmse_1h_pct"]
                         row.update(capacity_ah_reference=ref.capacity_ah, reference_relaxed=ref.relaxed,

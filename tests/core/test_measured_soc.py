@@ -74,14 +74,13 @@ def test_soc_from_any_start_at_0_degc(rows):
 
 def test_start_names_place_the_start_and_an_unknown_one_is_named():
     ref = np.linspace(1.0, 0.0, 1001)
-    at = ref.__getitem__
-    assert start_point("full", 1001, at) == (0, 1.0)
-    assert start_point("full-20", 1001, at) == (0, 0.8)
-    k, soc = start_point("mid-10", 1001, at)
+    assert start_point("full", ref) == (0, 1.0)
+    assert start_point("full-20", ref) == (0, 0.8)
+    k, soc = start_point("mid-10", ref)
     assert k == 250 and soc == pytest.approx(ref[250] - 0.1)
-    k, soc = start_point("at75-5", 1001, at)
+    k, soc = start_point("at75-5", ref)
     assert k == 750 and soc == pytest.approx(ref[750] - 0.05)
-    assert start_point("at10+20", 1001, at) == (100, 1.0)  # clipped to full
+    assert start_point("at10+20", ref) == (100, 1.0)  # clipped to full
     for bad in ("late", "at100+5", "at50", "at50*5"):
         with pytest.raises(ValueError, match=re.escape(repr(bad))):
             check_start(bad)
