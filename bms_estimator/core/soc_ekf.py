@@ -16,16 +16,18 @@ charge, which no RC branch explains over the whole discharge.
 
 State and model per cell, current ``i`` positive = charge, period ``Ts``::
 
-    x = [z, v_d, r_d, dq]                  (SOC, diffusion voltage and resistance, relative
-                                            capacity error: the capacity is Q (1 + dq))
+    x = [z, v_d, r_d, dq, g]               (SOC, diffusion voltage and resistance, relative
+                                            capacity error: the capacity is Q (1 + dq), relative
+                                            error of the predicted overpotential)
 
     z[k+1]   = z[k] + i[k] Ts / (3600 Q (1 + dq))
     v_d[k+1] = ad v_d[k] + r_d[k] (1 - ad) i[k],   ad = exp(-Ts / tau_d)
-    r_d[k+1] = r_d[k],   dq[k+1] = dq[k]           (random walks)
+    r_d[k+1] = r_d[k],   dq[k+1] = dq[k],   g[k+1] = g[k]     (random walks)
 
     vj[k+1]  = aj vj[k] + Rj (1 - aj) i[k],        aj = exp(-Ts / tau_j)     (R1, tau1, R2, tau2 identified)
 
-    v[k]     = OCV(z[k], T) + h[k] H(z[k], T) + R0 i[k] + v1[k] + v2[k] + v_d[k] + e[k]
+    v[k]     = OCV(z[k], T) + h[k] H(z[k], T) + (1 + g[k]) eta[k] + v_d[k] + e[k],
+    eta[k]   = R0 i[k] + v1[k] + v2[k]          (the identified model's overpotential)
 
 ``h`` is the one-state hysteresis (known from the current, not a state here) and
 ``H`` the table's half gap.  The two identified RC voltages follow the identified
@@ -34,7 +36,20 @@ left free they would soak up errors that belong to the SOC (a 6-state filter
 with them was measured no better and costs twice as much).  Linearised::
 
     F = I except F[1,1] = ad, F[1,2] = (1 - ad) i, F[0,3] = -i Ts / (3600 Q)
-    C = [dOCV/dz, 1, 0, 0]
+    C = [dOCV/dz, 1, 0, 0, eta]
+
+Why ``g``.  The identified (or, before the identifier has a model, the prior)
+overpotential is wrong by a fraction that persists for minutes to hours: a prior
+resistance 1.5-2x low on a cold cell, a slow branch the identifier traded against
+its c0.  Treated only as noise, that error is read again at every sample, and a
+persistent 100 mV shortfall under load walks the SOC 5-15 % off within minutes
+(LG 0 degC mixed1 from a quarter in, 10 % high: 4.6 % low after 300 s).  As a state
+the filter explains a shortfall that scales with the load by ``g`` and moves the SOC
+only by what the load does not explain: the voltage at low current, and the OCV
+curve's shape.  ``g`` starts with sigma ``overpotential_gain_sigma_prior`` and
+restarts at 0 with sigma ``overpotential_gain_sigma`` when the identifier first has a
+model of the cell (the prediction it corrected is then gone); ``1 + g`` is kept at
+0.2 or more (the overpotential keeps its sign).
 
 After each update the capacity takes in ``dq`` (``Q <- Q (1 + dq)``, ``dq <- 0``).
 While the SOC is still uncertain (sigma above ``capacity_learn_max_soc_sigma``),
@@ -56,7 +71,7 @@ Noise, stated in the cell's terms rather than tuned per file:
   Ts / tau_d (the diffusion voltage follows its resistance and the current; free to
   wander, it would soak up an SOC error); ``Qn[r_d]`` = (``diffusion_r_drift_ohm_ah`` / Q)^2 Ts / 3600;
   ``Qn[dq]`` = ``capacity_drift_per_h``^2 Ts / 3600 (ageing and temperature).
-* ``dq`` starts at 0 with sigma ``capacity_sigma``.
+* ``dq`` starts at 0 with sigma ``capacity_sigma``; ``Qn[g]`` = ``overpotential_gain_drift_per_h``^2 Ts / 3600.
 * ``r_d`` starts at 0 with sigma ``diffusion_r_sigma_ohm_ah / Q`` (resistances
   per C-rate, so the same numbers fit any cell size); ``v_d`` starts at 0 with
   sigma ``diffusion_v_sigma_v`` (the cell may not be at rest).
@@ -77,7 +92,7 @@ Noise, stated in the cell's terms rather than tuned per file:
   the branch is uncertain by up to ``H``, so the filter trusts the voltage less there.
 
 The 1-sigma SOC uncertainty is ``sqrt(P[0, 0])`` (:attr:`soc_sigma`).
-Everything is vectorised over cells: ``P`` is ``(N, 4, 4)``, the update is a
+Everything is vectorised over cells: ``P`` is ``(N, 5, 5)``, the update is a
 rank-1 correction (one scalar measurement per cell), with no matrix inverse.
 """
 
@@ -91,7 +106,7 @@ from annotated_types import Ge, Gt
 
 __all__ = ["SocEkfConfig", "SocEkf"]
 
-_N = 4  # z, v_d, r_d, dq
+_N = 5  # z, v_d, r_d, dq, g
 
 
 @dataclass(frozen=True)
@@ -125,11 +140,18 @@ class SocEkfConfig:
     diffusion_r_sigma_ohm_ah: Annotated[float, Gt(0)] = 0.05  # prior sigma of its resistance, ohm * Ah (per C-rate)
     diffusion_r_drift_ohm_ah: Annotated[float, Ge(0)] = 0.01  # its random walk per sqrt(hour), ohm * Ah
     diffusion_v_sigma_v: Annotated[float, Gt(0)] = 0.005  # sigma of its voltage at a start (a larger one soaks up a start error)
+    # the relative error g of the predicted overpotential as a state (module docstring): its
+    # sigma on the prior and once identified (the same fractions as rho above: one states how far
+    # the prediction is off for good, the other how much it scatters), and its random walk
+    overpotential_gain_sigma_prior: Annotated[float, Ge(0)] = 1.0
+    overpotential_gain_sigma: Annotated[float, Ge(0)] = 0.4
+    overpotential_gain_drift_per_h: Annotated[float, Ge(0)] = 0.2
     max_soc_step: Annotated[float, Gt(0)] = 0.01  # at most this SOC correction per sample (a bad sample cannot jump it)
 
     def __post_init__(self) -> None:
         for name in ("drift_sigma_per_h", "overpotential_sigma_prior", "overpotential_sigma", "diffusion_r_drift_ohm_ah", "capacity_drift_per_h",
-                     "ocv_table_sigma_soc"):
+                     "ocv_table_sigma_soc", "overpotential_gain_sigma_prior", "overpotential_gain_sigma",
+                     "overpotential_gain_drift_per_h"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -157,17 +179,18 @@ class SocEkf:
         self.q_ref_ah = np.broadcast_to(np.asarray(capacity_ah, dtype=float), (self.n_cells,)).copy()
         self.x = np.zeros((self.n_cells, _N))  # x[:, 0] unused: the caller owns the SOC
         self.v_rc = np.zeros((self.n_cells, 2))  # the identified RC pairs' voltages
-        # the covariance is stored element-major, (4, 4, N): every element is a contiguous vector
+        # the covariance is stored element-major, (5, 5, N): every element is a contiguous vector
         # over the cells, so the row and column operations below run at memory speed
         self._pt = np.zeros((_N, _N, self.n_cells))
         self._pt[0, 0] = config.initial_soc_sigma**2
         self._pt[1, 1] = config.diffusion_v_sigma_v**2
         self._pt[2, 2] = (config.diffusion_r_sigma_ohm_ah / self.q_ref_ah) ** 2
         self._pt[3, 3] = config.capacity_sigma**2
+        self._pt[4, 4] = config.overpotential_gain_sigma_prior**2
 
     @property
     def p(self) -> np.ndarray:
-        """The covariance, ``(N, 4, 4)`` (a view of the element-major store)."""
+        """The covariance, ``(N, 5, 5)`` (a view of the element-major store)."""
         return np.moveaxis(self._pt, 2, 0)
 
     @p.setter
@@ -186,6 +209,19 @@ class SocEkf:
     @property
     def r_diffusion_ohm(self) -> np.ndarray:
         return self.x[:, 2]
+
+    @property
+    def overpotential_gain(self) -> np.ndarray:
+        """``g``: the predicted overpotential is ``(1 + g)`` times the identified model's."""
+        return self.x[:, 4]
+
+    def restart_gain(self, cells: np.ndarray) -> None:
+        """``g`` back to 0 with sigma ``overpotential_gain_sigma`` (the identifier has a new model), cross terms dropped."""
+        sel = np.asarray(cells, dtype=bool)
+        self._pt[4, :, sel] = 0.0
+        self._pt[:, 4, sel] = 0.0
+        self._pt[4, 4, sel] = self.config.overpotential_gain_sigma**2
+        self.x[sel, 4] = 0.0
 
     def set_soc_sigma(self, sigma: float | np.ndarray, cells: np.ndarray | None = None) -> None:
         """Restart the SOC variance (a new start SOC) of some cells; its cross terms dropped."""
@@ -208,10 +244,10 @@ class SocEkf:
         x = self.x.copy()
         x[:, 1] = a_d * self.x[:, 1] + self.x[:, 2] * (1.0 - a_d) * current_a
         # P- = F P F' with F the identity but for F[1,1] = ad, F[1,2] and F[0,3]: rows, then
-        # columns, in place of two dense (N, 4, 4) products
+        # columns, in place of two dense (N, 5, 5) products
         f12 = (1.0 - a_d) * current_a
         f03 = -dz
-        every = bool(live.all())  # the usual case: in place, no (4, 4, N) select
+        every = bool(live.all())  # the usual case: in place, no (5, 5, N) select
         p = self._pt if every else self._pt.copy()
         for rows in (True, False):
             q = p if rows else p.swapaxes(0, 1)
@@ -223,6 +259,7 @@ class SocEkf:
         p[1, 1] += cfg.rc_sigma_v**2 * (self.dt_s / cfg.diffusion_tau_s)  # driven by r_d, not free
         p[2, 2] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * h_frac
         p[3, 3] += cfg.capacity_drift_per_h**2 * h_frac
+        p[4, 4] += cfg.overpotential_gain_drift_per_h**2 * h_frac
         if every:
             self.x, self.v_rc = x, v_rc
         else:
@@ -231,20 +268,23 @@ class SocEkf:
             self.v_rc = np.where(live[:, None], v_rc, self.v_rc)
 
     def correct(self, innovation_v: np.ndarray, slope_v: np.ndarray, hyst_uncertain_v: np.ndarray,
-                use: np.ndarray, model_uncertain_v: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                use: np.ndarray, model_uncertain_v: np.ndarray | float = 0.0,
+                overpotential_v: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Measurement update; returns the SOC correction and the relative capacity correction per cell.
 
-        ``innovation_v`` = measured - predicted voltage (with :attr:`v_rc` and :attr:`v_diffusion`),
-        ``slope_v`` = dOCV/dz, ``hyst_uncertain_v`` = (1 - |h|) H, ``model_uncertain_v`` = rho |R0 i + v1 + v2|.
+        ``innovation_v`` = measured - predicted voltage (with ``(1 + g)`` times the identified
+        overpotential, :attr:`v_rc` and :attr:`v_diffusion`), ``slope_v`` = dOCV/dz,
+        ``hyst_uncertain_v`` = (1 - |h|) H, ``model_uncertain_v`` = rho |eta|,
+        ``overpotential_v`` = eta = R0 i + v1 + v2 (``g``'s column of C).
         """
         cfg = self.config
         p = self._pt
-        # P C' with C = [slope, 1, 0, 0]: columns, not a product; (4, N)
-        pc = p[:, 0] * slope_v + p[:, 1]
+        # P C' with C = [slope, 1, 0, 0, eta]: columns, not a product; (5, N)
+        pc = p[:, 0] * slope_v + p[:, 1] + p[:, 4] * overpotential_v
         table_v = cfg.ocv_table_sigma_soc * slope_v
         r_v = ((cfg.voltage_sigma_v**2 + np.square(model_uncertain_v) + table_v * table_v)
                * max(cfg.correlation_s / self.dt_s, 1.0) + hyst_uncertain_v**2)
-        s = pc[0] * slope_v + pc[1] + r_v
+        s = pc[0] * slope_v + pc[1] + pc[4] * overpotential_v + r_v
         k = pc / s
         held = (self.soc_sigma > cfg.capacity_learn_max_soc_sigma) | (slope_v > cfg.capacity_learn_max_slope_v)
         k[3] = np.where(held, 0.0, k[3])
@@ -260,6 +300,7 @@ class SocEkf:
         self._pt = p_new if use.all() else np.where(use, p_new, p)
         x = self.x + dx
         x[:, 2] = np.maximum(x[:, 2], 0.0)  # a resistance is never negative
+        x[:, 4] = np.maximum(x[:, 4], -0.8)  # nor does the overpotential change its sign
         dq = np.where(use, np.clip(x[:, 3], -0.01, 0.01), 0.0)  # the caller's capacity takes it in
         x[:, 3] = 0.0
         self.x = np.where(use[:, None], x, self.x)
@@ -269,10 +310,16 @@ class SocEkf:
         return {"x": self.x.copy(), "p": self.p.copy(), "v_rc": self.v_rc.copy()}
 
     def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
-        if np.shape(s.get("p")) != self.p.shape or np.shape(s.get("x")) != self.x.shape:
+        """A saved state; one saved before ``g`` existed (4 states) takes ``g = 0`` with sigma ``overpotential_gain_sigma``."""
+        x = np.asarray(s.get("x"), dtype=float)
+        p = np.asarray(s.get("p"), dtype=float)
+        n = self.n_cells
+        if x.shape == (n, _N - 1) and p.shape == (n, _N - 1, _N - 1):
+            x = np.concatenate([x, np.zeros((n, 1))], axis=1)
+            p = np.pad(p, ((0, 0), (0, 1), (0, 1)))
+            p[:, 4, 4] = self.config.overpotential_gain_sigma**2
+        if p.shape != self.p.shape or x.shape != self.x.shape:
             raise ValueError(f"EKF state has shape {np.shape(s.get('p'))}, expected {self.p.shape}")
-        x = np.asarray(s["x"], dtype=float)
-        p = np.asarray(s["p"], dtype=float)
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(p))):
             raise ValueError("EKF state holds non-finite values")
         self.x = x.copy()
