@@ -33,6 +33,7 @@ from .cells import cell_vector
 from .lif import LifHistory
 from .params import (
     PhysicalParams,
+    ct_c0_from_theta,
     ct_physical_from_theta,
     ct_theta_from_physical,
     dt_physical_from_theta,
@@ -211,7 +212,7 @@ class Identifier:
         new = self.rls.initialised & ~was_init
         params = self._physical(theta)
         admissible = params.admissible & (np.abs(params.c0_v) <= self.config.c0_max_v)
-        params = PhysicalParams(*params._arrays(), admissible=admissible)
+        params = PhysicalParams(*params._arrays(), admissible=admissible, dynamics_ok=params.dynamics_ok)
         good = admissible & self.rls.initialised
         # a fresh block-LS start that is not physical: the block grows by a sample and is
         # solved again; once it is init_max_samples long the cell starts from the prior
@@ -294,8 +295,13 @@ class Identifier:
         self._shift_history(d)
         self._shift_theta(self.rls.theta, d)
         self._shift_theta(self.theta_good, d)
-        params = self._physical(self.theta_good)
+        params = self._physical_after_shift(self.theta_good)
         self.params = params if moved is None or moved.all() else params.select(moved, self.params)
+
+    def _physical_after_shift(self, theta_s: np.ndarray) -> PhysicalParams:
+        """``_physical(theta_s)`` for ``theta_s`` = :attr:`theta_good` just moved by :meth:`_shift_theta`
+        (a model whose shift moves c0 alone takes the rest from :attr:`params`)."""
+        return self._physical(theta_s)
 
     @property
     def c0_v(self) -> np.ndarray:
@@ -382,6 +388,15 @@ class LifEstimator(Identifier):
     def _extra_inputs(self, i_c: np.ndarray) -> np.ndarray | None:
         """Further model inputs (m, N) from the current in C-rate (none in the 2-RC model)."""
         return None
+
+    def _physical_after_shift(self, theta_s):
+        # the shift moved th6 alone; R0, the RC pairs and their checks are functions of th1..th5 of
+        # theta_good, which self.params holds for every cell (it is set wherever theta_good is), so
+        # only c0 = -th6 / th2 is new: the values _physical gives, without redoing the rest
+        if type(self)._physical is not LifEstimator._physical or self.params.dynamics_ok is None:
+            return self._physical(theta_s)
+        return self.params.with_c0(ct_c0_from_theta(theta_s[:, 5] / self._scale[:, 5],
+                                                    theta_s[:, 1] / self._scale[:, 1]))
 
     def _c0_gain(self, theta_s):
         # c0 = -th6_s / th2_s (s2 = s6 = T^2)
