@@ -29,7 +29,7 @@ from typing import Annotated, Literal
 import numpy as np
 from annotated_types import Ge, Gt, Interval
 
-from .cells import cell_vector
+from .cells import all_cells, any_cell, cell_vector
 from .lif import LifHistory
 from .params import (
     PhysicalParams,
@@ -217,15 +217,15 @@ class Identifier:
         # a fresh block-LS start that is not physical: the block grows by a sample and is
         # solved again; once it is init_max_samples long the cell starts from the prior
         bad_start = new & ~good
-        if bad_start.any():
+        if any_cell(bad_start):
             longest = max(self.config.init_max_samples, self.config.init_samples)
             grow = bad_start & (self.rls.block_samples < longest)
-            if grow.any():
+            if any_cell(grow):
                 self.rls.extend_block(grow)
             give_up = bad_start & ~grow
             theta[give_up] = self._prior_theta_s[give_up]
         rejected = self.rls.initialised & ~params.admissible & ~new
-        if rejected.any():
+        if any_cell(rejected):
             self.rejections += rejected
             self.rls.reset_theta(rejected, self.theta_good)
             self._rejected_run = np.where(rejected, self._rejected_run + 1,
@@ -235,19 +235,19 @@ class Identifier:
         n_stuck = self.config.restart_after_rejections
         if n_stuck > 0:
             stuck = self._rejected_run >= n_stuck
-            if stuck.any():
+            if any_cell(stuck):
                 self.rls.restart(stuck)
                 self._rejected_run[stuck] = 0
                 self.restarts += stuck
         self.accepted = good & learn
-        if good.all():  # every cell admissible (the usual sample): the selects below would copy
+        if all_cells(good):  # every cell admissible (the usual sample): the selects below would copy
             self.theta_good = theta.copy()  # (theta is the RLS's own, updated in place)
             self.identified[:] = True
             self.params = params
         else:
             self.theta_good = np.where(good[:, None], theta, self.theta_good)
             self.identified |= good
-            self.params = params.select(good, self.params) if good.any() else self.params
+            self.params = params.select(good, self.params) if any_cell(good) else self.params
         self.updates += 1
 
     def _learn(self, phi: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
@@ -262,7 +262,7 @@ class Identifier:
         """One pseudo-measurement ``c0 = 0`` (linearised at theta) for the selected cells."""
         g = self._c0_gain(self.rls.theta)
         ok = cells & (g > 0)
-        if not ok.any():
+        if not any_cell(ok):
             return
         h = np.zeros((self.n_cells, self.n_params))
         h[:, 5] = np.sqrt(self.config.c0_prior_weight) / np.where(ok, g, 1.0)  # h' theta = sqrt(w) c0
@@ -285,7 +285,7 @@ class Identifier:
         v_o = v - OCV(new soc) = old v_o - dv, so the stored history and c0 must
         drop by dv too, or the correction would be applied twice.
         """
-        d = np.broadcast_to(np.asarray(dv, dtype=float), (self.n_cells,))
+        d = cell_vector(dv, self.n_cells)  # read only
         # the callers shift when any cell has a shift (``cells`` given: any of those): with groups of
         # independent packs (rls.set_groups) a group without one keeps its parameters, as alone
         moved = self.rls.group_any(d.astype(bool) if cells is None else cells)
@@ -296,7 +296,7 @@ class Identifier:
         self._shift_theta(self.rls.theta, d)
         self._shift_theta(self.theta_good, d)
         params = self._physical_after_shift(self.theta_good)
-        self.params = params if moved is None or moved.all() else params.select(moved, self.params)
+        self.params = params if moved is None or all_cells(moved) else params.select(moved, self.params)
 
     def _physical_after_shift(self, theta_s: np.ndarray) -> PhysicalParams:
         """``_physical(theta_s)`` for ``theta_s`` = :attr:`theta_good` just moved by :meth:`_shift_theta`
