@@ -205,7 +205,8 @@ class Identifier:
         y, phi, ready = self._regress(i, v, ok)
         learn = ready & np.isfinite(y) & np.logical_and.reduce(np.isfinite(phi), axis=1)
         was_init = self.rls.initialised.copy()
-        self.error = self._learn(phi, np.where(learn, y, 0.0), learn)
+        # (every cell learning, the usual sample: y itself, the values the select gives; read only)
+        self.error = self._learn(phi, y if all_cells(learn) else np.where(learn, y, 0.0), learn)
         if self.config.c0_prior_weight > 0:
             self._c0_prior(learn & was_init)
         theta = self.rls.theta

@@ -298,8 +298,9 @@ class SocEstimator:
         i_ok = np.isfinite(i)
         i_use = np.where(i_ok, i, 0.0)
         unset = ~np.isfinite(self.soc)
-        read_now = unset & ok  # SOC read from this sample's voltage: not to be used a second time
+        read_now = None  # SOC read from this sample's voltage (none in the usual sample): not to be used a second time
         if any_cell(unset):
+            read_now = unset & ok
             start = read_now
             if any_cell(start):
                 self.soc = np.where(start, np.clip(self._soc_at(np.where(start, v, 3.7)), 0.0, 1.0), self.soc)
@@ -312,7 +313,7 @@ class SocEstimator:
         q_now = self.capacity_ah * self._rel_q
         dq = self._i_prev * (self.dt_s / 3600.0)
         dz = dq / q_now
-        have_soc = np.isfinite(self.soc)
+        have_soc = np.isfinite(self.soc) if read_now is not None else ~unset  # (the SOC moved only if unset)
         every_soc = all_cells(have_soc)  # the usual sample: no select needed below
         # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
         counted = clip(self.soc + dz, 0.0, 1.0)
@@ -332,14 +333,16 @@ class SocEstimator:
         ocv_v = self._ocv(soc_mid)
         self.v_o = v - ocv_v
         use = ok & i_ok & have_soc
-        # 3. identification
-        self.identifier.update(i_use, np.where(use, self.v_o, np.nan), use)
+        every_use = all_cells(use)
+        # 3. identification (v_o itself when every cell is used: what the select gives; read only)
+        self.identifier.update(i_use, self.v_o if every_use else np.where(use, self.v_o, np.nan), use)
         # 4.-6. the OCV evidence corrects the count
         if self.ekf is not None:
             # (gating the correction on an identified model, or on rest, was measured worse on the
             # 25 degC matrix, 40 against 47 of 56 runs within 2 %: the strong early evidence of a
             # wrong start is read through the prior impedance)
-            self._ekf_step(i_prev, i_use, dz, soc_mid, use & have_soc & ~read_now)
+            # (no cell unset: have_soc is all True and read_now all False, so the mask is use's)
+            self._ekf_step(i_prev, i_use, dz, soc_mid, use if read_now is None else use & have_soc & ~read_now)
         self._compensate(use)
         self.samples += 1
 

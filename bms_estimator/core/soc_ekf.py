@@ -255,7 +255,8 @@ class SocEkf:
         k = pc / s
         held = (self.soc_sigma > cfg.capacity_learn_max_soc_sigma) | (slope_v > cfg.capacity_learn_max_slope_v)
         k[3] = np.where(held, 0.0, k[3])
-        e = np.where(use, innovation_v, 0.0)
+        every = all_cells(use)  # the usual sample: the selects by use would copy their first argument
+        e = innovation_v if every else np.where(use, innovation_v, 0.0)
         dx = (k * e).T
         dz = clip(dx[:, 0], -cfg.max_soc_step, cfg.max_soc_step)  # np.clip's ufunc, without its wrappers
         # Joseph form, (I - K C) P (I - K C)' + K R K', for K = pc / S - d e3 (d = pc3 / S where the
@@ -264,13 +265,16 @@ class SocEkf:
         pp[:, 3] = pc * (pc[3] / s)  # the held capacity row of k is not pc / S
         p_new = np.subtract(p, pp, out=pp)
         p_new[3, 3] += np.where(held, pc[3] ** 2 / s, 0.0)
-        self._pt = p_new if all_cells(use) else np.where(use, p_new, p)
+        self._pt = p_new if every else np.where(use, p_new, p)
         x = self.x + dx
         x[:, 2] = np.maximum(x[:, 2], 0.0)  # a resistance is never negative
-        dq = np.where(use, clip(x[:, 3], -0.01, 0.01), 0.0)  # the caller's capacity takes it in
+        dq = clip(x[:, 3], -0.01, 0.01)  # the caller's capacity takes it in
         x[:, 3] = 0.0
+        if every:
+            self.x = x
+            return dz, dq
         self.x = np.where(use[:, None], x, self.x)
-        return np.where(use, dz, 0.0), dq
+        return np.where(use, dz, 0.0), np.where(use, dq, 0.0)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"x": self.x.copy(), "p": self.p.copy(), "v_rc": self.v_rc.copy()}
