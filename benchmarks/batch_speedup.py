@@ -30,6 +30,10 @@ Figures:
     one worker) worker-hours; on N workers divide by ``N x efficiency`` (efficiency =
     scaling / 2, as measured here). Printed for a few N by :func:`estimate_text`.
 
+This process's allocator is set as a batch worker's (:func:`bms_estimator.fleet.memory.keep_freed_memory`:
+freed memory kept for the next array, as ``batch``'s ``LocalCluster`` starts its workers), so the
+figures are what a worker's task costs.
+
 Run: ``python -m benchmarks.batch_speedup [--hours H] [--cells N]``. Nothing is asserted.
 """
 
@@ -192,9 +196,12 @@ def _scaling(tmp: Path, cfg: Path, hours: float, n_cells: int, drives: int) -> t
 
 def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
                 scaling_hours: float = 0.5, stack: int = 4) -> BatchBenchResult:
+    from bms_estimator.fleet.memory import keep_freed_memory
+
     key = (hours, n_cells, scaling_drives, scaling_hours, stack)
     if key in _CACHE:
         return _CACHE[key]
+    keep_freed_memory()  # the allocator of a batch worker (its LocalCluster starts them so): a task's cost here
     with tempfile.TemporaryDirectory(prefix="bms-batch-bench-") as tmpdir:
         tmp = Path(tmpdir)
         log, mf4, cfg, frames = _write_inputs(tmp, hours, n_cells)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ..errors import DataError, UsageError
 from ..fleet.batch import DEFAULT_STACK
+from ..fleet.memory import MALLOC_ENV
 
 
 def _workers(text: str) -> int:
@@ -44,7 +45,9 @@ def add_parser(sub) -> None:
                    help="chain each vehicle's drives in time order (first timestamp, then name), the estimator "
                         "state carried from one to the next; one task per vehicle")
     p.add_argument("--scheduler", default=None, metavar="ADDR",
-                   help="Dask scheduler address (tcp://host:8786); default: a local cluster, one worker process per core")
+                   help="Dask scheduler address (tcp://host:8786); default: a local cluster, one worker process per core "
+                        "(start a cluster's workers with " + " ".join(f"{k}={v}" for k, v in MALLOC_ENV.items())
+                        + ", as the local one does: see README, Fleet re-estimation)")
     p.add_argument("--workers", type=_workers, default=None, help="local cluster size (default: the machine's cores)")
     p.add_argument("--diagnose", action="store_true",
                    help="also name each cell's model error with 'diagnose' (summary column 'cause'; on the cell's "

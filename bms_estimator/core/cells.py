@@ -19,11 +19,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["cell_vector", "clip"]
+__all__ = ["all_cells", "any_cell", "cell_vector", "clip"]
 
-try:  # numpy >= 2: the ufunc behind np.clip
+try:  # numpy >= 2: the ufunc behind np.clip, and the C function behind np.count_nonzero(x)
+    from numpy._core.multiarray import count_nonzero as _count_nonzero  # type: ignore[attr-defined]
     from numpy._core.umath import clip  # type: ignore[attr-defined]
-except ImportError:  # pragma: no cover - numpy 1.x keeps it here
+except ImportError:  # pragma: no cover - numpy 1.x keeps them here
+    from numpy.core.multiarray import count_nonzero as _count_nonzero  # type: ignore[no-redef]
     from numpy.core.umath import clip  # type: ignore[no-redef]
 
 _F8 = np.dtype(np.float64)
@@ -38,3 +40,14 @@ def cell_vector(x, n: int) -> np.ndarray:
         out.fill(x)
         return out
     return np.broadcast_to(np.asarray(x, dtype=float), (n,))
+
+
+def any_cell(x: np.ndarray) -> bool:
+    """``x.any()`` for a per-cell array (bool, or numbers: nonzero and NaN count), in a quarter of its time:
+    ``count_nonzero`` has a fast path where the reduction goes through the ufunc machinery (per-sample guards)."""
+    return bool(_count_nonzero(x))
+
+
+def all_cells(x: np.ndarray) -> bool:
+    """``x.all()`` for a per-cell array, as :func:`any_cell`."""
+    return bool(_count_nonzero(x) == x.size)

@@ -29,10 +29,11 @@ from typing import Annotated, Literal
 import numpy as np
 from annotated_types import Ge, Gt, Interval
 
-from .cells import cell_vector
+from .cells import all_cells, any_cell, cell_vector
 from .lif import LifHistory
 from .params import (
     PhysicalParams,
+    ct_c0_from_theta,
     ct_physical_from_theta,
     ct_theta_from_physical,
     dt_physical_from_theta,
@@ -204,27 +205,28 @@ class Identifier:
         y, phi, ready = self._regress(i, v, ok)
         learn = ready & np.isfinite(y) & np.logical_and.reduce(np.isfinite(phi), axis=1)
         was_init = self.rls.initialised.copy()
-        self.error = self._learn(phi, np.where(learn, y, 0.0), learn)
+        # (every cell learning, the usual sample: y itself, the values the select gives; read only)
+        self.error = self._learn(phi, y if all_cells(learn) else np.where(learn, y, 0.0), learn)
         if self.config.c0_prior_weight > 0:
             self._c0_prior(learn & was_init)
         theta = self.rls.theta
         new = self.rls.initialised & ~was_init
         params = self._physical(theta)
         admissible = params.admissible & (np.abs(params.c0_v) <= self.config.c0_max_v)
-        params = PhysicalParams(*params._arrays(), admissible=admissible)
+        params = PhysicalParams(*params._arrays(), admissible=admissible, dynamics_ok=params.dynamics_ok)
         good = admissible & self.rls.initialised
         # a fresh block-LS start that is not physical: the block grows by a sample and is
         # solved again; once it is init_max_samples long the cell starts from the prior
         bad_start = new & ~good
-        if bad_start.any():
+        if any_cell(bad_start):
             longest = max(self.config.init_max_samples, self.config.init_samples)
             grow = bad_start & (self.rls.block_samples < longest)
-            if grow.any():
+            if any_cell(grow):
                 self.rls.extend_block(grow)
             give_up = bad_start & ~grow
             theta[give_up] = self._prior_theta_s[give_up]
         rejected = self.rls.initialised & ~params.admissible & ~new
-        if rejected.any():
+        if any_cell(rejected):
             self.rejections += rejected
             self.rls.reset_theta(rejected, self.theta_good)
             self._rejected_run = np.where(rejected, self._rejected_run + 1,
@@ -234,19 +236,19 @@ class Identifier:
         n_stuck = self.config.restart_after_rejections
         if n_stuck > 0:
             stuck = self._rejected_run >= n_stuck
-            if stuck.any():
+            if any_cell(stuck):
                 self.rls.restart(stuck)
                 self._rejected_run[stuck] = 0
                 self.restarts += stuck
         self.accepted = good & learn
-        if good.all():  # every cell admissible (the usual sample): the selects below would copy
+        if all_cells(good):  # every cell admissible (the usual sample): the selects below would copy
             self.theta_good = theta.copy()  # (theta is the RLS's own, updated in place)
             self.identified[:] = True
             self.params = params
         else:
             self.theta_good = np.where(good[:, None], theta, self.theta_good)
             self.identified |= good
-            self.params = params.select(good, self.params) if good.any() else self.params
+            self.params = params.select(good, self.params) if any_cell(good) else self.params
         self.updates += 1
 
     def _learn(self, phi: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
@@ -261,7 +263,7 @@ class Identifier:
         """One pseudo-measurement ``c0 = 0`` (linearised at theta) for the selected cells."""
         g = self._c0_gain(self.rls.theta)
         ok = cells & (g > 0)
-        if not ok.any():
+        if not any_cell(ok):
             return
         h = np.zeros((self.n_cells, self.n_params))
         h[:, 5] = np.sqrt(self.config.c0_prior_weight) / np.where(ok, g, 1.0)  # h' theta = sqrt(w) c0
@@ -284,7 +286,7 @@ class Identifier:
         v_o = v - OCV(new soc) = old v_o - dv, so the stored history and c0 must
         drop by dv too, or the correction would be applied twice.
         """
-        d = np.broadcast_to(np.asarray(dv, dtype=float), (self.n_cells,))
+        d = cell_vector(dv, self.n_cells)  # read only
         # the callers shift when any cell has a shift (``cells`` given: any of those): with groups of
         # independent packs (rls.set_groups) a group without one keeps its parameters, as alone
         moved = self.rls.group_any(d.astype(bool) if cells is None else cells)
@@ -294,8 +296,13 @@ class Identifier:
         self._shift_history(d)
         self._shift_theta(self.rls.theta, d)
         self._shift_theta(self.theta_good, d)
-        params = self._physical(self.theta_good)
-        self.params = params if moved is None or moved.all() else params.select(moved, self.params)
+        params = self._physical_after_shift(self.theta_good)
+        self.params = params if moved is None or all_cells(moved) else params.select(moved, self.params)
+
+    def _physical_after_shift(self, theta_s: np.ndarray) -> PhysicalParams:
+        """``_physical(theta_s)`` for ``theta_s`` = :attr:`theta_good` just moved by :meth:`_shift_theta`
+        (a model whose shift moves c0 alone takes the rest from :attr:`params`)."""
+        return self._physical(theta_s)
 
     @property
     def c0_v(self) -> np.ndarray:
@@ -382,6 +389,15 @@ class LifEstimator(Identifier):
     def _extra_inputs(self, i_c: np.ndarray) -> np.ndarray | None:
         """Further model inputs (m, N) from the current in C-rate (none in the 2-RC model)."""
         return None
+
+    def _physical_after_shift(self, theta_s):
+        # the shift moved th6 alone; R0, the RC pairs and their checks are functions of th1..th5 of
+        # theta_good, which self.params holds for every cell (it is set wherever theta_good is), so
+        # only c0 = -th6 / th2 is new: the values _physical gives, without redoing the rest
+        if type(self)._physical is not LifEstimator._physical or self.params.dynamics_ok is None:
+            return self._physical(theta_s)
+        return self.params.with_c0(ct_c0_from_theta(theta_s[:, 5] / self._scale[:, 5],
+                                                    theta_s[:, 1] / self._scale[:, 1]))
 
     def _c0_gain(self, theta_s):
         # c0 = -th6_s / th2_s (s2 = s6 = T^2)

@@ -44,6 +44,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import lfilter
 
+from .cells import cell_vector
+
 __all__ = ["lif_kernels", "lif_scale", "lif_regressors", "LifHistory"]
 
 
@@ -155,7 +157,7 @@ class LifHistory:
         """A per-cell vector (or ``rows`` of them) as (group, [rows,] cell of the group)."""
         g = len(self._groups)
         if rows is None:
-            return np.broadcast_to(np.asarray(x, dtype=float), (self.n_cells,)).reshape(g, -1)
+            return cell_vector(x, self.n_cells).reshape(g, -1)  # (a view of x when it is an (N,) float vector)
         return np.broadcast_to(np.asarray(x, dtype=float), (rows, self.n_cells)).reshape(rows, g, -1).transpose(1, 0, 2)
 
     @property

@@ -50,7 +50,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
-from .cells import clip
+from .cells import any_cell, clip
 
 __all__ = ["OcvCurve", "MIN_SLOPE_V", "median_temperature_c"]
 
@@ -237,7 +237,7 @@ class OcvCurve:
             return self._slope.scalar(x)
         d = self._slope(s)
         below, above = s < self._s0, s > self._s1
-        if below.any() or above.any():
+        if any_cell(below) or any_cell(above):
             d = np.where(below, max(self._slope_lo, MIN_SLOPE_V), d)
             d = np.where(above, max(self._slope_hi, MIN_SLOPE_V), d)
         return _out(d, scalar)
@@ -657,7 +657,7 @@ class _GridLocator:
         k = np.floor(u)
         clip(k, 0, self.n - 2, out=k)
         nan = np.isnan(k)
-        if nan.any():
+        if any_cell(nan):
             k[nan] = 0
         f = u - k
         clip(f, 0.0, 1.0, out=f)  # NaN stays NaN
@@ -711,7 +711,7 @@ class _UniformTable:
         r = y1 - self.y[k]
         dy = self.dy[k]
         off = (r < 0) | (r > dy)
-        if off.any():
+        if any_cell(off):
             k = k.copy()  # the locator's answer is shared: not to be modified
             k[off] = np.clip(np.searchsorted(self.y, y1[off], side="right") - 1, 0, self.n - 2)
             r[off] = y1[off] - self.y[k[off]]

@@ -30,7 +30,7 @@ distinct, and both time constants lie inside ``[tau_min_s, tau_max_s]``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,6 +38,7 @@ __all__ = [
     "PhysicalParams",
     "ct_theta_from_physical",
     "ct_physical_from_theta",
+    "ct_c0_from_theta",
     "dt_theta_from_physical",
     "dt_physical_from_theta",
 ]
@@ -54,6 +55,9 @@ class PhysicalParams:
     c2_f: np.ndarray
     c0_v: np.ndarray
     admissible: np.ndarray  # bool: passes the physical checks
+    # bool: the checks that do not involve c0 (the CT mapping's; None where not known). c0 alone
+    # moves when an OCV bias is shifted out of the model: with this, c0 and the flag are redone alone
+    dynamics_ok: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def tau1_s(self) -> np.ndarray:
@@ -77,16 +81,45 @@ class PhysicalParams:
 
     def select(self, mask: np.ndarray, other: "PhysicalParams") -> "PhysicalParams":
         """Elementwise: self where mask, else other."""
+        both = self.dynamics_ok is not None and other.dynamics_ok is not None
         return PhysicalParams(
             *(np.where(mask, a, b) for a, b in zip(self._arrays(), other._arrays())),
             admissible=np.where(mask, self.admissible, other.admissible),
+            dynamics_ok=np.where(mask, self.dynamics_ok, other.dynamics_ok) if both else None,
         )
+
+    def with_c0(self, c0_v: np.ndarray) -> "PhysicalParams":
+        """The same dynamics with another c0 (needs :attr:`dynamics_ok`): admissible is
+        ``dynamics_ok & isfinite(c0)``, what :func:`ct_physical_from_theta` gives for a theta
+        that differs in th6 alone."""
+        if self.dynamics_ok is None:
+            raise ValueError("with_c0 needs the dynamics' checks (dynamics_ok)")
+        return PhysicalParams(*self._arrays()[:5], c0_v, admissible=self.dynamics_ok & np.isfinite(c0_v),
+                              dynamics_ok=self.dynamics_ok)
 
     def _arrays(self) -> tuple[np.ndarray, ...]:
         return (self.r0_ohm, self.r1_ohm, self.c1_f, self.r2_ohm, self.c2_f, self.c0_v)
 
 
 R_MIN_OHM = 1e-9
+
+
+def _check_dynamics(
+    r0: np.ndarray,
+    r1: np.ndarray,
+    r2: np.ndarray,
+    tau1: np.ndarray,
+    tau2: np.ndarray,
+    real: np.ndarray,
+    tau_min_s: float,
+    tau_max_s: float,
+) -> np.ndarray:
+    """The checks but c0's: real poles, finite resistances above a nano-ohm, ordered time constants in range."""
+    ok = real & np.isfinite(r0) & np.isfinite(r1) & np.isfinite(r2)
+    # a resistance below a nano-ohm is no cell's (and its C = tau / R overflows)
+    ok &= (r0 > R_MIN_OHM) & (r1 > R_MIN_OHM) & (r2 > R_MIN_OHM)
+    ok &= (tau1 >= tau_min_s) & (tau2 <= tau_max_s) & (tau1 < tau2)
+    return ok
 
 
 def _check(
@@ -100,11 +133,7 @@ def _check(
     tau_min_s: float,
     tau_max_s: float,
 ) -> np.ndarray:
-    ok = real & np.isfinite(r0) & np.isfinite(r1) & np.isfinite(r2) & np.isfinite(c0)
-    # a resistance below a nano-ohm is no cell's (and its C = tau / R overflows)
-    ok &= (r0 > R_MIN_OHM) & (r1 > R_MIN_OHM) & (r2 > R_MIN_OHM)
-    ok &= (tau1 >= tau_min_s) & (tau2 <= tau_max_s) & (tau1 < tau2)
-    return ok
+    return _check_dynamics(r0, r1, r2, tau1, tau2, real, tau_min_s, tau_max_s) & np.isfinite(c0)
 
 
 def ct_theta_from_physical(
@@ -154,9 +183,15 @@ def ct_physical_from_theta(
         c2 = 1.0 / b_slow
         tau1 = 1.0 / a_fast
         tau2 = 1.0 / a_slow
-        c0 = -th6 / th2
-    ok = _check(r0, r1, r2, tau1, tau2, c0, real, tau_min_s, tau_max_s)
-    return PhysicalParams(r0, r1, c1, r2, c2, c0, ok)
+        c0 = -th6 / th2  # ct_c0_from_theta, inside this errstate
+    dynamics_ok = _check_dynamics(r0, r1, r2, tau1, tau2, real, tau_min_s, tau_max_s)
+    return PhysicalParams(r0, r1, c1, r2, c2, c0, dynamics_ok & np.isfinite(c0), dynamics_ok=dynamics_ok)
+
+
+def ct_c0_from_theta(th6: np.ndarray, th2: np.ndarray) -> np.ndarray:
+    """c0 = -th6 / th2 (the CT steady state's offset; inf/NaN where th2 is 0, without a warning)."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        return -th6 / th2
 
 
 def dt_theta_from_physical(

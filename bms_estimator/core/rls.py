@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .cells import all_cells, any_cell
+
 __all__ = ["RlsConfig", "WeightedRls"]
 
 
@@ -118,9 +120,9 @@ class WeightedRls:
 
         init_now = mask & ~self.initialised
         run = mask & self.initialised  # before the block solve: its last sample is in theta0 already
-        if init_now.any():
+        if any_cell(init_now):
             self._accumulate(phi, y, init_now)
-        if run.any():
+        if any_cell(run):
             # windowed error RMS drives turn-on/turn-off (only from learning samples)
             h = self._err_head
             if self._group_starts is None:
@@ -139,9 +141,9 @@ class WeightedRls:
                     rms > cfg.error_on, True, np.where(rms < cfg.error_off, False, self.adapting)
                 )
             w = run & self.adapting
-            if w.any():
+            if any_cell(w):
                 self._rls_step(phi, e, w, lam)
-        if self.initialised.all():  # every cell running (the usual sample): no NaN to put in
+        if all_cells(self.initialised):  # every cell running (the usual sample): no NaN to put in
             return e
         return np.where(self.initialised | init_now, e, np.nan)
 
@@ -156,7 +158,7 @@ class WeightedRls:
         # limit); with groups, a group none of whose cells learns is left exactly as it was,
         # as it is when it runs alone
         live = self.group_any(w)
-        hold = None if live is None or live.all() else ~live
+        hold = None if live is None or all_cells(live) else ~live
         if hold is not None:
             theta_held, p_held = self.theta[hold], self._pt[:, :, hold]
         self._rls_step_all(phi, e, w, lam)
@@ -170,7 +172,7 @@ class WeightedRls:
         pphi = np.einsum("ijn,jn->in", P, phi_t)
         denom = lam + (phi_t * pphi).sum(axis=0)
         gain = pphi / denom
-        every = bool(w.all())  # the usual case: no per-cell selects
+        every = all_cells(w)  # the usual case: no per-cell selects
         if not every:
             gain[:, ~w] = 0.0
         self.theta += (gain * e).T
@@ -182,13 +184,13 @@ class WeightedRls:
         # keep P bounded
         tr = np.einsum("iin->n", P)
         over = tr > self.config.trace_max
-        if over.any():
+        if any_cell(over):
             P *= np.where(over, self.config.trace_max / np.where(tr > 0, tr, 1.0), 1.0)
 
     def pseudo_update(self, h: np.ndarray, y: np.ndarray, mask: np.ndarray) -> None:
         """A prior as a pseudo-measurement y = h' theta (no forgetting, no error window)."""
         run = mask & self.initialised
-        if run.any():
+        if any_cell(run):
             e = y - np.einsum("np,np->n", h, self.theta)
             self._rls_step(h, np.where(run, e, 0.0), run, 1.0)
 
@@ -199,7 +201,7 @@ class WeightedRls:
         self._r = np.where(s, lam * self._r + phi * y[:, None], self._r)
         self._init_count += sel
         done = sel & (self._init_count >= self.config.init_samples)
-        if done.any():
+        if any_cell(done):
             self.initialise_from_block(done)
 
     def extend_block(self, cells: np.ndarray) -> None:

@@ -45,7 +45,7 @@ from typing import Annotated, Literal, get_args
 import numpy as np
 from annotated_types import Ge, Gt
 
-from .cells import cell_vector, clip
+from .cells import all_cells, any_cell, cell_vector, clip
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
@@ -240,7 +240,7 @@ class SocEstimator:
         return v
 
     def _start_hysteresis(self, cells: np.ndarray) -> None:
-        if self._hyst is None or not cells.any():
+        if self._hyst is None or not any_cell(cells):
             return
         s = np.where(np.isfinite(self.soc), self.soc, 0.5)
         h0 = np.where(s >= 0.98, 1.0, np.where(s <= 0.02, -1.0, 0.0))
@@ -300,10 +300,11 @@ class SocEstimator:
         i_ok = np.isfinite(i)
         i_use = np.where(i_ok, i, 0.0)
         unset = ~np.isfinite(self.soc)
-        read_now = unset & ok  # SOC read from this sample's voltage: not to be used a second time
-        if unset.any():
+        read_now = None  # SOC read from this sample's voltage (none in the usual sample): not to be used a second time
+        if any_cell(unset):
+            read_now = unset & ok
             start = read_now
-            if start.any():
+            if any_cell(start):
                 self.soc = np.where(start, np.clip(self._soc_at(np.where(start, v, 3.7)), 0.0, 1.0), self.soc)
                 self._soc_fix = np.where(start, self.soc, self._soc_fix)
                 self._q_fix = np.where(start, self._charge_ref_ah, self._q_fix)
@@ -314,8 +315,8 @@ class SocEstimator:
         q_now = self.capacity_ah * self._rel_q
         dq = self._i_prev * (self.dt_s / 3600.0)
         dz = dq / q_now
-        have_soc = np.isfinite(self.soc)
-        every_soc = bool(have_soc.all())  # the usual sample: no select needed below
+        have_soc = np.isfinite(self.soc) if read_now is not None else ~unset  # (the SOC moved only if unset)
+        every_soc = all_cells(have_soc)  # the usual sample: no select needed below
         # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
         counted = clip(self.soc + dz, 0.0, 1.0)
         self.soc = counted if every_soc else np.where(have_soc, counted, self.soc)
@@ -334,14 +335,16 @@ class SocEstimator:
         ocv_v = self._ocv(soc_mid)
         self.v_o = v - ocv_v
         use = ok & i_ok & have_soc
-        # 3. identification
-        self.identifier.update(i_use, np.where(use, self.v_o, np.nan), use)
+        every_use = all_cells(use)
+        # 3. identification (v_o itself when every cell is used: what the select gives; read only)
+        self.identifier.update(i_use, self.v_o if every_use else np.where(use, self.v_o, np.nan), use)
         # 4.-6. the OCV evidence corrects the count
         if self.ekf is not None:
             # (gating the correction on an identified model, or on rest, was measured worse on the
             # 25 degC matrix, 40 against 47 of 56 runs within 2 %: the strong early evidence of a
             # wrong start is read through the prior impedance)
-            self._ekf_step(i_prev, i_use, dz, soc_mid, use & have_soc & ~read_now)
+            # (no cell unset: have_soc is all True and read_now all False, so the mask is use's)
+            self._ekf_step(i_prev, i_use, dz, soc_mid, use if read_now is None else use & have_soc & ~read_now)
         self._compensate(use)
         self.samples += 1
 
@@ -356,9 +359,9 @@ class SocEstimator:
         self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q, r, tau, live)
         overpotential = p.r0_ohm * i_now + self.ekf.v_rc[:, 0] + self.ekf.v_rc[:, 1]  # the identified model's
         identified = self.identifier.identified
-        if not self._gain_identified.all():  # a cell whose identifier has just found its model: g restarts
+        if not all_cells(self._gain_identified):  # a cell whose identifier has just found its model: g restarts
             newly = identified & ~self._gain_identified
-            if newly.any():
+            if any_cell(newly):
                 self.ekf.restart_gain(newly)
                 self._gain_identified = identified.copy()
         innovation = self.v_o - ((1.0 + self.ekf.overpotential_gain) * overpotential + self.ekf.v_diffusion)
@@ -372,7 +375,7 @@ class SocEstimator:
             self.capacity_ah = self.capacity_ah * (1.0 + d_q)
             lo, hi = self.config.capacity_bounds
             self.capacity_ah = clip(self.capacity_ah, lo * self.capacity_stated_ah, hi * self.capacity_stated_ah)
-            self.capacity_estimated |= self.ekf.p[:, 3, 3] < (0.5 * self.config.ekf.capacity_sigma) ** 2
+            self.capacity_estimated |= self.ekf.capacity_variance < (0.5 * self.config.ekf.capacity_sigma) ** 2
         self.soc = clip(self.soc + d_soc, 0.0, 1.0)
         # The OCV the identifier saw moves with the SOC, as in a c0 compensation: its history and
         # c0 shift with every EKF move, cell by cell.  (Shifting only once the pack's largest
@@ -381,7 +384,7 @@ class SocEstimator:
         # grouping of files.  Shifted every sample, a cell's results are the same alone or in any
         # pack, which the batch's stacking of drives and the matrix rely on.)
         shift = slope * d_soc
-        if shift.any():
+        if any_cell(shift):
             self.identifier.shift_bias(shift)
 
     def _compensate(self, use: np.ndarray) -> None:
@@ -405,12 +408,12 @@ class SocEstimator:
             self._c0_sq += new * new - old * old
         self._c0_count = np.where(learn, self._c0_count + 1, self._c0_count)
         full = self._c0_count >= self._w
-        if not full.any():
+        if not any_cell(full):
             return
         c0_avg = self._c0_sum / self._w
         c0_std = np.sqrt(np.maximum(self._c0_sq / self._w - c0_avg * c0_avg, 0.0))
         stable = full & (c0_std < cfg.c0_stable_v) & np.isfinite(c0_avg)
-        if not stable.any():
+        if not any_cell(stable):
             return
         # SOC whose OCV is c0_avg above the one now: OCV^-1(OCV(soc) + c0_avg).  The hysteresis
         # term h H(soc) is on both sides (read at the SOC now), so the mean curve gives it
@@ -419,7 +422,7 @@ class SocEstimator:
             self._capacity_anchor(stable, soc_ocv)
         slope = self._slope(self.soc)
         fire = stable & (np.abs(c0_avg) > slope * cfg.soc_error_threshold)
-        if fire.any():
+        if any_cell(fire):
             self.soc = np.where(fire, np.clip(soc_ocv, 0.0, 1.0), self.soc)
             self._soc_fix = np.where(fire, self.soc, self._soc_fix)
             self._q_fix = np.where(fire, self._charge_ref_ah, self._q_fix)
@@ -447,7 +450,7 @@ class SocEstimator:
         self._q_max = np.where(sel, np.maximum(self._q_max, q), self._q_max)
         span = self._q_max - self._q_min
         cand = sel & (span >= cfg.capacity_min_span * self.capacity_stated_ah)
-        if not cand.any():
+        if not any_cell(cand):
             return
         n, sq, ss, sqq, sqs, sss = self._cap.T
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -476,7 +479,7 @@ class SocEstimator:
         else:
             return
         move = good & np.isfinite(target) & (np.abs(target - self.soc) > cfg.reanchor_min_soc)
-        if move.any():
+        if any_cell(move):
             # the OCV difference moves out of the model exactly like a c0 compensation
             target = np.clip(target, 0.0, 1.0)
             dv = np.where(move, self._ocv(target) - self._ocv(self.soc), 0.0)
@@ -529,7 +532,7 @@ class SocEstimator:
         lo, hi = self.config.capacity_bounds
         q = np.asarray(s["capacity_ah"], dtype=float)
         ok = np.isfinite(q) & (q >= lo * self.capacity_stated_ah) & (q <= hi * self.capacity_stated_ah)
-        if not ok.all():
+        if not all_cells(ok):
             raise ValueError(f"state field 'capacity_ah' holds {q[~ok][:3].tolist()} Ah, outside {lo:g}..{hi:g} "
                              f"times the stated capacity")
         soc = np.asarray(s["soc"], dtype=float)
@@ -587,5 +590,5 @@ class SocEstimator:
             # a state saved while EKF moves were still pending for the identifier (older versions
             # shifted in millivolt steps): shift them now
             pending = np.asarray(s.get("ekf.shift_v", np.zeros(n)), dtype=float)
-            if pending.shape == (n,) and np.all(np.isfinite(pending)) and pending.any():
+            if pending.shape == (n,) and np.all(np.isfinite(pending)) and any_cell(pending):
                 self.identifier.shift_bias(pending)

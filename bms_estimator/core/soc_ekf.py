@@ -104,6 +104,8 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge, Gt
 
+from .cells import all_cells, clip
+
 __all__ = ["SocEkfConfig", "SocEkf"]
 
 _N = 5  # z, v_d, r_d, dq, g
@@ -198,6 +200,11 @@ class SocEkf:
         self._pt = np.ascontiguousarray(np.moveaxis(np.asarray(value, dtype=float), 0, 2))
 
     @property
+    def capacity_variance(self) -> np.ndarray:
+        """The relative capacity's variance, ``p[:, 3, 3]`` (a view, without the (N, 5, 5) view's moveaxis)."""
+        return self._pt[3, 3]
+
+    @property
     def soc_sigma(self) -> np.ndarray:
         return np.sqrt(np.maximum(self._pt[0, 0], 0.0))
 
@@ -247,7 +254,7 @@ class SocEkf:
         # columns, in place of two dense (N, 5, 5) products
         f12 = (1.0 - a_d) * current_a
         f03 = -dz
-        every = bool(live.all())  # the usual case: in place, no (5, 5, N) select
+        every = all_cells(live)  # the usual case: in place, no (5, 5, N) select
         p = self._pt if every else self._pt.copy()
         for rows in (True, False):
             q = p if rows else p.swapaxes(0, 1)
@@ -288,23 +295,27 @@ class SocEkf:
         k = pc / s
         held = (self.soc_sigma > cfg.capacity_learn_max_soc_sigma) | (slope_v > cfg.capacity_learn_max_slope_v)
         k[3] = np.where(held, 0.0, k[3])
-        e = np.where(use, innovation_v, 0.0)
+        every = all_cells(use)  # the usual sample: the selects by use would copy their first argument
+        e = innovation_v if every else np.where(use, innovation_v, 0.0)
         dx = (k * e).T
-        dz = np.clip(dx[:, 0], -cfg.max_soc_step, cfg.max_soc_step)
+        dz = clip(dx[:, 0], -cfg.max_soc_step, cfg.max_soc_step)  # np.clip's ufunc, without its wrappers
         # Joseph form, (I - K C) P (I - K C)' + K R K', for K = pc / S - d e3 (d = pc3 / S where the
         # capacity row is held, else 0) expands to  P - pc pc' / S + S d^2 e3 e3':  one outer product
         pp = np.multiply(pc[:, None, :], k[None, :, :], out=np.empty_like(p))  # pc pc' / S (k = pc / S here)
         pp[:, 3] = pc * (pc[3] / s)  # the held capacity row of k is not pc / S
         p_new = np.subtract(p, pp, out=pp)
         p_new[3, 3] += np.where(held, pc[3] ** 2 / s, 0.0)
-        self._pt = p_new if use.all() else np.where(use, p_new, p)
+        self._pt = p_new if every else np.where(use, p_new, p)
         x = self.x + dx
         x[:, 2] = np.maximum(x[:, 2], 0.0)  # a resistance is never negative
         x[:, 4] = np.maximum(x[:, 4], -0.8)  # nor does the overpotential change its sign
-        dq = np.where(use, np.clip(x[:, 3], -0.01, 0.01), 0.0)  # the caller's capacity takes it in
+        dq = clip(x[:, 3], -0.01, 0.01)  # the caller's capacity takes it in
         x[:, 3] = 0.0
+        if every:
+            self.x = x
+            return dz, dq
         self.x = np.where(use[:, None], x, self.x)
-        return np.where(use, dz, 0.0), dq
+        return np.where(use, dz, 0.0), np.where(use, dq, 0.0)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"x": self.x.copy(), "p": self.p.copy(), "v_rc": self.v_rc.copy()}

@@ -2,7 +2,8 @@
 
 ``run_batch`` submits :func:`~.drive.run_drive` (or :func:`~.drive.run_vehicle`) to a
 ``dask.distributed`` client: by default a ``LocalCluster`` of single-threaded worker
-processes, one per core (``os.cpu_count()``; the estimator holds the GIL); with
+processes, one per core (``os.cpu_count()``; the estimator holds the GIL), started with
+:data:`.memory.MALLOC_ENV` (freed memory kept for the next drive's arrays); with
 ``scheduler`` an existing cluster (then every worker must see the log files and the
 output directory at the same paths: a shared file system). No other pool is made here.
 
@@ -33,6 +34,7 @@ from typing import Any
 from ..errors import UsageError
 from .drive import DriveResult, run_drives, run_vehicle
 from .frames import FRAME_SUFFIXES
+from .memory import MALLOC_ENV
 
 __all__ = ["BatchResult", "DEFAULT_STACK", "expand_inputs", "run_batch", "stack_groups", "summary_rows", "vehicle_of"]
 
@@ -100,6 +102,7 @@ class BatchResult:
 def _client(scheduler: str | None, workers: int | None):
     import logging
 
+    import dask
     from dask.distributed import Client, LocalCluster
 
     # the scheduler and nannies of a local cluster run in this process: their INFO lines are not the user's
@@ -108,8 +111,11 @@ def _client(scheduler: str | None, workers: int | None):
     if scheduler:
         return Client(scheduler, timeout="10s"), None
     n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, silence_logs=logging.ERROR)
+    # worker processes that keep freed memory for the next drive's arrays (memory.py: values unaffected)
+    environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **MALLOC_ENV}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=None, silence_logs=logging.ERROR)
     return Client(cluster), cluster
 
 

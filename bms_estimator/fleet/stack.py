@@ -135,9 +135,14 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
         valid[:m, cols] = dr.valid[u]
 
     getters = output_getters(est)
-    first = {key: np.array(get(), dtype=float) for key, get in getters}  # the fresh estimator's values
-    store = {key: np.empty((length, big)) for key in first}
-    targets = [(store[key], get) for key, get in getters]
+    # drive-major: store[key][d, 0] the fresh estimator's values, store[key][d, j + 1] the outputs after
+    # update j. A drive whose every sample is an update (the usual drive) then has its rows as one
+    # contiguous block, taken as it is; otherwise one fancy index picks them. (Rows the stacked
+    # estimator writes as (S n,) vectors go in as (S, n); the values are the same.)
+    store = {key: np.empty((s, length + 1, n)) for key, _ in getters}
+    for key, get in getters:
+        store[key][:, 0] = np.asarray(get(), dtype=float).reshape(s, n)
+    targets = [(store[key][:, 1:].transpose(1, 0, 2), get) for key, get in getters]  # (length, S, n) views
     ends: dict[int, list[int]] = {}
     for d, m in enumerate(counts):
         ends.setdefault(m, []).append(d)
@@ -149,7 +154,7 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
         for j in range(length):
             update(current[j], volts[j], valid[j], temperature_c=temps[j])
             for out, get in targets:
-                out[j] = get()
+                out[j] = get().reshape(s, n)
             done = ends.get(j + 1)
             if done:
                 full = est.state_dict()
@@ -160,15 +165,12 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
 
     results = []
     for d, (dr, u) in enumerate(zip(drives, steps)):
-        cols = slice(d * n, (d + 1) * n)
-        # c_k: updates done by sample k; row 0 of `full` is the fresh estimator's values
+        # c_k: updates done by sample k; row 0 of the drive's block is the fresh estimator's values
         c = np.zeros(len(dr), dtype=np.int64)
         c[u] = 1
         c = np.cumsum(c)
-        cells = {}
-        for key, arr in store.items():
-            full = np.concatenate((first[key][None, cols], arr[: counts[d], cols]))
-            cells[key] = full[c]
+        every = counts[d] == len(dr)  # c_k = k + 1: rows 1..m as they are
+        cells = {key: arr[d, 1:counts[d] + 1] if every else arr[d, :counts[d] + 1][c] for key, arr in store.items()}
         results.append(finish_estimate(dr, cells, states[d], 0))
     return results
 

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from bms_estimator.core.cells import cell_vector, clip
+from bms_estimator.core.cells import all_cells, any_cell, cell_vector, clip
 
 
 def test_cell_vector_passes_a_vector_through_and_broadcasts_anything_else() -> None:
@@ -32,3 +33,11 @@ def test_clip_is_np_clip_bit_for_bit() -> None:
         assert clip(*args).tobytes() == np.clip(*args).tobytes()
     out = np.empty_like(a)
     assert clip(a, 0.0, 1.0, out=out) is out and out.tobytes() == np.clip(a, 0.0, 1.0).tobytes()
+
+
+@pytest.mark.parametrize("x", [
+    np.zeros(5, bool), np.ones(5, bool), np.array([False, True, False]), np.array([0.0, -0.0]), np.array([0.0, np.nan]),
+    np.array([0.0, 1e-300]), np.array([0.0, -np.inf]), np.zeros(0, bool), np.zeros((3, 2)), np.eye(3),
+])
+def test_any_cell_and_all_cells_are_any_and_all(x):
+    assert any_cell(x) is bool(x.any()) and all_cells(x) is bool(x.all())

@@ -260,3 +260,31 @@ def test_groups_give_each_pack_the_results_it_has_alone(cls, method, pack_cells)
         if getattr(est, "history", None) is not None:  # the filter's history (v_o shifted by the bias)
             assert np.array_equal(est.history.buffer, both.history.buffer[:, c])
     assert both.identified.all()
+
+
+@pytest.mark.parametrize("cls, method", [(LifEstimator, "lif"), (LifIvEstimator, "lif-iv")])
+def test_shift_bias_params_are_the_full_mapping_of_the_shifted_theta(cls, method):
+    """shift_bias redoes c0 alone (the rest of the parameters are those of theta_good's other columns):
+    after every shift, for every cell, the parameters and the admissible flag are bit for bit what the
+    full mapping of the shifted theta_good gives, through block starts, rejections (a tight tau bound),
+    invalid samples and shifts of some cells only, some of them large enough to make c0 non-admissible."""
+    n = 1500
+    i, v = synthetic_overpotential(n, seed=3, noise_v=3e-4, noise_a=0.02)
+    cells = 4
+    volts = v[:, None] + 1e-3 * np.arange(cells)
+    ok = np.ones((n, cells), dtype=bool)
+    ok[300:340, 1] = False
+    cfg = IdentifierConfig(method=method, init_samples=60, tau_max_s=150.0)
+    est = cls(cells, 1.0, 3.0, cfg)
+    rng = np.random.default_rng(0)
+    shifted = 0
+    for k in range(n):
+        est.update(np.full(cells, i[k]), volts[k], ok[k])
+        some = rng.random(cells) < 0.5
+        dv = np.where(some, rng.normal(0.0, 2e-3 if k % 200 else 2.0, cells), 0.0)
+        est.shift_bias(dv, some)
+        shifted += bool(some.any())
+        full = est._physical(est.theta_good)
+        for key in ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "admissible"):
+            assert np.array_equal(getattr(est.params, key), getattr(full, key), equal_nan=True), (k, key)
+    assert shifted > n // 2 and est.rejections.sum() > 0 and est.identified.any()
