@@ -41,12 +41,12 @@ with them was measured no better and costs twice as much).  Linearised::
 Why ``g``.  The identified (or, before the identifier has a model, the prior)
 overpotential is wrong by a fraction that persists for minutes to hours: a prior
 resistance 1.5-2x low on a cold cell, a slow branch the identifier traded against
-its c0.  Treated only as noise, that error is read again at every sample, and a
-persistent 100 mV shortfall under load walks the SOC 5-15 % off within minutes
-(LG 0 degC mixed1 from a quarter in, 10 % high: 4.6 % low after 300 s).  As a state
-the filter explains a shortfall that scales with the load by ``g`` and moves the SOC
-only by what the load does not explain: the voltage at low current, and the OCV
-curve's shape.  ``g`` starts with sigma ``overpotential_gain_sigma_prior`` and
+its c0.  Treated only as noise, that error is read again at every sample as SOC.
+As a state the filter explains a shortfall that scales with the load by ``g`` and
+moves the SOC only by what the load does not explain: the voltage at low current,
+and the OCV curve's shape.  On LG 0 degC la92 from a correct start ``g`` rises to
++0.6 in 5 min and +0.87 in 20 on the prior, and the SOC error at 20 min is -2.1 %
+against -2.9 % without it (README, SOC matrix: 60 to 63 of 72 runs within 2 %).  ``g`` starts with sigma ``overpotential_gain_sigma_prior`` and
 restarts at 0 with sigma ``overpotential_gain_sigma`` when the identifier first has a
 model of the cell (the prediction it corrected is then gone); ``1 + g`` is kept at
 0.2 or more (the overpotential keeps its sign).
