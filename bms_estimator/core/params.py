@@ -183,7 +183,7 @@ def ct_physical_from_theta(
         c2 = 1.0 / b_slow
         tau1 = 1.0 / a_fast
         tau2 = 1.0 / a_slow
-        c0 = -th6 / th2  # ct_c0_from_theta, inside this errstate
+        c0 = ct_c0_from_theta(th6, th2)
     dynamics_ok = _check_dynamics(r0, r1, r2, tau1, tau2, real, tau_min_s, tau_max_s)
     return PhysicalParams(r0, r1, c1, r2, c2, c0, dynamics_ok & np.isfinite(c0), dynamics_ok=dynamics_ok)
 
