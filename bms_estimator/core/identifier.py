@@ -158,6 +158,8 @@ class Identifier:
         self.rls.theta_ref = self._prior_theta_s.copy()  # unexcited directions of the block start
         self.theta_good = self._prior_theta_s.copy()  # last admissible scaled theta
         self.identified = np.zeros(self.n_cells, dtype=bool)
+        # cells whose first admissible model came in this sample (whoever used the prior's can restart)
+        self.newly_identified = np.zeros(self.n_cells, dtype=bool)
         self.rejections = np.zeros(self.n_cells, dtype=np.int64)
         self.restarts = np.zeros(self.n_cells, dtype=np.int64)
         self._rejected_run = np.zeros(self.n_cells, dtype=np.int64)  # consecutive rejections
@@ -241,6 +243,11 @@ class Identifier:
                 self._rejected_run[stuck] = 0
                 self.restarts += stuck
         self.accepted = good & learn
+        if all_cells(self.identified):  # the usual sample: nothing new
+            if any_cell(self.newly_identified):
+                self.newly_identified = np.zeros(self.n_cells, dtype=bool)
+        else:
+            self.newly_identified = good & ~self.identified
         if all_cells(good):  # every cell admissible (the usual sample): the selects below would copy
             self.theta_good = theta.copy()  # (theta is the RLS's own, updated in place)
             self.identified[:] = True
@@ -336,6 +343,7 @@ class Identifier:
             raise ValueError(f"theta_good has shape {tg.shape}, expected {self.theta_good.shape}")
         self.theta_good = tg.copy()
         self.identified = np.asarray(s["identified"], dtype=bool).copy()
+        self.newly_identified = np.zeros(self.n_cells, dtype=bool)
         self.rejections = np.asarray(s["rejections"], dtype=np.int64).copy()
         self.restarts = np.asarray(s.get("restarts", np.zeros(self.n_cells)), dtype=np.int64).copy()
         self._rejected_run = np.asarray(s.get("rejected_run", np.zeros(self.n_cells)), dtype=np.int64).copy()

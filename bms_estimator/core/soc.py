@@ -203,8 +203,6 @@ class SocEstimator:
         self._start_hysteresis(np.isfinite(self.soc))
         self.ekf = (SocEkf(self.n_cells, self.dt_s, self.capacity_ah, config.ekf)
                     if config.soc_method == "ekf" else None)
-        # cells whose EKF overpotential gain has restarted on the identifier's first model
-        self._gain_identified = np.zeros(self.n_cells, dtype=bool)
 
     # ------------------------------------------------------------------ OCV at the cell temperature
     def _table_capacity_ah(self) -> float | None:
@@ -359,11 +357,8 @@ class SocEstimator:
         self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q, r, tau, live)
         overpotential = p.r0_ohm * i_now + self.ekf.v_rc[:, 0] + self.ekf.v_rc[:, 1]  # the identified model's
         identified = self.identifier.identified
-        if not all_cells(self._gain_identified):  # a cell whose identifier has just found its model: g restarts
-            newly = identified & ~self._gain_identified
-            if any_cell(newly):
-                self.ekf.restart_gain(newly)
-                self._gain_identified = identified.copy()
+        if any_cell(self.identifier.newly_identified):  # the prediction g corrected is gone: g restarts
+            self.ekf.restart_gain(self.identifier.newly_identified)
         innovation = self.v_o - ((1.0 + self.ekf.overpotential_gain) * overpotential + self.ekf.v_diffusion)
         slope = self._slope(soc_mid)
         unsure = (1.0 - np.abs(self.hysteresis_state)) * self._h_gap if self._hyst is not None else 0.0
@@ -586,7 +581,6 @@ class SocEstimator:
         if self.ekf is not None and "ekf.p" in s:
             # a state saved by the c0 method keeps the EKF's fresh start (initial_soc_sigma)
             self.ekf.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("ekf.") and k != "ekf.shift_v"})
-            self._gain_identified = self.identifier.identified.copy()  # its g is already the identified model's
             # a state saved while EKF moves were still pending for the identifier (older versions
             # shifted in millivolt steps): shift them now
             pending = np.asarray(s.get("ekf.shift_v", np.zeros(n)), dtype=float)
