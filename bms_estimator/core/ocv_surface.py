@@ -374,6 +374,14 @@ class OcvSurface:
         """True when any table has a hysteresis column."""
         return any(c.has_hysteresis for c in self.curves)
 
+    def with_half_gap_cap(self, cap_v: float) -> "OcvSurface":
+        """Every table's half gap capped at ``cap_v`` (:meth:`OcvCurve.with_half_gap_cap`), the rest the same."""
+        curves = [c.with_half_gap_cap(cap_v) for c in self.curves]
+        if all(a is b for a, b in zip(curves, self.curves)):
+            return self
+        return OcvSurface(curves, None if self._single is not None else list(self._temps),
+                          default_temperature_c=self.default_temperature_c)
+
     def __repr__(self) -> str:
         temps = ", ".join("?" if math.isnan(t) else f"{t:g}" for t in self._temps)
         return (f"OcvSurface({len(self.curves)} table(s) at {temps} degC, "
