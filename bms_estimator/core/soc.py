@@ -237,6 +237,17 @@ class SocEstimator:
             v = v + self.hysteresis_state * self._h_gap
         return v
 
+    def _ocv_and_slope(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(self._ocv(soc), self._slope(soc))``: one table lookup for both on a single curve (the
+        values bit for bit those of the two calls); on tables by temperature, the two calls."""
+        if self._t_aware:
+            return self._ocv(soc), self._slope(soc)
+        v, slope, gap = self.ocv.ocv_slope_hysteresis(soc)
+        if self._hyst is not None:
+            self._h_gap = np.minimum(gap, self.config.hysteresis_max_v)  # as _half_gap (the EKF step's)
+            v = v + self.hysteresis_state * self._h_gap
+        return v, slope
+
     def _start_hysteresis(self, cells: np.ndarray) -> None:
         if self._hyst is None or not any_cell(cells):
             return
@@ -330,7 +341,7 @@ class SocEstimator:
         soc_mid = self.soc + i_use * (0.5 * self.dt_s / 3600.0) / q_now
         if not every_soc:
             soc_mid = np.where(have_soc, soc_mid, 0.5)
-        ocv_v = self._ocv(soc_mid)
+        ocv_v, slope_mid = self._ocv_and_slope(soc_mid)
         self.v_o = v - ocv_v
         use = ok & i_ok & have_soc
         every_use = all_cells(use)
@@ -342,12 +353,13 @@ class SocEstimator:
             # 25 degC matrix, 40 against 47 of 56 runs within 2 %: the strong early evidence of a
             # wrong start is read through the prior impedance)
             # (no cell unset: have_soc is all True and read_now all False, so the mask is use's)
-            self._ekf_step(i_prev, i_use, dz, soc_mid, use if read_now is None else use & have_soc & ~read_now)
+            self._ekf_step(i_prev, i_use, dz, slope_mid, use if read_now is None else use & have_soc & ~read_now)
         self._compensate(use)
         self.samples += 1
 
-    def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, soc_mid: np.ndarray,
+    def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, slope: np.ndarray,
                   use: np.ndarray) -> None:
+        """Steps 4.-6. by the EKF; ``slope`` is dOCV/dSOC at the period's middle SOC."""
         p = self.identifier.params
         r = np.empty((self.n_cells, 2))  # (N, 2) pairs, filled column by column (np.stack's values)
         r[:, 0], r[:, 1] = p.r1_ohm, p.r2_ohm
@@ -360,7 +372,6 @@ class SocEstimator:
         if any_cell(self.identifier.newly_identified):  # the prediction g corrected is gone: g restarts
             self.ekf.restart_gain(self.identifier.newly_identified)
         innovation = self.v_o - ((1.0 + self.ekf.overpotential_gain) * overpotential + self.ekf.v_diffusion)
-        slope = self._slope(soc_mid)
         unsure = (1.0 - np.abs(self.hysteresis_state)) * self._h_gap if self._hyst is not None else 0.0
         ec = self.config.ekf
         rho = np.where(identified, ec.overpotential_sigma, ec.overpotential_sigma_prior)
