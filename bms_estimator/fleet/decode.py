@@ -34,17 +34,63 @@ from ..can.decoder import DecodeCounters, FrameDecoder
 from ..can.e2e import crc_rows
 from .frames import FrameTable
 
-__all__ = ["EventArrays", "decode_frames", "signal_raw"]
+__all__ = ["EventArrays", "SignalColumn", "decode_frames", "signal_raw"]
 
 
 @dataclass(frozen=True, eq=False)
-class EventArrays:
-    """E events in frame order (within one frame: the decoder's order)."""
+class SignalColumn:
+    """The events of one mapped signal: one kind and cell, its frames in order."""
 
-    frame: np.ndarray  # (E,) int64 index of the frame in the FrameTable
-    kind: np.ndarray  # (E,) int8 EventKind
-    cell: np.ndarray  # (E,) int32, -1 for pack-level values
-    value: np.ndarray  # (E,) float64, SI
+    kind: int  # EventKind
+    cell: int  # -1 for pack-level values
+    frame: np.ndarray  # (e,) int64 frame indices, ascending, no frame twice
+    value: np.ndarray  # (e,) float64, SI
+
+
+class EventArrays:
+    """E events in frame order (within one frame: the decoder's order).
+
+    :func:`decode_frames` makes them from its signal columns (:attr:`columns`, in the
+    decoder's order within a frame) and merges the columns into frame order on the first
+    read of ``frame``, ``kind``, ``cell`` or ``value``: a reader that takes the events by
+    signal (:mod:`.assemble`, where nothing reorders them) reads the columns instead and
+    the merge is never done.
+    """
+
+    def __init__(self, frame: np.ndarray, kind: np.ndarray, cell: np.ndarray, value: np.ndarray) -> None:
+        self._merged: tuple[np.ndarray, ...] | None = (frame, kind, cell, value)
+        self.columns: list[SignalColumn] | None = None
+        self._n_frames = 0
+        self.size = int(frame.size)
+
+    @classmethod
+    def from_columns(cls, columns: list[SignalColumn], n_frames: int) -> EventArrays:
+        """The events of ``columns`` (in the decoder's order within a frame) over ``n_frames`` frames."""
+        ev = cls.__new__(cls)
+        ev._merged, ev.columns, ev._n_frames = None, columns, int(n_frames)
+        ev.size = sum(int(c.frame.size) for c in columns)
+        return ev
+
+    def _arrays(self) -> tuple[np.ndarray, ...]:
+        if self._merged is None:
+            self._merged = _merge_columns(self.columns, self._n_frames)
+        return self._merged
+
+    @property
+    def frame(self) -> np.ndarray:  # (E,) int64 index of the frame in the FrameTable
+        return self._arrays()[0]
+
+    @property
+    def kind(self) -> np.ndarray:  # (E,) int8 EventKind
+        return self._arrays()[1]
+
+    @property
+    def cell(self) -> np.ndarray:  # (E,) int32, -1 for pack-level values
+        return self._arrays()[2]
+
+    @property
+    def value(self) -> np.ndarray:  # (E,) float64, SI
+        return self._arrays()[3]
 
 
 def _words(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -102,7 +148,7 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
     in_db = np.isin(frames.key, known)
     c.unknown_id = int(np.count_nonzero(~in_plan & ~in_db))
     c.unmapped = int(np.count_nonzero(~in_plan & in_db))
-    parts: list[tuple[np.ndarray, int, int, int, np.ndarray]] = []  # frame indices, order, kind, cell, values
+    parts: list[SignalColumn] = []  # in the decoder's order within a frame
     # the frames of each planned id, in frame order: one stable sort of the plan index (radix, int16)
     # instead of a pass over all frames per id
     pos = np.searchsorted(planned, frames.key)
@@ -151,13 +197,12 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
                     has_entries |= sel
                     groups.append((sel, entries))
         c.unmapped += int(np.count_nonzero(~has_entries))
-        order_base = 0
         for sel, entries in groups:
             rows = np.flatnonzero(sel)
             le, be = u_le[rows], u_be[rows]
             mux_rows = mux[rows] if mux is not None else None
-            frames_of_rows = idx[rows]  # one array for all the group's signals: _merge_parts sees them share it
-            for j, (kind, cell, sname, a, b, lo, hi, na_raws, flags) in enumerate(entries):
+            frames_of_rows = idx[rows]  # one array for all the group's signals: _merge_columns sees them share it
+            for kind, cell, sname, a, b, lo, hi, na_raws, flags in entries:
                 raw = signal_raw(sigs[sname], le, be)
                 keep = np.ones(rows.size, dtype=bool)
                 if flags:
@@ -191,20 +236,17 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
                 else:
                     k = np.flatnonzero(keep)
                     frame_of, value = idx[rows[k]], si[k]
-                parts.append((frame_of, order_base + j, int(kind), cell, value))
-            order_base += len(entries)
-    if parts:
-        ev = _merge_parts(parts, m)
-    else:
-        ev = EventArrays(np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0, np.int32), np.zeros(0))
-    c.events = int(ev.frame.size)
+                parts.append(SignalColumn(int(kind), cell, frame_of, value))
+    ev = EventArrays.from_columns(parts, m)
+    c.events = ev.size
     return ev, c
 
 
-def _merge_parts(parts: list, m: int) -> EventArrays:
-    """The parts' events in frame order, within a frame in the decoder's order, by placement instead of a sort.
+def _merge_columns(parts: list[SignalColumn], m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(frame, kind, cell, value) of the columns' events in frame order, within a frame in the decoder's
+    order, by placement instead of a sort.
 
-    A part is one signal's events (frame indices ascending, no frame twice); the parts of a
+    A column is one signal's events (frame indices ascending, no frame twice); the columns of a
     frame come in the list in the decoder's order (``decode_frames`` appends them so). With
     ``n_f`` the events of frame ``f``, the frame column is ``f`` repeated ``n_f`` times, and
     ``f`` owns the slots ``[o_f, o_f + n_f)`` (``o`` the running sum of ``n``). Consecutive
@@ -212,7 +254,8 @@ def _merge_parts(parts: list, m: int) -> EventArrays:
     ``P`` columns: its frames' next free slots are read once, column ``j`` goes to slot + j.
     """
     blocks: list[tuple[np.ndarray, list]] = []  # (frames, [(kind, cell, values), ...])
-    for fr, _order, k, c, v in parts:
+    for col in parts:
+        fr, k, c, v = col.frame, col.kind, col.cell, col.value
         last = blocks[-1][0] if blocks else None
         if last is not None and (last is fr or (last.size == fr.size and np.array_equal(last, fr))):
             blocks[-1][1].append((k, c, v))
@@ -234,7 +277,7 @@ def _merge_parts(parts: list, m: int) -> EventArrays:
             cell[at] = c
             value[at] = v
         nxt[fr] = slot + len(cols)
-    return EventArrays(frame, kind, cell, value)
+    return frame, kind, cell, value
 
 
 def _e2e_keep(plan, sigs: dict, data: np.ndarray, u_le: np.ndarray, u_be: np.ndarray, mux: np.ndarray | None,
@@ -273,8 +316,8 @@ def _decode_per_frame(decoder: FrameDecoder, frames: FrameTable, idx: np.ndarray
             msg = can.Message(timestamp=float(frames.t_s[i]), arbitration_id=key & 0x1FFFFFFF,
                               is_extended_id=bool(key & 0x8000_0000), is_fd=True,
                               data=bytes(frames.data[i, : int(frames.length[i])]))
-            for j, (kind, cell, value) in enumerate(decoder.decode(msg)):
-                parts.append((np.array([i]), j, int(kind), cell, np.array([value])))
+            for kind, cell, value in decoder.decode(msg):
+                parts.append(SignalColumn(int(kind), cell, np.array([i]), np.array([value])))
         per = decoder.counters
     finally:
         decoder.counters = saved
