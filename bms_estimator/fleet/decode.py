@@ -161,11 +161,15 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
         if idx.size == 0:
             continue
         ign = frames.ignored[idx]
-        c.ignored += int(np.count_nonzero(ign))
-        idx = idx[~ign]
+        n_ign = int(np.count_nonzero(ign))
+        c.ignored += n_ign
+        if n_ign:
+            idx = idx[~ign]
         short = frames.length[idx] < plan.length
-        c.short_frame += int(np.count_nonzero(short))
-        idx = idx[~short]
+        n_short = int(np.count_nonzero(short))
+        c.short_frame += n_short
+        if n_short:
+            idx = idx[~short]
         if idx.size == 0:
             continue
         if not _fits_words(plan.message):
@@ -178,30 +182,39 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
             mux = signal_raw(sigs[plan.mux_signal], u_le, u_be)
             defined = np.array(sorted(plan.message._codecs["multiplexers"][plan.mux_signal]), dtype=np.int64)  # noqa: SLF001
             ok = np.isin(mux, defined)
-            c.bad_mux += int(np.count_nonzero(~ok))
-            idx, u_le, u_be, mux = idx[ok], u_le[ok], u_be[ok], mux[ok]
+            n_bad = int(np.count_nonzero(~ok))
+            c.bad_mux += n_bad
+            if n_bad:  # (none dropped, the usual log: no copies)
+                idx, u_le, u_be, mux = idx[ok], u_le[ok], u_be[ok], mux[ok]
         if plan.e2e is not None:
             ok = _e2e_keep(plan, sigs, frames.data[idx, : plan.length], u_le, u_be, mux, c)
-            idx, u_le, u_be = idx[ok], u_le[ok], u_be[ok]
-            mux = mux[ok] if mux is not None else None
+            if not ok.all():
+                idx, u_le, u_be = idx[ok], u_le[ok], u_be[ok]
+                mux = mux[ok] if mux is not None else None
         c.decoded += int(idx.size)
-        has_entries = np.zeros(idx.size, dtype=bool)
-        groups: list[tuple[np.ndarray, list]] = []
+        # the rows of each entry group, in frame order: all rows for the common entries, per multiplexer
+        # value the rows of that value (one stable sort of the values instead of a pass per value)
+        groups: list[tuple[np.ndarray | None, list]] = []  # (rows, or None for all, entries)
+        mapped = 0
         if plan.common:
-            has_entries[:] = True
-            groups.append((np.ones(idx.size, dtype=bool), plan.common))
+            groups.append((None, plan.common))
         if mux is not None:
+            order, values, bnd = _stable_groups(mux)
+            at = {v: j for j, v in enumerate(values.tolist())}
             for mux_value, entries in plan.by_mux.items():
-                sel = mux == mux_value
-                if sel.any() and entries:
-                    has_entries |= sel
-                    groups.append((sel, entries))
-        c.unmapped += int(np.count_nonzero(~has_entries))
-        for sel, entries in groups:
-            rows = np.flatnonzero(sel)
-            le, be = u_le[rows], u_be[rows]
-            mux_rows = mux[rows] if mux is not None else None
-            frames_of_rows = idx[rows]  # one array for all the group's signals: _merge_columns sees them share it
+                j = at.get(mux_value)
+                if j is not None and entries:
+                    rows = order[bnd[j]:bnd[j + 1]]
+                    mapped += rows.size
+                    groups.append((rows, entries))
+        c.unmapped += 0 if plan.common else int(idx.size) - mapped
+        for rows, entries in groups:
+            if rows is None:  # every row: the arrays as they are
+                rows, le, be, mux_rows, frames_of_rows = np.arange(idx.size), u_le, u_be, mux, idx
+            else:
+                le, be = u_le[rows], u_be[rows]
+                mux_rows = mux[rows] if mux is not None else None
+                frames_of_rows = idx[rows]  # one array for all the group's signals: _merge_columns sees them share it
             for kind, cell, sname, a, b, lo, hi, na_raws, flags in entries:
                 raw = signal_raw(sigs[sname], le, be)
                 keep = np.ones(rows.size, dtype=bool)
@@ -240,6 +253,19 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
     ev = EventArrays.from_columns(parts, m)
     c.events = ev.size
     return ev, c
+
+
+def _stable_groups(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(order, distinct, bounds)`` of integer ``values``: ``order`` their stable sort (a radix sort on
+    int16 keys where the values fit), ``distinct`` the values ascending, the rows holding
+    ``distinct[j]`` ``order[bounds[j]:bounds[j + 1]]``, ascending."""
+    keys = values
+    if values.size and int(values.min()) >= -(2**15) and int(values.max()) < 2**15:
+        keys = values.astype(np.int16)
+    order = np.argsort(keys, kind="stable")
+    s = values[order]
+    starts = np.flatnonzero(np.concatenate(([True], s[1:] != s[:-1]))) if s.size else np.zeros(0, np.int64)
+    return order, s[starts], np.append(starts, s.size)
 
 
 def _merge_columns(parts: list[SignalColumn], m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -293,8 +319,12 @@ def _e2e_keep(plan, sigs: dict, data: np.ndarray, u_le: np.ndarray, u_be: np.nda
     if e2e.counter is not None:
         rows = np.flatnonzero(keep)
         value = signal_raw(sigs[e2e.counter], u_le[rows], u_be[rows])
-        group = mux[rows] if mux is not None else np.zeros(rows.size, np.int64)
-        order = np.argsort(group, kind="stable")  # frame order within each multiplexer value
+        if mux is not None:
+            group = mux[rows]
+            order = _stable_groups(group)[0]  # frame order within each multiplexer value
+        else:  # one group: frame order
+            group = np.zeros(rows.size, np.int64)
+            order = np.arange(rows.size)
         g, v = group[order], value[order]
         skip = np.zeros(rows.size, dtype=bool)
         follows = g[1:] == g[:-1]  # not the first frame of its multiplexer value
