@@ -34,6 +34,7 @@ from .lif import LifHistory
 from .params import (
     PhysicalParams,
     ct_c0_from_theta,
+    ct_physical_from_rows,
     ct_physical_from_theta,
     ct_theta_from_physical,
     dt_physical_from_theta,
@@ -374,14 +375,15 @@ class LifEstimator(Identifier):
         self.history = LifHistory(self.n_cells, self.config.window, self.dt_s, 1.0)
         self._scale = self.history.scale[None, :] * np.ones((self.n_cells, 1))
         self._scale[:, 2:5] *= self.i_ref_a[:, None]
+        self._scale_rows = np.ascontiguousarray(self._scale.T)  # (6, N): _physical's divisor
 
     def _theta_s_from_physical(self, r0, r1, tau1, r2, tau2, c0):
         return ct_theta_from_physical(r0, r1, tau1, r2, tau2, c0) * self._scale
 
     def _physical(self, theta_s):
-        return ct_physical_from_theta(
-            theta_s / self._scale, tau_min_s=self.config.tau_min_s, tau_max_s=self.config.tau_max_s
-        )
+        # ct_physical_from_theta(theta_s / self._scale), the division written parameter-first (contiguous rows)
+        rows = np.divide(theta_s.T, self._scale_rows, out=np.empty((6, self.n_cells)))
+        return ct_physical_from_rows(rows, tau_min_s=self.config.tau_min_s, tau_max_s=self.config.tau_max_s)
 
     def _regress(self, i, v, ok, aux=None):
         # hold the last valid overpotential for a bad sample; the window stays tainted for 2L+1 samples
