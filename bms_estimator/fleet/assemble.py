@@ -214,6 +214,7 @@ def _by_signal_columns(t_frames: np.ndarray, columns: list, n: int) -> tuple[np.
         by_key.setdefault(_signal_key(col.kind, col.cell, n), []).append(col)
     keys = sorted(by_key)
     ts, vs = [], []
+    times: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # the signals of one message share one frame array
     for key in keys:
         cols = by_key[key]
         if len(cols) == 1:
@@ -223,7 +224,11 @@ def _by_signal_columns(t_frames: np.ndarray, columns: list, n: int) -> tuple[np.
             v = np.concatenate([c.value for c in cols])
             o = np.argsort(fr, kind="stable")
             fr, v = fr[o], v[o]
-        ts.append(t_frames[fr])
+        if id(fr) in times and times[id(fr)][0] is fr:
+            ts.append(times[id(fr)][1])
+        else:
+            ts.append(t_frames[fr])
+            times[id(fr)] = (fr, ts[-1])
         vs.append(v)
     first = np.concatenate(([0], np.cumsum([x.size for x in ts], dtype=np.int64)))
     at = np.searchsorted(np.asarray(keys, dtype=np.int64), np.arange(4 * (n + 1) + 1, dtype=np.int64), side="left")
