@@ -164,6 +164,8 @@ class SocEstimator:
         if q_table is not None:
             self.capacity_ah[:] = q_table
         self.capacity_initial_ah = self.capacity_ah.copy()
+        lo, hi = config.capacity_bounds  # the capacity estimate's bounds, per cell
+        self._capacity_lo_ah, self._capacity_hi_ah = lo * self.capacity_stated_ah, hi * self.capacity_stated_ah
         self._rel_q = np.ones(self.n_cells)
         self.capacity_estimated = np.zeros(self.n_cells, dtype=bool)
         self.identifier: Identifier = make_identifier(self.n_cells, self.dt_s, self.capacity_stated_ah, config.identifier)
@@ -321,7 +323,7 @@ class SocEstimator:
                 if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
                     self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, start)
         # 1. coulomb counting (the previous sample's current moved the SOC to now)
-        q_now = self.capacity_ah * self._rel_q
+        q_now = self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah  # (x 1.0 is x: no copy)
         dq = self._i_prev * (self.dt_s / 3600.0)
         dz = dq / q_now
         have_soc = np.isfinite(self.soc) if read_now is not None else ~unset  # (the SOC moved only if unset)
@@ -330,7 +332,7 @@ class SocEstimator:
         counted = clip(self.soc + dz, 0.0, 1.0)
         self.soc = counted if every_soc else np.where(have_soc, counted, self.soc)
         self.charge_ah += dq
-        self._charge_ref_ah += dq / self._rel_q
+        self._charge_ref_ah += dq / self._rel_q if self._t_aware else dq
         i_prev = self._i_prev
         self._i_prev = i_use
         if self._hyst is not None:
@@ -366,7 +368,7 @@ class SocEstimator:
         tau = np.empty((self.n_cells, 2))
         tau[:, 0], tau[:, 1] = p.tau1_s, p.tau2_s
         live = np.isfinite(self.soc)
-        self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q, r, tau, live)
+        self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah, r, tau, live)
         overpotential = p.r0_ohm * i_now + self.ekf.v_rc[:, 0] + self.ekf.v_rc[:, 1]  # the identified model's
         identified = self.identifier.identified
         if any_cell(self.identifier.newly_identified):  # the prediction g corrected is gone: g restarts
@@ -378,9 +380,7 @@ class SocEstimator:
         d_soc, d_q = self.ekf.correct(innovation, slope, cell_vector(unsure, self.n_cells), use,
                                       rho * np.abs(overpotential), overpotential)
         if self.config.estimate_capacity:
-            self.capacity_ah = self.capacity_ah * (1.0 + d_q)
-            lo, hi = self.config.capacity_bounds
-            self.capacity_ah = clip(self.capacity_ah, lo * self.capacity_stated_ah, hi * self.capacity_stated_ah)
+            self.capacity_ah = clip(self.capacity_ah * (1.0 + d_q), self._capacity_lo_ah, self._capacity_hi_ah)
             self.capacity_estimated |= self.ekf.capacity_variance < (0.5 * self.config.ekf.capacity_sigma) ** 2
         self.soc = clip(self.soc + d_soc, 0.0, 1.0)
         # The OCV the identifier saw moves with the SOC, as in a c0 compensation: its history and
