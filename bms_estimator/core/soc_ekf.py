@@ -104,7 +104,7 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge, Gt
 
-from .cells import all_cells, clip
+from .cells import all_cells, any_cell, clip
 
 __all__ = ["SocEkfConfig", "SocEkf"]
 
@@ -302,7 +302,9 @@ class SocEkf:
         s = pc[0] * slope_v + pc[1] + pc[4] * overpotential_v + r_v
         k = pc / s
         held = (self.soc_sigma > cfg.capacity_learn_max_soc_sigma) | (slope_v > cfg.capacity_learn_max_slope_v)
-        k[3] = np.where(held, 0.0, k[3])
+        any_held = any_cell(held)  # (none, the usual sample: the selects below would leave every value as it is)
+        if any_held:
+            k[3] = np.where(held, 0.0, k[3])
         every = all_cells(use)  # the usual sample: the selects by use would copy their first argument
         e = innovation_v if every else np.where(use, innovation_v, 0.0)
         dx = (k * e).T
@@ -312,7 +314,8 @@ class SocEkf:
         pp = np.multiply(pc[:, None, :], k[None, :, :], out=np.empty_like(p))  # pc pc' / S (k = pc / S here)
         pp[:, 3] = pc * (pc[3] / s)  # the held capacity row of k is not pc / S
         p_new = np.subtract(p, pp, out=pp)
-        p_new[3, 3] += np.where(held, pc[3] ** 2 / s, 0.0)
+        if any_held:  # (adding 0.0 would change nothing either: after predict the variance is never -0.0)
+            p_new[3, 3] += np.where(held, pc[3] ** 2 / s, 0.0)
         self._pt = p_new if every else np.where(use, p_new, p)
         x = self.x + dx
         x[:, 2] = np.maximum(x[:, 2], 0.0)  # a resistance is never negative

@@ -93,9 +93,13 @@ class EventArrays:
         return self._arrays()[3]
 
 
-def _words(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    b8 = np.ascontiguousarray(data[:, :8])
-    return b8.view("<u8").ravel(), b8.view(">u8").ravel()
+def _words(data: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first 8 payload bytes of frames ``idx`` as little- and big-endian ``uint64`` (the values, native order)."""
+    if data.shape[1] == 8 and data.flags.c_contiguous:  # one 8-byte word per frame: gather the words themselves
+        u_le = data.view("<u8").ravel()[idx]
+    else:
+        u_le = np.ascontiguousarray(data[idx, :8]).view("<u8").ravel()
+    return u_le, u_le.byteswap()
 
 
 def signal_raw(sig, u_le: np.ndarray, u_be: np.ndarray) -> np.ndarray:
@@ -175,7 +179,7 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
         if not _fits_words(plan.message):
             _decode_per_frame(decoder, frames, idx, c, parts)
             continue
-        u_le, u_be = _words(frames.data[idx])
+        u_le, u_be = _words(frames.data, idx)
         sigs = {s.name: s for s in plan.message.signals}
         mux = None
         if plan.mux_signal is not None:
@@ -187,7 +191,7 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
             if n_bad:  # (none dropped, the usual log: no copies)
                 idx, u_le, u_be, mux = idx[ok], u_le[ok], u_be[ok], mux[ok]
         if plan.e2e is not None:
-            ok = _e2e_keep(plan, sigs, frames.data[idx, : plan.length], u_le, u_be, mux, c)
+            ok = _e2e_keep(plan, sigs, frames, idx, u_le, u_be, mux, c)
             if not ok.all():
                 idx, u_le, u_be = idx[ok], u_le[ok], u_be[ok]
                 mux = mux[ok] if mux is not None else None
@@ -309,12 +313,13 @@ def _merge_columns(parts: list[SignalColumn], m: int) -> tuple[np.ndarray, np.nd
     return frame, kind, cell, value
 
 
-def _e2e_keep(plan, sigs: dict, data: np.ndarray, u_le: np.ndarray, u_be: np.ndarray, mux: np.ndarray | None,
-              c: DecodeCounters) -> np.ndarray:
-    """Which frames pass the plan's end-to-end checks (the decoder's ``_e2e_ok`` on arrays); counts the rest."""
+def _e2e_keep(plan, sigs: dict, frames: FrameTable, idx: np.ndarray, u_le: np.ndarray, u_be: np.ndarray,
+              mux: np.ndarray | None, c: DecodeCounters) -> np.ndarray:
+    """Which of the frames ``idx`` pass the plan's end-to-end checks (the decoder's ``_e2e_ok`` on arrays); counts the rest."""
     e2e = plan.e2e
-    keep = np.ones(len(data), dtype=bool)
+    keep = np.ones(idx.size, dtype=bool)
     if e2e.crc_algorithm is not None:
+        data = frames.data[idx, : plan.length]
         k = e2e.crc_byte
         bad = crc_rows(e2e.crc_algorithm, np.delete(data, k, axis=1)) != data[:, k]
         c.e2e_crc += int(np.count_nonzero(bad))
