@@ -149,9 +149,10 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
     known = np.array(sorted(decoder._known), dtype=np.int64)  # noqa: SLF001
     planned = np.array(sorted(plans), dtype=np.int64)
     in_plan = np.isin(frames.key, planned)
-    in_db = np.isin(frames.key, known)
-    c.unknown_id = int(np.count_nonzero(~in_plan & ~in_db))
-    c.unmapped = int(np.count_nonzero(~in_plan & in_db))
+    n_other = m - int(np.count_nonzero(in_plan))
+    in_db = np.isin(frames.key[~in_plan], known) if n_other else np.zeros(0, bool)  # (of the frames not planned)
+    c.unmapped = int(np.count_nonzero(in_db))
+    c.unknown_id = n_other - c.unmapped
     parts: list[SignalColumn] = []  # in the decoder's order within a frame
     # the frames of each planned id, in frame order: one stable sort of the plan index (radix, int16)
     # instead of a pass over all frames per id
