@@ -311,8 +311,9 @@ class SocEstimator:
         i_ok = np.isfinite(i)
         i_use = np.where(i_ok, i, 0.0)
         unset = ~np.isfinite(self.soc)
+        any_unset = any_cell(unset)
         read_now = None  # SOC read from this sample's voltage (none in the usual sample): not to be used a second time
-        if any_cell(unset):
+        if any_unset:
             read_now = unset & ok
             start = read_now
             if any_cell(start):
@@ -326,8 +327,9 @@ class SocEstimator:
         q_now = self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah  # (x 1.0 is x: no copy)
         dq = self._i_prev * (self.dt_s / 3600.0)
         dz = dq / q_now
-        have_soc = np.isfinite(self.soc) if read_now is not None else ~unset  # (the SOC moved only if unset)
-        every_soc = all_cells(have_soc)  # the usual sample: no select needed below
+        # (the SOC moved only if unset; None: every cell has one, the usual sample: no select needed below)
+        have_soc = None if not any_unset else np.isfinite(self.soc)
+        every_soc = have_soc is None or all_cells(have_soc)
         # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
         counted = clip(self.soc + dz, 0.0, 1.0)
         self.soc = counted if every_soc else np.where(have_soc, counted, self.soc)
@@ -345,7 +347,7 @@ class SocEstimator:
             soc_mid = np.where(have_soc, soc_mid, 0.5)
         ocv_v, slope_mid = self._ocv_and_slope(soc_mid)
         self.v_o = v - ocv_v
-        use = ok & i_ok & have_soc
+        use = ok & i_ok if have_soc is None else ok & i_ok & have_soc
         every_use = all_cells(use)
         # 3. identification (v_o itself when every cell is used: what the select gives; read only)
         self.identifier.update(i_use, self.v_o if every_use else np.where(use, self.v_o, np.nan), use)
@@ -365,8 +367,9 @@ class SocEstimator:
         p = self.identifier.params
         r = np.empty((self.n_cells, 2))  # (N, 2) pairs, filled column by column (np.stack's values)
         r[:, 0], r[:, 1] = p.r1_ohm, p.r2_ohm
-        tau = np.empty((self.n_cells, 2))
-        tau[:, 0], tau[:, 1] = p.tau1_s, p.tau2_s
+        tau = np.empty((self.n_cells, 2))  # p.tau1_s, p.tau2_s, multiplied into place
+        np.multiply(p.r1_ohm, p.c1_f, out=tau[:, 0])
+        np.multiply(p.r2_ohm, p.c2_f, out=tau[:, 1])
         live = np.isfinite(self.soc)
         self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah, r, tau, live)
         overpotential = p.r0_ohm * i_now + self.ekf.v_rc[:, 0] + self.ekf.v_rc[:, 1]  # the identified model's
@@ -376,7 +379,8 @@ class SocEstimator:
         innovation = self.v_o - ((1.0 + self.ekf.overpotential_gain) * overpotential + self.ekf.v_diffusion)
         unsure = (1.0 - np.abs(self.hysteresis_state)) * self._h_gap if self._hyst is not None else 0.0
         ec = self.config.ekf
-        rho = np.where(identified, ec.overpotential_sigma, ec.overpotential_sigma_prior)
+        rho = (ec.overpotential_sigma if all_cells(identified)  # (the usual sample: the select's one value)
+               else np.where(identified, ec.overpotential_sigma, ec.overpotential_sigma_prior))
         d_soc, d_q = self.ekf.correct(innovation, slope, cell_vector(unsure, self.n_cells), use,
                                       rho * np.abs(overpotential), overpotential)
         if self.config.estimate_capacity:
