@@ -463,3 +463,21 @@ def test_tables_sharing_a_locator_answer_as_if_each_located_its_own_query() -> N
     v = curve.ocv(x[:5])  # the inverse moves segment indices of its own: the kept answer stays intact
     curve.soc_from_ocv(v + 0.2)
     assert np.array_equal(curve.ocv(x[:5]), v, equal_nan=True)
+
+
+@pytest.mark.parametrize("hysteresis", [True, False])
+def test_ocv_slope_hysteresis_in_one_lookup_equals_the_three_methods(hysteresis: bool) -> None:
+    """The estimator's one-lookup read gives the three methods' values bit for bit, inside the
+    table, beyond both ends (the linear extrapolation, the end slopes) and at NaN."""
+    curve = knot_curve(hysteresis=hysteresis)
+    x = np.random.default_rng(7).uniform(-0.05, 1.05, 96)
+    x[[3, 4, 5]] = [np.nan, 0.0, 1.0]
+    v, d, h = curve.ocv_slope_hysteresis(x)
+    assert np.array_equal(v, knot_curve(hysteresis=hysteresis).ocv(x), equal_nan=True)
+    assert np.array_equal(d, knot_curve(hysteresis=hysteresis).docv_dsoc(x), equal_nan=True)
+    if hysteresis:
+        assert np.array_equal(h, knot_curve().hysteresis(x), equal_nan=True)
+    else:
+        assert h is None
+    inside = np.linspace(0.01, 0.99, 96)  # no cell beyond the ends: the slope table's values as they are
+    assert np.array_equal(curve.ocv_slope_hysteresis(inside)[1], knot_curve(hysteresis=hysteresis).docv_dsoc(inside))

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cells import cell_vector
+from .cells import all_cells, cell_vector
 
 __all__ = [
     "HysteresisParams",
@@ -169,11 +169,14 @@ class HysteresisState:
     def update(self, current_a: float | np.ndarray) -> np.ndarray:
         """Hysteresis voltage ``H[k]`` of this sample (then the state moves on with its current)."""
         i = cell_vector(current_a, self.n_cells)
-        i = np.where(np.isfinite(i), i, 0.0)
+        finite = np.isfinite(i)
+        if not all_cells(finite):
+            i = np.where(finite, i, 0.0)
         sg = np.sign(i)
-        self.s = np.where(np.abs(i) > self.rest_a, sg, self.s)
+        magnitude = np.abs(i)
+        self.s = np.where(magnitude > self.rest_a, sg, self.s)
         self.voltage_v = self.m_v * self.h + self.m0_v * self.s
-        a = np.exp(-np.abs(i) * self.gamma * (self.dt_s / 3600.0) / self.capacity_ah)
+        a = np.exp(-magnitude * self.gamma * (self.dt_s / 3600.0) / self.capacity_ah)
         self.h = a * self.h + (1.0 - a) * sg
         return self.voltage_v
 

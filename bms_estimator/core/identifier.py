@@ -34,6 +34,7 @@ from .lif import LifHistory
 from .params import (
     PhysicalParams,
     ct_c0_from_theta,
+    ct_physical_from_rows,
     ct_physical_from_theta,
     ct_theta_from_physical,
     dt_physical_from_theta,
@@ -207,34 +208,39 @@ class Identifier:
         y, phi, ready = self._regress(i, v, ok)
         learn = ready & np.isfinite(y) & np.logical_and.reduce(np.isfinite(phi), axis=1)
         was_init = self.rls.initialised.copy()
+        every_init = all_cells(was_init)  # the usual sample: no cell starts now
         # (every cell learning, the usual sample: y itself, the values the select gives; read only)
-        self.error = self._learn(phi, y if all_cells(learn) else np.where(learn, y, 0.0), learn)
+        learn_all = all_cells(learn)
+        self.error = self._learn(phi, y if learn_all else np.where(learn, y, 0.0), learn)
         if self.config.c0_prior_weight > 0:
             self._c0_prior(learn & was_init)
         theta = self.rls.theta
-        new = self.rls.initialised & ~was_init
+        new = None if every_init else self.rls.initialised & ~was_init  # (None: no cell new)
         params = self._physical(theta)
         admissible = params.admissible & (np.abs(params.c0_v) <= self.config.c0_max_v)
         params = PhysicalParams(*params._arrays(), admissible=admissible, dynamics_ok=params.dynamics_ok)
         good = admissible & self.rls.initialised
         # a fresh block-LS start that is not physical: the block grows by a sample and is
         # solved again; once it is init_max_samples long the cell starts from the prior
-        bad_start = new & ~good
-        if any_cell(bad_start):
+        bad_start = None if new is None else new & ~good
+        if bad_start is not None and any_cell(bad_start):
             longest = max(self.config.init_max_samples, self.config.init_samples)
             grow = bad_start & (self.rls.block_samples < longest)
             if any_cell(grow):
                 self.rls.extend_block(grow)
             give_up = bad_start & ~grow
             theta[give_up] = self._prior_theta_s[give_up]
-        rejected = self.rls.initialised & ~params.admissible & ~new
+        rejected = self.rls.initialised & ~params.admissible
+        if new is not None:
+            rejected &= ~new
+        accepted = good if learn_all else good & learn
         if any_cell(rejected):
             self.rejections += rejected
             self.rls.reset_theta(rejected, self.theta_good)
             self._rejected_run = np.where(rejected, self._rejected_run + 1,
-                                          np.where(good & learn, 0, self._rejected_run))
+                                          np.where(accepted, 0, self._rejected_run))
         else:  # the usual sample: nothing rejected
-            self._rejected_run = np.where(good & learn, 0, self._rejected_run)
+            self._rejected_run = np.where(accepted, 0, self._rejected_run)
         n_stuck = self.config.restart_after_rejections
         if n_stuck > 0:
             stuck = self._rejected_run >= n_stuck
@@ -242,7 +248,7 @@ class Identifier:
                 self.rls.restart(stuck)
                 self._rejected_run[stuck] = 0
                 self.restarts += stuck
-        self.accepted = good & learn
+        self.accepted = accepted
         if all_cells(self.identified):  # the usual sample: nothing new
             if any_cell(self.newly_identified):
                 self.newly_identified = np.zeros(self.n_cells, dtype=bool)
@@ -296,10 +302,12 @@ class Identifier:
         d = cell_vector(dv, self.n_cells)  # read only
         # the callers shift when any cell has a shift (``cells`` given: any of those): with groups of
         # independent packs (rls.set_groups) a group without one keeps its parameters, as alone
-        moved = self.rls.group_any(d.astype(bool) if cells is None else cells)
+        moved = self.rls.group_any(d.astype(bool) if cells is None else cells) if self.rls.grouped else None
         if cells is not None:
             d = np.where(np.asarray(cells, dtype=bool), d, 0.0)
-        d = np.where(np.isfinite(d), d, 0.0)
+        finite = np.isfinite(d)
+        if not all_cells(finite):
+            d = np.where(finite, d, 0.0)
         self._shift_history(d)
         self._shift_theta(self.rls.theta, d)
         self._shift_theta(self.theta_good, d)
@@ -374,21 +382,23 @@ class LifEstimator(Identifier):
         self.history = LifHistory(self.n_cells, self.config.window, self.dt_s, 1.0)
         self._scale = self.history.scale[None, :] * np.ones((self.n_cells, 1))
         self._scale[:, 2:5] *= self.i_ref_a[:, None]
+        self._scale_rows = np.ascontiguousarray(self._scale.T)  # (6, N): _physical's divisor
 
     def _theta_s_from_physical(self, r0, r1, tau1, r2, tau2, c0):
         return ct_theta_from_physical(r0, r1, tau1, r2, tau2, c0) * self._scale
 
     def _physical(self, theta_s):
-        return ct_physical_from_theta(
-            theta_s / self._scale, tau_min_s=self.config.tau_min_s, tau_max_s=self.config.tau_max_s
-        )
+        # ct_physical_from_theta(theta_s / self._scale), the division written parameter-first (contiguous rows)
+        rows = np.divide(theta_s.T, self._scale_rows, out=np.empty((6, self.n_cells)))
+        return ct_physical_from_rows(rows, tau_min_s=self.config.tau_min_s, tau_max_s=self.config.tau_max_s)
 
     def _regress(self, i, v, ok, aux=None):
         # hold the last valid overpotential for a bad sample; the window stays tainted for 2L+1 samples
         v_in = np.where(ok, v, self._v_hold)
         self._v_hold = v_in
         i_c = i / self.i_ref_a
-        self._taint = np.where(ok, np.maximum(self._taint - 1, 0), self.history.length)
+        if not (all_cells(ok) and not any_cell(self._taint)):  # (every window clean and every sample good: stays 0)
+            self._taint = np.where(ok, np.maximum(self._taint - 1, 0), self.history.length)
         i_c = np.where(np.isfinite(i_c), i_c, 0.0)
         y, phi = self.history.push(v_in, i_c, aux, self._extra_inputs(i_c))
         # history.push scaled the current columns by 1/T, 1/T^2 only (i_ref = 1); currents came in C-rate

@@ -251,6 +251,23 @@ class OcvCurve:
             return self._hyst.scalar(float(s))
         return self._hyst(s)
 
+    def ocv_slope_hysteresis(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``(ocv(soc), docv_dsoc(soc), hysteresis(soc))`` of a 1-D float64 ``soc``, the grid located once.
+
+        Each value is what its own method gives, bit for bit (the same operations on the same
+        segment index and fraction); the hysteresis is ``None`` when the curve has none. For the
+        estimator, which reads all three at one SOC every sample.
+        """
+        k, f = self._fwd._locate.locate(soc)
+        v = self._fwd.at(k, f)
+        v += self._slope_lo * np.minimum(soc - self._s0, 0.0) + self._slope_hi * np.maximum(soc - self._s1, 0.0)
+        d = self._slope.at(k, f)
+        below, above = soc < self._s0, soc > self._s1
+        if any_cell(below) or any_cell(above):
+            d = np.where(below, max(self._slope_lo, MIN_SLOPE_V), d)
+            d = np.where(above, max(self._slope_hi, MIN_SLOPE_V), d)
+        return v, d, (None if self._hyst is None else self._hyst.at(k, f))
+
     @property
     def has_hysteresis(self) -> bool:
         return self.hysteresis_v is not None
@@ -691,6 +708,13 @@ class _GridLocator:
         memo = self._memo
         if key is not None and memo is not None and memo[0] == key:
             return memo[1], memo[2]
+        k, f = self.locate(x)
+        if key is not None:
+            self._memo = (key, k, f)
+        return k, f
+
+    def locate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(k, f)`` of ``x`` computed (not kept): for a caller that reads every table at ``x`` itself."""
         u = (x - self.x0) * self.inv_h
         k = np.floor(u)
         clip(k, 0, self.n - 2, out=k)
@@ -699,10 +723,7 @@ class _GridLocator:
             k[nan] = 0
         f = u - k
         clip(f, 0.0, 1.0, out=f)  # NaN stays NaN
-        k = k.astype(np.intp)
-        if key is not None:
-            self._memo = (key, k, f)
-        return k, f
+        return k.astype(np.intp), f
 
 
 class _UniformTable:
@@ -728,6 +749,10 @@ class _UniformTable:
         x1 = np.atleast_1d(x)
         k, f = self._locate(x1)
         return (self.y[k] + self.dy[k] * f).reshape(np.shape(x))
+
+    def at(self, k: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """The table at segment ``k``, fraction ``f`` (a locator's answer on this table's grid)."""
+        return self.y[k] + self.dy[k] * f
 
     def scalar(self, x: float) -> float:
         u = (x - self.x0) * self.inv_h

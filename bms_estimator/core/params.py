@@ -38,6 +38,7 @@ __all__ = [
     "PhysicalParams",
     "ct_theta_from_physical",
     "ct_physical_from_theta",
+    "ct_physical_from_rows",
     "ct_c0_from_theta",
     "dt_theta_from_physical",
     "dt_physical_from_theta",
@@ -105,19 +106,19 @@ R_MIN_OHM = 1e-9
 
 
 def _check_dynamics(
-    r0: np.ndarray,
-    r1: np.ndarray,
-    r2: np.ndarray,
+    r: np.ndarray,
     tau1: np.ndarray,
     tau2: np.ndarray,
     real: np.ndarray,
     tau_min_s: float,
     tau_max_s: float,
 ) -> np.ndarray:
-    """The checks but c0's: real poles, finite resistances above a nano-ohm, ordered time constants in range."""
-    ok = real & np.isfinite(r0) & np.isfinite(r1) & np.isfinite(r2)
+    """The checks but c0's: real poles, finite resistances ``r`` = (R0, R1, R2) stacked (3, ...) above a
+    nano-ohm, ordered time constants in range."""
     # a resistance below a nano-ohm is no cell's (and its C = tau / R overflows)
-    ok &= (r0 > R_MIN_OHM) & (r1 > R_MIN_OHM) & (r2 > R_MIN_OHM)
+    fine = np.isfinite(r)
+    fine &= r > R_MIN_OHM
+    ok = real & fine[0] & fine[1] & fine[2]
     ok &= (tau1 >= tau_min_s) & (tau2 <= tau_max_s) & (tau1 < tau2)
     return ok
 
@@ -133,7 +134,7 @@ def _check(
     tau_min_s: float,
     tau_max_s: float,
 ) -> np.ndarray:
-    return _check_dynamics(r0, r1, r2, tau1, tau2, real, tau_min_s, tau_max_s) & np.isfinite(c0)
+    return _check_dynamics(np.stack(np.broadcast_arrays(r0, r1, r2)), tau1, tau2, real, tau_min_s, tau_max_s) & np.isfinite(c0)
 
 
 def ct_theta_from_physical(
@@ -164,34 +165,58 @@ def ct_physical_from_theta(
 ) -> PhysicalParams:
     """Physical 2-RC parameters from CT theta (..., 6); non-physical ones flagged."""
     th = np.asarray(theta, dtype=float)
-    th1, th2, th3, th4, th5, th6 = (th[..., k] for k in range(6))
+    return ct_physical_from_rows(np.moveaxis(th, -1, 0), tau_min_s=tau_min_s, tau_max_s=tau_max_s)
+
+
+def ct_physical_from_rows(
+    th: np.ndarray, *, tau_min_s: float = 0.0, tau_max_s: float = np.inf
+) -> PhysicalParams:
+    """:func:`ct_physical_from_theta` of theta given parameter-first, ``th[k]`` = theta[..., k] (6, ...).
+
+    The per-sample path: with ``th`` contiguous every operation runs on contiguous rows, and
+    the two poles (and the pairs' R, C, tau) are rows of one array, each taken in one call.
+    The arithmetic is elementwise and the same for every element, as the module docstring
+    writes it.
+    """
+    th1, th2, th3, th4, th5, th6 = (th[k, ...] for k in range(6))  # (0-d arrays for one theta, as theta[..., k])
     disc = th1 * th1 + 4.0 * th2
-    real = (th1 < 0) & (th2 < 0) & (disc > 0)
-    sq = np.sqrt(np.where(disc > 0, disc, 0.0))
-    # roots of s^2 + th1 s - th2: a = (-th1 -+ sq)/2 ; a_fast is the larger pole
-    a_fast = 0.5 * (-th1 + sq)
-    a_slow = 0.5 * (-th1 - sq)
+    pos = disc > 0
+    real = (th1 < 0) & (th2 < 0) & pos
+    sq = np.sqrt(np.where(pos, disc, 0.0))
+    # roots of s^2 + th1 s - th2: a = (-th1 -+ sq)/2 ; a[0] the fast (larger) pole, a[1] the slow one
+    minus_th1 = -th1
+    a = np.empty((2,) + th1.shape)
+    a_fast, a_slow = a[0, ...], a[1, ...]
+    np.add(minus_th1, sq, out=a_fast)
+    np.subtract(minus_th1, sq, out=a_slow)
+    a *= 0.5
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         r0 = th3
         big_b = th4 - r0 * (a_fast + a_slow)
         big_d = th5 - r0 * a_fast * a_slow
-        b_fast = (big_d - a_fast * big_b) / (a_slow - a_fast)
-        b_slow = big_b - b_fast
-        r1 = b_fast / a_fast
-        r2 = b_slow / a_slow
-        c1 = 1.0 / b_fast
-        c2 = 1.0 / b_slow
-        tau1 = 1.0 / a_fast
-        tau2 = 1.0 / a_slow
-        c0 = ct_c0_from_theta(th6, th2)
-    dynamics_ok = _check_dynamics(r0, r1, r2, tau1, tau2, real, tau_min_s, tau_max_s)
+        b = np.empty_like(a)  # b_j = 1 / C_j
+        np.divide(big_d - a_fast * big_b, a_slow - a_fast, out=b[0, ...])
+        np.subtract(big_b, b[0, ...], out=b[1, ...])
+        r = np.empty((3,) + a.shape[1:])  # R0, R1, R2 (checked together)
+        r[0] = r0
+        np.divide(b, a, out=r[1:])
+        c = 1.0 / b  # c1, c2
+        tau = 1.0 / a  # tau1, tau2
+        c0 = _c0(th6, th2)
+    r1, r2, c1, c2, tau1, tau2 = r[1], r[2], c[0], c[1], tau[0], tau[1]
+    dynamics_ok = _check_dynamics(r, tau1, tau2, real, tau_min_s, tau_max_s)
     return PhysicalParams(r0, r1, c1, r2, c2, c0, dynamics_ok & np.isfinite(c0), dynamics_ok=dynamics_ok)
 
 
 def ct_c0_from_theta(th6: np.ndarray, th2: np.ndarray) -> np.ndarray:
     """c0 = -th6 / th2 (the CT steady state's offset; inf/NaN where th2 is 0, without a warning)."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return -th6 / th2
+        return _c0(th6, th2)
+
+
+def _c0(th6: np.ndarray, th2: np.ndarray) -> np.ndarray:
+    """``-th6 / th2`` (under the caller's errstate)."""
+    return -th6 / th2
 
 
 def dt_theta_from_physical(

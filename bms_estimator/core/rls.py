@@ -118,15 +118,16 @@ class WeightedRls:
             mask = np.ones(self.n_cells, dtype=bool)
         e = y - np.einsum("np,np->n", phi, self.theta)
 
-        init_now = mask & ~self.initialised
-        run = mask & self.initialised  # before the block solve: its last sample is in theta0 already
-        if any_cell(init_now):
+        every_init = all_cells(self.initialised)  # the usual sample: no cell in its block
+        init_now = None if every_init else mask & ~self.initialised
+        run = mask if every_init else mask & self.initialised  # before the block solve: its last sample is in theta0 already
+        if init_now is not None and any_cell(init_now):
             self._accumulate(phi, y, init_now)
         if any_cell(run):
             # windowed error RMS drives turn-on/turn-off (only from learning samples)
             h = self._err_head
             if self._group_starts is None:
-                self._err2[:, h] = np.where(run, e * e, self._err2[:, h])
+                self._err2[:, h] = e * e if all_cells(run) else np.where(run, e * e, self._err2[:, h])
                 self._err_head = (h + 1) % cfg.error_window
             else:  # a head per group, advanced when a cell of that group learns
                 at = (self._rows, h[self._group_of])
@@ -145,7 +146,12 @@ class WeightedRls:
                 self._rls_step(phi, e, w, lam)
         if all_cells(self.initialised):  # every cell running (the usual sample): no NaN to put in
             return e
-        return np.where(self.initialised | init_now, e, np.nan)
+        return np.where(self.initialised | init_now, e, np.nan) if init_now is not None else np.where(self.initialised, e, np.nan)
+
+    @property
+    def grouped(self) -> bool:
+        """Whether the cells are in groups (:meth:`set_groups`)."""
+        return self._group_starts is not None
 
     def group_any(self, mask: np.ndarray) -> np.ndarray | None:
         """With groups (:meth:`set_groups`): per cell, whether any cell of its group is in ``mask``; else None."""

@@ -174,6 +174,8 @@ class SocEstimator:
         if q_table is not None:
             self.capacity_ah[:] = q_table
         self.capacity_initial_ah = self.capacity_ah.copy()
+        lo, hi = config.capacity_bounds  # the capacity estimate's bounds, per cell
+        self._capacity_lo_ah, self._capacity_hi_ah = lo * self.capacity_stated_ah, hi * self.capacity_stated_ah
         self._rel_q = np.ones(self.n_cells)
         self.capacity_estimated = np.zeros(self.n_cells, dtype=bool)
         self.identifier: Identifier = make_identifier(self.n_cells, self.dt_s, self.capacity_stated_ah, config.identifier)
@@ -247,6 +249,17 @@ class SocEstimator:
             v = v + self.hysteresis_state * self._h_gap
         return v
 
+    def _ocv_and_slope(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(self._ocv(soc), self._slope(soc))``: one table lookup for both on a single curve (the
+        values bit for bit those of the two calls); on tables by temperature, the two calls."""
+        if self._t_aware:
+            return self._ocv(soc), self._slope(soc)
+        v, slope, gap = self.ocv.ocv_slope_hysteresis(soc)
+        if self._hyst is not None:
+            self._h_gap = np.minimum(gap, self.config.hysteresis_max_v)  # as _half_gap (the EKF step's)
+            v = v + self.hysteresis_state * self._h_gap
+        return v, slope
+
     def _start_hysteresis(self, cells: np.ndarray) -> None:
         if self._hyst is None or not any_cell(cells):
             return
@@ -308,8 +321,9 @@ class SocEstimator:
         i_ok = np.isfinite(i)
         i_use = np.where(i_ok, i, 0.0)
         unset = ~np.isfinite(self.soc)
+        any_unset = any_cell(unset)
         read_now = None  # SOC read from this sample's voltage (none in the usual sample): not to be used a second time
-        if any_cell(unset):
+        if any_unset:
             read_now = unset & ok
             start = read_now
             if any_cell(start):
@@ -320,16 +334,17 @@ class SocEstimator:
                 if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
                     self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, start)
         # 1. coulomb counting (the previous sample's current moved the SOC to now)
-        q_now = self.capacity_ah * self._rel_q
+        q_now = self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah  # (x 1.0 is x: no copy)
         dq = self._i_prev * (self.dt_s / 3600.0)
         dz = dq / q_now
-        have_soc = np.isfinite(self.soc) if read_now is not None else ~unset  # (the SOC moved only if unset)
-        every_soc = all_cells(have_soc)  # the usual sample: no select needed below
+        # (the SOC moved only if unset; None: every cell has one, the usual sample: no select needed below)
+        have_soc = None if not any_unset else np.isfinite(self.soc)
+        every_soc = have_soc is None or all_cells(have_soc)
         # a cell is never below empty or above full: clamping keeps a wrong capacity from running away
         counted = clip(self.soc + dz, 0.0, 1.0)
         self.soc = counted if every_soc else np.where(have_soc, counted, self.soc)
         self.charge_ah += dq
-        self._charge_ref_ah += dq / self._rel_q
+        self._charge_ref_ah += dq / self._rel_q if self._t_aware else dq
         i_prev = self._i_prev
         self._i_prev = i_use
         if self._hyst is not None:
@@ -340,9 +355,9 @@ class SocEstimator:
         soc_mid = self.soc + i_use * (0.5 * self.dt_s / 3600.0) / q_now
         if not every_soc:
             soc_mid = np.where(have_soc, soc_mid, 0.5)
-        ocv_v = self._ocv(soc_mid)
+        ocv_v, slope_mid = self._ocv_and_slope(soc_mid)
         self.v_o = v - ocv_v
-        use = ok & i_ok & have_soc
+        use = ok & i_ok if have_soc is None else ok & i_ok & have_soc
         every_use = all_cells(use)
         # 3. identification (v_o itself when every cell is used: what the select gives; read only)
         self.identifier.update(i_use, self.v_o if every_use else np.where(use, self.v_o, np.nan), use)
@@ -352,34 +367,34 @@ class SocEstimator:
             # 25 degC matrix, 40 against 47 of 56 runs within 2 %: the strong early evidence of a
             # wrong start is read through the prior impedance)
             # (no cell unset: have_soc is all True and read_now all False, so the mask is use's)
-            self._ekf_step(i_prev, i_use, dz, soc_mid, use if read_now is None else use & have_soc & ~read_now)
+            self._ekf_step(i_prev, i_use, dz, slope_mid, use if read_now is None else use & have_soc & ~read_now)
         self._compensate(use)
         self.samples += 1
 
-    def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, soc_mid: np.ndarray,
+    def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, slope: np.ndarray,
                   use: np.ndarray) -> None:
+        """Steps 4.-6. by the EKF; ``slope`` is dOCV/dSOC at the period's middle SOC."""
         p = self.identifier.params
         r = np.empty((self.n_cells, 2))  # (N, 2) pairs, filled column by column (np.stack's values)
         r[:, 0], r[:, 1] = p.r1_ohm, p.r2_ohm
-        tau = np.empty((self.n_cells, 2))
-        tau[:, 0], tau[:, 1] = p.tau1_s, p.tau2_s
+        tau = np.empty((self.n_cells, 2))  # p.tau1_s, p.tau2_s, multiplied into place
+        np.multiply(p.r1_ohm, p.c1_f, out=tau[:, 0])
+        np.multiply(p.r2_ohm, p.c2_f, out=tau[:, 1])
         live = np.isfinite(self.soc)
-        self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q, r, tau, live)
+        self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah, r, tau, live)
         overpotential = p.r0_ohm * i_now + self.ekf.v_rc[:, 0] + self.ekf.v_rc[:, 1]  # the identified model's
         identified = self.identifier.identified
         if any_cell(self.identifier.newly_identified):  # the prediction g corrected is gone: g restarts
             self.ekf.restart_gain(self.identifier.newly_identified)
         innovation = self.v_o - ((1.0 + self.ekf.overpotential_gain) * overpotential + self.ekf.v_diffusion)
-        slope = self._slope(soc_mid)
         unsure = (1.0 - np.abs(self.hysteresis_state)) * self._h_gap if self._hyst is not None else 0.0
         ec = self.config.ekf
-        rho = np.where(identified, ec.overpotential_sigma, ec.overpotential_sigma_prior)
+        rho = (ec.overpotential_sigma if all_cells(identified)  # (the usual sample: the select's one value)
+               else np.where(identified, ec.overpotential_sigma, ec.overpotential_sigma_prior))
         d_soc, d_q = self.ekf.correct(innovation, slope, cell_vector(unsure, self.n_cells), use,
                                       rho * np.abs(overpotential), overpotential)
         if self.config.estimate_capacity:
-            self.capacity_ah = self.capacity_ah * (1.0 + d_q)
-            lo, hi = self.config.capacity_bounds
-            self.capacity_ah = clip(self.capacity_ah, lo * self.capacity_stated_ah, hi * self.capacity_stated_ah)
+            self.capacity_ah = clip(self.capacity_ah * (1.0 + d_q), self._capacity_lo_ah, self._capacity_hi_ah)
             self.capacity_estimated |= self.ekf.capacity_variance < (0.5 * self.config.ekf.capacity_sigma) ** 2
         self.soc = clip(self.soc + d_soc, 0.0, 1.0)
         # The OCV the identifier saw moves with the SOC, as in a c0 compensation: its history and

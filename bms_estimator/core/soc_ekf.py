@@ -104,7 +104,7 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge, Gt
 
-from .cells import all_cells, clip
+from .cells import all_cells, any_cell, clip
 
 __all__ = ["SocEkfConfig", "SocEkf"]
 
@@ -189,6 +189,15 @@ class SocEkf:
         self._pt[2, 2] = (config.diffusion_r_sigma_ohm_ah / self.q_ref_ah) ** 2
         self._pt[3, 3] = config.capacity_sigma**2
         self._pt[4, 4] = config.overpotential_gain_sigma_prior**2
+        # per-period constants of predict (config and period are fixed)
+        self._a_d = np.exp(-self.dt_s / config.diffusion_tau_s)  # the diffusion branch's decay
+        h_frac = self.dt_s / 3600.0
+        self._h_frac = h_frac
+        self._q00 = (config.current_sigma_c * h_frac) ** 2 + config.drift_sigma_per_h**2 * h_frac
+        self._q11 = config.rc_sigma_v**2 * (self.dt_s / config.diffusion_tau_s)  # driven by r_d, not free
+        self._q33 = config.capacity_drift_per_h**2 * h_frac
+        self._q44 = config.overpotential_gain_drift_per_h**2 * h_frac
+        self._r_scale = max(config.correlation_s / self.dt_s, 1.0)  # correct's
 
     @property
     def p(self) -> np.ndarray:
@@ -246,7 +255,7 @@ class SocEkf:
         """
         cfg = self.config
         a = np.exp(-self.dt_s / np.maximum(tau_s, 1e-9))
-        a_d = np.exp(-self.dt_s / cfg.diffusion_tau_s)
+        a_d = self._a_d
         v_rc = a * self.v_rc + r_ohm * (1.0 - a) * current_a[:, None]
         x = self.x.copy()
         x[:, 1] = a_d * self.x[:, 1] + self.x[:, 2] * (1.0 - a_d) * current_a
@@ -261,12 +270,11 @@ class SocEkf:
             q[0] += f03 * q[3]
             q[1] *= a_d
             q[1] += f12 * q[2]
-        h_frac = self.dt_s / 3600.0
-        p[0, 0] += (cfg.current_sigma_c * h_frac) ** 2 + cfg.drift_sigma_per_h**2 * h_frac
-        p[1, 1] += cfg.rc_sigma_v**2 * (self.dt_s / cfg.diffusion_tau_s)  # driven by r_d, not free
-        p[2, 2] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * h_frac
-        p[3, 3] += cfg.capacity_drift_per_h**2 * h_frac
-        p[4, 4] += cfg.overpotential_gain_drift_per_h**2 * h_frac
+        p[0, 0] += self._q00
+        p[1, 1] += self._q11
+        p[2, 2] += (cfg.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * self._h_frac
+        p[3, 3] += self._q33
+        p[4, 4] += self._q44
         if every:
             self.x, self.v_rc = x, v_rc
         else:
@@ -290,11 +298,13 @@ class SocEkf:
         pc = p[:, 0] * slope_v + p[:, 1] + p[:, 4] * overpotential_v
         table_v = cfg.ocv_table_sigma_soc * slope_v
         r_v = ((cfg.voltage_sigma_v**2 + np.square(model_uncertain_v) + table_v * table_v)
-               * max(cfg.correlation_s / self.dt_s, 1.0) + hyst_uncertain_v**2)
+               * self._r_scale + hyst_uncertain_v**2)
         s = pc[0] * slope_v + pc[1] + pc[4] * overpotential_v + r_v
         k = pc / s
         held = (self.soc_sigma > cfg.capacity_learn_max_soc_sigma) | (slope_v > cfg.capacity_learn_max_slope_v)
-        k[3] = np.where(held, 0.0, k[3])
+        any_held = any_cell(held)  # (none, the usual sample: the selects below would leave every value as it is)
+        if any_held:
+            k[3] = np.where(held, 0.0, k[3])
         every = all_cells(use)  # the usual sample: the selects by use would copy their first argument
         e = innovation_v if every else np.where(use, innovation_v, 0.0)
         dx = (k * e).T
@@ -304,7 +314,8 @@ class SocEkf:
         pp = np.multiply(pc[:, None, :], k[None, :, :], out=np.empty_like(p))  # pc pc' / S (k = pc / S here)
         pp[:, 3] = pc * (pc[3] / s)  # the held capacity row of k is not pc / S
         p_new = np.subtract(p, pp, out=pp)
-        p_new[3, 3] += np.where(held, pc[3] ** 2 / s, 0.0)
+        if any_held:  # (adding 0.0 would change nothing either: after predict the variance is never -0.0)
+            p_new[3, 3] += np.where(held, pc[3] ** 2 / s, 0.0)
         self._pt = p_new if every else np.where(use, p_new, p)
         x = self.x + dx
         x[:, 2] = np.maximum(x[:, 2], 0.0)  # a resistance is never negative

@@ -132,8 +132,13 @@ def assemble_samples(t_frames: np.ndarray, events: EventArrays, sampler: SampleA
     frame_reset = np.full(t_all.size, -1, dtype=np.int64)
     seg_of_g = np.searchsorted(np.asarray(reset_starts, dtype=np.int64), np.arange(tg.size), side="right") - 1
     frame_reset[gidx[accepted]] = seg_of_g[accepted]
-    ev_reset = frame_reset[events.frame] if events.frame.size else np.zeros(0, np.int64)
-    ev_t = t_all[events.frame] if events.frame.size else np.zeros(0)
+    # every frame's time good and accepted, one reset segment (a clean log): the events are all the
+    # segment's; taken column by column when decode kept them so (no merge into frame order, no sort)
+    by_columns = (events.columns is not None and len(reset_starts) == 1 and gidx.size == t_all.size
+                  and bool(accepted.all()))
+    if not by_columns:
+        ev_reset = frame_reset[events.frame] if events.frame.size else np.zeros(0, np.int64)
+        ev_t = t_all[events.frame] if events.frame.size else np.zeros(0)
 
     gap_set = np.asarray(gaps, dtype=np.int64)
     blocks: list[dict[str, np.ndarray]] = []
@@ -151,12 +156,15 @@ def assemble_samples(t_frames: np.ndarray, events: EventArrays, sampler: SampleA
             continue
         starts = ks.astype(float) * p
         ends = (ks + 1).astype(float) * p
-        mine = ev_reset == r
-        if mine.all():  # one reset segment and every event's frame accepted: no copies
-            blocks.append(_block(ev_t, events.kind, events.cell, events.value, starts, ends, n, sampler))
+        if by_columns:
+            grouped = _by_signal_columns(t_all, events.columns, n)
         else:
-            blocks.append(_block(ev_t[mine], events.kind[mine], events.cell[mine], events.value[mine],
-                                 starts, ends, n, sampler))
+            mine = ev_reset == r
+            if mine.all():  # one reset segment and every event's frame accepted: no copies
+                grouped = _by_signal(ev_t, events.kind, events.cell, events.value, n)
+            else:
+                grouped = _by_signal(ev_t[mine], events.kind[mine], events.cell[mine], events.value[mine], n)
+        blocks.append(_block(*grouped, starts, ends, n, sampler))
 
     k_total = sum(b["t_s"].size for b in blocks)
     if blocks:
@@ -177,18 +185,60 @@ def assemble_samples(t_frames: np.ndarray, events: EventArrays, sampler: SampleA
     )
 
 
-def _block(t: np.ndarray, kind: np.ndarray, cell: np.ndarray, value: np.ndarray, starts: np.ndarray,
-           ends: np.ndarray, n: int, sampler: SampleAssembler) -> dict[str, np.ndarray]:
-    """Samples of one reset segment (its events in apply order, its period starts and ends)."""
-    p = sampler.period_s
+def _signal_key(kind, cell, n: int):
+    """The (kind, cell) group's sort key: kinds in order, within a kind the pack-level value (cell -1) first."""
+    return kind * (n + 1) + (cell + 1)
+
+
+def _by_signal(t: np.ndarray, kind: np.ndarray, cell: np.ndarray, value: np.ndarray, n: int,
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(times, values, bounds) of events in apply order, grouped by (kind, cell), each group in apply order;
+    group ``key`` (:func:`_signal_key`) is ``[bounds[key], bounds[key + 1])`` for keys ``0 .. 4 (n + 1) - 1``."""
     # one stable sort by (kind, cell) groups every signal's events, each group in apply order (a radix
-    # sort on int16 keys): the slices below replace a mask per kind and a sort per kind
-    key = kind.astype(np.int64) * (n + 1) + (cell.astype(np.int64) + 1)
+    # sort on int16 keys): the slices in _block replace a mask per kind and a sort per kind
+    key = _signal_key(kind.astype(np.int64), cell.astype(np.int64), n)
     if key.size and int(key.max()) <= np.iinfo(np.int16).max:
         key = key.astype(np.int16)
     order = np.argsort(key, kind="stable")
-    ts, vs = t[order], value[order]
     bounds = np.searchsorted(key[order], np.arange(4 * (n + 1) + 1, dtype=key.dtype), side="left")
+    return t[order], value[order], bounds
+
+
+def _by_signal_columns(t_frames: np.ndarray, columns: list, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_by_signal` of all the events of decode's signal columns (every frame's time given), without
+    merging them into frame order and sorting them back: a column holds one group's events in frame
+    order already. Columns of one group (rare) are merged by frame, ties in column order: the
+    decoder's order within a frame, as the stable sort keeps it. The same arrays, element for element."""
+    by_key: dict[int, list] = {}
+    for col in columns:
+        by_key.setdefault(_signal_key(col.kind, col.cell, n), []).append(col)
+    keys = sorted(by_key)
+    ts, vs = [], []
+    times: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # the signals of one message share one frame array
+    for key in keys:
+        cols = by_key[key]
+        if len(cols) == 1:
+            fr, v = cols[0].frame, cols[0].value
+        else:
+            fr = np.concatenate([c.frame for c in cols])
+            v = np.concatenate([c.value for c in cols])
+            o = np.argsort(fr, kind="stable")
+            fr, v = fr[o], v[o]
+        if id(fr) in times and times[id(fr)][0] is fr:
+            ts.append(times[id(fr)][1])
+        else:
+            ts.append(t_frames[fr])
+            times[id(fr)] = (fr, ts[-1])
+        vs.append(v)
+    first = np.concatenate(([0], np.cumsum([x.size for x in ts], dtype=np.int64)))
+    at = np.searchsorted(np.asarray(keys, dtype=np.int64), np.arange(4 * (n + 1) + 1, dtype=np.int64), side="left")
+    return (np.concatenate(ts) if ts else np.zeros(0), np.concatenate(vs) if vs else np.zeros(0), first[at])
+
+
+def _block(ts: np.ndarray, vs: np.ndarray, bounds: np.ndarray, starts: np.ndarray,
+           ends: np.ndarray, n: int, sampler: SampleAssembler) -> dict[str, np.ndarray]:
+    """Samples of one reset segment: its events grouped by signal (:func:`_by_signal`), its period starts and ends."""
+    p = sampler.period_s
 
     def rows(kind_: EventKind) -> np.ndarray:  # the group bounds of kind_'s cells 0..n-1 (or its cell -1)
         return bounds[int(kind_) * (n + 1):(int(kind_) + 1) * (n + 1) + 1]

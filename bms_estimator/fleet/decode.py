@@ -34,22 +34,72 @@ from ..can.decoder import DecodeCounters, FrameDecoder
 from ..can.e2e import crc_rows
 from .frames import FrameTable
 
-__all__ = ["EventArrays", "decode_frames", "signal_raw"]
+__all__ = ["EventArrays", "SignalColumn", "decode_frames", "signal_raw"]
 
 
 @dataclass(frozen=True, eq=False)
+class SignalColumn:
+    """The events of one mapped signal: one kind and cell, its frames in order."""
+
+    kind: int  # EventKind
+    cell: int  # -1 for pack-level values
+    frame: np.ndarray  # (e,) int64 frame indices, ascending, no frame twice
+    value: np.ndarray  # (e,) float64, SI
+
+
 class EventArrays:
-    """E events in frame order (within one frame: the decoder's order)."""
+    """E events in frame order (within one frame: the decoder's order).
 
-    frame: np.ndarray  # (E,) int64 index of the frame in the FrameTable
-    kind: np.ndarray  # (E,) int8 EventKind
-    cell: np.ndarray  # (E,) int32, -1 for pack-level values
-    value: np.ndarray  # (E,) float64, SI
+    :func:`decode_frames` makes them from its signal columns (:attr:`columns`, in the
+    decoder's order within a frame) and merges the columns into frame order on the first
+    read of ``frame``, ``kind``, ``cell`` or ``value``: a reader that takes the events by
+    signal (:mod:`.assemble`, where nothing reorders them) reads the columns instead and
+    the merge is never done.
+    """
+
+    def __init__(self, frame: np.ndarray, kind: np.ndarray, cell: np.ndarray, value: np.ndarray) -> None:
+        self._merged: tuple[np.ndarray, ...] | None = (frame, kind, cell, value)
+        self.columns: list[SignalColumn] | None = None
+        self._n_frames = 0
+        self.size = int(frame.size)
+
+    @classmethod
+    def from_columns(cls, columns: list[SignalColumn], n_frames: int) -> EventArrays:
+        """The events of ``columns`` (in the decoder's order within a frame) over ``n_frames`` frames."""
+        ev = cls.__new__(cls)
+        ev._merged, ev.columns, ev._n_frames = None, columns, int(n_frames)
+        ev.size = sum(int(c.frame.size) for c in columns)
+        return ev
+
+    def _arrays(self) -> tuple[np.ndarray, ...]:
+        if self._merged is None:
+            self._merged = _merge_columns(self.columns, self._n_frames)
+        return self._merged
+
+    @property
+    def frame(self) -> np.ndarray:  # (E,) int64 index of the frame in the FrameTable
+        return self._arrays()[0]
+
+    @property
+    def kind(self) -> np.ndarray:  # (E,) int8 EventKind
+        return self._arrays()[1]
+
+    @property
+    def cell(self) -> np.ndarray:  # (E,) int32, -1 for pack-level values
+        return self._arrays()[2]
+
+    @property
+    def value(self) -> np.ndarray:  # (E,) float64, SI
+        return self._arrays()[3]
 
 
-def _words(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    b8 = np.ascontiguousarray(data[:, :8])
-    return b8.view("<u8").ravel(), b8.view(">u8").ravel()
+def _words(data: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first 8 payload bytes of frames ``idx`` as little- and big-endian ``uint64`` (the values, native order)."""
+    if data.shape[1] == 8 and data.flags.c_contiguous:  # one 8-byte word per frame: gather the words themselves
+        u_le = data.view("<u8").ravel()[idx]
+    else:
+        u_le = np.ascontiguousarray(data[idx, :8]).view("<u8").ravel()
+    return u_le, u_le.byteswap()
 
 
 def signal_raw(sig, u_le: np.ndarray, u_be: np.ndarray) -> np.ndarray:
@@ -99,10 +149,11 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
     known = np.array(sorted(decoder._known), dtype=np.int64)  # noqa: SLF001
     planned = np.array(sorted(plans), dtype=np.int64)
     in_plan = np.isin(frames.key, planned)
-    in_db = np.isin(frames.key, known)
-    c.unknown_id = int(np.count_nonzero(~in_plan & ~in_db))
-    c.unmapped = int(np.count_nonzero(~in_plan & in_db))
-    parts: list[tuple[np.ndarray, int, int, int, np.ndarray]] = []  # frame indices, order, kind, cell, values
+    n_other = m - int(np.count_nonzero(in_plan))
+    in_db = np.isin(frames.key[~in_plan], known) if n_other else np.zeros(0, bool)  # (of the frames not planned)
+    c.unmapped = int(np.count_nonzero(in_db))
+    c.unknown_id = n_other - c.unmapped
+    parts: list[SignalColumn] = []  # in the decoder's order within a frame
     # the frames of each planned id, in frame order: one stable sort of the plan index (radix, int16)
     # instead of a pass over all frames per id
     pos = np.searchsorted(planned, frames.key)
@@ -115,49 +166,61 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
         if idx.size == 0:
             continue
         ign = frames.ignored[idx]
-        c.ignored += int(np.count_nonzero(ign))
-        idx = idx[~ign]
+        n_ign = int(np.count_nonzero(ign))
+        c.ignored += n_ign
+        if n_ign:
+            idx = idx[~ign]
         short = frames.length[idx] < plan.length
-        c.short_frame += int(np.count_nonzero(short))
-        idx = idx[~short]
+        n_short = int(np.count_nonzero(short))
+        c.short_frame += n_short
+        if n_short:
+            idx = idx[~short]
         if idx.size == 0:
             continue
         if not _fits_words(plan.message):
             _decode_per_frame(decoder, frames, idx, c, parts)
             continue
-        u_le, u_be = _words(frames.data[idx])
+        u_le, u_be = _words(frames.data, idx)
         sigs = {s.name: s for s in plan.message.signals}
         mux = None
         if plan.mux_signal is not None:
             mux = signal_raw(sigs[plan.mux_signal], u_le, u_be)
             defined = np.array(sorted(plan.message._codecs["multiplexers"][plan.mux_signal]), dtype=np.int64)  # noqa: SLF001
             ok = np.isin(mux, defined)
-            c.bad_mux += int(np.count_nonzero(~ok))
-            idx, u_le, u_be, mux = idx[ok], u_le[ok], u_be[ok], mux[ok]
+            n_bad = int(np.count_nonzero(~ok))
+            c.bad_mux += n_bad
+            if n_bad:  # (none dropped, the usual log: no copies)
+                idx, u_le, u_be, mux = idx[ok], u_le[ok], u_be[ok], mux[ok]
         if plan.e2e is not None:
-            ok = _e2e_keep(plan, sigs, frames.data[idx, : plan.length], u_le, u_be, mux, c)
-            idx, u_le, u_be = idx[ok], u_le[ok], u_be[ok]
-            mux = mux[ok] if mux is not None else None
+            ok = _e2e_keep(plan, sigs, frames, idx, u_le, u_be, mux, c)
+            if not ok.all():
+                idx, u_le, u_be = idx[ok], u_le[ok], u_be[ok]
+                mux = mux[ok] if mux is not None else None
         c.decoded += int(idx.size)
-        has_entries = np.zeros(idx.size, dtype=bool)
-        groups: list[tuple[np.ndarray, list]] = []
+        # the rows of each entry group, in frame order: all rows for the common entries, per multiplexer
+        # value the rows of that value (one stable sort of the values instead of a pass per value)
+        groups: list[tuple[np.ndarray | None, list]] = []  # (rows, or None for all, entries)
+        mapped = 0
         if plan.common:
-            has_entries[:] = True
-            groups.append((np.ones(idx.size, dtype=bool), plan.common))
+            groups.append((None, plan.common))
         if mux is not None:
+            order, values, bnd = _stable_groups(mux)
+            at = {v: j for j, v in enumerate(values.tolist())}
             for mux_value, entries in plan.by_mux.items():
-                sel = mux == mux_value
-                if sel.any() and entries:
-                    has_entries |= sel
-                    groups.append((sel, entries))
-        c.unmapped += int(np.count_nonzero(~has_entries))
-        order_base = 0
-        for sel, entries in groups:
-            rows = np.flatnonzero(sel)
-            le, be = u_le[rows], u_be[rows]
-            mux_rows = mux[rows] if mux is not None else None
-            frames_of_rows = idx[rows]  # one array for all the group's signals: _merge_parts sees them share it
-            for j, (kind, cell, sname, a, b, lo, hi, na_raws, flags) in enumerate(entries):
+                j = at.get(mux_value)
+                if j is not None and entries:
+                    rows = order[bnd[j]:bnd[j + 1]]
+                    mapped += rows.size
+                    groups.append((rows, entries))
+        c.unmapped += 0 if plan.common else int(idx.size) - mapped
+        for rows, entries in groups:
+            if rows is None:  # every row: the arrays as they are
+                rows, le, be, mux_rows, frames_of_rows = np.arange(idx.size), u_le, u_be, mux, idx
+            else:
+                le, be = u_le[rows], u_be[rows]
+                mux_rows = mux[rows] if mux is not None else None
+                frames_of_rows = idx[rows]  # one array for all the group's signals: _merge_columns sees them share it
+            for kind, cell, sname, a, b, lo, hi, na_raws, flags in entries:
                 raw = signal_raw(sigs[sname], le, be)
                 keep = np.ones(rows.size, dtype=bool)
                 if flags:
@@ -171,7 +234,10 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
                     c.flagged_invalid += int(np.count_nonzero(bad))
                     keep &= ~bad
                 if na_raws:
-                    na = keep & np.isin(raw, np.array(sorted(na_raws)))
+                    if len(na_raws) == 1:  # (the usual one: np.isin's set logic for a single value is 10x the compare)
+                        na = keep & (raw == next(iter(na_raws)))
+                    else:
+                        na = keep & np.isin(raw, np.array(sorted(na_raws)))
                     c.not_available += int(np.count_nonzero(na))
                     keep &= ~na
                 with np.errstate(all="ignore"):
@@ -191,20 +257,30 @@ def decode_frames(decoder: FrameDecoder, frames: FrameTable) -> tuple[EventArray
                 else:
                     k = np.flatnonzero(keep)
                     frame_of, value = idx[rows[k]], si[k]
-                parts.append((frame_of, order_base + j, int(kind), cell, value))
-            order_base += len(entries)
-    if parts:
-        ev = _merge_parts(parts, m)
-    else:
-        ev = EventArrays(np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0, np.int32), np.zeros(0))
-    c.events = int(ev.frame.size)
+                parts.append(SignalColumn(int(kind), cell, frame_of, value))
+    ev = EventArrays.from_columns(parts, m)
+    c.events = ev.size
     return ev, c
 
 
-def _merge_parts(parts: list, m: int) -> EventArrays:
-    """The parts' events in frame order, within a frame in the decoder's order, by placement instead of a sort.
+def _stable_groups(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(order, distinct, bounds)`` of integer ``values``: ``order`` their stable sort (a radix sort on
+    int16 keys where the values fit), ``distinct`` the values ascending, the rows holding
+    ``distinct[j]`` ``order[bounds[j]:bounds[j + 1]]``, ascending."""
+    keys = values
+    if values.size and int(values.min()) >= -(2**15) and int(values.max()) < 2**15:
+        keys = values.astype(np.int16)
+    order = np.argsort(keys, kind="stable")
+    s = values[order]
+    starts = np.flatnonzero(np.concatenate(([True], s[1:] != s[:-1]))) if s.size else np.zeros(0, np.int64)
+    return order, s[starts], np.append(starts, s.size)
 
-    A part is one signal's events (frame indices ascending, no frame twice); the parts of a
+
+def _merge_columns(parts: list[SignalColumn], m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(frame, kind, cell, value) of the columns' events in frame order, within a frame in the decoder's
+    order, by placement instead of a sort.
+
+    A column is one signal's events (frame indices ascending, no frame twice); the columns of a
     frame come in the list in the decoder's order (``decode_frames`` appends them so). With
     ``n_f`` the events of frame ``f``, the frame column is ``f`` repeated ``n_f`` times, and
     ``f`` owns the slots ``[o_f, o_f + n_f)`` (``o`` the running sum of ``n``). Consecutive
@@ -212,7 +288,8 @@ def _merge_parts(parts: list, m: int) -> EventArrays:
     ``P`` columns: its frames' next free slots are read once, column ``j`` goes to slot + j.
     """
     blocks: list[tuple[np.ndarray, list]] = []  # (frames, [(kind, cell, values), ...])
-    for fr, _order, k, c, v in parts:
+    for col in parts:
+        fr, k, c, v = col.frame, col.kind, col.cell, col.value
         last = blocks[-1][0] if blocks else None
         if last is not None and (last is fr or (last.size == fr.size and np.array_equal(last, fr))):
             blocks[-1][1].append((k, c, v))
@@ -234,15 +311,16 @@ def _merge_parts(parts: list, m: int) -> EventArrays:
             cell[at] = c
             value[at] = v
         nxt[fr] = slot + len(cols)
-    return EventArrays(frame, kind, cell, value)
+    return frame, kind, cell, value
 
 
-def _e2e_keep(plan, sigs: dict, data: np.ndarray, u_le: np.ndarray, u_be: np.ndarray, mux: np.ndarray | None,
-              c: DecodeCounters) -> np.ndarray:
-    """Which frames pass the plan's end-to-end checks (the decoder's ``_e2e_ok`` on arrays); counts the rest."""
+def _e2e_keep(plan, sigs: dict, frames: FrameTable, idx: np.ndarray, u_le: np.ndarray, u_be: np.ndarray,
+              mux: np.ndarray | None, c: DecodeCounters) -> np.ndarray:
+    """Which of the frames ``idx`` pass the plan's end-to-end checks (the decoder's ``_e2e_ok`` on arrays); counts the rest."""
     e2e = plan.e2e
-    keep = np.ones(len(data), dtype=bool)
+    keep = np.ones(idx.size, dtype=bool)
     if e2e.crc_algorithm is not None:
+        data = frames.data[idx, : plan.length]
         k = e2e.crc_byte
         bad = crc_rows(e2e.crc_algorithm, np.delete(data, k, axis=1)) != data[:, k]
         c.e2e_crc += int(np.count_nonzero(bad))
@@ -250,8 +328,12 @@ def _e2e_keep(plan, sigs: dict, data: np.ndarray, u_le: np.ndarray, u_be: np.nda
     if e2e.counter is not None:
         rows = np.flatnonzero(keep)
         value = signal_raw(sigs[e2e.counter], u_le[rows], u_be[rows])
-        group = mux[rows] if mux is not None else np.zeros(rows.size, np.int64)
-        order = np.argsort(group, kind="stable")  # frame order within each multiplexer value
+        if mux is not None:
+            group = mux[rows]
+            order = _stable_groups(group)[0]  # frame order within each multiplexer value
+        else:  # one group: frame order
+            group = np.zeros(rows.size, np.int64)
+            order = np.arange(rows.size)
         g, v = group[order], value[order]
         skip = np.zeros(rows.size, dtype=bool)
         follows = g[1:] == g[:-1]  # not the first frame of its multiplexer value
@@ -273,8 +355,8 @@ def _decode_per_frame(decoder: FrameDecoder, frames: FrameTable, idx: np.ndarray
             msg = can.Message(timestamp=float(frames.t_s[i]), arbitration_id=key & 0x1FFFFFFF,
                               is_extended_id=bool(key & 0x8000_0000), is_fd=True,
                               data=bytes(frames.data[i, : int(frames.length[i])]))
-            for j, (kind, cell, value) in enumerate(decoder.decode(msg)):
-                parts.append((np.array([i]), j, int(kind), cell, np.array([value])))
+            for kind, cell, value in decoder.decode(msg):
+                parts.append(SignalColumn(int(kind), cell, np.array([i]), np.array([value])))
         per = decoder.counters
     finally:
         decoder.counters = saved

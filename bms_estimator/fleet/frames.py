@@ -5,7 +5,7 @@ Readers
 ``.log`` (candump -L)
     Parsed in bulk with numpy on the file's bytes: the fields are cut at the offsets of
     ``(``, ``.``, ``)``, the spaces and ``#``, the hex identifier and payload converted with
-    a byte lookup table, the timestamp from its decimal digits by one exact division, so it
+    byte arithmetic, the timestamp from its decimal digits by one exact division, so it
     equals python-can's ``float()`` bit for bit (:func:`_read_candump_bulk`). A file the
     bulk parser does not cover (CAN FD ``##``, remote ``R``, error frames, tabs or double
     spaces, a mixed column count, an odd-length payload, more than 15 timestamp digits) is
@@ -44,11 +44,6 @@ EXTENDED_FLAG = 0x8000_0000  # key = arbitration id | EXTENDED_FLAG for 29-bit i
 FRAME_SUFFIXES = (".log", ".asc", ".blf", ".mf4")
 
 _CAN_ERR_FLAG = 0x20000000
-_HEX = np.full(256, 255, dtype=np.uint8)
-for _i, _c in enumerate(b"0123456789abcdef"):
-    _HEX[_c] = _i
-for _i, _c in enumerate(b"ABCDEF"):
-    _HEX[_c] = 10 + _i
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,6 +244,20 @@ def _rows(buf: np.ndarray, first: np.ndarray, width: int) -> np.ndarray:
     return np.lib.stride_tricks.sliding_window_view(buf, width)[first]
 
 
+def _hex_digits(chars: np.ndarray) -> np.ndarray | None:
+    """The values of hex digit characters (uint8 array of ``0-9a-fA-F``), None if any is another character.
+
+    Arithmetic instead of a 256-entry table lookup (a third faster): ``c | 32`` folds ``A-F`` onto
+    ``a-f``; a digit's value is ``(c & 15) + 9 (c >> 6)`` (``0-9``: ``c >> 6`` is 0; letters: 1).
+    """
+    low = chars | 32
+    ok = (chars >= 48) & (chars <= 57)
+    ok |= (low >= 97) & (low <= 102)
+    if not ok.all():
+        return None
+    return (chars & 15) + 9 * (chars >> 6)
+
+
 _DEC = np.full(256, 255, dtype=np.uint8)
 _DEC[np.frombuffer(b"0123456789", np.uint8)] = np.arange(10, dtype=np.uint8)
 
@@ -273,16 +282,19 @@ def _candump_block(buf, starts, dots, close, id_start, hashes, frame_end):
         return None  # an empty or over-long id, a remote frame ('R': odd), a payload over 8 bytes
     can_id = np.empty(m, np.int64)
     for w, sel, first in _by_length(id_start, id_len):
-        nib = _HEX[_rows(buf, first, w)]
-        if (nib == 255).any():
+        nib = _hex_digits(_rows(buf, first, w))
+        if nib is None:
             return None
-        can_id[sel] = nib.astype(np.int64) @ (16 ** np.arange(w - 1, -1, -1, dtype=np.int64))
+        if w == 8:  # (the 29-bit ids) nibble pairs -> 4 bytes -> one big-endian uint32
+            can_id[sel] = ((nib[:, 0::2] << 4) | nib[:, 1::2]).view(">u4").ravel()
+        else:
+            can_id[sel] = nib.astype(np.int64) @ (16 ** np.arange(w - 1, -1, -1, dtype=np.int64))
     if (can_id & _CAN_ERR_FLAG).any():
         return None  # error frames: the per-line reader's rules
     data = np.zeros((m, 8), np.uint8)
     for w, sel, first in _by_length(hashes + 1, data_len):
-        nib = _HEX[_rows(buf, first, w)]
-        if (nib == 255).any():
+        nib = _hex_digits(_rows(buf, first, w))
+        if nib is None:
             return None  # not hex (a remote frame 'R', garbage): the per-line reader reports it
         data[sel, : w // 2] = (nib[:, 0::2] << 4) | nib[:, 1::2]
     key = (can_id & 0x1FFFFFFF) | np.where(id_len > 3, EXTENDED_FLAG, 0)

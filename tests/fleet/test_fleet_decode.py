@@ -318,3 +318,39 @@ def test_truncated_blf_and_asc_are_data_errors(tmp_path, suffix):
     path.write_bytes(raw[: len(raw) // 2 + 3])
     with pytest.raises(DataError, match="truncated"):
         read_frames(path)
+
+
+def test_signal_columns_assemble_as_the_merged_events():
+    """On a clean log (every frame accepted) assembly takes decode's signal columns as they are; the
+    samples equal those assembled from the same events merged into frame order and sorted back,
+    also where two columns carry one signal (merged by frame, the decoder's order within a frame)."""
+    from bms_estimator.can.decoder import EventKind
+    from bms_estimator.fleet.decode import EventArrays, SignalColumn
+
+    rng = np.random.default_rng(3)
+    m = 4000
+    t = np.cumsum(rng.uniform(0.0, 0.02, m))  # ~40 s, in order
+
+    def col(kind: EventKind, cell: int, share: float, lo: float, hi: float, also=None) -> SignalColumn:
+        fr = np.flatnonzero(rng.uniform(size=m) < share)
+        if also is not None:
+            fr = np.union1d(fr, also)
+        return SignalColumn(int(kind), cell, fr, rng.uniform(lo, hi, fr.size))
+
+    cols = [col(EventKind.CURRENT, -1, 0.6, -5.0, 5.0)]
+    for cell in range(N_CELLS):
+        cols.append(col(EventKind.CELL_VOLTAGE, cell, 0.1, 3.0, 4.1))
+        cols.append(col(EventKind.CELL_TEMPERATURE, cell, 0.01, 20.0, 30.0))
+    # a second column of cell 1's voltage, on some frames of the first one too (the later column wins there)
+    cols.append(col(EventKind.CELL_VOLTAGE, 1, 0.05, 3.0, 4.1, also=cols[3].frame[::2]))
+    cols.append(col(EventKind.PACK_VOLTAGE, -1, 0.02, 12.0, 16.0))
+    by_columns = EventArrays.from_columns(cols, m)
+    merged = EventArrays.from_columns(cols, m)
+    merged = EventArrays(merged.frame, merged.kind, merged.cell, merged.value)  # no columns: the sorting path
+    assert merged.columns is None and merged.size == by_columns.size
+    a = assemble_samples(t, by_columns, service_sampler(N_CELLS))
+    b = assemble_samples(t, merged, service_sampler(N_CELLS))
+    assert len(a) > 30 and a.valid.any()
+    assert_same_samples(a, b)
+    assert a.counters == b.counters
+    assert by_columns._merged is None  # the columns were never merged
