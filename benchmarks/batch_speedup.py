@@ -11,7 +11,11 @@ Figures:
 ``batch_speedup_log`` / ``batch_speedup_mf4``
     log seconds / wall seconds of one drive (4 h, 96 cells) through bulk read, decode,
     sample assembly and the estimator on one worker (this process; Parquet writing not
-    included), i.e. what one Dask task costs.
+    included), i.e. what one Dask task costs.  The best of ``repeats`` (3) runs of the
+    same drive, as ``timeit`` reports: on a shared 2-core machine a single run's figure
+    moved by 30 % from run to run (1,660-2,199x from ``.log`` on one idle machine, one
+    after the other), and the best is what the code costs without a neighbour's job in
+    it.  Every run's figure is kept (``speedups_log``, ``speedups_mf4``) and printed.
 ``batch_speedup_cpu`` / ``batch_speedup_mf4_cpu``
     the same against this process's CPU seconds (``time.process_time``): what the drive
     costs on a core of its own; on a machine that other jobs load, wall time also holds
@@ -27,7 +31,7 @@ Figures:
     the same with 1 worker (4 drives of ``scaling_hours`` each, cluster start-up excluded).
 ``batch_10k_drives_h_per_worker``
     a measured estimate: 10,000 drives of 4 h cost ``10,000 x`` (one drive's wall time on
-    one worker) worker-hours; on N workers divide by ``N x efficiency`` (efficiency =
+    one worker, the median of the runs) worker-hours; on N workers divide by ``N x efficiency`` (efficiency =
     scaling / 2, as measured here). Printed for a few N by :func:`estimate_text`.
 
 This process's allocator is set as a batch worker's (:func:`bms_estimator.fleet.memory.keep_freed_memory`:
@@ -75,6 +79,8 @@ class BatchBenchResult:
     speedup_stack: float = 0.0  # stack x log seconds / wall seconds of one task of `stack` drives (.log)
     speedup_stack_cpu: float = 0.0
     seconds_stack: dict[str, float] | None = None  # summed over the stacked drives
+    speedups_log: list[tuple[float, float]] | None = None  # (wall, CPU) figure of every .log run
+    speedups_mf4: list[tuple[float, float]] | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -194,11 +200,22 @@ def _scaling(tmp: Path, cfg: Path, hours: float, n_cells: int, drives: int) -> t
     return walls[0], walls[1]
 
 
+def _best_of(path: Path, cfg: Path, repeats: int, log_s: float) -> tuple[float, float, dict[str, float], float,
+                                                                        list[tuple[float, float]]]:
+    """(best wall figure, best CPU figure, the best wall run's stage seconds, the median run's wall
+    seconds, every run's (wall, CPU) figure) of ``repeats`` runs of one drive."""
+    runs = [_one_worker(path, cfg) for _ in range(max(1, repeats))]
+    figures = [(sp, log_s / secs["cpu"]) for sp, secs in runs]
+    best = max(range(len(runs)), key=lambda k: runs[k][0])
+    median_wall_s = float(np.median([log_s / sp for sp, _ in runs]))
+    return runs[best][0], max(c for _, c in figures), runs[best][1], median_wall_s, figures
+
+
 def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
-                scaling_hours: float = 0.5, stack: int = 4) -> BatchBenchResult:
+                scaling_hours: float = 0.5, stack: int = 4, repeats: int = 3) -> BatchBenchResult:
     from bms_estimator.fleet.memory import keep_freed_memory
 
-    key = (hours, n_cells, scaling_drives, scaling_hours, stack)
+    key = (hours, n_cells, scaling_drives, scaling_hours, stack, repeats)
     if key in _CACHE:
         return _CACHE[key]
     keep_freed_memory()  # the allocator of a batch worker (its LocalCluster starts them so): a task's cost here
@@ -206,14 +223,13 @@ def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
         tmp = Path(tmpdir)
         log, mf4, cfg, frames = _write_inputs(tmp, hours, n_cells)
         _one_worker(log, cfg)  # warm: imports, the configuration's Service (cached per process)
-        sp_log, s_log = _one_worker(log, cfg)
-        sp_mf4, s_mf4 = _one_worker(mf4, cfg)
+        sp_log, cpu_log, s_log, median_log_s, runs_log = _best_of(log, cfg, repeats, hours * 3600)
+        sp_mf4, cpu_mf4, s_mf4, _, runs_mf4 = _best_of(mf4, cfg, repeats, hours * 3600)
         sp_stack, sp_stack_cpu, s_stack = _stacked(log, cfg, stack)
         w1, w2 = _scaling(tmp, cfg, scaling_hours, n_cells, scaling_drives)
     r = BatchBenchResult(hours, n_cells, frames, sp_log, sp_mf4, s_log, s_mf4, w1 / w2, scaling_drives,
-                         scaling_hours, w1, w2, hours * 3600 / sp_log,
-                         hours * 3600 / s_log["cpu"], hours * 3600 / s_mf4["cpu"], stack, sp_stack, sp_stack_cpu,
-                         s_stack)
+                         scaling_hours, w1, w2, median_log_s, cpu_log, cpu_mf4, stack, sp_stack, sp_stack_cpu,
+                         s_stack, runs_log, runs_mf4)
     _CACHE[key] = r
     return r
 
