@@ -28,6 +28,16 @@ from bms_estimator.soc_matrix import (  # noqa: E402
 )
 
 
+def _setting(value: str):
+    """A ``--set`` value: true/false, a number, else the text (a method name, say)."""
+    if value.lower() in ("true", "false"):
+        return value.lower() == "true"
+    try:
+        return float(value)
+    except ValueError:
+        return value
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--methods", default=None, help="comma-separated SOC methods (default: every one the core has)")
@@ -45,8 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {}
     for item in args.set:
         key, _, value = item.partition("=")
-        overrides[key] = {"true": True, "false": False}[value.lower()] if value.lower() in ("true", "false") \
-            else float(value)
+        overrides[key] = _setting(value)
     data = shared_data_dir()
     if data is None:
         print("no ../shared/data (or BMS_SHARED_DATA): the matrix needs the measured data", file=sys.stderr)
