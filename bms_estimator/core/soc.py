@@ -161,7 +161,7 @@ class SocEstimator:
         self.ocv = capped(config.hysteresis_max_v) if config.hysteresis and capped is not None else ocv
         self.dt_s = float(dt_s)
         self.config = config
-        self._t_aware = hasattr(ocv, "temperatures_c")
+        self._t_aware = hasattr(self.ocv, "temperatures_c")
         # a cell's temperature until one is given: the tables' own default, else the config's
         self.temperature_c = np.full(self.n_cells, float(getattr(ocv, "default_temperature_c",
                                                                  config.default_temperature_c)))
@@ -233,7 +233,17 @@ class SocEstimator:
 
     def _half_gap(self, soc: np.ndarray) -> np.ndarray:
         h = self.ocv.hysteresis(soc, self.temperature_c) if self._t_aware else self.ocv.hysteresis(soc)
-        return np.minimum(h, self.config.hysteresis_max_v)
+        return self._capped(h)
+
+    def _capped(self, gap: np.ndarray) -> np.ndarray:
+        """H capped at ``hysteresis_max_v`` (a no-op on a table from ``with_half_gap_cap``; it serves
+        an OCV object without that method)."""
+        return np.minimum(gap, self.config.hysteresis_max_v)
+
+    def _on_branch(self, mean_v: np.ndarray, gap: np.ndarray) -> np.ndarray:
+        """The mean OCV moved onto the hysteresis state's branch, ``mean + h H``; H kept for the EKF step."""
+        self._h_gap = gap
+        return mean_v + self.hysteresis_state * gap
 
     def _slope(self, soc: np.ndarray) -> np.ndarray:
         return self.ocv.docv_dsoc(soc, self.temperature_c) if self._t_aware else self.ocv.docv_dsoc(soc)
@@ -244,10 +254,7 @@ class SocEstimator:
     def _ocv(self, soc: np.ndarray) -> np.ndarray:
         """The OCV the cell shows now: the mean curve plus the hysteresis state times H(soc)."""
         v = self._mean_ocv(soc)
-        if self._hyst is not None:
-            self._h_gap = self._half_gap(soc)  # kept for the EKF step at the same SOC
-            v = v + self.hysteresis_state * self._h_gap
-        return v
+        return self._on_branch(v, self._half_gap(soc)) if self._hyst is not None else v
 
     def _ocv_and_slope(self, soc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(self._ocv(soc), self._slope(soc))``: one table lookup for both on a single curve (the
@@ -255,10 +262,7 @@ class SocEstimator:
         if self._t_aware:
             return self._ocv(soc), self._slope(soc)
         v, slope, gap = self.ocv.ocv_slope_hysteresis(soc)
-        if self._hyst is not None:
-            self._h_gap = np.minimum(gap, self.config.hysteresis_max_v)  # as _half_gap (the EKF step's)
-            v = v + self.hysteresis_state * self._h_gap
-        return v, slope
+        return (self._on_branch(v, self._capped(gap)) if self._hyst is not None else v), slope
 
     def _start_hysteresis(self, cells: np.ndarray) -> None:
         if self._hyst is None or not any_cell(cells):
