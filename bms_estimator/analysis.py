@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .core.arrhenius import resistances_at
+from .core.arrhenius import RESISTANCE_ACTIVATION_K, resistances_at
 from .core.ecm import EcmParams, simulate_ecm
 from .core.identifier import IdentifierConfig, make_identifier
 from .core.lif_bv import kinetic_input
@@ -57,10 +57,8 @@ IDENTIFICATION_METHOD = "lif-iv"
 # what compare runs by default: the CT default first (its model gives the capacity), the other CT, DT
 DEFAULT_METHODS = (IDENTIFICATION_METHOD, "lif", "arx")
 
-# B = E_a / R_gas of the resistances for the validation simulation's temperature correction: the
-# measured cells' Arrhenius line of R0 across ambients (README, diagnose findings: E_a = 19 kJ/mol
-# Panasonic, 22 kJ/mol LG, i.e. 2300-2650 K), rounded; not fitted to the compare table
-RESISTANCE_ACTIVATION_K = 2500.0
+# B of the validation simulation's temperature correction: core.arrhenius.RESISTANCE_ACTIVATION_K
+# (the cells' Arrhenius line of R0 across ambients, rounded; not fitted to the compare table)
 
 PARAM_KEYS = ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "tau1_s", "tau2_s")
 

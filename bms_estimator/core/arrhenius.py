@@ -18,9 +18,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KELVIN", "arrhenius_factor", "resistances_at", "SCALED_RESISTANCES"]
+__all__ = ["KELVIN", "RESISTANCE_ACTIVATION_K", "arrhenius_factor", "resistances_at", "SCALED_RESISTANCES"]
 
 KELVIN = 273.15
+
+#: B = E_a / R_gas of the measured cells' resistances: their Arrhenius line of R0 across ambients
+#: (README, diagnose findings: E_a = 19 kJ/mol Panasonic, 22 kJ/mol LG, i.e. 2300-2650 K), rounded
+RESISTANCE_ACTIVATION_K = 2500.0
 
 #: the parameter-dict keys that are resistances (scaled by f); capacitances take 1/f
 SCALED_RESISTANCES = ("r0_ohm", "r1_ohm", "r2_ohm", "k1_ohm", "k2_ohm")

@@ -315,6 +315,9 @@ class SocEstimator:
         n = self.n_cells
         i = cell_vector(current_a, n)
         v = cell_vector(voltage_v, n)
+        if temperature_c is not None and self.samples == 0 and self.ekf is not None:
+            # the diffusion resistance's prior follows the start temperature, with or without T-tables
+            self.ekf.start_diffusion_at(cell_vector(temperature_c, n), self.config.default_temperature_c)
         if temperature_c is not None and self._t_aware:
             t = cell_vector(temperature_c, n)
             self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last

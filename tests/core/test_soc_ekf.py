@@ -336,3 +336,61 @@ def test_a_discharge_to_near_empty_reads_the_tables_discharge_branch():
     # measured below 10 % SOC: 0.18 / 0.44 %; with the gap capped about the mean (that discharge
     # branch 20-50 mV too high at 4-10 % SOC, where the slope is 2-3 V per unit) 1.18 / 1.12 %
     assert np.all(err < 0.7), err
+
+
+def _cells_with_slow_branch(r_slow_ohm: float, seeds: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Cells at 3 Ah whose slowest branch (1500 s, ``r_slow_ohm``) is beyond what the identifier resolves."""
+    ocv = _ocv()
+    cur, vol = [], []
+    for seed in seeds:
+        i = pulse_current(N, seed, amp_a=3.0)
+        i = i - (i.mean() + 0.85 * STATED_AH * 3600 / N)
+        p = EcmParams.from_rc(0.02, [0.01, 0.008, r_slow_ohm], [10.0, 150.0, 1500.0])
+        v = simulate_ecm(i, 1.0, p, ocv.ocv, soc0=1.0, capacity_ah=STATED_AH, output="mean").voltage_v
+        rng = np.random.default_rng(seed)
+        cur.append(i + 0.02 * rng.standard_normal(N))
+        vol.append(v + 2e-3 * rng.standard_normal(N))
+    return np.array(cur).T, np.array(vol).T
+
+
+def test_a_slow_overpotential_the_filter_cannot_learn_is_expected_not_read_as_soc():
+    """Under a steady mean current the diffusion resistance r_d and an SOC offset are the same signal, so
+    r_d stays near where it starts.  Cells with 26 mOhm of slow (1500 s) resistance, started right and 20 %
+    low: with the prior mean of r_d at 0 the slow overpotential reads as a low SOC; started at the default
+    prior (0.04 ohm Ah, 13 mOhm here) the error from 30 min on is far smaller.  The cost is on a cell with
+    no slow overpotential at all, which no measured cell is: bounded below."""
+    seeds = [31, 32, 33, 34]
+    cur, vol = _cells_with_slow_branch(0.026, seeds)
+    cur, vol = np.hstack([cur, cur]), np.hstack([vol, vol])
+    start = np.array([1.0] * 4 + [0.8] * 4)
+    ref = _true_soc(cur, [STATED_AH] * 8)
+    assert SocEkfConfig().diffusion_r_prior_ohm_ah > 0
+    with_prior = _rmse_after(_run(cur, vol, start, _ocv(), SocConfig())[0], ref, 1800)
+    from_zero = _rmse_after(_run(cur, vol, start, _ocv(), SocConfig(ekf=SocEkfConfig(diffusion_r_prior_ohm_ah=0.0)))[0],
+                            ref, 1800)
+    # measured: median 0.46 % against 0.99 % (per cell 0.3-1.3 % against 0.8-1.5 %)
+    assert np.median(with_prior) < 0.6 * np.median(from_zero), (with_prior, from_zero)
+    # a cell without slow overpotential, started right: measured 0.7-1.7 % from 30 min (0.03-1.5 % from 0)
+    cur0, vol0 = _cells_with_slow_branch(0.0, seeds)
+    none = _rmse_after(_run(cur0, vol0, 1.0, _ocv(), SocConfig())[0], _true_soc(cur0, [STATED_AH] * 4), 1800)
+    assert np.all(none < 2.0), none
+
+
+def test_the_diffusion_prior_follows_the_start_temperature_once():
+    """r_d's prior mean is the configured ohm Ah over the capacity at 25 degC, Arrhenius-scaled to the
+    temperature at the first update (B = 2500 K: x2.16 at 0 degC), and only then."""
+    cfg = SocEkfConfig()
+    est = SocEstimator(3, _ocv(), STATED_AH, 1.0, initial_soc=0.9)
+    at_25 = cfg.diffusion_r_prior_ohm_ah / STATED_AH
+    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, at_25)
+    est.update(0.0, np.full(3, 4.0), temperature_c=np.array([0.0, 25.0, np.nan]))
+    f0 = np.exp(2500.0 * (1 / 273.15 - 1 / 298.15))
+    assert f0 == pytest.approx(2.16, abs=0.01)
+    # at rest (no current) the update cannot move r_d: the prior is what is read
+    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, [at_25 * f0, at_25, at_25], rtol=1e-9)
+    est.update(0.0, np.full(3, 4.0), temperature_c=np.array([25.0, 0.0, 0.0]))
+    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, [at_25 * f0, at_25, at_25], rtol=1e-9)
+    flat = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=0.9,
+                        config=SocConfig(ekf=SocEkfConfig(diffusion_r_activation_k=0.0)))
+    flat.update(0.0, np.array([4.0]), temperature_c=-20.0)
+    np.testing.assert_allclose(flat.ekf.r_diffusion_ohm, at_25)
