@@ -40,7 +40,7 @@ from .core.arrhenius import resistances_at
 from .core.ecm import EcmParams, simulate_ecm
 from .core.identifier import IdentifierConfig, make_identifier
 from .core.lif_bv import kinetic_input
-from .core.lif_ct import kinetic_excess
+from .core.lif_ct import kinetic_excess, thermal_voltage
 from .core.ocv import OcvCurve
 from .core.params import dt_theta_from_physical
 from .core.soc import SocConfig, SocEstimator
@@ -454,6 +454,11 @@ def train_methods(
     """
     i_tr, v_tr = (np.asarray(x, dtype=float) for x in train)
     ident_cfg = config.identifier.with_(c0_prior_weight=c0_prior_weight)
+    t_median = float(np.nanmedian(temperature_c)) if temperature_c is not None and np.isfinite(temperature_c).any() \
+        else float("nan")
+    if -100.0 < t_median < 200.0:  # (a logged cell temperature, not a broken column)
+        # lif-iv-ct: the charge-transfer branch's V_T = 2RT/F at the training file's median cell temperature
+        ident_cfg = ident_cfg.with_(ct_temperature_c=t_median)
     q_eff, profile = output_error_capacity(i_tr, v_tr, ocv, capacity_ah, initial_soc, dt_s,
                                            ident_cfg.with_(method=methods[0]), soc_window=soc_window)
     soc_tr = reference_soc(i_tr, dt_s, q_eff, initial_soc)
@@ -490,6 +495,10 @@ def validate_methods(
         p_va = lookup_params(table, soc_va)
         if temperature_c is not None and "temperature_c" in p_va and activation_k > 0:
             p_va = resistances_at(p_va, temperature_c, p_va["temperature_c"], activation_k)
+        if temperature_c is not None and "ct_vt_v" in p_va:  # V_T at the validation file's cell temperature
+            t = np.asarray(temperature_c, dtype=float)
+            p_va["ct_vt_v"] = np.where(np.isfinite(t), thermal_voltage(np.where(np.isfinite(t), t, 25.0)),
+                                       p_va["ct_vt_v"])
         res.params[method] = p_va
         res.simulated_v[method] = simulate_with_params(i_va, soc_va, ocv, p_va, dt_s)
         res.osa_v[method] = one_step_ahead(i_va, v_va, soc_va, ocv, p_va, dt_s)

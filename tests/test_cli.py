@@ -205,6 +205,28 @@ def test_fit_and_compare_take_the_kinetic_term(tmp_path, capsys):
     assert m["validate"]["lif-iv-bv"]["sim_rmse_mv"] != m["validate"]["lif-iv"]["sim_rmse_mv"]
 
 
+def test_fit_and_compare_take_the_charge_transfer_branch(tmp_path, capsys):
+    """lif-iv-ct: fit reports the charge-transfer share and V_T; compare simulates the validation file with them."""
+    data = str(drive_cycle("lg-hg2", "la92"))
+    lg_ocv = str(ocv_table("lg-hg2"))
+    out = tmp_path / "fit.json"
+    assert main(["fit", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--method", "lif-iv-ct",
+                 "--json", str(out)]) == 0
+    assert "charge-transfer fast branch: 100 % of R1" in capsys.readouterr().out
+    f = json.loads(out.read_text())
+    med = f["median_soc_20_90"]
+    assert f["method"] == "lif-iv-ct" and med["ct_fraction"] == 1.0
+    assert med["ct_vt_v"] == pytest.approx(0.05139, abs=1e-5)  # 2RT/F at the default 25 degC
+    assert 0 < f["sim_rmse_mv"] < 30
+    cmp_out = tmp_path / "cmp.json"
+    assert main(["compare", "--train", data, "--validate", str(drive_cycle("lg-hg2", "udds")), "--ocv", lg_ocv,
+                 "--capacity-ah", "3.0", "--method", "lif-iv-ct", "--method", "lif-iv", "--json", str(cmp_out)]) == 0
+    m = json.loads(cmp_out.read_text())
+    assert set(m["validate"]) == {"lif-iv-ct", "lif-iv"}
+    assert 0 < m["validate"]["lif-iv-ct"]["sim_rmse_mv"] < 30
+    assert m["validate"]["lif-iv-ct"]["sim_rmse_mv"] != m["validate"]["lif-iv"]["sim_rmse_mv"]
+
+
 def test_compare_brings_the_resistances_to_the_validation_temperature(tmp_path, capsys):
     """Both shipped LG files log temperature_c: the default corrects, --activation-k 0 does not."""
     common = ["compare", "--train", str(drive_cycle("lg-hg2", "udds")), "--validate",
