@@ -50,6 +50,12 @@ nonlinearity only through the auxiliary model (a fixed point, as the instrument)
 Simulation (``analysis.simulate_with_params``): the linear 2-RC model plus ``w``
 through the fast branch, with the looked-up R1 at each sample, so a model identified
 on a gentle file carries a lower polarisation resistance to an aggressive one.
+
+Limits (measured, README "Without a fitted gain").  For ``|i| f R1 >> V_T`` the branch
+voltage ``~ V_T ln(2 |i| f R1 / V_T)`` hardly depends on R1, so the fixed point
+R1 = R1_aux is weakly determined and need not be unique: on one measured file two
+solutions exist and a 2 K change of ``V_T``'s temperature switches between them.
+On a linear cell the imposed shape costs (R1 12-13 % high on the synthetic cell).
 """
 
 from __future__ import annotations
