@@ -151,7 +151,8 @@ def run_identification_paths(
     n, m = soc_paths.shape
     ident = make_identifier(m, dt_s, capacity_ah, config)
     v_o = np.asarray(voltage_v, dtype=float)[:, None] - ocv.ocv(soc_paths)
-    keys = tuple(ident.param_dict())  # PARAM_KEYS, and a model extension's (lif-iv-bv: KINETIC_KEYS, lif-iv-ct: CT_KEYS)
+    # PARAM_KEYS, and a model extension's (lif-iv-bv: KINETIC_KEYS, lif-iv-ct: CT_KEYS)
+    keys = tuple(ident.param_dict())
     traj = {k: np.empty((n, m)) for k in keys}
     identified = np.zeros((n, m), dtype=bool)
     i = np.asarray(current_a, dtype=float)

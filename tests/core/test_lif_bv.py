@@ -22,8 +22,8 @@ from bms_estimator.analysis import one_step_ahead, simulate_with_params
 from bms_estimator.core.identifier import IdentifierConfig, make_identifier
 from bms_estimator.core.lif_bv import LifIvBvEstimator, kinetic_input
 from bms_estimator.core.ocv import OcvCurve
-from tests.conftest import (TRUE, assert_physical_and_finite, hostile_strategies, hostile_stream, median_identification, pulse_current,
-                            state_round_trip)
+from tests.conftest import (TRUE, assert_physical_and_finite, hostile_strategies, hostile_stream,
+                            median_identification, pulse_current, state_round_trip)
 
 Q_AH = 3.0
 K = {"k1_ohm": 0.006, "k2_ohm": 0.009}

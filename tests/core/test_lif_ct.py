@@ -25,8 +25,8 @@ from bms_estimator.analysis import one_step_ahead, simulate_with_params
 from bms_estimator.core.identifier import IdentifierConfig, make_identifier
 from bms_estimator.core.lif_ct import LifIvCtEstimator, kinetic_excess, thermal_voltage
 from bms_estimator.core.ocv import OcvCurve
-from tests.conftest import (TRUE, assert_physical_and_finite, hostile_strategies, hostile_stream, median_identification, pulse_current,
-                            state_round_trip)
+from tests.conftest import (TRUE, assert_physical_and_finite, hostile_strategies, hostile_stream,
+                            median_identification, pulse_current, state_round_trip)
 
 Q_AH = 3.0
 VT = 2 * 8.314462618 * 298.15 / 96485.33212
