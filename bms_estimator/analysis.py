@@ -40,6 +40,7 @@ from .core.arrhenius import RESISTANCE_ACTIVATION_K, resistances_at
 from .core.ecm import EcmParams, simulate_ecm
 from .core.identifier import IdentifierConfig, make_identifier
 from .core.lif_bv import kinetic_input
+from .core.lif_ct import kinetic_excess, thermal_voltage
 from .core.ocv import OcvCurve
 from .core.params import dt_theta_from_physical
 from .core.soc import SocConfig, SocEstimator
@@ -148,7 +149,8 @@ def run_identification_paths(
     n, m = soc_paths.shape
     ident = make_identifier(m, dt_s, capacity_ah, config)
     v_o = np.asarray(voltage_v, dtype=float)[:, None] - ocv.ocv(soc_paths)
-    keys = tuple(ident.param_dict())  # PARAM_KEYS, and a model extension's (lif-iv-bv: KINETIC_KEYS)
+    # PARAM_KEYS, and a model extension's (lif-iv-bv: KINETIC_KEYS, lif-iv-ct: CT_KEYS)
+    keys = tuple(ident.param_dict())
     traj = {k: np.empty((n, m)) for k in keys}
     identified = np.zeros((n, m), dtype=bool)
     i = np.asarray(current_a, dtype=float)
@@ -262,17 +264,32 @@ def _ecm_params(p: dict[str, np.ndarray]) -> EcmParams:
     return EcmParams(np.asarray(p["r0_ohm"]), r, tau, np.asarray(p["c0_v"]))
 
 
+def _kinetic_excess(current_a: np.ndarray, params: dict[str, np.ndarray]) -> np.ndarray:
+    """The charge-transfer branch's kinetic excess w (V) along a parameter trajectory (core/lif_ct.py)."""
+    return kinetic_excess(np.asarray(current_a, dtype=float), params["r1_ohm"], params["ct_fraction"],
+                          params["ct_vt_v"])
+
+
 def simulate_with_params(
     current_a: np.ndarray, soc: np.ndarray, ocv: OcvCurve, params: dict[str, np.ndarray], dt_s: float = 1.0
 ) -> np.ndarray:
     """Free-run voltage simulation with (possibly time-varying) parameters, from rest.
 
+    With a charge-transfer fast branch (``ct_vt_v``, ``ct_fraction`` in ``params``,
+    :mod:`bms_estimator.core.lif_ct`) the fast branch carries the kinetic excess
+    ``w(i; R1)`` besides ``R1 i`` (simulated as an input through that branch with unit gain).
     With a kinetic term (``k1_ohm``, ``k2_ohm`` in ``params``, :mod:`bms_estimator.core.lif_bv`) the
     same RC branches carry ``K_j u`` besides ``R_j i``; the model is linear in its gains, so
     that part is simulated with the input u and gains K (split into their positive and
     negative parts, since an RC branch takes no negative resistance).
     """
     v = simulate_ecm(current_a, dt_s, _ecm_params(params), ocv.ocv, soc=soc, output="mean").voltage_v
+    if "ct_vt_v" in params:  # a charge-transfer fast branch (core/lif_ct.py): its kinetic excess w through it
+        w = _kinetic_excess(current_a, params)
+        unit = np.ones_like(np.asarray(params["tau1_s"], dtype=float))
+        part = {"r0_ohm": 0.0, "r1_ohm": unit, "r2_ohm": 0.0 * unit, "c0_v": 0.0,
+                "tau1_s": params["tau1_s"], "tau2_s": params["tau2_s"]}
+        v = v + simulate_ecm(w, dt_s, _ecm_params(part), output="mean").voltage_v
     if "k1_ohm" not in params:
         return v
     u = kinetic_input(np.asarray(current_a, dtype=float), params["i0_a"])
@@ -301,6 +318,12 @@ def one_step_ahead(
     pred[2:] = (
         t[:, 0] * v_o[1:-1] + t[:, 1] * v_o[:-2] + t[:, 2] * i[2:] + t[:, 3] * i[1:-1] + t[:, 4] * i[:-2] + t[:, 5]
     )
+    if "ct_vt_v" in params:  # the kinetic excess w through the fast branch (core/lif_ct.py)
+        w = _kinetic_excess(i, params)
+        tw = np.broadcast_to(dt_theta_from_physical(
+            0.0, 1.0, params["tau1_s"], 0.0, params["tau2_s"], dt_s=dt_s,
+        ), (len(i), 6))[1:-1]
+        pred[2:] += tw[:, 2] * w[2:] + tw[:, 3] * w[1:-1] + tw[:, 4] * w[:-2]
     if "k1_ohm" in params:  # the kinetic input u through the same poles (core/lif_bv.py)
         u = kinetic_input(i, params["i0_a"])
         tk = np.broadcast_to(dt_theta_from_physical(
@@ -430,6 +453,11 @@ def train_methods(
     """
     i_tr, v_tr = (np.asarray(x, dtype=float) for x in train)
     ident_cfg = config.identifier.with_(c0_prior_weight=c0_prior_weight)
+    t_median = float(np.nanmedian(temperature_c)) if temperature_c is not None and np.isfinite(temperature_c).any() \
+        else float("nan")
+    if -100.0 < t_median < 200.0:  # (a logged cell temperature, not a broken column)
+        # lif-iv-ct: the charge-transfer branch's V_T = 2RT/F at the training file's median cell temperature
+        ident_cfg = ident_cfg.with_(ct_temperature_c=t_median)
     q_eff, profile = output_error_capacity(i_tr, v_tr, ocv, capacity_ah, initial_soc, dt_s,
                                            ident_cfg.with_(method=methods[0]), soc_window=soc_window)
     soc_tr = reference_soc(i_tr, dt_s, q_eff, initial_soc)
@@ -466,6 +494,10 @@ def validate_methods(
         p_va = lookup_params(table, soc_va)
         if temperature_c is not None and "temperature_c" in p_va and activation_k > 0:
             p_va = resistances_at(p_va, temperature_c, p_va["temperature_c"], activation_k)
+        if temperature_c is not None and "ct_vt_v" in p_va:  # V_T at the validation file's cell temperature
+            t = np.asarray(temperature_c, dtype=float)
+            p_va["ct_vt_v"] = np.where(np.isfinite(t), thermal_voltage(np.where(np.isfinite(t), t, 25.0)),
+                                       p_va["ct_vt_v"])
         res.params[method] = p_va
         res.simulated_v[method] = simulate_with_params(i_va, soc_va, ocv, p_va, dt_s)
         res.osa_v[method] = one_step_ahead(i_va, v_va, soc_va, ocv, p_va, dt_s)

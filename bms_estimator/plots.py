@@ -11,9 +11,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 ATTRIBUTION = "Data: P. Kollmeyer et al., Mendeley Data (CC BY 4.0)"
-COLORS = {"lif": "tab:blue", "lif-iv": "tab:green", "lif-iv-bv": "tab:purple", "arx": "tab:orange",
+COLORS = {"lif": "tab:blue", "lif-iv": "tab:green", "lif-iv-bv": "tab:purple", "lif-iv-ct": "tab:red", "arx": "tab:orange",
           "measured": "black"}
 LABELS = {"lif": "CT-LS (LIF)", "lif-iv": "CT-IV (LIF, recursive IV)", "lif-iv-bv": "CT-IV-BV (CT-IV + kinetic term)",
+          "lif-iv-ct": "CT-IV-CT (CT-IV, charge-transfer fast branch)",
           "arx": "DT (ARX)"}
 
 

@@ -35,7 +35,7 @@ STATED_AH = {"panasonic-18650pf": 2.9, "lg-hg2": 3.0}
 NOT_DRIVE = ("c20_ocv", "hppc", "hppc_steps")
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- compare-table:begin -->", "<!-- compare-table:end -->"
-LABEL = {"lif": "CT-LS", "lif-iv": "CT-IV", "lif-iv-bv": "CT-IV-BV", "arx": "DT"}
+LABEL = {"lif": "CT-LS", "lif-iv": "CT-IV", "lif-iv-bv": "CT-IV-BV", "lif-iv-ct": "CT-IV-CT", "arx": "DT"}
 # compare's methods and the kinetic-term extension (core/lif_bv.py); the first one's model gives the capacity
 TABLE_METHODS = tuple(dict.fromkeys((*DEFAULT_METHODS[:1], "lif-iv-bv", *DEFAULT_METHODS[1:])))
 

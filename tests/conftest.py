@@ -39,6 +39,54 @@ def synthetic_overpotential(n: int = 7200, seed: int = 0, noise_v: float = 0.0, 
     return i + noise_a * rng.standard_normal(n), v + noise_v * rng.standard_normal(n)
 
 
+def median_identification(method: str, overpotential, n: int = 6000, seeds=range(30, 34), noise_v: float = 0.005,
+                          noise_a: float = 0.02, capacity_ah: float = 3.0) -> dict[str, np.ndarray]:
+    """Each seed's pulse current (up to 2 C of 3 Ah) as one cell, its ``overpotential(current)``, 5 mV / 20 mA
+    noise (rng 7), identified online by ``method``: every parameter's median over the second half, per cell."""
+    from bms_estimator.core.identifier import IdentifierConfig, make_identifier
+
+    cur = np.stack([pulse_current(n, s) for s in seeds], axis=1)
+    v = np.stack([overpotential(cur[:, j]) for j in range(cur.shape[1])], axis=1)
+    rng = np.random.default_rng(7)
+    v = v + noise_v * rng.standard_normal(v.shape)
+    meas = cur + noise_a * rng.standard_normal(cur.shape)
+    est = make_identifier(cur.shape[1], 1.0, capacity_ah, IdentifierConfig(method=method))
+    seen = []
+    for k in range(n):
+        est.update(meas[k], v[k])
+        if k >= n // 2:
+            seen.append(est.param_dict())
+    return {key: np.median(np.array([s[key] for s in seen]), axis=0) for key in seen[0]}
+
+
+def state_round_trip(make, current: np.ndarray, v_o: np.ndarray, split: int, cells: int = 2):
+    """Two identifiers ``make()``: ``a`` runs the whole stream, ``b`` takes ``a``'s state at ``split`` and runs on
+    (every cell the same sample); returns (a, b) for the caller to compare."""
+    a, b = make(), make()
+    for k in range(split):
+        a.update(np.full(cells, current[k]), np.full(cells, v_o[k]))
+    b.load_state_dict(a.state_dict())
+    for k in range(split, len(current)):
+        a.update(np.full(cells, current[k]), np.full(cells, v_o[k]))
+        b.update(np.full(cells, current[k]), np.full(cells, v_o[k]))
+    return a, b
+
+
+def assert_physical_and_finite(est, cells: int) -> dict[str, np.ndarray]:
+    """What an identifier gives out after a sample: every parameter finite, admissible, R0, R1, R2 > 0, the time
+    constants inside the guard's bounds and ordered, a finite recursion and static prediction; returns param_dict."""
+    p, cfg = est.params, est.config
+    assert np.all(p.admissible)
+    d = est.param_dict()
+    for key, val in d.items():
+        assert np.all(np.isfinite(val)), key
+    assert np.all(np.stack([d["r0_ohm"], d["r1_ohm"], d["r2_ohm"]]) > 0)
+    assert np.all((p.tau1_s >= cfg.tau_min_s) & (p.tau2_s <= cfg.tau_max_s) & (p.tau1_s < p.tau2_s))
+    assert np.all(np.isfinite(est.rls.theta)) and np.all(np.isfinite(est.rls.P))
+    assert np.all(np.isfinite(est.predict_static(np.full(cells, 10.0))))
+    return d
+
+
 @pytest.fixture
 def nmc_like_ocv() -> OcvCurve:
     soc = np.linspace(0.0, 1.0, 201)

@@ -183,26 +183,42 @@ def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
     assert m["c0_prior_weight"] == 0.1
 
 
-def test_fit_and_compare_take_the_kinetic_term(tmp_path, capsys):
-    """lif-iv-bv: fit reports K1, K2 and i0; compare simulates the validation file with them."""
+def _fit_and_compare_lg(tmp_path, method: str) -> tuple[dict, dict]:
+    """``fit`` of the shipped LG la92 sample with ``method``, and ``compare`` la92 -> udds of it beside lif-iv:
+    (the fit's JSON, the compare's); both validation simulations below 30 mV and not the same."""
     data = str(drive_cycle("lg-hg2", "la92"))
     lg_ocv = str(ocv_table("lg-hg2"))
     out = tmp_path / "fit.json"
-    assert main(["fit", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--method", "lif-iv-bv",
+    assert main(["fit", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--method", method,
                  "--json", str(out)]) == 0
     f = json.loads(out.read_text())
-    med = f["median_soc_20_90"]
-    assert f["method"] == "lif-iv-bv" and med["i0_a"] == pytest.approx(3.0)
-    for j in (1, 2):  # the guard's bound holds in what is reported
-        assert abs(med[f"k{j}_ohm"]) <= med[f"r{j}_ohm"]
-    assert 0 < f["sim_rmse_mv"] < 30
+    assert f["method"] == method and 0 < f["sim_rmse_mv"] < 30
     cmp_out = tmp_path / "cmp.json"
     assert main(["compare", "--train", data, "--validate", str(drive_cycle("lg-hg2", "udds")), "--ocv", lg_ocv,
-                 "--capacity-ah", "3.0", "--method", "lif-iv-bv", "--method", "lif-iv", "--json", str(cmp_out)]) == 0
+                 "--capacity-ah", "3.0", "--method", method, "--method", "lif-iv", "--json", str(cmp_out)]) == 0
     m = json.loads(cmp_out.read_text())
-    assert set(m["validate"]) == {"lif-iv-bv", "lif-iv"}
-    assert 0 < m["validate"]["lif-iv-bv"]["sim_rmse_mv"] < 30
-    assert m["validate"]["lif-iv-bv"]["sim_rmse_mv"] != m["validate"]["lif-iv"]["sim_rmse_mv"]
+    assert set(m["validate"]) == {method, "lif-iv"}
+    assert 0 < m["validate"][method]["sim_rmse_mv"] < 30
+    assert m["validate"][method]["sim_rmse_mv"] != m["validate"]["lif-iv"]["sim_rmse_mv"]
+    return f, m
+
+
+def test_fit_and_compare_take_the_kinetic_term(tmp_path, capsys):
+    """lif-iv-bv: fit reports K1, K2 and i0; compare simulates the validation file with them."""
+    f, _ = _fit_and_compare_lg(tmp_path, "lif-iv-bv")
+    med = f["median_soc_20_90"]
+    assert med["i0_a"] == pytest.approx(3.0)
+    for j in (1, 2):  # the guard's bound holds in what is reported
+        assert abs(med[f"k{j}_ohm"]) <= med[f"r{j}_ohm"]
+
+
+def test_fit_and_compare_take_the_charge_transfer_branch(tmp_path, capsys):
+    """lif-iv-ct: fit reports the charge-transfer share and V_T; compare simulates the validation file with them."""
+    f, _ = _fit_and_compare_lg(tmp_path, "lif-iv-ct")
+    assert "charge-transfer fast branch: 100 % of R1" in capsys.readouterr().out
+    med = f["median_soc_20_90"]
+    assert med["ct_fraction"] == 1.0
+    assert med["ct_vt_v"] == pytest.approx(0.05139, abs=1e-5)  # 2RT/F at the default 25 degC
 
 
 def test_compare_brings_the_resistances_to_the_validation_temperature(tmp_path, capsys):

@@ -8,6 +8,7 @@ Figures (one core, this machine, one run):
 * ``cell_updates_per_s_c0``: the same with the paper's c0 SOC method.
 * ``cell_updates_per_s_lif_iv``: the same as the first with the recursive-IV LIF identifier (``lif-iv``).
 * ``cell_updates_per_s_lif_iv_bv``: the same with the kinetic-term identifier (``lif-iv-bv``).
+* ``cell_updates_per_s_lif_iv_ct``: the same with the charge-transfer identifier (``lif-iv-ct``).
 * ``tick_ms_200_cells``: median wall time of one 1 s update of a 200-cell pack.
 * ``tick_ms_200_cells_sox``: the same with the state of power, energy and health
   (core.sox.SoxEstimator: SOP at 2/10/30 s, SOE, SOH) after it; ``sox_ms_200_cells`` that part alone.
@@ -209,6 +210,7 @@ FIGURES = {
     "cell_updates_per_s_c0": lambda args: bench_cell_updates(2000, args.seconds, soc_method="c0"),
     "cell_updates_per_s_lif_iv": lambda args: bench_cell_updates(2000, args.seconds, "lif-iv"),
     "cell_updates_per_s_lif_iv_bv": lambda args: bench_cell_updates(2000, args.seconds, "lif-iv-bv"),
+    "cell_updates_per_s_lif_iv_ct": lambda args: bench_cell_updates(2000, args.seconds, "lif-iv-ct"),
     "tick_ms_200_cells": lambda args: bench_tick_ms(200),
     "tick_ms_200_cells_sox": lambda args: bench_tick_ms(200, sox="with"),
     "sox_ms_200_cells": lambda args: bench_tick_ms(200, sox="only"),

@@ -48,7 +48,8 @@ def add_cell_options(p: argparse.ArgumentParser) -> None:
 
 METHOD_HELP = ("identification method: lif = continuous time, LIF + RLS (the paper's); lif-iv = LIF + "
                "recursive instrumental variables; lif-iv-bv = lif-iv with a kinetic (Butler-Volmer-like) term, a "
-               "resistance that falls with current; arx = the discrete-time baseline")
+               "resistance that falls with current; lif-iv-ct = lif-iv whose fast RC branch is "
+               "charge transfer (Butler-Volmer shape from R1 and the temperature, no fitted gain); arx = the discrete-time baseline")
 
 
 def add_method_option(p: argparse.ArgumentParser, default: str, what: str = "") -> None:

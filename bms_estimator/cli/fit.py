@@ -72,6 +72,9 @@ def run(args: argparse.Namespace) -> int:
         if f.get("k1_ohm") is not None:
             print(f"kinetic term: K1 {f['k1_ohm']*1e3:.1f}, K2 {f['k2_ohm']*1e3:.1f} mOhm "
                   f"at i0 {f['i0_a']:.2f} A (a resistance R_j - K_j (1 - asinh(i/i0) / (i/i0)))")
+        if f.get("ct_vt_v") is not None:
+            print(f"charge-transfer fast branch: {f['ct_fraction']*100:.0f} % of R1 at V_T {f['ct_vt_v']*1e3:.1f} mV "
+                  f"(its overpotential V_T asinh(i f R1 / V_T))")
         print(f"simulation RMSE {out['sim_rmse_mv']:.1f} mV, one-step-ahead {out['osa_rmse_mv']:.1f} mV; "
               f"capacity {q_eff:.3f} Ah; {run_.rejections} non-physical updates rejected")
     return 0

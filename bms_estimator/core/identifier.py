@@ -43,8 +43,8 @@ from .params import (
 from .rls import RlsConfig, WeightedRls
 
 #: identification methods: continuous time with RLS (the paper's), with recursive IV, with recursive IV and a
-#: kinetic (Butler-Volmer) term, discrete-time ARX
-METHODS = ("lif", "lif-iv", "lif-iv-bv", "arx")
+#: kinetic (Butler-Volmer) term, with recursive IV and a charge-transfer (Butler-Volmer) fast branch, discrete-time ARX
+METHODS = ("lif", "lif-iv", "lif-iv-bv", "lif-iv-ct", "arx")
 
 __all__ = ["METHODS", "IdentifierConfig", "Identifier", "LifEstimator", "ArxEstimator", "make_identifier"]
 
@@ -57,7 +57,7 @@ class IdentifierConfig:
     C-rate, so that they fit any cell size.
     """
 
-    method: Literal["lif", "lif-iv", "lif-iv-bv", "arx"] = "lif"  # "lif" (continuous time, RLS), "lif-iv" (continuous time, recursive IV), "lif-iv-bv" (lif-iv plus a kinetic term, core/lif_bv.py) or "arx" (DT baseline)
+    method: Literal["lif", "lif-iv", "lif-iv-bv", "lif-iv-ct", "arx"] = "lif"  # "lif" (continuous time, RLS), "lif-iv" (continuous time, recursive IV), "lif-iv-bv" (lif-iv plus a kinetic term, core/lif_bv.py), "lif-iv-ct" (lif-iv with a charge-transfer fast branch, core/lif_ct.py) or "arx" (DT baseline)
     window: Annotated[int, Ge(1)] = 20  # LIF window L in samples
     forgetting: Annotated[float, Interval(ge=0.9, le=1.0)] = 0.9995  # RLS forgetting factor per sample (memory ~ 1/(1-lambda) samples)
     error_on_v: Annotated[float, Ge(0)] = 0.0  # turn adaptation on above this windowed RMS error (0 = always on)
@@ -86,6 +86,10 @@ class IdentifierConfig:
     iv_model_every: Annotated[int, Ge(1)] = 10
     # lif-iv-bv: the kinetic term's current scale i0 in C-rate, fixed (u = i0 asinh(i/i0) - i)
     bv_current_c: Annotated[float, Gt(0)] = 1.0
+    # lif-iv-ct: the share of the fast branch's R1 that is charge transfer (fixed, not fitted) and the
+    # temperature of its thermal voltage V_T = 2 R T / F
+    ct_fraction: Annotated[float, Interval(gt=0.0, le=1.0)] = 1.0
+    ct_temperature_c: Annotated[float, Interval(gt=-273.15, le=200.0)] = 25.0
     prior_r0_ohm_ah: Annotated[float, Gt(0)] = 0.06
     prior_r1_ohm_ah: Annotated[float, Gt(0)] = 0.03
     prior_tau1_s: Annotated[float, Gt(0)] = 10.0
@@ -99,6 +103,11 @@ class IdentifierConfig:
             raise ValueError(f"unknown identification method {self.method!r}: use {', '.join(map(repr, METHODS))}")
         if not (np.isfinite(self.bv_current_c) and self.bv_current_c > 0):
             raise ValueError(f"bv_current_c must be a finite number > 0, got {self.bv_current_c}")
+        if not (np.isfinite(self.ct_fraction) and 0.0 < self.ct_fraction <= 1.0):
+            raise ValueError(f"ct_fraction must be a number in (0, 1], got {self.ct_fraction}")
+        if not (np.isfinite(self.ct_temperature_c) and -273.15 < self.ct_temperature_c <= 200.0):
+            raise ValueError(f"ct_temperature_c must be a temperature in degC above absolute zero, "
+                             f"got {self.ct_temperature_c}")
         if self.iv_model_every < 1:
             raise ValueError(f"iv_model_every must be >= 1, got {self.iv_model_every}")
         if not (np.isfinite(self.c0_prior_weight) and self.c0_prior_weight >= 0):
@@ -529,6 +538,10 @@ def make_identifier(n_cells: int, dt_s: float, capacity_ah, config: IdentifierCo
         from .lif_bv import LifIvBvEstimator
 
         return LifIvBvEstimator(n_cells, dt_s, capacity_ah, config)
+    if config.method == "lif-iv-ct":
+        from .lif_ct import LifIvCtEstimator
+
+        return LifIvCtEstimator(n_cells, dt_s, capacity_ah, config)
     if config.method == "arx":
         return ArxEstimator(n_cells, dt_s, capacity_ah, config)
     raise ValueError(f"unknown identification method {config.method!r}: use {', '.join(map(repr, METHODS))}")

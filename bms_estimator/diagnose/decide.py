@@ -94,7 +94,7 @@ class DiagnoseConfig:
     block_s_bounds: tuple[float, float] = (300.0, 1800.0)
     candidates: tuple[str, ...] = CAUSES
     lif: bool = True  # warm-start the baseline from the online LIF identification
-    # its identification method (lif, lif-iv, lif-iv-bv or arx); lif made the README's findings table
+    # its identification method (lif, lif-iv, lif-iv-bv, lif-iv-ct or arx); lif made the README's findings table
     method: str = "lif"
     t_min: float = 2.0
     noise_fraction: float = 0.5

@@ -22,7 +22,8 @@ from bms_estimator.analysis import one_step_ahead, simulate_with_params
 from bms_estimator.core.identifier import IdentifierConfig, make_identifier
 from bms_estimator.core.lif_bv import LifIvBvEstimator, kinetic_input
 from bms_estimator.core.ocv import OcvCurve
-from tests.conftest import TRUE, hostile_strategies, hostile_stream, pulse_current
+from tests.conftest import (TRUE, assert_physical_and_finite, hostile_strategies, hostile_stream,
+                            median_identification, pulse_current, state_round_trip)
 
 Q_AH = 3.0
 K = {"k1_ohm": 0.006, "k2_ohm": 0.009}
@@ -43,24 +44,9 @@ def _kinetic_cell(i: np.ndarray, k=K, i0_a: float = Q_AH) -> np.ndarray:
     return v
 
 
-def _identify(method: str, n: int = 6000, seeds=range(30, 34), noise_v=0.005, noise_a=0.02):
-    cur = np.stack([pulse_current(n, s) for s in seeds], axis=1)
-    v = np.stack([_kinetic_cell(cur[:, j]) for j in range(cur.shape[1])], axis=1)
-    rng = np.random.default_rng(7)
-    v = v + noise_v * rng.standard_normal(v.shape)
-    meas = cur + noise_a * rng.standard_normal(cur.shape)
-    est = make_identifier(cur.shape[1], 1.0, Q_AH, IdentifierConfig(method=method))
-    seen = []
-    for k in range(n):
-        est.update(meas[k], v[k])
-        if k >= n // 2:
-            seen.append(est.param_dict())
-    return {key: np.median(np.array([s[key] for s in seen]), axis=0) for key in seen[0]}
-
-
 @pytest.fixture(scope="module")
 def fits():
-    return {m: _identify(m) for m in ("lif-iv", "lif-iv-bv")}
+    return {m: median_identification(m, _kinetic_cell) for m in ("lif-iv", "lif-iv-bv")}
 
 
 def _rel(p, key):
@@ -118,14 +104,7 @@ def test_kinetic_input_is_odd_and_cubic_for_small_currents():
 
 def test_state_round_trip_continues_bit_for_bit():
     i = pulse_current(900, seed=11)
-    v = _kinetic_cell(i)
-    a, b = LifIvBvEstimator(2, 1.0, Q_AH), LifIvBvEstimator(2, 1.0, Q_AH)
-    for k in range(600):
-        a.update(np.full(2, i[k]), np.full(2, v[k]))
-    b.load_state_dict(a.state_dict())
-    for k in range(600, 900):
-        a.update(np.full(2, i[k]), np.full(2, v[k]))
-        b.update(np.full(2, i[k]), np.full(2, v[k]))
+    a, b = state_round_trip(lambda: LifIvBvEstimator(2, 1.0, Q_AH), i, _kinetic_cell(i), 600)
     np.testing.assert_array_equal(a.theta_good, b.theta_good)
     np.testing.assert_array_equal(a.kinetic_ohm, b.kinetic_ohm)
 
@@ -140,17 +119,10 @@ def test_no_nan_and_no_inadmissible_parameters_leave_it(seed, amp, noise_v, nois
     # a resistance that bends either way with the current, beyond what the model allows at times
     for i, v, valid in hostile_stream(seed, amp, noise_v, noise_a, dropout, bend_ohm_per_a=curve):
         est.update(i, v, valid)
-        p = est.params
-        assert np.all(p.admissible)
-        d = est.param_dict()
-        for key, val in d.items():
-            assert np.all(np.isfinite(val)), key
-        r = np.stack([d["r0_ohm"], d["r1_ohm"], d["r2_ohm"]], axis=1)
+        d = assert_physical_and_finite(est, cells)
+        r = np.stack([d["r1_ohm"], d["r2_ohm"]], axis=1)
         k_nl = np.stack([d["k1_ohm"], d["k2_ohm"]], axis=1)
-        assert np.all(r > 0) and np.all(np.abs(k_nl) <= r[:, 1:] * (1 + 1e-9))
-        assert np.all((p.tau1_s >= cfg.tau_min_s) & (p.tau2_s <= cfg.tau_max_s) & (p.tau1_s < p.tau2_s))
-        assert np.all(np.isfinite(est.rls.theta)) and np.all(np.isfinite(est.rls.P))
-        assert np.all(np.isfinite(est.predict_static(np.full(cells, 10.0))))
+        assert np.all(np.abs(k_nl) <= r * (1 + 1e-9))
 
 
 def test_the_service_config_takes_lif_iv_bv_and_names_a_bad_current_scale():
