@@ -13,6 +13,7 @@ import pytest
 from e2e_helpers import Broker, mosquitto_available, replay_through_service
 
 from bms_estimator.cli.__main__ import main
+from bms_estimator.core.identifier import IdentifierConfig
 
 pytestmark = pytest.mark.slow
 
@@ -54,13 +55,19 @@ def _run_demo(tmp_path, capsys, broker: str, duration_s: int | None) -> tuple[st
     assert m and float(m.group(1)) == pytest.approx(sox["p_discharge_max_10s_w"], abs=1.0)
     m = re.search(r"R0 ranking vs the injected spread: Spearman (-?\d\.\d{3})", text)
     assert m and float(m.group(1)) == pytest.approx(summary["spearman_r0_median_vs_injected"], abs=1e-3)
-    # The R0 ranking builds over the first hour: with the EKF's SOC corrections shifted into the
-    # identifier, the median R0 after the initialisation ranks the injected spread at 0.29 after
-    # 15 min, 0.90 after 1 h and 0.96 over the full run; the final R0 at 0.57, 0.99 and 0.95.
+    # The R0 ranking builds over the first hour: the median R0 after the initialisation ranks the
+    # injected spread at 0.90 after 1 h and 0.99 over the full run.  Before that the cells leave the
+    # identifier's prior (20 mOhm here) one by one: at 15 min 2-3 of the 16 have, so a rank correlation
+    # over the cells mostly ranks ties of the prior (it read 0.54 or 0.28 at 15 min, 0.19 at 20 min,
+    # 0.83 at 25 min as that handful moved).  A short run checks what the identified cells do say.
     if summary["duration_s"] >= 3600:
         assert summary["spearman_r0_median_vs_injected"] >= 0.85
-    else:
-        assert summary["spearman_r0_final_vs_factor"] >= 0.5
+    prior_r0 = IdentifierConfig().prior_r0_ohm_ah / summary["capacity_ah_stated"]
+    identified = [c for c in summary["cells"] if abs(c["r0_ohm_final"] - prior_r0) > 1e-6]
+    assert identified, "no cell's R0 left the identifier's prior"
+    # measured: 7-8 % below the injected median R0 at 15 min, within 1 % over the full run
+    for c in identified:
+        assert c["r0_ohm_final"] == pytest.approx(c["r0_ohm_true_median"], rel=0.2), c
     return text, summary
 
 
