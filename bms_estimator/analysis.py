@@ -270,6 +270,21 @@ def _kinetic_excess(current_a: np.ndarray, params: dict[str, np.ndarray]) -> np.
                           params["ct_vt_v"])
 
 
+def _through_branches(x: np.ndarray, r1, r2, params: dict[str, np.ndarray], dt_s: float) -> np.ndarray:
+    """Free-run response (period means, from rest) of the RC branches with resistances r1, r2 and the
+    model's time constants to an extra input x: how a model extension's input enters the simulation."""
+    part = {"r0_ohm": 0.0, "r1_ohm": r1, "r2_ohm": r2, "c0_v": 0.0,
+            "tau1_s": params["tau1_s"], "tau2_s": params["tau2_s"]}
+    return simulate_ecm(x, dt_s, _ecm_params(part), output="mean").voltage_v
+
+
+def _osa_through_branches(x: np.ndarray, r1, r2, params: dict[str, np.ndarray], dt_s: float) -> np.ndarray:
+    """The one-step-ahead contribution (samples 2..n-1) of an extra input x through the same branches."""
+    t = np.broadcast_to(dt_theta_from_physical(0.0, r1, params["tau1_s"], r2, params["tau2_s"], dt_s=dt_s),
+                        (len(x), 6))[1:-1]
+    return t[:, 2] * x[2:] + t[:, 3] * x[1:-1] + t[:, 4] * x[:-2]
+
+
 def simulate_with_params(
     current_a: np.ndarray, soc: np.ndarray, ocv: OcvCurve, params: dict[str, np.ndarray], dt_s: float = 1.0
 ) -> np.ndarray:
@@ -285,19 +300,14 @@ def simulate_with_params(
     """
     v = simulate_ecm(current_a, dt_s, _ecm_params(params), ocv.ocv, soc=soc, output="mean").voltage_v
     if "ct_vt_v" in params:  # a charge-transfer fast branch (core/lif_ct.py): its kinetic excess w through it
-        w = _kinetic_excess(current_a, params)
         unit = np.ones_like(np.asarray(params["tau1_s"], dtype=float))
-        part = {"r0_ohm": 0.0, "r1_ohm": unit, "r2_ohm": 0.0 * unit, "c0_v": 0.0,
-                "tau1_s": params["tau1_s"], "tau2_s": params["tau2_s"]}
-        v = v + simulate_ecm(w, dt_s, _ecm_params(part), output="mean").voltage_v
+        v = v + _through_branches(_kinetic_excess(current_a, params), unit, 0.0 * unit, params, dt_s)
     if "k1_ohm" not in params:
         return v
     u = kinetic_input(np.asarray(current_a, dtype=float), params["i0_a"])
     for sign in (1.0, -1.0):
-        k = {key: np.maximum(sign * np.asarray(params[key]), 0.0) for key in ("k1_ohm", "k2_ohm")}
-        part = {"r0_ohm": 0.0, "r1_ohm": k["k1_ohm"], "r2_ohm": k["k2_ohm"], "c0_v": 0.0,
-                "tau1_s": params["tau1_s"], "tau2_s": params["tau2_s"]}
-        v = v + sign * simulate_ecm(u, dt_s, _ecm_params(part), output="mean").voltage_v
+        k1, k2 = (np.maximum(sign * np.asarray(params[key]), 0.0) for key in ("k1_ohm", "k2_ohm"))
+        v = v + sign * _through_branches(u, k1, k2, params, dt_s)
     return v
 
 
@@ -319,17 +329,10 @@ def one_step_ahead(
         t[:, 0] * v_o[1:-1] + t[:, 1] * v_o[:-2] + t[:, 2] * i[2:] + t[:, 3] * i[1:-1] + t[:, 4] * i[:-2] + t[:, 5]
     )
     if "ct_vt_v" in params:  # the kinetic excess w through the fast branch (core/lif_ct.py)
-        w = _kinetic_excess(i, params)
-        tw = np.broadcast_to(dt_theta_from_physical(
-            0.0, 1.0, params["tau1_s"], 0.0, params["tau2_s"], dt_s=dt_s,
-        ), (len(i), 6))[1:-1]
-        pred[2:] += tw[:, 2] * w[2:] + tw[:, 3] * w[1:-1] + tw[:, 4] * w[:-2]
+        pred[2:] += _osa_through_branches(_kinetic_excess(i, params), 1.0, 0.0, params, dt_s)
     if "k1_ohm" in params:  # the kinetic input u through the same poles (core/lif_bv.py)
         u = kinetic_input(i, params["i0_a"])
-        tk = np.broadcast_to(dt_theta_from_physical(
-            0.0, params["k1_ohm"], params["tau1_s"], params["k2_ohm"], params["tau2_s"], dt_s=dt_s,
-        ), (len(i), 6))[1:-1]
-        pred[2:] += tk[:, 2] * u[2:] + tk[:, 3] * u[1:-1] + tk[:, 4] * u[:-2]
+        pred[2:] += _osa_through_branches(u, params["k1_ohm"], params["k2_ohm"], params, dt_s)
     return pred + ocv.ocv(soc)
 
 
