@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KELVIN", "RESISTANCE_ACTIVATION_K", "arrhenius_factor", "resistances_at", "SCALED_RESISTANCES"]
+__all__ = ["KELVIN", "R_GAS", "RESISTANCE_ACTIVATION_K", "arrhenius_factor", "resistances_at", "SCALED_RESISTANCES"]
 
 KELVIN = 273.15
+R_GAS = 8.314462618  # J / (mol K)
 
 #: B = E_a / R_gas of the measured cells' resistances: their Arrhenius line of R0 across ambients
 #: (README, diagnose findings: E_a = 19 kJ/mol Panasonic, 22 kJ/mol LG, i.e. 2300-2650 K), rounded

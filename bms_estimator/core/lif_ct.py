@@ -62,13 +62,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .arrhenius import KELVIN
+from .arrhenius import KELVIN, R_GAS
 from .identifier import IdentifierConfig
 from .lif_iv import LifIvEstimator
 
 __all__ = ["thermal_voltage", "kinetic_excess", "LifIvCtEstimator", "CT_KEYS"]
 
-GAS_CONSTANT = 8.314462618  # J / (mol K)
 FARADAY = 96485.33212  # C / mol
 
 #: the charge-transfer model's entries in a parameter dict: V_T (V) and the charge-transfer share of R1
@@ -77,7 +76,7 @@ CT_KEYS = ("ct_vt_v", "ct_fraction")
 
 def thermal_voltage(temperature_c) -> np.ndarray | float:
     """``V_T = 2 R T / F`` (V) of a symmetric charge-transfer step at ``temperature_c`` (degC)."""
-    return 2.0 * GAS_CONSTANT * (np.asarray(temperature_c, dtype=float) + KELVIN) / FARADAY
+    return 2.0 * R_GAS * (np.asarray(temperature_c, dtype=float) + KELVIN) / FARADAY
 
 
 def kinetic_excess(current_a, r1_ohm, fraction, vt_v) -> np.ndarray:

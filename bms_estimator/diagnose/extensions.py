@@ -85,6 +85,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
+from ..core.arrhenius import KELVIN, R_GAS
 from ..core.hysteresis import hysteresis_trajectory
 from ..core.ocv import OcvCurve
 
@@ -102,8 +103,6 @@ __all__ = [
     "unabsorbed",
 ]
 
-R_GAS = 8.314462618  # J/(mol K)
-KELVIN = 273.15
 TAU1_BOUNDS = (1.0, 100.0)
 TAU2_BOUNDS = (10.0, 500.0)
 TAU3_BOUNDS = (100.0, 20000.0)

@@ -49,9 +49,10 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import lfilter
 
+from ..core.arrhenius import KELVIN, R_GAS
 from ..core.hysteresis import hysteresis_trajectory
 from ..core.ocv import OcvCurve
-from .extensions import KELVIN, R_GAS, Series, rc_mean
+from .extensions import Series, rc_mean
 
 __all__ = ["GeneratedCell", "generate", "load_profile", "profile_names", "EFFECTS"]
 
