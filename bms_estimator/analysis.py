@@ -58,9 +58,6 @@ IDENTIFICATION_METHOD = "lif-iv"
 # what compare runs by default: the CT default first (its model gives the capacity), the other CT, DT
 DEFAULT_METHODS = (IDENTIFICATION_METHOD, "lif", "arx")
 
-# B of the validation simulation's temperature correction: core.arrhenius.RESISTANCE_ACTIVATION_K
-# (the cells' Arrhenius line of R0 across ambients, rounded; not fitted to the compare table)
-
 PARAM_KEYS = ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "tau1_s", "tau2_s")
 
 __all__ = [
@@ -77,7 +74,6 @@ __all__ = [
     "rmse_mv",
     "IDENTIFICATION_METHOD",
     "DEFAULT_METHODS",
-    "RESISTANCE_ACTIVATION_K",
     "compare_methods",
     "train_methods",
     "validate_methods",

@@ -5,7 +5,7 @@ Every ordered pair of drive cycles of the same cell at the same ambient in ../sh
 train on one, validate on the other (the paper's Section IV-A, as `bms-estimator compare`:
 SOC by coulomb counting from full with the training file's output-error capacity, the
 known-SOC c0 prior, training parameters looked up by SOC on the validation file and brought
-to its cell temperature by Arrhenius, ``analysis.RESISTANCE_ACTIVATION_K``). Each
+to its cell temperature by Arrhenius, ``core.arrhenius.RESISTANCE_ACTIVATION_K``). Each
 training file is identified once per method and validated on every other file of its
 ambient. Validation simulation RMSE over the 20-90 % SOC window.
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..analysis import DEFAULT_METHODS, RESISTANCE_ACTIVATION_K, compare_methods
+from ..analysis import DEFAULT_METHODS, compare_methods
+from ..core.arrhenius import RESISTANCE_ACTIVATION_K
 from ..core.identifier import METHODS
 from .common import (
     METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, non_negative_float,
