@@ -10,7 +10,9 @@ the file's full start, :mod:`bms_estimator.scoring`):
 
 and, asked for by name (``--starts``), ``atP+E`` / ``atP-E``: at P % of the file
 with the reference + or - E % (``at75-5``: three quarters through, 5 % low), the
-starts a hidden recording may bring that the four above do not.
+starts a hidden recording may bring that the four above do not; and ``ocv``: at
+t = 0 with the SOC read from the first sample's voltage (the files start at rest),
+as the service starts after a rest and ``soc --start-soc ocv`` does.
 
 OCV: every table the cell has (C/20 tests, and HPPC rests where an ambient has no
 C/20 test), interpolated by the cell temperature.  Where the file's own ambient
@@ -142,14 +144,20 @@ _AT = re.compile(r"at(\d+(?:\.\d+)?)([+-]\d+(?:\.\d+)?)")
 def check_start(name: str) -> str:
     """``name`` if it is a start this module knows (module docstring), else ValueError naming it."""
     m = _AT.fullmatch(name)
-    if name in STARTS or (m and 0.0 <= float(m.group(1)) < 100.0):
+    if name in STARTS or name == "ocv" or (m and 0.0 <= float(m.group(1)) < 100.0):
         return name
-    raise ValueError(f"unknown start {name!r}: use {', '.join(STARTS)} or atP+E / atP-E (P % of the file, E % off)")
+    raise ValueError(f"unknown start {name!r}: use {', '.join(STARTS)}, ocv, or atP+E / atP-E "
+                     f"(P % of the file, E % off)")
 
 
 def start_point(name: str, base_soc: np.ndarray) -> tuple[int, float]:
-    """(sample, SOC told to the estimator) of a start in a file whose reference SOC is ``base_soc``."""
+    """(sample, SOC told to the estimator) of a start in a file whose reference SOC is ``base_soc``.
+
+    NaN for ``ocv``: the estimator reads it from the first sample's voltage.
+    """
     n = len(base_soc)
+    if name == "ocv":
+        return 0, float("nan")
     if name == "full":
         return 0, 1.0
     if name == "full-20":
@@ -226,6 +234,8 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                     ref = refs[j]
                     k0, s0 = starts[c]
                     n = len(rec)
+                    if not np.isfinite(s0):  # read from the OCV: what the estimator began with
+                        s0 = float(run.soc[k0, c])
                     row = {
                         "cell": cell, "ambient": amb, "file": name, "method": method, "ocv": variant,
                         "start": start, "start_s": float(k0 * rec.dt_s), "start_soc": s0,

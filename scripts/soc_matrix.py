@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="an estimator setting to try (SocConfig field, or ekf.FIELD / identifier.FIELD)")
     ap.add_argument("--starts", default=",".join(STARTS),
                     help="comma-separated starts (default: the README's four); atP+E / atP-E = at P %% of the file, "
-                         "the reference + or - E %%")
+                         "the reference + or - E %%; ocv = at the start, read from the first sample's voltage")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--readme", action="store_true",
                     help="write the summary into README.md between its markers and every run into docs/soc_matrix.md")

@@ -82,6 +82,8 @@ def test_start_names_place_the_start_and_an_unknown_one_is_named():
     k, soc = start_point("at75-5", ref)
     assert k == 750 and soc == pytest.approx(ref[750] - 0.05)
     assert start_point("at10+20", ref) == (100, 1.0)  # clipped to full
+    k, soc = start_point(check_start("ocv"), ref)  # read from the first sample's voltage by the estimator
+    assert k == 0 and np.isnan(soc)
     for bad in ("late", "at100+5", "at50", "at50*5"):
         with pytest.raises(ValueError, match=re.escape(repr(bad))):
             check_start(bad)
@@ -120,3 +122,22 @@ def test_sigma_coverage_counts_the_samples_within_one_and_two_sigma():
     one, two = _sigma_coverage(soc, sigma, ref, 2)
     assert one == pytest.approx(100 * 2 / 6) and two == pytest.approx(100 * 4 / 6)
     assert np.isnan(_sigma_coverage(soc, np.full(10, np.nan), ref, 0)[0])
+
+
+@needs_shared
+def test_a_start_read_from_the_ocv_at_the_first_sample():
+    """What the service does after a rest (and ``soc --start-soc ocv``): the SOC read from the first
+    sample's voltage, every scored file starting at rest after a charge.  Measured 17 of 18 within 2 %
+    from 30 min (median 0.58 %); the miss is Panasonic hwfet_a, 2.56 % (1.15 % when told it is full: from
+    35 min the identifier's slow branch and its c0 drift together, README)."""
+    rows = []
+    for cell, pattern in (("lg-hg2", "lg-hg2/[02]*degC/*"), ("panasonic-18650pf", "panasonic-18650pf/25degC/*")):
+        rows += run_cell(SHARED, cell, [DEFAULT], pattern, leave_out=False, start_names=("ocv",))
+    scored = [r for r in rows if r.get("reference_relaxed")]
+    assert len(scored) == 18, len(scored)
+    starts = np.array([r["start_soc"] for r in scored])
+    assert np.all((starts > 0.85) & (starts <= 1.0)), starts  # read near full: measured 0.92-1.00
+    e30 = np.array([r["rmse_30min_pct"] for r in scored])
+    assert np.sum(e30 <= 2.0) >= 16, np.sort(e30)
+    assert np.median(e30) <= 1.0, np.median(e30)
+    assert e30.max() <= 3.5, e30.max()
