@@ -29,6 +29,7 @@ from typing import Annotated, Literal
 import numpy as np
 from annotated_types import Ge, Gt, Interval
 
+from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector
 from .lif import LifHistory
 from .params import (
@@ -97,21 +98,9 @@ class IdentifierConfig:
     prior_tau2_s: Annotated[float, Gt(0)] = 200.0
 
     def __post_init__(self) -> None:
-        if self.restart_after_rejections < 0:
-            raise ValueError(f"restart_after_rejections must be >= 0, got {self.restart_after_rejections}")
         if self.method not in METHODS:
             raise ValueError(f"unknown identification method {self.method!r}: use {', '.join(map(repr, METHODS))}")
-        if not (np.isfinite(self.bv_current_c) and self.bv_current_c > 0):
-            raise ValueError(f"bv_current_c must be a finite number > 0, got {self.bv_current_c}")
-        if not (np.isfinite(self.ct_fraction) and 0.0 < self.ct_fraction <= 1.0):
-            raise ValueError(f"ct_fraction must be a number in (0, 1], got {self.ct_fraction}")
-        if not (np.isfinite(self.ct_temperature_c) and -273.15 < self.ct_temperature_c <= 200.0):
-            raise ValueError(f"ct_temperature_c must be a temperature in degC above absolute zero, "
-                             f"got {self.ct_temperature_c}")
-        if self.iv_model_every < 1:
-            raise ValueError(f"iv_model_every must be >= 1, got {self.iv_model_every}")
-        if not (np.isfinite(self.c0_prior_weight) and self.c0_prior_weight >= 0):
-            raise ValueError(f"c0_prior_weight must be a finite number >= 0, got {self.c0_prior_weight}")
+        check_bounds(self)
         if not self.tau_min_s < self.tau_max_s:
             raise ValueError(f"tau_min_s must be below tau_max_s, got {self.tau_min_s} and {self.tau_max_s}")
         if self.error_off_v > self.error_on_v:

@@ -50,6 +50,7 @@ from typing import Annotated, Literal, get_args
 import numpy as np
 from annotated_types import Ge, Gt
 
+from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector, clip
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
@@ -110,6 +111,7 @@ class SocConfig:
             raise ValueError(f"soc_method must be one of {SOC_METHODS}, got {self.soc_method!r}")
         if self.capacity_soc_update not in CAPACITY_SOC_UPDATES:
             raise ValueError(f"capacity_soc_update must be one of {CAPACITY_SOC_UPDATES}, got {self.capacity_soc_update!r}")
+        check_bounds(self)
         if not 0 < self.capacity_bounds[0] < self.capacity_bounds[1]:
             raise ValueError(f"capacity_bounds must be 0 < low < high, got {list(self.capacity_bounds)}")
 

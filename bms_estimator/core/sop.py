@@ -71,6 +71,8 @@ from typing import Annotated, Callable
 import numpy as np
 from annotated_types import Ge, Gt
 
+from .bounds import check_bounds
+
 __all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", "sop_and_pack_limits", "hppc_limits",
            "pack_limits"]
 
@@ -114,6 +116,7 @@ class SopConfig:
             if d.shape != t.shape or np.any(d < 0) or np.any(d > 1) or not np.all(np.isfinite(d)):
                 raise ValueError(f"{name} must have one factor in [0, 1] per derate temperature "
                                  f"({t.size}), got {list(getattr(self, name))}")
+        check_bounds(self)
 
 
 @dataclass(frozen=True)

@@ -51,6 +51,7 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge
 
+from .bounds import check_bounds
 from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from .soh import ResistanceSoh, SohConfig, capacity_soh
 from .ocv_surface import OcvAtTemperatures
@@ -70,6 +71,9 @@ class SoxConfig:
     # energy left, time to empty/full and capacity SOH are recomputed every slow_period_s and held
     # in between (they move by well under 1 % in 10 s; the SOP and the energy counters run every sample)
     slow_period_s: Annotated[float, Ge(0)] = 10.0
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
 
 
 class SoxEstimator:
