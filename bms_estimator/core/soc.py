@@ -521,13 +521,6 @@ class SocEstimator:
     def params(self) -> dict[str, np.ndarray]:
         return self.identifier.params.as_dict()
 
-    @property
-    def c0_avg_v(self) -> np.ndarray:
-        """The OCV bias: averaged over the c0 window (c0 method), the identifier's own (EKF)."""
-        if self.ekf is not None:
-            return self.identifier.c0_v.copy()
-        return np.where(self._c0_count > 0, self._c0_sum / self._w, np.nan)
-
     def state_dict(self) -> dict[str, np.ndarray]:
         s = {f"id.{k}": v for k, v in self.identifier.state_dict().items()}
         s.update(
