@@ -80,6 +80,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from ..analysis import run_identification, simulate_with_params
 from ..core.identifier import IdentifierConfig
 from ._blas import single_blas_thread
 from .extensions import BASELINE, CAUSES, FEATURES, Fit, Model, Series, fit_model
@@ -237,8 +238,6 @@ def noise_level(r: np.ndarray) -> float:
 
 
 def _lif_start(s: Series, method: str) -> dict:
-    from ..analysis import run_identification, simulate_with_params
-
     run = run_identification(s.current_a, s.voltage_v, s.soc, s.ocv, s.capacity_ah, s.dt_s,
                              IdentifierConfig(method=method))
     sel = run.identified & (s.soc > 0.2) & (s.soc < 0.9)
