@@ -517,6 +517,8 @@ class ArxEstimator(Identifier):
 
 
 def make_identifier(n_cells: int, dt_s: float, capacity_ah, config: IdentifierConfig = IdentifierConfig()) -> Identifier:
+    """The identifier ``config.method`` names.  (The IV variants subclass :class:`LifEstimator` in
+    modules that import this one, so they are imported here, when asked for.)"""
     if config.method == "lif":
         return LifEstimator(n_cells, dt_s, capacity_ah, config)
     if config.method == "lif-iv":
