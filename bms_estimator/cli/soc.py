@@ -48,7 +48,8 @@ def add_parser(sub) -> None:
                    help="without --start-soc: start this far below the reference (default 0.2, the paper's Fig. 10)")
     p.add_argument("--soc-method", choices=SOC_METHODS, default=SocConfig().soc_method,
                    help=f"how the voltage corrects the count (default {SocConfig().soc_method}): c0 = the paper's "
-                        "OCV-bias compensation, ekf = an extended Kalman filter on SOC and the RC voltages")
+                        "OCV-bias compensation, ekf = an extended Kalman filter on SOC, a diffusion branch and the "
+                        "capacity, driven by the identified model (core/soc_ekf.py)")
     p.add_argument("--reference-ocv", type=Path, default=None,
                    help="the same cell's C/20 OCV table at the recording's ambient, for the reference")
     p.add_argument("--reference-capacity-ah", type=float, default=None,
