@@ -91,6 +91,9 @@ class IdentifierConfig:
     # temperature of its thermal voltage V_T = 2 R T / F
     ct_fraction: Annotated[float, Interval(gt=0.0, le=1.0)] = 1.0
     ct_temperature_c: Annotated[float, Interval(gt=-273.15, le=200.0)] = 25.0
+    # the prior model (ohm * Ah, class docstring): what a cell reports until its block-LS start is
+    # done, and where it starts if that start is not physical; its time constants are moved inside
+    # [tau_min_s, tau_max_s] (and tau1 below tau2 / 2) where they are not
     prior_r0_ohm_ah: Annotated[float, Gt(0)] = 0.06
     prior_r1_ohm_ah: Annotated[float, Gt(0)] = 0.03
     prior_tau1_s: Annotated[float, Gt(0)] = 10.0

@@ -84,7 +84,7 @@ class SocConfig:
     soc_error_threshold: Annotated[float, Ge(0)] = 0.02  # compensate when c0 means more than this SOC error
     c0_window_s: Annotated[float, Gt(0)] = 120.0  # averaging window of c0
     c0_stable_v: Annotated[float, Ge(0)] = 0.010  # c0 is stable when its std over the window is below this
-    estimate_capacity: bool = True
+    estimate_capacity: bool = True  # learn the effective capacity (EKF: its dq state; c0: the anchor line below)
     capacity_min_span: Annotated[float, Ge(0)] = 0.5  # anchors must span this fraction of the stated capacity (short spans amplify OCV-model error)
     capacity_bounds: tuple[Annotated[float, Gt(0)], Annotated[float, Gt(0)]] = (0.6, 1.4)  # relative to the stated capacity
     capacity_max_rmse: Annotated[float, Ge(0)] = 0.03  # max RMS residual (SOC) of the anchor line fit
@@ -96,7 +96,7 @@ class SocConfig:
     #              every SOC the anchors were taken at, and on a synthetic 10 % capacity error it
     #              is the best of the three
     capacity_soc_update: CapacitySocUpdate = "none"
-    reanchor_min_soc: Annotated[float, Ge(0)] = 0.005
+    reanchor_min_soc: Annotated[float, Ge(0)] = 0.005  # "recount"/"line" move the SOC only by more than this
     # One-state OCV hysteresis from the OCV table's hysteresis_v column (zero if it has none):
     # a cell that has been discharging sits on the discharge branch, H(soc) below the mean curve.
     # Read on the mean curve that reads as a 2-4 % low SOC on both cells in ../shared/data.
