@@ -14,6 +14,12 @@ The paper's steps, per sample k and per cell::
 A c0 > 0 means the cell's voltage sits above what OCV(soc) explains with the
 identified impedance, i.e. the true OCV is higher: the SOC estimate was low.
 
+Those are ``soc_method="c0"``.  By default (``"ekf"``) steps 4.-6. are an extended
+Kalman filter driven by the identified model (:mod:`bms_estimator.core.soc_ekf`): it
+corrects the counted SOC every sample and learns the capacity as a state of its own,
+and every SOC move shifts the identifier's history and c0 as in step 6; the anchor
+line below is the c0 method's.
+
 Capacity.  The capacity a user states (nominal) is not the one coulomb counting
 needs (aged cell, rate and temperature effects).  Every time the bias average is
 stable, the OCV-implied SOC ``s_ocv = OCV^-1(OCV(soc) + c0_avg)`` is an anchor
