@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,12 +36,16 @@ from typing import Any
 import numpy as np
 import structlog
 
+from ..core.soc import SocEstimator
+from ..data import load_recording
 from ..errors import BmsEstimatorError, DataError, one_line_error
+from ..scoring import counted_soc, soc_error_figures
 from .assemble import assemble_samples
 from .decode import decode_frames
 from .estimate import DriveEstimate, carry_state, estimate_drive
 from .frames import read_frames
 from .samples import SampleArrays
+from .stack import StackError, estimate_stacked
 
 __all__ = ["DriveResult", "drive_order_key", "run_drive", "run_drives", "run_vehicle", "parquet_path"]
 
@@ -99,8 +104,6 @@ def is_recording(path: str | Path) -> bool:
 
 
 def _recording_samples(log: Path, svc) -> SampleArrays:
-    from ..data import load_recording
-
     try:
         rec = load_recording(log, resample_s=svc.period_s)
         return SampleArrays.from_recording(rec, svc.period_s)
@@ -144,10 +147,6 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
     figures :func:`bms_estimator.scoring.soc_error_figures`' ``rmse_all_pct`` and the error at
     the last sample, both in percent.
     """
-    import warnings
-
-    from ..scoring import counted_soc, soc_error_figures
-
     n = est.valid.shape[1] if est.valid.ndim == 2 else 0
     out: dict[str, list[float]] = {}
     if len(est) == 0:
@@ -319,7 +318,6 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
 
 def _stack_factory(svc):
     """``n`` -> a fresh estimator of ``n`` cells made as the service makes its own (the service's for its ``n``)."""
-    from ..core.soc import SocEstimator
 
     def make(n: int):
         if n == svc.n_cells:
@@ -340,8 +338,6 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
     its share (1/S) of the stacked run; ``counters["stacked_with"]`` says how many ran together.
     If the drives cannot run stacked, they run one by one. Never raises for a bad log.
     """
-    from .stack import StackError, estimate_stacked
-
     results: list[DriveResult] = []
     ready: dict[int, list[tuple[DriveResult, Path, Any, SampleArrays]]] = {}
     for log, vehicle in logs:
