@@ -180,8 +180,9 @@ class Identifier:
     def _physical(self, theta_s: np.ndarray) -> PhysicalParams:
         raise NotImplementedError
 
-    def _regress(self, current_a: np.ndarray, v_o: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Push a sample; return (y, phi_s, ready mask)."""
+    def _regress(self, current_a: np.ndarray, v_o: np.ndarray,
+                 ok: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Push a sample (``ok``: the cells whose sample is good); return (y, phi_s, ready mask)."""
         raise NotImplementedError
 
     def _shift_theta(self, theta_s: np.ndarray, dv: np.ndarray) -> None:
