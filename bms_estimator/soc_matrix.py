@@ -104,8 +104,7 @@ class GroupRun(NamedTuple):
     capacity_ah: np.ndarray  # (n_cells,) the capacity the count uses at the end
 
 
-def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
-              temperature: bool = True) -> GroupRun:
+def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig) -> GroupRun:
     """One estimator, one cell per (recording, start), run over the samples of all of them."""
     n_cells = len(recs)
     n_max = max(len(r) for r in recs)
@@ -130,7 +129,7 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
             est.set_soc(soc_start, starting)
         i = np.where(before, np.nan, cur[k])
         v = np.where(before, np.nan, vol[k])
-        est.update(i, v, temperature_c=tmp[k] if temperature else None)
+        est.update(i, v, temperature_c=tmp[k])
         out[k] = np.where(before, np.nan, est.soc)
         sigma[k] = np.where(before, np.nan, est.soc_sigma)
     return GroupRun(out, sigma, est.counting_capacity_ah.copy())
