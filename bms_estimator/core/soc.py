@@ -323,13 +323,8 @@ class SocEstimator:
         n = self.n_cells
         i = cell_vector(current_a, n)
         v = cell_vector(voltage_v, n)
-        if temperature_c is not None and self.samples == 0 and self.ekf is not None:
-            # the diffusion resistance's prior follows the start temperature, with or without T-tables
-            self.ekf.start_diffusion_at(cell_vector(temperature_c, n), self.config.default_temperature_c)
-        if temperature_c is not None and self._t_aware:
-            t = cell_vector(temperature_c, n)
-            self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last
-            self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
+        if temperature_c is not None:
+            self._take_temperature(cell_vector(temperature_c, n))
         ok = np.isfinite(v)
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
@@ -340,14 +335,8 @@ class SocEstimator:
         read_now = None  # SOC read from this sample's voltage (none in the usual sample): not to be used a second time
         if any_unset:
             read_now = unset & ok
-            start = read_now
-            if any_cell(start):
-                self.soc = np.where(start, np.clip(self._soc_at(np.where(start, v, 3.7)), 0.0, 1.0), self.soc)
-                self._soc_fix = np.where(start, self.soc, self._soc_fix)
-                self._q_fix = np.where(start, self._charge_ref_ah, self._q_fix)
-                self._start_hysteresis(start)
-                if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
-                    self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, start)
+            if any_cell(read_now):
+                self._start_from_voltage(read_now, v)
         # 1. coulomb counting (the previous sample's current moved the SOC to now)
         q_now = self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah  # (x 1.0 is x: no copy)
         dq = self._i_prev * (self.dt_s / 3600.0)
@@ -385,6 +374,25 @@ class SocEstimator:
             self._ekf_step(i_prev, i_use, dz, slope_mid, use if read_now is None else use & have_soc & ~read_now)
         self._compensate(use)
         self.samples += 1
+
+    def _take_temperature(self, t: np.ndarray) -> None:
+        """The cells' temperatures this sample: the diffusion prior at the first one (with or without
+        tables by temperature), and with them the tables' temperature and relative capacity."""
+        if self.samples == 0 and self.ekf is not None:
+            self.ekf.start_diffusion_at(t, self.config.default_temperature_c)
+        if self._t_aware:
+            self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last
+            self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
+
+    def _start_from_voltage(self, cells: np.ndarray, v: np.ndarray) -> None:
+        """The start SOC of ``cells`` read from their voltage as an OCV (a pack started from rest);
+        the count and the hysteresis branch start there, the EKF with the OCV's own uncertainty."""
+        self.soc = np.where(cells, np.clip(self._soc_at(np.where(cells, v, 3.7)), 0.0, 1.0), self.soc)
+        self._soc_fix = np.where(cells, self.soc, self._soc_fix)
+        self._q_fix = np.where(cells, self._charge_ref_ah, self._q_fix)
+        self._start_hysteresis(cells)
+        if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
+            self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, cells)
 
     def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, slope: np.ndarray,
                   use: np.ndarray) -> None:
