@@ -222,20 +222,31 @@ class Identifier:
         admissible = params.admissible & (np.abs(params.c0_v) <= self.config.c0_max_v)
         params = PhysicalParams(*params._arrays(), admissible=admissible, dynamics_ok=params.dynamics_ok)
         good = admissible & self.rls.initialised
-        # a fresh block-LS start that is not physical: the block grows by a sample and is
-        # solved again; once it is init_max_samples long the cell starts from the prior
         bad_start = None if new is None else new & ~good
         if bad_start is not None and any_cell(bad_start):
-            longest = max(self.config.init_max_samples, self.config.init_samples)
-            grow = bad_start & (self.rls.block_samples < longest)
-            if any_cell(grow):
-                self.rls.extend_block(grow)
-            give_up = bad_start & ~grow
-            theta[give_up] = self._prior_theta_s[give_up]
+            self._retry_start(bad_start, theta)
         rejected = self.rls.initialised & ~params.admissible
         if new is not None:
             rejected &= ~new
         accepted = good if learn_all else good & learn
+        self._guard(rejected, accepted)
+        self.accepted = accepted
+        self._keep_admissible(good, theta, params)
+        self.updates += 1
+
+    def _retry_start(self, bad_start: np.ndarray, theta: np.ndarray) -> None:
+        """A fresh block-LS start that is not physical: the block grows by a sample and is solved
+        again; once it is ``init_max_samples`` long the cell starts from the prior (in ``theta``)."""
+        longest = max(self.config.init_max_samples, self.config.init_samples)
+        grow = bad_start & (self.rls.block_samples < longest)
+        if any_cell(grow):
+            self.rls.extend_block(grow)
+        give_up = bad_start & ~grow
+        theta[give_up] = self._prior_theta_s[give_up]
+
+    def _guard(self, rejected: np.ndarray, accepted: np.ndarray) -> None:
+        """The admissibility guard (module docstring): a rejected cell's estimate goes back to its
+        last admissible theta; one rejected ``restart_after_rejections`` times in a row restarts."""
         if any_cell(rejected):
             self.rejections += rejected
             self.rls.reset_theta(rejected, self.theta_good)
@@ -250,7 +261,10 @@ class Identifier:
                 self.rls.restart(stuck)
                 self._rejected_run[stuck] = 0
                 self.restarts += stuck
-        self.accepted = accepted
+
+    def _keep_admissible(self, good: np.ndarray, theta: np.ndarray, params: PhysicalParams) -> None:
+        """The ``good`` cells' theta and parameters become their last admissible ones (and the cells
+        identified; :attr:`newly_identified` those identified for the first time)."""
         if all_cells(self.identified):  # the usual sample: nothing new
             if any_cell(self.newly_identified):
                 self.newly_identified = np.zeros(self.n_cells, dtype=bool)
@@ -264,7 +278,6 @@ class Identifier:
             self.theta_good = np.where(good[:, None], theta, self.theta_good)
             self.identified |= good
             self.params = params.select(good, self.params) if any_cell(good) else self.params
-        self.updates += 1
 
     def _learn(self, phi: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
         """One step of the recursive estimator; returns its a-priori error."""
