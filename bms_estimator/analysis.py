@@ -1,6 +1,6 @@
 """Offline runs of the online estimators over recorded data (arrays in, arrays out).
 
-Used by ``fit``, ``compare``, ``soc`` and ``diagnose``; no file I/O here.
+Used by ``fit``, ``compare``, ``soc``, ``diagnose``, ``encode-log`` and the demo; no file I/O here.
 
 How a recording is simulated (the paper's Section IV-A):
 
