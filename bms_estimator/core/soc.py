@@ -1,4 +1,4 @@
-"""SOC estimation with online ECM identification and OCV-bias compensation (N cells).
+"""SOC estimation with online ECM identification: an EKF (default) or the paper's OCV-bias compensation (N cells).
 
 The paper's steps, per sample k and per cell::
 

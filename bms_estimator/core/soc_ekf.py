@@ -1,4 +1,4 @@
-"""Extended Kalman filter on SOC, the RC voltages and a diffusion branch, driven by identified parameters.
+"""Extended Kalman filter on SOC, a diffusion branch, the capacity and the overpotential's gain, driven by identified parameters.
 
 The field's common answer to "online parameters plus SOC" is Plett's EKF on an
 equivalent-circuit model with the parameters from an online identifier (RLS +
