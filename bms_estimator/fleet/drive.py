@@ -47,7 +47,8 @@ from .frames import read_frames
 from .samples import SampleArrays
 from .stack import StackError, estimate_stacked
 
-__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_drives", "run_vehicle", "parquet_path"]
+__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_drives", "run_vehicle", "parquet_path",
+           "service_for"]
 
 #: per-cell series written to each drive's Parquet (besides t_s, cell, valid, current_a)
 PARQUET_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s", "c0_v", "capacity_ah",
@@ -80,7 +81,7 @@ class DriveResult:
         return asdict(self)
 
 
-def _service(config: str | None, n_cells: int | None = None):
+def service_for(config: str | None, n_cells: int | None = None):
     """The service built from ``config`` (cached per process and file version); ``n_cells`` overrides the pack's."""
     key = (str(config), Path(config).stat().st_mtime if config else 0.0, n_cells)
     svc = _SETUPS.get(key)
@@ -240,12 +241,12 @@ def _samples_of(log: Path, config: str | None, res: DriveResult):
     """
     secs = res.seconds
     if is_recording(log):  # one measured cell: its samples directly, a one-cell pack
-        svc = _service(config, n_cells=1)
+        svc = service_for(config, n_cells=1)
         t0 = time.perf_counter()
         samples = _recording_samples(log, svc)
         secs["read"] = time.perf_counter() - t0
     else:
-        svc = _service(config)
+        svc = service_for(config)
         t0 = time.perf_counter()
         frames = read_frames(log)
         t1 = time.perf_counter()
