@@ -1,4 +1,4 @@
-"""Every core config holds a value outside a field's annotated bounds to account, naming the field."""
+"""Every config with annotated bounds (the core's, diagnose's) refuses a value outside them, naming the field."""
 
 import dataclasses
 import typing
@@ -13,8 +13,10 @@ from bms_estimator.core.soh import SohConfig
 from bms_estimator.core.sop import SopConfig
 from bms_estimator.core.sop_residual import ResidualConfig
 from bms_estimator.core.sox import SoxConfig
+from bms_estimator.diagnose.decide import DiagnoseConfig
 
-CONFIGS = (IdentifierConfig, SocConfig, SocEkfConfig, SoeConfig, SohConfig, SopConfig, ResidualConfig, SoxConfig)
+CONFIGS = (IdentifierConfig, SocConfig, SocEkfConfig, SoeConfig, SohConfig, SopConfig, ResidualConfig, SoxConfig,
+           DiagnoseConfig)
 
 
 def _bounded(cls):
@@ -51,3 +53,5 @@ def test_tuples_of_bounded_numbers_are_checked_element_by_element():
         SocConfig(capacity_bounds=(0.6, float("inf")))
     with pytest.raises(ValueError, match="discharge_derate"):
         SopConfig(discharge_derate=(0.3, 0.6, -0.1, 1.0, 0.0))
+    with pytest.raises(ValueError, match="block_s_bounds"):
+        DiagnoseConfig(block_s_bounds=(300.0, -1.0))
