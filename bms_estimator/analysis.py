@@ -1,6 +1,6 @@
 """Offline runs of the online estimators over recorded data (arrays in, arrays out).
 
-Used by ``fit``, ``compare``, ``soc`` and ``diagnose``; no file I/O here.
+Used by ``fit``, ``compare``, ``soc``, ``diagnose``, ``encode-log`` and the demo; no file I/O here.
 
 How a recording is simulated (the paper's Section IV-A):
 
@@ -44,7 +44,7 @@ from .core.lif_ct import kinetic_excess, thermal_voltage
 from .core.ocv import OcvCurve
 from .core.params import dt_theta_from_physical
 from .core.soc import SocConfig, SocEstimator
-from .scoring import counted_soc
+from .scoring import counted_soc, soc_on_branch
 
 # weight of the prior c0 = 0 when the SOC path is given (fit, compare): per sample, relative
 # to one data sample; c0 is then an OCV-model error, not an SOC error, and the prior keeps
@@ -600,10 +600,7 @@ def reference_capacity(
     if at_rest and not relaxed:
         return float(stated_ah), "stated (end-of-test rest not relaxed)"
     if relaxed:
-        grid = np.linspace(0.0, 1.0, 2001)
-        branch = ocv.ocv(grid) + np.sign(net_ah) * ocv.hysteresis(grid)
-        branch = np.maximum.accumulate(branch)
-        soc_end = float(np.interp(float(voltage_v[-1]), branch, grid))
+        soc_end, _ = soc_on_branch(float(voltage_v[-1]), ocv, side=np.sign(net_ah))
         travelled = soc_end - soc0
         if abs(net_ah) > 0.2 * stated_ah and travelled * net_ah > 0:
             q = net_ah / travelled

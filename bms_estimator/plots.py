@@ -18,13 +18,15 @@ LABELS = {"lif": "CT-LS (LIF)", "lif-iv": "CT-IV (LIF, recursive IV)", "lif-iv-b
           "arx": "DT (ARX)"}
 
 
-def _save(fig, path: Path, note: str | None = None) -> Path:
+def save_figure(fig, path: Path, note: str | None = None, *, dpi: int = 110) -> Path:
+    """Write ``fig`` as a PNG at ``path`` (its folder made), ``note`` (the data's attribution, say)
+    in its bottom right corner, and close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if note:
         fig.text(0.99, 0.005, note, ha="right", va="bottom", fontsize=7, color="0.4")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
 
@@ -44,7 +46,7 @@ def plot_parameters(time_s: np.ndarray, params: dict[str, dict[str, np.ndarray]]
     for ax in axes[-1]:
         ax.set_xlabel("time [h]")
     fig.suptitle(title)
-    return _save(fig, path, ATTRIBUTION)
+    return save_figure(fig, path, ATTRIBUTION)
 
 
 def plot_errors(time_s, voltage_v, predicted: dict[str, np.ndarray], path: Path, title: str, ylabel: str,
@@ -66,7 +68,7 @@ def plot_errors(time_s, voltage_v, predicted: dict[str, np.ndarray], path: Path,
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.suptitle(title)
-    return _save(fig, path, ATTRIBUTION)
+    return save_figure(fig, path, ATTRIBUTION)
 
 
 def plot_soc(time_s, soc, soc_ref, capacity_ah, path: Path, title: str = "", counted=None) -> Path:
@@ -94,4 +96,4 @@ def plot_soc(time_s, soc, soc_ref, capacity_ah, path: Path, title: str = "", cou
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.suptitle(title)
-    return _save(fig, path, ATTRIBUTION)
+    return save_figure(fig, path, ATTRIBUTION)

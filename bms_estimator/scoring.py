@@ -29,7 +29,7 @@ import numpy as np
 
 from .core.ecm import soc_from_current
 
-__all__ = ["SocReference", "soc_reference", "counted_soc", "soc_error_figures"]
+__all__ = ["SocReference", "soc_reference", "counted_soc", "soc_on_branch", "soc_error_figures"]
 
 #: A rest is relaxed when the log-time recovery moves the SOC reading less than this per doubling.
 MAX_PCT_PER_DOUBLING = 2.0
@@ -64,12 +64,14 @@ def counted_soc(current_a: np.ndarray, dt_s: float, capacity_ah, soc0=1.0) -> np
     return s + np.asarray(current_a, dtype=float) * (0.5 * dt_s / 3600.0) / np.asarray(capacity_ah, dtype=float)
 
 
-def _discharge_branch_soc(v: float, ocv, temperature_c: float | None) -> tuple[float, float]:
-    """SOC at which the C/20 discharge branch (mean - H) reads ``v``, and the branch's slope there."""
+def soc_on_branch(v: float, ocv, temperature_c: float | None = None, side: float = -1.0) -> tuple[float, float]:
+    """SOC at which a hysteresis branch of the OCV table, ``mean + side H``, reads the rest voltage
+    ``v``, and the branch's slope there: ``side`` -1 is the C/20 discharge branch (a cell at rest
+    after a discharge), +1 the charge branch."""
     grid = np.linspace(0.0, 1.0, 2001)
     t = None if temperature_c is None else np.full(grid.shape, temperature_c)
     kw = {} if t is None else {"temperature_c": t}
-    branch = np.maximum.accumulate(ocv.ocv(grid, **kw) - ocv.hysteresis(grid, **kw))
+    branch = np.maximum.accumulate(ocv.ocv(grid, **kw) + side * ocv.hysteresis(grid, **kw))
     soc = float(np.interp(v, branch, grid))
     slope = float(np.interp(soc, grid, np.gradient(branch, grid)))
     return soc, max(slope, 1e-3)
@@ -105,7 +107,7 @@ def soc_reference(
     ah_out = -float(np.sum(i)) * dt_s / 3600.0
     if ah_out <= 0:
         raise ValueError("the recording has no net discharge: no capacity to measure")
-    soc_end, slope = _discharge_branch_soc(float(v[-1]), c20_ocv, temperature_c)
+    soc_end, slope = soc_on_branch(float(v[-1]), c20_ocv, temperature_c)
     if soc_end >= 1.0:
         raise ValueError(f"the end-of-test voltage {v[-1]:.4f} V reads full on the discharge branch")
     q_ref = ah_out / (1.0 - soc_end)

@@ -42,7 +42,7 @@ from .core.soc import SocConfig, SocEstimator
 from .data import load_recording
 from .scoring import counted_soc, soc_error_figures, soc_reference
 
-__all__ = ["CELLS", "STARTS", "build_tables", "check_start", "run_cell", "start_point", "summary_lines", "summary_table",
+__all__ = ["CELLS", "STARTS", "ambient_c", "ambient_table", "build_tables", "check_start", "run_cell", "start_point", "summary_lines", "summary_table",
            "markdown"]
 
 CELLS = {"lg-hg2": 3.0, "panasonic-18650pf": 2.9}  # stated (nominal) capacity, Ah
@@ -62,23 +62,28 @@ class Table:
     temperature_c: float
 
 
+def ambient_table(amb_dir: Path) -> Table | None:
+    """An ambient folder's OCV table: its C/20 test, else its HPPC rests (None: it has neither)."""
+    c20, hppc, steps = amb_dir / "c20_ocv.csv.gz", amb_dir / "hppc.csv.gz", amb_dir / "hppc_steps.csv.gz"
+    if c20.exists():
+        r = load_recording(c20, resample_s=None)
+        curve = OcvCurve.from_c20(r.time_s, r.current_a, r.voltage_v)
+        kind = "c20"
+    elif hppc.exists() and steps.exists():
+        r = load_recording(hppc, resample_s=None)
+        s = load_recording(steps, resample_s=None)
+        curve = OcvCurve.from_hppc((r.time_s, r.current_a, r.voltage_v), (s.time_s, s.current_a, s.voltage_v))
+        kind = "hppc"
+    else:
+        return None
+    t = float(np.median(r.temperature_c)) if r.temperature_c is not None else ambient_c(amb_dir.name)
+    return Table(amb_dir.name, kind, curve, t)
+
+
 def build_tables(data: Path, cell: str) -> list[Table]:
     """Every OCV table of a cell: its C/20 tests, and HPPC rests where an ambient has no C/20 test."""
-    out = []
-    for amb_dir in sorted((data / cell).iterdir()):
-        c20, hppc, steps = amb_dir / "c20_ocv.csv.gz", amb_dir / "hppc.csv.gz", amb_dir / "hppc_steps.csv.gz"
-        if c20.exists():
-            r = load_recording(c20, resample_s=None)
-            curve = OcvCurve.from_c20(r.time_s, r.current_a, r.voltage_v)
-            t = float(np.median(r.temperature_c)) if r.temperature_c is not None else ambient_c(amb_dir.name)
-            out.append(Table(amb_dir.name, "c20", curve, t))
-        elif hppc.exists() and steps.exists():
-            r = load_recording(hppc, resample_s=None)
-            s = load_recording(steps, resample_s=None)
-            curve = OcvCurve.from_hppc((r.time_s, r.current_a, r.voltage_v), (s.time_s, s.current_a, s.voltage_v))
-            t = float(np.median(r.temperature_c)) if r.temperature_c is not None else ambient_c(amb_dir.name)
-            out.append(Table(amb_dir.name, "hppc", curve, t))
-    return out
+    tables = (ambient_table(amb_dir) for amb_dir in sorted((data / cell).iterdir()))
+    return [t for t in tables if t is not None]
 
 
 def make_ocv(tables: list[Table]) -> OcvSurface:
@@ -106,8 +111,7 @@ class GroupRun(NamedTuple):
     capacity_ah: np.ndarray  # (n_cells,) the capacity the count uses at the end
 
 
-def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
-              temperature: bool = True) -> GroupRun:
+def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig) -> GroupRun:
     """One estimator, one cell per (recording, start), run over the samples of all of them."""
     n_cells = len(recs)
     n_max = max(len(r) for r in recs)
@@ -132,7 +136,7 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
             est.set_soc(soc_start, starting)
         i = np.where(before, np.nan, cur[k])
         v = np.where(before, np.nan, vol[k])
-        est.update(i, v, temperature_c=tmp[k] if temperature else None)
+        est.update(i, v, temperature_c=tmp[k])
         out[k] = np.where(before, np.nan, est.soc)
         sigma[k] = np.where(before, np.nan, est.soc_sigma)
     return GroupRun(out, sigma, est.counting_capacity_ah.copy())

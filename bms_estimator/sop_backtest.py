@@ -27,7 +27,7 @@ case), so an exceedance is the model's failure, not the driver's.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -128,7 +128,7 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
         starts = list(range(1, n_all - n_w + 1, n_w))
     d = n_w * dt_s
     sop_cfg = sop_config or SopConfig()
-    sop_cfg = SopConfig(**{**sop_cfg.__dict__, "horizons_s": (d,)})
+    sop_cfg = replace(sop_cfg, horizons_s=(d,))
     est = SocEstimator(1, ocv, capacity_ah, dt_s, initial_soc=initial_soc, config=soc_config)
     sox = SoxEstimator(1, dt_s, SoxConfig(sop=sop_cfg, residual=residual))
     rows: dict[str, list[float]] = {k: [] for k in (
@@ -152,7 +152,7 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
             base = sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f, config=sop_cfg,
                               method="hppc", **kw)
             for vm in extra:
-                cfg_vm = SopConfig(**{**sop_cfg.__dict__, "v_min": vm})
+                cfg_vm = replace(sop_cfg, v_min=vm)
                 extra[vm].append(float(sop_limits(temperature_c=est.temperature_c, ocv=ocv_f, docv_dsoc=slope_f,
                                                   config=cfg_vm, v_margin=sox.v_margin, dr_ohm=dr,
                                                   **kw).discharge_a[0, 0]))

@@ -30,6 +30,7 @@ import numpy as np
 from bms_estimator.analysis import DEFAULT_METHODS, IDENTIFICATION_METHOD, rmse_mv, train_methods, validate_methods
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import load_recording, shared_data_dir
+from bms_estimator.soc_matrix import ambient_c, ambient_table
 
 STATED_AH = {"panasonic-18650pf": 2.9, "lg-hg2": 3.0}
 NOT_DRIVE = ("c20_ocv", "hppc", "hppc_steps")
@@ -40,22 +41,11 @@ LABEL = {"lif": "CT-LS", "lif-iv": "CT-IV", "lif-iv-bv": "CT-IV-BV", "lif-iv-ct"
 TABLE_METHODS = tuple(dict.fromkeys((*DEFAULT_METHODS[:1], "lif-iv-bv", *DEFAULT_METHODS[1:])))
 
 
-def ambient_c(folder: str) -> float:
-    """'n10degC' -> -10.0"""
-    return float(folder.replace("degC", "").replace("n", "-"))
-
-
 def ocv_for(cell_dir: Path, ambient: str) -> tuple[OcvCurve, str]:
     """The ambient's own C/20, else its HPPC, else the nearest ambient's C/20."""
-    here = cell_dir / ambient
-    if (here / "c20_ocv.csv.gz").exists():
-        c20 = load_recording(here / "c20_ocv.csv.gz", resample_s=None)
-        return OcvCurve.from_c20(c20.time_s, c20.current_a, c20.voltage_v), "C/20"
-    if (here / "hppc.csv.gz").exists() and (here / "hppc_steps.csv.gz").exists():
-        rec = load_recording(here / "hppc.csv.gz", resample_s=None)
-        st = load_recording(here / "hppc_steps.csv.gz", resample_s=None)
-        curve = OcvCurve.from_hppc((rec.time_s, rec.current_a, rec.voltage_v), (st.time_s, st.current_a, st.voltage_v))
-        return curve, "HPPC"
+    table = ambient_table(cell_dir / ambient)
+    if table is not None:
+        return table.curve, "C/20" if table.kind == "c20" else "HPPC"
     others = [d.name for d in cell_dir.iterdir() if (d / "c20_ocv.csv.gz").exists()]
     if not others:
         raise FileNotFoundError(f"{cell_dir}: no C/20 test at any ambient")

@@ -39,6 +39,7 @@ from bms_estimator.analysis import reference_capacity  # noqa: E402
 from bms_estimator.core.ocv import OcvCurve  # noqa: E402
 from bms_estimator.data import load_recording, shared_data_dir  # noqa: E402
 from bms_estimator.diagnose import PHYSICS, DiagnoseConfig, Series, diagnose  # noqa: E402
+from bms_estimator.soc_matrix import ambient_table  # noqa: E402
 
 NOMINAL_AH = {"panasonic-18650pf": 2.9, "lg-hg2": 3.0}
 CAUSE_NAMES = ("hysteresis", "temperature", "soc_dependence", "current_nonlinearity", "direction_asymmetry",
@@ -48,13 +49,11 @@ SKIP = ("c20", "hppc")
 
 
 def ocv_for(cell_dir: Path) -> tuple[OcvCurve, str]:
-    c20 = cell_dir / "c20_ocv.csv.gz"
-    if c20.exists():
-        r = load_recording(c20, resample_s=None)
-        return OcvCurve.from_c20(r.time_s, r.current_a, r.voltage_v), "C/20"
-    h = load_recording(cell_dir / "hppc.csv.gz", resample_s=None)
-    st = load_recording(cell_dir / "hppc_steps.csv.gz", resample_s=None)
-    return OcvCurve.from_hppc((h.time_s, h.current_a, h.voltage_v), (st.time_s, st.current_a, st.voltage_v)), "HPPC"
+    """The ambient's own table: its C/20 test, else its HPPC rests."""
+    table = ambient_table(cell_dir)
+    if table is None:
+        raise FileNotFoundError(f"{cell_dir}: neither a C/20 test nor an HPPC test with its steps")
+    return table.curve, "C/20" if table.kind == "c20" else "HPPC"
 
 
 def jobs(root: Path, quick: bool) -> list[tuple[str, str, str]]:

@@ -9,6 +9,7 @@ Data: P. Kollmeyer et al. (CC BY 4.0), see bms_estimator/samples/ATTRIBUTION.md.
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -22,7 +23,8 @@ CYCLES = {
 }
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args(argv)  # --help, and no stray options
     data = shared_data_dir()
     if data is None:
         print("../shared/data not found (set BMS_SHARED_DATA)", file=sys.stderr)

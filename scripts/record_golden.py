@@ -15,6 +15,7 @@ default, say), not to make a failing restructuring pass.
 
 from __future__ import annotations
 
+import argparse
 import gzip
 import json
 import sys
@@ -42,16 +43,20 @@ def make_log() -> None:
         LOG.write_bytes(gzip.compress(out.read_bytes(), mtime=0))
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--log-only", action="store_true", help="rewrite only the input log (its outputs must not change)")
+    ap.add_argument("--new-log", action="store_true", help="rewrite the input log before recording the outputs")
+    args = ap.parse_args(argv)
     sys.path.insert(0, str(GOLDEN))
     from golden_run import run_golden
 
     GOLDEN.mkdir(parents=True, exist_ok=True)
-    if "--log-only" in sys.argv:
+    if args.log_only:
         make_log()
         print(f"{LOG} rewritten; the recorded outputs are unchanged")
         return
-    if not LOG.exists() or "--new-log" in sys.argv:
+    if not LOG.exists() or args.new_log:
         make_log()
     frames, payloads = run_golden(LOG, N_CELLS)
     with gzip.open(CAN_OUT, "wt", compresslevel=9) as fh:

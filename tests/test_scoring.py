@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bms_estimator.core.ocv import OcvCurve
-from bms_estimator.scoring import counted_soc, soc_error_figures, soc_reference
+from bms_estimator.scoring import counted_soc, soc_error_figures, soc_on_branch, soc_reference
 
 
 @pytest.fixture
@@ -23,6 +23,16 @@ def _drive(ocv, q_true, soc_end, rest_s, relax_mv_per_ln=0.0):
     rest = v_rest + relax_mv_per_ln * 1e-3 * (np.log(t_rest) - np.log(t_rest[-1]))
     v = np.concatenate([np.full(n_dis, 3.5), rest])
     return i, v, n_dis
+
+
+@pytest.mark.parametrize("soc", [0.15, 0.5, 0.85])
+def test_a_rest_voltage_reads_its_own_branch(c20_table, soc):
+    """The same voltage is a higher SOC on the discharge branch (mean - H) than on the charge branch (mean + H)."""
+    mean, h = float(c20_table.ocv(soc)), float(c20_table.hysteresis(soc))
+    assert soc_on_branch(mean - h, c20_table, side=-1.0)[0] == pytest.approx(soc, abs=1e-3)
+    assert soc_on_branch(mean + h, c20_table, side=1.0)[0] == pytest.approx(soc, abs=1e-3)
+    on_discharge, on_charge = (soc_on_branch(mean, c20_table, side=side)[0] for side in (-1.0, 1.0))
+    assert on_discharge > soc > on_charge
 
 
 def test_reference_reads_the_end_rest_on_the_discharge_branch(c20_table):

@@ -62,11 +62,11 @@ def add_parser(sub) -> None:
 
 def _check_config(path: Path) -> None:
     """Everything the service would refuse, refused here before any worker starts (exit 2/3)."""
-    from ..fleet.drive import _service
+    from ..fleet.drive import service_for
 
     if not path.is_file():
         raise UsageError(f"--config {path}: no such file")
-    _service(str(path))
+    service_for(str(path))
 
 
 def _write_csv(path: Path, rows: list[dict], columns) -> None:

@@ -89,6 +89,8 @@ def add_tuning_options(p: argparse.ArgumentParser) -> None:
 
 
 def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig:
+    if args.window < 1:  # (IdentifierConfig refuses it too, but by its field's name, not the option's)
+        raise ValueError(f"--window must be at least 1 sample, got {args.window}")
     ident = IdentifierConfig(
         method=method or getattr(args, "method", None) or _ID.method,
         window=args.window,
@@ -97,8 +99,6 @@ def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig
         error_off_v=min(args.error_off_mv, args.error_on_mv) / 1e3,
         tau_max_s=args.tau_max_s,
     )
-    if ident.window < 1:
-        raise ValueError(f"--window must be at least 1 sample, got {ident.window}")
     return SocConfig(
         identifier=ident,
         soc_error_threshold=args.soc_error_threshold,

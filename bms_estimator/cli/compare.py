@@ -17,10 +17,10 @@ from .common import (
 def add_parser(sub) -> None:
     p = sub.add_parser("compare", help="the paper's Section IV-A: CT vs DT identification on any two files",
                        description="The SOC path of both files is coulomb counting from the known start with the "
-                                   "training file's output-error capacity. Both methods run online over the training "
-                                   "file; their parameters simulate the "
+                                   "training file's output-error capacity (of the first method's model). Every method "
+                                   "runs online over the training file; its parameters simulate the "
                                    "training file (online trajectory) and the validation file (training parameters "
-                                   "looked up by SOC). RMSEs cover the 20-90 %% SOC part unless --full-range.")
+                                   "looked up by SOC). RMSEs cover the 20-90 % SOC part unless --full-range.")
     p.add_argument("--train", type=Path, required=True)
     p.add_argument("--validate", type=Path, required=True)
     add_cell_options(p)

@@ -173,6 +173,5 @@ def run_paper(args: argparse.Namespace) -> int:
         print(f"  SOC from 20 % error: RMSE {s['soc_rmse_pct']:.2f} %, after 1 h {s['soc_rmse_pct_after_3600s']:.2f} % "
               f"(paper 2.3 %); figure {soc_fig}")
     write_json(summary, out_dir / "summary.json")
-    print(f"\nplots and summary.json in {out_dir}/ ({time.perf_counter() - t_start:.0f} s). "
-          "Data: P. Kollmeyer et al., Mendeley Data, CC BY 4.0 (see bms_estimator/samples/ATTRIBUTION.md)")
+    print(f"\nplots and summary.json in {out_dir}/ ({time.perf_counter() - t_start:.0f} s). {ATTRIBUTION}")
     return 0

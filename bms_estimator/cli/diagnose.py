@@ -47,12 +47,12 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..diagnose import CAUSES, DiagnoseConfig, Series, diagnose, write_report
+    from ..diagnose import DiagnoseConfig, Series, diagnose, write_report
 
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip())
-    bad = [c for c in causes if c not in CAUSES]
-    if bad:
-        raise ValueError(f"unknown cause(s) {', '.join(bad)}; choose from {', '.join(CAUSES)}")
+    cfg = DiagnoseConfig(candidates=causes, lif=not args.no_lif, method=args.method, pairs=not args.no_pairs,
+                         soc_window=(-1.0 if args.soc_min is None else args.soc_min,
+                                     2.0 if args.soc_max is None else args.soc_max))  # ValueError: an unknown cause
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec)
     data = Series.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
@@ -60,9 +60,6 @@ def run(args: argparse.Namespace) -> int:
     if args.validate is not None:
         rv = load(args.validate, args)
         val = Series.from_recording(rv, ocv, args.capacity_ah, args.initial_soc)
-    window = (-1.0 if args.soc_min is None else args.soc_min, 2.0 if args.soc_max is None else args.soc_max)
-    cfg = DiagnoseConfig(candidates=causes, lif=not args.no_lif, method=args.method, pairs=not args.no_pairs,
-                         soc_window=window)
     d = diagnose(data, validate=val, config=cfg)
     out = d.to_json()
     out["data"] = str(args.data)

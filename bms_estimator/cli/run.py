@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import gc
 import signal
 import sys
 from pathlib import Path
+
+import structlog
 
 
 def add_parser(sub) -> None:
@@ -58,10 +61,6 @@ def run(args: argparse.Namespace) -> int:
         else:
             print("configuration ok", file=sys.stderr)
         return 0
-
-    import gc
-
-    import structlog
 
     # The DBC and the decoder's per-multiplexer plan are large and live for ever: keep
     # them out of the cyclic GC, whose full collections would otherwise stall a tick

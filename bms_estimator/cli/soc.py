@@ -48,7 +48,8 @@ def add_parser(sub) -> None:
                    help="without --start-soc: start this far below the reference (default 0.2, the paper's Fig. 10)")
     p.add_argument("--soc-method", choices=SOC_METHODS, default=SocConfig().soc_method,
                    help=f"how the voltage corrects the count (default {SocConfig().soc_method}): c0 = the paper's "
-                        "OCV-bias compensation, ekf = an extended Kalman filter on SOC and the RC voltages")
+                        "OCV-bias compensation, ekf = an extended Kalman filter on SOC, a diffusion branch and the "
+                        "capacity, driven by the identified model (core/soc_ekf.py)")
     p.add_argument("--reference-ocv", type=Path, default=None,
                    help="the same cell's C/20 OCV table at the recording's ambient, for the reference")
     p.add_argument("--reference-capacity-ah", type=float, default=None,
@@ -80,6 +81,43 @@ def _reference_table(args: argparse.Namespace, ocv, temp_c: float | None):
     return (best[1], "--ocv table at the recording's ambient") if best else (None, None)
 
 
+def _reference(args: argparse.Namespace, rec, ocv) -> tuple[float, str, bool, np.ndarray]:
+    """``(capacity, why, scored, soc)`` of the reference: counted with --reference-capacity-ah, else
+    read from the end rest on the C/20 table of the recording's ambient (:func:`_reference_table`)."""
+    if args.reference_capacity_ah is not None:
+        q_ref = float(args.reference_capacity_ah)
+        return q_ref, "given capacity", True, counted_soc(rec.current_a, rec.dt_s, q_ref, args.initial_soc)
+    temp = rec.temperature_c
+    temp_c = float(np.nanmedian(temp)) if temp is not None and np.isfinite(temp).any() else None
+    table, _ = _reference_table(args, ocv, temp_c)
+    if table is None:
+        raise ValueError(f"{args.data}: no C/20 table (with hysteresis) within {SAME_AMBIENT_K:g} K of the "
+                         f"recording's {temp_c} degC among --ocv: give --reference-ocv or --reference-capacity-ah")
+    ref = soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, table)
+    return ref.capacity_ah, ref.why, ref.relaxed, ref.soc
+
+
+def _estimator_start(args: argparse.Namespace, soc_ref_at_start: float) -> tuple[float | None, str]:
+    """The estimator's start SOC (None: read from the OCV) and how it was chosen, for the plot's title."""
+    if args.start_soc == "ocv":
+        return None, "read from the OCV"
+    if args.start_soc is not None:
+        return float(args.start_soc), f"{args.start_soc:.3f}"
+    s0 = float(np.clip(soc_ref_at_start - args.initial_soc_error, 0.0, 1.0))
+    return s0, f"{s0:.3f} (reference {soc_ref_at_start:.3f} - {args.initial_soc_error:g})"
+
+
+def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray) -> None:
+    """``--trace``: one CSV row per sample."""
+    temp = rec.temperature_c
+    cols = {"time_s": rec.time_s, "soc": run_.soc, "soc_sigma": run_.soc_sigma, "soc_reference": soc_ref,
+            "soc_counted": counted, "capacity_ah": run_.capacity_ah,
+            "temperature_c": temp if temp is not None else np.full(len(rec), np.nan)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
+               comments="", fmt="%.6g")
+
+
 def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec)
@@ -89,24 +127,8 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= k0 < len(rec) or args.start_s < 0:
         raise ValueError(f"--start-s {args.start_s:g} is outside the recording (0..{t[-1]:.0f} s)")
     temp = rec.temperature_c
-    temp_c = float(np.nanmedian(temp)) if temp is not None and np.isfinite(temp).any() else None
-    if args.reference_capacity_ah is not None:
-        q_ref, why, relaxed = float(args.reference_capacity_ah), "given capacity", True
-        soc_ref = counted_soc(rec.current_a, dt, q_ref, args.initial_soc)
-    else:
-        table, _ = _reference_table(args, ocv, temp_c)
-        if table is None:
-            raise ValueError(f"{args.data}: no C/20 table (with hysteresis) within {SAME_AMBIENT_K:g} K of the "
-                             f"recording's {temp_c} degC among --ocv: give --reference-ocv or --reference-capacity-ah")
-        ref = soc_reference(rec.current_a, rec.voltage_v, dt, table)
-        q_ref, why, relaxed, soc_ref = ref.capacity_ah, ref.why, ref.relaxed, ref.soc
-    if args.start_soc == "ocv":
-        s0, start_text = None, "read from the OCV"
-    elif args.start_soc is not None:
-        s0, start_text = float(args.start_soc), f"{args.start_soc:.3f}"
-    else:
-        s0 = float(np.clip(soc_ref[k0] - args.initial_soc_error, 0.0, 1.0))
-        start_text = f"{s0:.3f} (reference {soc_ref[k0]:.3f} - {args.initial_soc_error:g})"
+    q_ref, why, relaxed, soc_ref = _reference(args, rec, ocv)
+    s0, start_text = _estimator_start(args, soc_ref[k0])
     cfg = soc_config(args).with_(soc_method=args.soc_method)
     run_ = run_soc(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, s0, dt, cfg,
                    temperature_c=temp, start_index=k0)
@@ -132,12 +154,7 @@ def run(args: argparse.Namespace) -> int:
         samples=len(rec),
     )
     if args.trace is not None:
-        cols = {"time_s": rec.time_s, "soc": run_.soc, "soc_sigma": run_.soc_sigma, "soc_reference": soc_ref,
-                "soc_counted": counted, "capacity_ah": run_.capacity_ah,
-                "temperature_c": temp if temp is not None else np.full(len(rec), np.nan)}
-        args.trace.parent.mkdir(parents=True, exist_ok=True)
-        np.savetxt(args.trace, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
-                   comments="", fmt="%.6g")
+        _write_trace(args.trace, rec, run_, soc_ref, counted)
     if args.plot:
         from ..plots import plot_soc
 

@@ -69,12 +69,6 @@ class EcmParams:
     def n_rc(self) -> int:
         return int(self.r_ohm.shape[-1])
 
-    @property
-    def c_f(self) -> np.ndarray:
-        """Capacitances C_j = tau_j / R_j in farad."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return self.tau_s / self.r_ohm
-
 
 @dataclass(frozen=True)
 class EcmSimulation:

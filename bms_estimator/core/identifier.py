@@ -29,6 +29,7 @@ from typing import Annotated, Literal
 import numpy as np
 from annotated_types import Ge, Gt, Interval
 
+from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector
 from .lif import LifHistory
 from .params import (
@@ -90,6 +91,9 @@ class IdentifierConfig:
     # temperature of its thermal voltage V_T = 2 R T / F
     ct_fraction: Annotated[float, Interval(gt=0.0, le=1.0)] = 1.0
     ct_temperature_c: Annotated[float, Interval(gt=-273.15, le=200.0)] = 25.0
+    # the prior model (ohm * Ah, class docstring): what a cell reports until its block-LS start is
+    # done, and where it starts if that start is not physical; its time constants are moved inside
+    # [tau_min_s, tau_max_s] (and tau1 below tau2 / 2) where they are not
     prior_r0_ohm_ah: Annotated[float, Gt(0)] = 0.06
     prior_r1_ohm_ah: Annotated[float, Gt(0)] = 0.03
     prior_tau1_s: Annotated[float, Gt(0)] = 10.0
@@ -97,21 +101,9 @@ class IdentifierConfig:
     prior_tau2_s: Annotated[float, Gt(0)] = 200.0
 
     def __post_init__(self) -> None:
-        if self.restart_after_rejections < 0:
-            raise ValueError(f"restart_after_rejections must be >= 0, got {self.restart_after_rejections}")
         if self.method not in METHODS:
             raise ValueError(f"unknown identification method {self.method!r}: use {', '.join(map(repr, METHODS))}")
-        if not (np.isfinite(self.bv_current_c) and self.bv_current_c > 0):
-            raise ValueError(f"bv_current_c must be a finite number > 0, got {self.bv_current_c}")
-        if not (np.isfinite(self.ct_fraction) and 0.0 < self.ct_fraction <= 1.0):
-            raise ValueError(f"ct_fraction must be a number in (0, 1], got {self.ct_fraction}")
-        if not (np.isfinite(self.ct_temperature_c) and -273.15 < self.ct_temperature_c <= 200.0):
-            raise ValueError(f"ct_temperature_c must be a temperature in degC above absolute zero, "
-                             f"got {self.ct_temperature_c}")
-        if self.iv_model_every < 1:
-            raise ValueError(f"iv_model_every must be >= 1, got {self.iv_model_every}")
-        if not (np.isfinite(self.c0_prior_weight) and self.c0_prior_weight >= 0):
-            raise ValueError(f"c0_prior_weight must be a finite number >= 0, got {self.c0_prior_weight}")
+        check_bounds(self)
         if not self.tau_min_s < self.tau_max_s:
             raise ValueError(f"tau_min_s must be below tau_max_s, got {self.tau_min_s} and {self.tau_max_s}")
         if self.error_off_v > self.error_on_v:
@@ -188,8 +180,9 @@ class Identifier:
     def _physical(self, theta_s: np.ndarray) -> PhysicalParams:
         raise NotImplementedError
 
-    def _regress(self, current_a: np.ndarray, v_o: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Push a sample; return (y, phi_s, ready mask)."""
+    def _regress(self, current_a: np.ndarray, v_o: np.ndarray,
+                 ok: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Push a sample (``ok``: the cells whose sample is good); return (y, phi_s, ready mask)."""
         raise NotImplementedError
 
     def _shift_theta(self, theta_s: np.ndarray, dv: np.ndarray) -> None:
@@ -229,20 +222,31 @@ class Identifier:
         admissible = params.admissible & (np.abs(params.c0_v) <= self.config.c0_max_v)
         params = PhysicalParams(*params._arrays(), admissible=admissible, dynamics_ok=params.dynamics_ok)
         good = admissible & self.rls.initialised
-        # a fresh block-LS start that is not physical: the block grows by a sample and is
-        # solved again; once it is init_max_samples long the cell starts from the prior
         bad_start = None if new is None else new & ~good
         if bad_start is not None and any_cell(bad_start):
-            longest = max(self.config.init_max_samples, self.config.init_samples)
-            grow = bad_start & (self.rls.block_samples < longest)
-            if any_cell(grow):
-                self.rls.extend_block(grow)
-            give_up = bad_start & ~grow
-            theta[give_up] = self._prior_theta_s[give_up]
+            self._retry_start(bad_start, theta)
         rejected = self.rls.initialised & ~params.admissible
         if new is not None:
             rejected &= ~new
         accepted = good if learn_all else good & learn
+        self._guard(rejected, accepted)
+        self.accepted = accepted
+        self._keep_admissible(good, theta, params)
+        self.updates += 1
+
+    def _retry_start(self, bad_start: np.ndarray, theta: np.ndarray) -> None:
+        """A fresh block-LS start that is not physical: the block grows by a sample and is solved
+        again; once it is ``init_max_samples`` long the cell starts from the prior (in ``theta``)."""
+        longest = max(self.config.init_max_samples, self.config.init_samples)
+        grow = bad_start & (self.rls.block_samples < longest)
+        if any_cell(grow):
+            self.rls.extend_block(grow)
+        give_up = bad_start & ~grow
+        theta[give_up] = self._prior_theta_s[give_up]
+
+    def _guard(self, rejected: np.ndarray, accepted: np.ndarray) -> None:
+        """The admissibility guard (module docstring): a rejected cell's estimate goes back to its
+        last admissible theta; one rejected ``restart_after_rejections`` times in a row restarts."""
         if any_cell(rejected):
             self.rejections += rejected
             self.rls.reset_theta(rejected, self.theta_good)
@@ -257,7 +261,10 @@ class Identifier:
                 self.rls.restart(stuck)
                 self._rejected_run[stuck] = 0
                 self.restarts += stuck
-        self.accepted = accepted
+
+    def _keep_admissible(self, good: np.ndarray, theta: np.ndarray, params: PhysicalParams) -> None:
+        """The ``good`` cells' theta and parameters become their last admissible ones (and the cells
+        identified; :attr:`newly_identified` those identified for the first time)."""
         if all_cells(self.identified):  # the usual sample: nothing new
             if any_cell(self.newly_identified):
                 self.newly_identified = np.zeros(self.n_cells, dtype=bool)
@@ -271,7 +278,6 @@ class Identifier:
             self.theta_good = np.where(good[:, None], theta, self.theta_good)
             self.identified |= good
             self.params = params.select(good, self.params) if any_cell(good) else self.params
-        self.updates += 1
 
     def _learn(self, phi: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
         """One step of the recursive estimator; returns its a-priori error."""
@@ -528,6 +534,8 @@ class ArxEstimator(Identifier):
 
 
 def make_identifier(n_cells: int, dt_s: float, capacity_ah, config: IdentifierConfig = IdentifierConfig()) -> Identifier:
+    """The identifier ``config.method`` names.  (The IV variants subclass :class:`LifEstimator` in
+    modules that import this one, so they are imported here, when asked for.)"""
     if config.method == "lif":
         return LifEstimator(n_cells, dt_s, capacity_ah, config)
     if config.method == "lif-iv":

@@ -359,10 +359,6 @@ class OcvSurface:
         return cls(curves, temps if len(paths) > 1 or temperatures_c is not None else None,
                    default_temperature_c=default_temperature_c)
 
-    def at_temperatures(self, temperature_c: Any) -> "OcvAtTemperatures":
-        """OCV and slope at fixed per-cell temperatures, located once (for many calls in one step)."""
-        return OcvAtTemperatures(self, temperature_c)
-
     # ------------------------------------------------------------- properties
     @property
     def temperatures_c(self) -> np.ndarray:

@@ -41,6 +41,10 @@ __all__ = ["RlsConfig", "WeightedRls"]
 
 @dataclass(frozen=True)
 class RlsConfig:
+    """The recursion's settings (module docstring).  The identifiers pass theirs from
+    :meth:`~bms_estimator.core.identifier.IdentifierConfig.rls` (its ``trace_max`` and
+    ``init_samples`` defaults differ from these, which serve a bare :class:`WeightedRls`)."""
+
     forgetting: float = 0.9995
     error_on: float = 0.0
     error_off: float = 0.0

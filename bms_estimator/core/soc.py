@@ -1,4 +1,4 @@
-"""SOC estimation with online ECM identification and OCV-bias compensation (N cells).
+"""SOC estimation with online ECM identification: an EKF (default) or the paper's OCV-bias compensation (N cells).
 
 The paper's steps, per sample k and per cell::
 
@@ -13,6 +13,12 @@ The paper's steps, per sample k and per cell::
 
 A c0 > 0 means the cell's voltage sits above what OCV(soc) explains with the
 identified impedance, i.e. the true OCV is higher: the SOC estimate was low.
+
+Those are ``soc_method="c0"``.  By default (``"ekf"``) steps 4.-6. are an extended
+Kalman filter driven by the identified model (:mod:`bms_estimator.core.soc_ekf`): it
+corrects the counted SOC every sample and learns the capacity as a state of its own,
+and every SOC move shifts the identifier's history and c0 as in step 6; the anchor
+line below is the c0 method's.
 
 Capacity.  The capacity a user states (nominal) is not the one coulomb counting
 needs (aged cell, rate and temperature effects).  Every time the bias average is
@@ -50,6 +56,7 @@ from typing import Annotated, Literal, get_args
 import numpy as np
 from annotated_types import Ge, Gt
 
+from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector, clip
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
@@ -83,7 +90,7 @@ class SocConfig:
     soc_error_threshold: Annotated[float, Ge(0)] = 0.02  # compensate when c0 means more than this SOC error
     c0_window_s: Annotated[float, Gt(0)] = 120.0  # averaging window of c0
     c0_stable_v: Annotated[float, Ge(0)] = 0.010  # c0 is stable when its std over the window is below this
-    estimate_capacity: bool = True
+    estimate_capacity: bool = True  # learn the effective capacity (EKF: its dq state; c0: the anchor line below)
     capacity_min_span: Annotated[float, Ge(0)] = 0.5  # anchors must span this fraction of the stated capacity (short spans amplify OCV-model error)
     capacity_bounds: tuple[Annotated[float, Gt(0)], Annotated[float, Gt(0)]] = (0.6, 1.4)  # relative to the stated capacity
     capacity_max_rmse: Annotated[float, Ge(0)] = 0.03  # max RMS residual (SOC) of the anchor line fit
@@ -95,7 +102,7 @@ class SocConfig:
     #              every SOC the anchors were taken at, and on a synthetic 10 % capacity error it
     #              is the best of the three
     capacity_soc_update: CapacitySocUpdate = "none"
-    reanchor_min_soc: Annotated[float, Ge(0)] = 0.005
+    reanchor_min_soc: Annotated[float, Ge(0)] = 0.005  # "recount"/"line" move the SOC only by more than this
     # One-state OCV hysteresis from the OCV table's hysteresis_v column (zero if it has none):
     # a cell that has been discharging sits on the discharge branch, H(soc) below the mean curve.
     # Read on the mean curve that reads as a 2-4 % low SOC on both cells in ../shared/data.
@@ -110,6 +117,7 @@ class SocConfig:
             raise ValueError(f"soc_method must be one of {SOC_METHODS}, got {self.soc_method!r}")
         if self.capacity_soc_update not in CAPACITY_SOC_UPDATES:
             raise ValueError(f"capacity_soc_update must be one of {CAPACITY_SOC_UPDATES}, got {self.capacity_soc_update!r}")
+        check_bounds(self)
         if not 0 < self.capacity_bounds[0] < self.capacity_bounds[1]:
             raise ValueError(f"capacity_bounds must be 0 < low < high, got {list(self.capacity_bounds)}")
 
@@ -315,13 +323,8 @@ class SocEstimator:
         n = self.n_cells
         i = cell_vector(current_a, n)
         v = cell_vector(voltage_v, n)
-        if temperature_c is not None and self.samples == 0 and self.ekf is not None:
-            # the diffusion resistance's prior follows the start temperature, with or without T-tables
-            self.ekf.start_diffusion_at(cell_vector(temperature_c, n), self.config.default_temperature_c)
-        if temperature_c is not None and self._t_aware:
-            t = cell_vector(temperature_c, n)
-            self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last
-            self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
+        if temperature_c is not None:
+            self._take_temperature(cell_vector(temperature_c, n))
         ok = np.isfinite(v)
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
@@ -332,14 +335,8 @@ class SocEstimator:
         read_now = None  # SOC read from this sample's voltage (none in the usual sample): not to be used a second time
         if any_unset:
             read_now = unset & ok
-            start = read_now
-            if any_cell(start):
-                self.soc = np.where(start, np.clip(self._soc_at(np.where(start, v, 3.7)), 0.0, 1.0), self.soc)
-                self._soc_fix = np.where(start, self.soc, self._soc_fix)
-                self._q_fix = np.where(start, self._charge_ref_ah, self._q_fix)
-                self._start_hysteresis(start)
-                if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
-                    self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, start)
+            if any_cell(read_now):
+                self._start_from_voltage(read_now, v)
         # 1. coulomb counting (the previous sample's current moved the SOC to now)
         q_now = self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah  # (x 1.0 is x: no copy)
         dq = self._i_prev * (self.dt_s / 3600.0)
@@ -377,6 +374,25 @@ class SocEstimator:
             self._ekf_step(i_prev, i_use, dz, slope_mid, use if read_now is None else use & have_soc & ~read_now)
         self._compensate(use)
         self.samples += 1
+
+    def _take_temperature(self, t: np.ndarray) -> None:
+        """The cells' temperatures this sample: the diffusion prior at the first one (with or without
+        tables by temperature), and with them the tables' temperature and relative capacity."""
+        if self.samples == 0 and self.ekf is not None:
+            self.ekf.start_diffusion_at(t, self.config.default_temperature_c)
+        if self._t_aware:
+            self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last
+            self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
+
+    def _start_from_voltage(self, cells: np.ndarray, v: np.ndarray) -> None:
+        """The start SOC of ``cells`` read from their voltage as an OCV (a pack started from rest);
+        the count and the hysteresis branch start there, the EKF with the OCV's own uncertainty."""
+        self.soc = np.where(cells, np.clip(self._soc_at(np.where(cells, v, 3.7)), 0.0, 1.0), self.soc)
+        self._soc_fix = np.where(cells, self.soc, self._soc_fix)
+        self._q_fix = np.where(cells, self._charge_ref_ah, self._q_fix)
+        self._start_hysteresis(cells)
+        if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
+            self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, cells)
 
     def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, slope: np.ndarray,
                   use: np.ndarray) -> None:
@@ -518,13 +534,6 @@ class SocEstimator:
     @property
     def params(self) -> dict[str, np.ndarray]:
         return self.identifier.params.as_dict()
-
-    @property
-    def c0_avg_v(self) -> np.ndarray:
-        """The OCV bias: averaged over the c0 window (c0 method), the identifier's own (EKF)."""
-        if self.ekf is not None:
-            return self.identifier.c0_v.copy()
-        return np.where(self._c0_count > 0, self._c0_sum / self._w, np.nan)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         s = {f"id.{k}": v for k, v in self.identifier.state_dict().items()}

@@ -1,4 +1,4 @@
-"""Extended Kalman filter on SOC, the RC voltages and a diffusion branch, driven by identified parameters.
+"""Extended Kalman filter on SOC, a diffusion branch, the capacity and the overpotential's gain, driven by identified parameters.
 
 The field's common answer to "online parameters plus SOC" is Plett's EKF on an
 equivalent-circuit model with the parameters from an online identifier (RLS +
@@ -117,6 +117,7 @@ import numpy as np
 from annotated_types import Ge, Gt
 
 from .arrhenius import RESISTANCE_ACTIVATION_K, arrhenius_factor
+from .bounds import check_bounds
 from .cells import all_cells, any_cell, clip
 
 __all__ = ["SocEkfConfig", "SocEkf"]
@@ -170,20 +171,7 @@ class SocEkfConfig:
     max_soc_step: Annotated[float, Gt(0)] = 0.01  # at most this SOC correction per sample (a bad sample cannot jump it)
 
     def __post_init__(self) -> None:
-        for name in ("drift_sigma_per_h", "overpotential_sigma_prior", "overpotential_sigma", "diffusion_r_drift_ohm_ah", "capacity_drift_per_h",
-                     "diffusion_r_prior_ohm_ah", "diffusion_r_activation_k",
-                     "ocv_table_sigma_soc", "overpotential_gain_sigma_prior", "overpotential_gain_sigma",
-                     "overpotential_gain_drift_per_h"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        for name in ("initial_soc_sigma", "ocv_start_soc_sigma", "capacity_sigma", "capacity_learn_max_soc_sigma", "capacity_learn_max_slope_v",
-                     "current_sigma_c", "rc_sigma_v", "voltage_sigma_v",
-                     "correlation_s", "diffusion_tau_s", "diffusion_r_sigma_ohm_ah", "diffusion_v_sigma_v",
-                     "max_soc_step"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        check_bounds(self)
 
 
 class SocEkf:

@@ -29,6 +29,8 @@ from typing import Annotated, Callable
 import numpy as np
 from annotated_types import Ge, Gt
 
+from .bounds import check_bounds
+
 __all__ = ["SoeConfig", "energy_left_wh", "time_to_empty_s", "time_to_full_s"]
 
 OcvFn = Callable[[np.ndarray], np.ndarray]
@@ -40,6 +42,9 @@ class SoeConfig:
     n_points: Annotated[int, Ge(3)] = 21  # SOC grid of the integral
     idle_current_c: Annotated[float, Gt(0)] = 0.01  # below this mean current (C), no time to empty/full
     mean_current_tau_s: Annotated[float, Gt(0)] = 300.0  # the "recent" mean current's time constant
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
 
 
 @lru_cache(maxsize=8)

@@ -35,6 +35,7 @@ import numpy as np
 from annotated_types import Ge, Gt
 
 from .arrhenius import KELVIN, arrhenius_factor
+from .bounds import check_bounds
 
 __all__ = ["SohConfig", "ResistanceSoh", "capacity_soh", "r0_at_reference"]
 
@@ -48,6 +49,9 @@ class SohConfig:
     soc_hi: Annotated[float, Gt(0)] = 0.8
     commissioning_samples: Annotated[int, Ge(1)] = 600
     smoothing_s: Annotated[float, Gt(0)] = 600.0
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
 
 
 def capacity_soh(capacity_ah, nominal_ah, capacity_sigma_ah, justified) -> tuple[np.ndarray, np.ndarray]:

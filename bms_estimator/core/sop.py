@@ -71,8 +71,9 @@ from typing import Annotated, Callable
 import numpy as np
 from annotated_types import Ge, Gt
 
-__all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", "sop_and_pack_limits", "hppc_limits",
-           "pack_limits"]
+from .bounds import check_bounds
+
+__all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", "sop_and_pack_limits", "pack_limits"]
 
 OcvFn = Callable[[np.ndarray], np.ndarray]
 
@@ -114,6 +115,7 @@ class SopConfig:
             if d.shape != t.shape or np.any(d < 0) or np.any(d > 1) or not np.all(np.isfinite(d)):
                 raise ValueError(f"{name} must have one factor in [0, 1] per derate temperature "
                                  f"({t.size}), got {list(getattr(self, name))}")
+        check_bounds(self)
 
 
 @dataclass(frozen=True)
@@ -454,8 +456,3 @@ def pack_limits(result: SopResult, *, voltage_v, current_now_a, soc, capacity_ah
     p = np.maximum(p, 0.0)
     return {"discharge_a": i_dis * n_parallel, "charge_a": i_chg * n_parallel, "discharge_w": p[:nh],
             "charge_w": p[nh:]}
-
-
-def hppc_limits(**kwargs) -> SopResult:
-    """The static-resistance baseline: :func:`sop_limits` with ``method="hppc"``."""
-    return sop_limits(method="hppc", **kwargs)

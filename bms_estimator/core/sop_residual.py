@@ -48,6 +48,8 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge, Gt
 
+from .bounds import check_bounds
+
 __all__ = ["ResidualConfig", "ResidualResistance"]
 
 
@@ -62,6 +64,9 @@ class ResidualConfig:
     hold: Annotated[float, Ge(0)] = 0.5  # every sample of a window within (1 +- hold) I_w
     max_age_s: Annotated[float, Gt(0)] = 3600.0  # a dR older than this is not used
     soc_band: Annotated[float, Gt(0)] = 0.1  # nor one seen further than this from the SOC now
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
 
 
 class ResidualResistance:

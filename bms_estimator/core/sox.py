@@ -51,6 +51,7 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge
 
+from .bounds import check_bounds
 from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from .soh import ResistanceSoh, SohConfig, capacity_soh
 from .ocv_surface import OcvAtTemperatures
@@ -70,6 +71,9 @@ class SoxConfig:
     # energy left, time to empty/full and capacity SOH are recomputed every slow_period_s and held
     # in between (they move by well under 1 % in 10 s; the SOP and the energy counters run every sample)
     slow_period_s: Annotated[float, Ge(0)] = 10.0
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
 
 
 class SoxEstimator:
@@ -155,11 +159,9 @@ class SoxEstimator:
                     tau=np.array([p["tau1_s"], p["tau2_s"]], dtype=float).T,
                     soc=np.asarray(est.soc, dtype=float), q=np.asarray(est.counting_capacity_ah, dtype=float))
 
-    def track(self, est, current_a, voltage_v, valid=None, *, ocv_at: OcvAtTemperatures | None = None) -> None:
-        """The per-sample states only (RC voltages, mean current, energy, model error, learnt R_D); cheap.
-
-        ``ocv_at``: :meth:`ocv_at` of ``est`` now, when the caller has it already."""
-        f = self.ocv_at(est) if ocv_at is None else ocv_at
+    def track(self, est, current_a, voltage_v, valid=None) -> None:
+        """The per-sample states only (RC voltages, mean current, energy, model error, learnt R_D); cheap."""
+        f = self.ocv_at(est)
         with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             self._track(est, current_a, voltage_v, valid, f, self._inputs(est))
 
@@ -244,9 +246,9 @@ class SoxEstimator:
         return dict(voltage_v=self.v_anchor, current_now_a=self.i_anchor, soc=np.clip(self.soc_anchor, 0.0, 1.0),
                     capacity_ah=m["q"], r0_ohm=m["p"]["r0_ohm"], r_ohm=m["r"], tau_s=m["tau"], x_v=self.x_v)
 
-    def compute(self, est, *, ocv_at: OcvAtTemperatures | None = None) -> None:
+    def compute(self, est) -> None:
         """SOP, SOE and SOH from the tracked state (after :meth:`track`)."""
-        self._compute(est, self.ocv_at(est) if ocv_at is None else ocv_at, self._inputs(est))
+        self._compute(est, self.ocv_at(est), self._inputs(est))
 
     def _compute(self, est, f: OcvAtTemperatures, m: dict, anchor: tuple | None = None) -> None:
         """``anchor``: (SOC, OCV, slope) at the next period's start from :meth:`_track` of this sample."""

@@ -324,7 +324,6 @@ class Progress:
     """What the live view shows (read from the event loop)."""
 
     log_total_s: float
-    frames_total: int
     speed: float
     frames_sent: int = 0
     t_start: float = field(default_factory=time.perf_counter)
@@ -452,7 +451,7 @@ async def run_pipeline(setup: PackSetup, *, broker: Any = None, speed: float = m
     mqtt_on = broker is not None and broker.enabled
     channel = f"bms-demo-{os.getpid()}-{time.monotonic_ns()}"
     total = len(setup.frames) + 1
-    progress = Progress(setup.duration_s, total, speed)
+    progress = Progress(setup.duration_s, speed)
     notes: list[str] = []
     with tempfile.TemporaryDirectory(prefix="bms-demo-") as tmp:
         cfg = service_config(setup, channel, Path(tmp) / "state.npz", broker)

@@ -37,9 +37,6 @@ from ..core.params import dt_theta_from_physical
 
 __all__ = ["analyse", "format_summary", "plot_run"]
 
-ATTRIBUTION = "Data: P. Kollmeyer et al., Mendeley Data (CC BY 4.0)"
-
-
 def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     from scipy.stats import spearmanr
 
@@ -284,6 +281,8 @@ def plot_run(setup: Any, result: Any, a: dict[str, Any], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..plots import ATTRIBUTION, save_figure
+
     rec = result.record
     dt = setup.trace.dt_s
     t_h = (rec.t_s - dt) / 3600.0
@@ -377,10 +376,4 @@ def plot_run(setup: Any, result: Any, a: dict[str, Any], path: Path) -> Path:
             ax.set_xlabel("time [h]")
     fig.suptitle(f"bms-estimator demo: {a['n_cells']}-cell pack from {a['cell']} {a['cycle']} through the service "
                  f"(CAN -> estimator -> MQTT)")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.text(0.99, 0.005, ATTRIBUTION, ha="right", va="bottom", fontsize=7, color="0.4")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, ATTRIBUTION, dpi=100)

@@ -17,7 +17,6 @@ Quick use::
 
 from __future__ import annotations
 
-
 from .decide import Candidate, DiagnoseConfig, Diagnosis, diagnose
 from .extensions import CAUSES, FEATURES, Fit, Model, Series, fit_model, predict
 from .generator import EFFECTS, GeneratedCell, generate, load_profile, profile_names
@@ -38,26 +37,8 @@ __all__ = [
     "diagnose",
     "fit_model",
     "generate",
-    "hysteresis_params",
     "load_profile",
     "predict",
     "profile_names",
     "write_report",
 ]
-
-
-def hysteresis_params(d: Diagnosis, *, significant_only: bool = True):
-    """The fitted hysteresis of a diagnosis as :class:`~bms_estimator.core.hysteresis.HysteresisParams`.
-
-    For the online option (:class:`~bms_estimator.core.hysteresis.HysteresisState`);
-    ``None`` when the hysteresis candidate was not fitted or (``significant_only``)
-    did not earn its parameters.  ``gamma`` refers to the capacity the diagnosis
-    was run with.
-    """
-    from ..core.hysteresis import HysteresisParams
-
-    c = d.candidate("hysteresis")
-    if c is None or not c.params or (significant_only and not c.significant):
-        return None
-    p = c.params
-    return HysteresisParams(m_v=p["m_v"], m0_v=p["m0_v"], gamma=p["gamma"], h0=p["h0"])

@@ -77,9 +77,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field, replace
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge, Gt
 
+from ..analysis import run_identification, simulate_with_params
+from ..core.bounds import check_bounds
 from ..core.identifier import IdentifierConfig
 from ._blas import single_blas_thread
 from .extensions import BASELINE, CAUSES, FEATURES, Fit, Model, Series, fit_model
@@ -89,20 +93,28 @@ __all__ = ["DiagnoseConfig", "Candidate", "Diagnosis", "diagnose", "fold_blocks"
 
 @dataclass(frozen=True)
 class DiagnoseConfig:
-    folds: int = 4
-    blocks_per_fold: int = 6
-    block_s_bounds: tuple[float, float] = (300.0, 1800.0)
+    folds: Annotated[int, Ge(2)] = 4  # cross-validation folds (the t statistic needs two)
+    blocks_per_fold: Annotated[int, Ge(1)] = 6
+    block_s_bounds: tuple[Annotated[float, Gt(0)], Annotated[float, Gt(0)]] = (300.0, 1800.0)  # a block's length, s
     candidates: tuple[str, ...] = CAUSES
     lif: bool = True  # warm-start the baseline from the online LIF identification
     # its identification method (lif, lif-iv, lif-iv-bv, lif-iv-ct or arx); lif made the README's findings table
     method: str = "lif"
-    t_min: float = 2.0
-    noise_fraction: float = 0.5
-    penalty: float = 2.0  # per extra parameter, in units of 1/n_eff (AIC: 2)
+    t_min: Annotated[float, Ge(0)] = 2.0  # least t statistic of a significant gain (module docstring, 5.)
+    noise_fraction: Annotated[float, Ge(0)] = 0.5  # least explained RMS, as a fraction of the noise level
+    penalty: Annotated[float, Ge(0)] = 2.0  # per extra parameter, in units of 1/n_eff (AIC: 2)
     pairs: bool = True  # the pair stage (two effects at once)
     soc_window: tuple[float, float] = (-1.0, 2.0)  # fit and score where the counted SOC lies inside (default: all)
-    max_iter: int = 12  # Levenberg-Marquardt iterations of a full fit
-    max_iter_fold: int = 5  # of a fold's refit (warm-started from the full fit)
+    max_iter: Annotated[int, Ge(1)] = 12  # Levenberg-Marquardt iterations of a full fit
+    max_iter_fold: Annotated[int, Ge(1)] = 5  # of a fold's refit (warm-started from the full fit)
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
+        unknown = [c for c in self.candidates if c not in CAUSES]
+        if unknown:
+            raise ValueError(f"unknown cause(s) {', '.join(unknown)}; choose from {', '.join(CAUSES)}")
+        if not self.block_s_bounds[0] <= self.block_s_bounds[1]:
+            raise ValueError(f"block_s_bounds must be (shortest, longest), got {self.block_s_bounds}")
 
     def with_(self, **changes) -> "DiagnoseConfig":
         return replace(self, **changes)
@@ -237,8 +249,6 @@ def noise_level(r: np.ndarray) -> float:
 
 
 def _lif_start(s: Series, method: str) -> dict:
-    from ..analysis import run_identification, simulate_with_params
-
     run = run_identification(s.current_a, s.voltage_v, s.soc, s.ocv, s.capacity_ah, s.dt_s,
                              IdentifierConfig(method=method))
     sel = run.identified & (s.soc > 0.2) & (s.soc < 0.9)

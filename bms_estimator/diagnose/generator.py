@@ -43,16 +43,19 @@ thermal model (ambient 0-35 degC drifting by 1-4 K over hours, self-heating
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy.signal import lfilter
 
+from .. import samples
 from ..core.arrhenius import KELVIN, R_GAS
 from ..core.hysteresis import hysteresis_trajectory
 from ..core.ocv import OcvCurve
-from .extensions import Series, rc_mean
+from ..data import CellRecording, load_recording, save_recording, shared_data_dir
+from .extensions import Series, rc_mean, unabsorbed
 
 __all__ = ["GeneratedCell", "generate", "load_profile", "profile_names", "EFFECTS"]
 
@@ -83,8 +86,6 @@ class GeneratedCell:
 
     def recording(self):
         """As a :class:`~bms_estimator.data.CellRecording` (e.g. for ``save_recording``)."""
-        from ..data import CellRecording
-
         return CellRecording(self.time_s, self.current_a, self.voltage_v, self.temperature_c, "generated")
 
     def save(self, folder) -> dict[str, Path]:
@@ -92,10 +93,6 @@ class GeneratedCell:
 
             bms-estimator diagnose data.csv --ocv ocv.csv --capacity-ah <truth.json: capacity_ah>
         """
-        import json
-
-        from ..data import save_recording
-
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         out = {"data": save_recording(self.recording(), folder / "data.csv"),
@@ -117,12 +114,8 @@ class GeneratedCell:
 
 def profile_names(include_shared: bool = True) -> list[str]:
     """Names accepted by :func:`load_profile`: shipped samples, and ../shared/data drive cycles when present."""
-    from .. import samples
-
     names = [f"{cell}/25degC/{c}" for cell, (_, cycles) in samples.CELLS.items() for c in cycles]
     if include_shared:
-        from ..data import shared_data_dir
-
         root = shared_data_dir()
         if root is not None:
             for p in sorted(Path(root).glob("*/*/*.csv*")):
@@ -139,9 +132,6 @@ def load_profile(name: str):
     Shipped samples are used when they exist (no ../shared needed), else the
     shared data set.  The OCV is the cell's shipped 25 degC table.
     """
-    from .. import samples
-    from ..data import load_recording, shared_data_dir
-
     cell, ambient, test = name.split("/")
     ocv = OcvCurve.from_csv(samples.ocv_table(cell))
     try:
@@ -262,8 +252,6 @@ def _unabsorbed(e: np.ndarray, i: np.ndarray, spec: _Spec, dt: float, ocv: OcvCu
     constants, started at the true ones) on the measured current with the stated
     capacity.
     """
-    from .extensions import unabsorbed
-
     s = Series(i, np.zeros(i.size), ocv, q_stated, spec.soc0, dt)
     return unabsorbed(e, s, {"tau1_s": spec.tau[0], "tau2_s": spec.tau[1]},
                       base_v=_model_view(i, ocv, spec, q_stated, dt))
@@ -434,8 +422,6 @@ def generate(
     i_true = np.asarray(profile_current, dtype=float)
     n = i_true.size
     if ocv is None:
-        from .. import samples
-
         ocv = OcvCurve.from_csv(samples.ocv_table("panasonic-18650pf"))
     if cause is None or cause == "none":
         causes: dict[str, float] = {}

@@ -58,7 +58,7 @@ def _plots(d: Diagnosis, folder: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..plots import ATTRIBUTION
+    from ..plots import ATTRIBUTION, save_figure
 
     s = d.series
     out = []
@@ -86,10 +86,7 @@ def _plots(d: Diagnosis, folder: Path) -> list[str]:
         ax.grid(alpha=0.3)
     np.atleast_1d(axes)[0].legend(loc="best", fontsize=8)
     fig.suptitle("residual = measured - simulated (in-sample fit)")
-    fig.text(0.99, 0.005, ATTRIBUTION, ha="right", va="bottom", fontsize=7, color="0.4")
-    fig.tight_layout()
-    fig.savefig(folder / "residual.png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, folder / "residual.png", ATTRIBUTION, dpi=100)
     out.append("residual.png")
 
     sc = d.scored
@@ -108,10 +105,7 @@ def _plots(d: Diagnosis, folder: Path) -> list[str]:
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.suptitle(f"out-of-sample simulation ({d.scoring})")
-    fig.text(0.99, 0.005, ATTRIBUTION, ha="right", va="bottom", fontsize=7, color="0.4")
-    fig.tight_layout()
-    fig.savefig(folder / "voltage.png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, folder / "voltage.png", ATTRIBUTION, dpi=100)
     out.append("voltage.png")
 
     cands = [c for c in d.candidates if np.isfinite(c.rmse_mv)]
@@ -124,9 +118,7 @@ def _plots(d: Diagnosis, folder: Path) -> list[str]:
     ax.invert_yaxis()
     ax.set_xlabel("out-of-sample RMSE [mV]")
     ax.grid(alpha=0.3, axis="x")
-    fig.tight_layout()
-    fig.savefig(folder / "candidates.png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, folder / "candidates.png", dpi=100)
     out.append("candidates.png")
     return out
 

@@ -24,14 +24,17 @@ Vehicles: a log's vehicle is its parent directory's name (``fleet/<vehicle>/<dri
 from __future__ import annotations
 
 import glob
+import logging
 import os
+import sys
 from collections import defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..errors import UsageError
+from ..errors import UsageError, one_line_error
+from ..service.logging import configure_logging
 from .drive import DriveResult, run_drives, run_vehicle
 from .frames import FRAME_SUFFIXES
 from .memory import MALLOC_ENV
@@ -100,8 +103,6 @@ class BatchResult:
 
 
 def _client(scheduler: str | None, workers: int | None):
-    import logging
-
     import dask
     from dask.distributed import Client, LocalCluster
 
@@ -162,8 +163,6 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
             try:
                 got = fut.result()
             except Exception as exc:  # noqa: BLE001 - a worker died (out of memory, killed): report the task
-                from ..errors import one_line_error
-
                 got = [DriveResult(vehicle="?", path=str(fut.key), status="skipped",
                                    error=f"task {fut.key} failed: {one_line_error(exc)}")]
             got = got if isinstance(got, list) else [got]
@@ -182,10 +181,6 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
 
 def _quiet_worker() -> None:
     """In a Dask worker process: the library's log lines at WARNING and above, on stderr (stdout is the user's)."""
-    import sys
-
-    from ..service.logging import configure_logging
-
     try:
         from dask.distributed import get_worker
 

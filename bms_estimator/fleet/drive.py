@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,14 +36,19 @@ from typing import Any
 import numpy as np
 import structlog
 
+from ..core.soc import SocEstimator
+from ..data import load_recording
 from ..errors import BmsEstimatorError, DataError, one_line_error
+from ..scoring import counted_soc, soc_error_figures
 from .assemble import assemble_samples
 from .decode import decode_frames
 from .estimate import DriveEstimate, carry_state, estimate_drive
 from .frames import read_frames
 from .samples import SampleArrays
+from .stack import StackError, estimate_stacked
 
-__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_drives", "run_vehicle", "parquet_path"]
+__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_drives", "run_vehicle", "parquet_path",
+           "service_for"]
 
 #: per-cell series written to each drive's Parquet (besides t_s, cell, valid, current_a)
 PARQUET_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s", "c0_v", "capacity_ah",
@@ -75,7 +81,7 @@ class DriveResult:
         return asdict(self)
 
 
-def _service(config: str | None, n_cells: int | None = None):
+def service_for(config: str | None, n_cells: int | None = None):
     """The service built from ``config`` (cached per process and file version); ``n_cells`` overrides the pack's."""
     key = (str(config), Path(config).stat().st_mtime if config else 0.0, n_cells)
     svc = _SETUPS.get(key)
@@ -99,8 +105,6 @@ def is_recording(path: str | Path) -> bool:
 
 
 def _recording_samples(log: Path, svc) -> SampleArrays:
-    from ..data import load_recording
-
     try:
         rec = load_recording(log, resample_s=svc.period_s)
         return SampleArrays.from_recording(rec, svc.period_s)
@@ -144,10 +148,6 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
     figures :func:`bms_estimator.scoring.soc_error_figures`' ``rmse_all_pct`` and the error at
     the last sample, both in percent.
     """
-    import warnings
-
-    from ..scoring import counted_soc, soc_error_figures
-
     n = est.valid.shape[1] if est.valid.ndim == 2 else 0
     out: dict[str, list[float]] = {}
     if len(est) == 0:
@@ -241,12 +241,12 @@ def _samples_of(log: Path, config: str | None, res: DriveResult):
     """
     secs = res.seconds
     if is_recording(log):  # one measured cell: its samples directly, a one-cell pack
-        svc = _service(config, n_cells=1)
+        svc = service_for(config, n_cells=1)
         t0 = time.perf_counter()
         samples = _recording_samples(log, svc)
         secs["read"] = time.perf_counter() - t0
     else:
-        svc = _service(config)
+        svc = service_for(config)
         t0 = time.perf_counter()
         frames = read_frames(log)
         t1 = time.perf_counter()
@@ -319,7 +319,6 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
 
 def _stack_factory(svc):
     """``n`` -> a fresh estimator of ``n`` cells made as the service makes its own (the service's for its ``n``)."""
-    from ..core.soc import SocEstimator
 
     def make(n: int):
         if n == svc.n_cells:
@@ -340,8 +339,6 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
     its share (1/S) of the stacked run; ``counters["stacked_with"]`` says how many ran together.
     If the drives cannot run stacked, they run one by one. Never raises for a bad log.
     """
-    from .stack import StackError, estimate_stacked
-
     results: list[DriveResult] = []
     ready: dict[int, list[tuple[DriveResult, Path, Any, SampleArrays]]] = {}
     for log, vehicle in logs:

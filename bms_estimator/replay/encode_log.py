@@ -141,7 +141,6 @@ LOG_SUFFIXES = (".log", ".asc", ".blf")
 _CURRENT_MSG = "PackMeasurement"
 _VOLTAGE_MSG = "CellVoltages"
 _TEMPERATURE_MSG = "CellTemperatures"
-_FACTOR_KEYS = ("capacity", "r0", "r1", "tau1", "r2", "tau2")
 
 
 # --------------------------------------------------------------------- spread

@@ -68,8 +68,6 @@ __all__ = [
 ]
 
 LOG_SUFFIXES = (".log", ".asc", ".blf")
-#: interfaces on which the receiver can see the log's timestamps (see the module docstring)
-LOG_TIME_INTERFACES = ("virtual", "udp_multicast")
 
 
 def parse_speed(text: str | float) -> float:
