@@ -62,6 +62,8 @@ GRID_POINTS = 2001
 INVERSE_GRID_POINTS = 8001
 #: A user OCV table may dip by up to this much [V] and be repaired with a warning.
 MAX_OCV_DIP_V = 5e-3
+#: A table's ocv_v must lie in this range [V] (a single cell's open-circuit voltage).
+OCV_RANGE_V = (0.0, 10.0)
 #: Step of the strictly-increasing repair [V].
 _EPS_V = 1e-6
 #: Optional one-value-per-table CSV columns (the test's temperature, its C/20 discharge capacity).
@@ -657,11 +659,17 @@ class OcvCurve:
             k = int(np.flatnonzero(ds <= 0)[0]) + 1
             raise ValueError(
                 f"{path}: soc is not strictly increasing at line {lines[k + 1][0]} "
-                f"({s[k - 1]!r} -> {s[k]!r})"
+                f"({float(s[k - 1])!r} -> {float(s[k])!r})"
             )
         if h is not None and np.any(h < 0):
             k = int(np.flatnonzero(h < 0)[0])
-            raise ValueError(f"{path}: line {lines[k + 1][0]}: hysteresis_v {h[k]!r} is negative")
+            raise ValueError(f"{path}: line {lines[k + 1][0]}: hysteresis_v {float(h[k])!r} is negative")
+        lo, hi = OCV_RANGE_V
+        off = np.flatnonzero((v < lo) | (v > hi))
+        if off.size:
+            k = int(off[0])
+            raise ValueError(f"{path}: line {lines[k + 1][0]}: ocv_v {float(v[k])!r} is not a cell's open-circuit "
+                             f"voltage (expected {lo:g}..{hi:g} V; is the column in mV?)")
         if np.any(np.diff(v) <= 0):
             dip = np.maximum.accumulate(v) - v
             k = int(np.argmax(dip))
