@@ -236,3 +236,51 @@ def test_compare_brings_the_resistances_to_the_validation_temperature(tmp_path, 
     with pytest.raises(SystemExit) as exc:
         main([*common, "--activation-k", "-5"])
     assert exc.value.code == 2 and "--activation-k" in capsys.readouterr().err
+
+
+def test_a_recording_that_does_not_fit_one_cell_is_a_data_error(tmp_path, capsys):
+    """Current in mA (or time in ms) spans 1000 times the stated capacity: every command that takes
+    --capacity-ah refuses it (exit 3, the file named) instead of running to nonsense with exit 0."""
+    from bms_estimator.data import load_recording
+
+    lg, lg_ocv = drive_cycle("lg-hg2", "la92"), str(ocv_table("lg-hg2"))
+    rec = load_recording(lg)
+    milliamp = save_recording(CellRecording(rec.time_s, rec.current_a * 1000, rec.voltage_v, rec.temperature_c, "mA"),
+                              tmp_path / "milliamp.csv.gz")
+    cell = ["--ocv", lg_ocv, "--capacity-ah", "3"]
+    for argv in (["soc", str(milliamp)], ["fit", str(milliamp)], ["diagnose", str(milliamp)],
+                 ["sop-backtest", str(milliamp)], ["compare", "--train", str(lg), "--validate", str(milliamp)]):
+        assert main([*argv, *cell]) == 3, argv
+        err = capsys.readouterr().err
+        assert "milliamp.csv.gz: its coulomb count spans 2593 Ah, 864.3 times the stated --capacity-ah 3" in err, err
+    # the stated capacity far from the cell's: too small is seen in the data, too large against the OCV table
+    assert main(["fit", str(lg), "--ocv", lg_ocv, "--capacity-ah", "0.3"]) == 3
+    assert "la92_1s.csv.gz: its coulomb count spans 2.593 Ah" in capsys.readouterr().err
+    assert main(["soc", str(lg), "--ocv", lg_ocv, "--capacity-ah", "3000"]) == 2
+    assert ("--capacity-ah 3000 is 1.08e+03 times the C/20 capacity 2.779 Ah of the --ocv table(s) "
+            "(lg-hg2_25degC_ocv.csv)") in capsys.readouterr().err
+
+
+def test_a_recording_too_short_to_estimate_is_a_data_error(tmp_path, capsys):
+    short = tmp_path / "short.csv"
+    short.write_text("time_s,current_a,voltage_v\n" + "".join(f"{k},-1,3.7\n" for k in range(5)))
+    assert main(["fit", str(short), "--ocv", PAN_OCV, "--capacity-ah", "2.9"]) == 3  # the file, not the options
+    assert "short.csv: only 5 samples after resampling" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["soc", "--reference-capacity-ah", "-1"], "--reference-capacity-ah"),
+    (["soc", "--reference-capacity-ah", "nan"], "--reference-capacity-ah"),
+    (["soc", "--initial-soc-error", "nan"], "--initial-soc-error"),
+    (["soc", "--initial-soc-error", "2"], "--initial-soc-error"),
+    (["soc", "--start-soc", "1.5"], "--start-soc"),
+    (["fit", "--initial-soc", "5"], "--initial-soc"),
+    (["diagnose", "--initial-soc", "-0.1"], "--initial-soc"),
+])
+def test_soc_and_capacity_options_out_of_range_are_usage_errors(argv, option, capsys):
+    """Each ran to 'nan %' or to a reference of -1 Ah with exit 0; now argparse names the option (exit 2)."""
+    data = str(drive_cycle("lg-hg2", "la92"))
+    with pytest.raises(SystemExit) as exc:
+        main([argv[0], data, "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3", *argv[1:]])
+    assert exc.value.code == 2
+    assert f"argument {option}" in capsys.readouterr().err

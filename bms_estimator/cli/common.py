@@ -8,17 +8,26 @@ import math
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 
+from ..core.ecm import soc_from_current
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
 from ..core.soc import SocConfig
 from ..data import CellRecording, load_recording
-from ..errors import DataError
+from ..errors import DataError, UsageError
 from ..jsonsafe import to_jsonable
 
 _ID = IdentifierConfig()
 _SOC = SocConfig()
+
+#: A cell cannot move more than its capacity between its fullest and its emptiest point; a recording whose
+#: coulomb count spans more than this many times the stated capacity has its current in mA, its time not in
+#: seconds, or a stated capacity that is not the cell's (the measured files span 0.19-1.03 of theirs).
+CHARGE_SPAN_MAX = 1.5
+#: --capacity-ah this many times the OCV tables' C/20 capacity, or below its inverse, is not that cell's
+STATED_CAPACITY_RATIO_MAX = 2.0
 
 
 def _number(text: str, *, allow_zero: bool) -> float:
@@ -36,13 +45,33 @@ def positive_float(text: str) -> float:
     return _number(text, allow_zero=False)
 
 
+def _fraction(text: str, low: float) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not low <= value <= 1.0:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"{text!r} must be a fraction in [{low:g}, 1]")
+    return value
+
+
+def soc_fraction(text: str) -> float:
+    """An SOC option's value: a fraction in [0, 1]."""
+    return _fraction(text, 0.0)
+
+
+def soc_difference(text: str) -> float:
+    """A difference of two SOCs: a fraction in [-1, 1]."""
+    return _fraction(text, -1.0)
+
+
 def add_cell_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ocv", required=True, type=Path, action="append",
                    help="OCV CSV (soc,ocv_v[,hysteresis_v][,temperature_c]), e.g. from 'bms-estimator ocv'; give it "
                         "once per table (one per test and temperature, each with its temperature_c column)")
     p.add_argument("--capacity-ah", required=True, type=positive_float,
                    help="the capacity you state (nominal); the effective one is estimated from the data and reported")
-    p.add_argument("--initial-soc", type=float, default=1.0,
+    p.add_argument("--initial-soc", type=soc_fraction, default=1.0,
                    help="SOC at the file's start (default 1.0: the drive cycles of ../shared/data start full)")
 
 
@@ -108,25 +137,51 @@ def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig
 
 
 def load(path: Path, args: argparse.Namespace) -> CellRecording:
+    """The recording at ``--resample-s``; with ``--capacity-ah``, one whose charge fits that capacity.
+
+    The coulomb count ``Q(t) = integral i dt`` of one cell spans at most its capacity
+    (SOC stays in [0, 1]): ``max Q - min Q > CHARGE_SPAN_MAX * capacity_ah`` is a data error.
+    """
     rec = load_recording(path, resample_s=args.resample_s)
     if len(rec) < 10:
-        raise ValueError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
+        raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
+    capacity_ah = getattr(args, "capacity_ah", None)
+    if capacity_ah:
+        span = float(np.ptp(soc_from_current(rec.current_a, rec.dt_s, capacity_ah, 1.0)))
+        if span > CHARGE_SPAN_MAX:
+            raise DataError(
+                f"{path}: its coulomb count spans {span * capacity_ah:.4g} Ah, {span:.1f} times the stated "
+                f"--capacity-ah {capacity_ah:g}: one cell cannot move more than its capacity (is current_a in mA, "
+                f"time_s not in seconds, or --capacity-ah not this cell's?)")
     return rec
 
 
-def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None) -> OcvSurface:
+def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
+             capacity_ah: float | None = None) -> OcvSurface:
     """The ``--ocv`` tables as one :class:`OcvSurface` (one path: that table, at every temperature).
 
     Calls without a temperature read the tables at the recording's median cell
     temperature when ``rec`` logs one, else at 25 degC: the commands that
     identify on a whole file (fit, compare, diagnose) use one OCV per file.
+    With ``capacity_ah`` (the stated ``--capacity-ah``), a capacity more than
+    ``STATED_CAPACITY_RATIO_MAX`` times away from the tables' C/20 capacity is a
+    usage error: it is not the capacity of the cell the tables were measured on.
     """
     t = median_temperature_c(rec.temperature_c) if rec is not None else None
+    path_list = [paths] if isinstance(paths, (str, Path)) else list(paths)
     try:
-        return OcvSurface.from_csvs([paths] if isinstance(paths, (str, Path)) else paths,
-                                    default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
+        surface = OcvSurface.from_csvs(path_list, default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
     except ValueError as exc:  # a malformed table is a data error (exit 3); the message names the file
         raise DataError(f"OCV table: {exc}") from None
+    tables = [c.capacity_discharge_ah for c in surface.curves if c.capacity_discharge_ah]
+    if capacity_ah and tables:
+        q_table = float(np.median(tables))
+        ratio = capacity_ah / q_table
+        if not 1.0 / STATED_CAPACITY_RATIO_MAX <= ratio <= STATED_CAPACITY_RATIO_MAX:
+            raise UsageError(
+                f"--capacity-ah {capacity_ah:g} is {ratio:.3g} times the C/20 capacity {q_table:.3f} Ah of the "
+                f"--ocv table(s) ({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah")
+    return surface
 
 
 def write_json(data: dict, path: Path | None) -> None:

@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     tr, va = load(args.train, args), load(args.validate, args)
     if abs(tr.dt_s - va.dt_s) > 1e-9:
         raise ValueError(f"training and validation files have different sample periods ({tr.dt_s} vs {va.dt_s} s)")
-    ocv = load_ocv(args.ocv, tr)
+    ocv = load_ocv(args.ocv, tr, capacity_ah=args.capacity_ah)
     window = (0.0, 1.0) if args.full_range else (args.soc_min, args.soc_max)
     if not 0.0 <= window[0] < window[1] <= 1.0:
         raise ValueError(f"SOC window {window} must satisfy 0 <= min < max <= 1")

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if bad:
         raise ValueError(f"unknown cause(s) {', '.join(bad)}; choose from {', '.join(CAUSES)}")
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv, rec)
+    ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     data = Series.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
     val = None
     if args.validate is not None:

@@ -34,7 +34,7 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv, rec)
+    ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     ident = soc_config(args).identifier.with_(c0_prior_weight=args.c0_prior)
     dt = rec.dt_s
     q_eff, _ = output_error_capacity(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, args.initial_soc, dt, ident)

@@ -11,7 +11,8 @@ from ..analysis import run_soc
 from ..core.identifier import IdentifierConfig
 from ..core.soc import SOC_METHODS, SocConfig
 from ..scoring import counted_soc, soc_error_figures, soc_reference
-from .common import add_cell_options, add_method_option, add_tuning_options, load, load_ocv, soc_config, write_json
+from .common import (add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float,
+                     soc_config, soc_difference, soc_fraction, write_json)
 
 #: A C/20 table within this of the recording's median temperature is "the same ambient".
 SAME_AMBIENT_K = 5.0
@@ -21,12 +22,9 @@ def _start_soc(text: str) -> str | float:
     if text.strip().lower() == "ocv":
         return "ocv"
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is neither a SOC fraction nor 'ocv'") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"--start-soc {text!r} must be a fraction in [0, 1] (or 'ocv')")
-    return value
+        return soc_fraction(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"--start-soc {text!r} must be a fraction in [0, 1] (or 'ocv')") from None
 
 
 def add_parser(sub) -> None:
@@ -44,14 +42,14 @@ def add_parser(sub) -> None:
     p.add_argument("--start-soc", type=_start_soc, default=None,
                    help="SOC the estimator begins with (a fraction), or 'ocv' to read it from the first sample's "
                         "voltage as the service does after a rest (default: reference - --initial-soc-error)")
-    p.add_argument("--initial-soc-error", type=float, default=0.2,
+    p.add_argument("--initial-soc-error", type=soc_difference, default=0.2,
                    help="without --start-soc: start this far below the reference (default 0.2, the paper's Fig. 10)")
     p.add_argument("--soc-method", choices=SOC_METHODS, default=SocConfig().soc_method,
                    help=f"how the voltage corrects the count (default {SocConfig().soc_method}): c0 = the paper's "
                         "OCV-bias compensation, ekf = an extended Kalman filter on SOC and the RC voltages")
     p.add_argument("--reference-ocv", type=Path, default=None,
                    help="the same cell's C/20 OCV table at the recording's ambient, for the reference")
-    p.add_argument("--reference-capacity-ah", type=float, default=None,
+    p.add_argument("--reference-capacity-ah", type=positive_float, default=None,
                    help="count the reference with this capacity instead (e.g. a recording without a final rest)")
     add_method_option(p, IdentifierConfig().method, "(the SOC estimator's identification)")
     p.add_argument("--trace", type=Path, default=None,
@@ -82,7 +80,7 @@ def _reference_table(args: argparse.Namespace, ocv, temp_c: float | None):
 
 def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv, rec)
+    ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     dt = rec.dt_s
     t = rec.time_s - rec.time_s[0]
     k0 = int(np.searchsorted(t, args.start_s - 1e-9))

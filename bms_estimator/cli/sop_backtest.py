@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.v_min < args.v_max:
         raise ValueError(f"--v-min {args.v_min:g} must be below --v-max {args.v_max:g}")
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv, rec)
+    ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     sop = SopConfig(v_min=args.v_min, v_max=args.v_max, i_discharge_max_a=args.i_discharge_max_a,
                     i_charge_max_a=args.i_charge_max_a)
     res = run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv, args.capacity_ah,
