@@ -284,3 +284,20 @@ def test_soc_and_capacity_options_out_of_range_are_usage_errors(argv, option, ca
         main([argv[0], data, "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3", *argv[1:]])
     assert exc.value.code == 2
     assert f"argument {option}" in capsys.readouterr().err
+
+
+def test_ocv_command_refuses_a_file_that_is_not_a_c20_test(tmp_path, capsys):
+    """A drive cycle given to 'ocv' wrote a 48 mV-wide 'OCV table' with exit 0; now it is named as not a C/20
+    test (exit 3), as is a test at rest most of the time (HPPC), with the option that reads one."""
+    out = tmp_path / "ocv.csv"
+    assert main(["ocv", str(drive_cycle("lg-hg2", "la92")), "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "la92_1s.csv.gz: not a C/20 test: its longest discharge run removes 0.0612 Ah of the 3.69 Ah" in err, err
+    assert not out.exists()
+    t = np.arange(3000.0)
+    i = np.where((t % 300) < 10, -3.0, 0.0)  # 10 s pulses, rest between: an HPPC-like test
+    save_recording(CellRecording(t, i, 3.7 + 0.02 * i, None, "pulses"), tmp_path / "hppc.csv")
+    assert main(["ocv", str(tmp_path / "hppc.csv"), "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "hppc.csv: the current is zero in 90 % of the samples or more: not a C/20 test" in err
+    assert "--hppc-steps" in err

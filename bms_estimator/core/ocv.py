@@ -64,6 +64,8 @@ INVERSE_GRID_POINTS = 8001
 MAX_OCV_DIP_V = 5e-3
 #: A table's ocv_v must lie in this range [V] (a single cell's open-circuit voltage).
 OCV_RANGE_V = (0.0, 10.0)
+#: A C/20 test's discharge branch holds at least this share of all the charge its file discharges.
+C20_BRANCH_SHARE_MIN = 0.5
 #: Step of the strictly-increasing repair [V].
 _EPS_V = 1e-6
 #: Optional one-value-per-table CSV columns (the test's temperature, its C/20 discharge capacity).
@@ -372,7 +374,9 @@ class OcvCurve:
            samples (their median, NaN ignored) becomes :attr:`temperature_c`.
 
         Raises:
-            ValueError: no discharge or no charge branch after it, bad arrays.
+            ValueError: no discharge or no charge branch after it, a discharge branch
+                with less than ``C20_BRANCH_SHARE_MIN`` of the file's discharged
+                charge (not a C/20 test: a drive cycle, an HPPC test), bad arrays.
         """
         t, i, v = _check_arrays(time_s, current_a, voltage_v)
         if n_points < 3:
@@ -380,7 +384,7 @@ class OcvCurve:
         if current_threshold_a is None:
             ref = float(np.percentile(np.abs(i), 90))
             if ref <= 0:
-                raise ValueError("current is zero everywhere: not a C/20 test")
+                raise ValueError("the current is zero in 90 % of the samples or more: not a C/20 test")
             current_threshold_a = 0.2 * ref
         runs_d = _runs(i < -current_threshold_a)
         runs_c = _runs(i > current_threshold_a)
@@ -400,6 +404,12 @@ class OcvCurve:
         cap_d, cap_c = float(q_d[-1]), float(q_c[-1])
         if cap_d <= 0 or cap_c <= 0:
             raise ValueError("C/20 branch throughput is zero")
+        # step 1's check: a C/20 test discharges in one run; a drive cycle's longest run is a sliver of its charge
+        total_d = float(np.sum(np.maximum(-i[:-1], 0.0) * np.diff(t))) / 3600.0
+        if cap_d < C20_BRANCH_SHARE_MIN * total_d:
+            raise ValueError(
+                f"not a C/20 test: its longest discharge run removes {cap_d:.3g} Ah of the {total_d:.3g} Ah the "
+                "file discharges (a C/20 test is one slow discharge, a rest and one slow charge)")
 
         if capacity_ah is None:
             soc_d = 1.0 - q_d / cap_d
