@@ -52,7 +52,7 @@ from typing import Any
 
 import can
 
-from ..errors import CanBusError, UsageError, one_line_error
+from ..errors import CanBusError, DataError, UsageError, one_line_error
 
 __all__ = [
     "bus_config_from_args",
@@ -98,21 +98,35 @@ def _log_suffix(path: Path) -> str:
 
 
 def read_log(path: str | Path) -> Iterator[can.Message]:
-    """Messages of a candump ``.log``, ``.asc`` or ``.blf`` file (``can.LogReader``), lazily."""
+    """Messages of a candump ``.log``, ``.asc`` or ``.blf`` file (``can.LogReader``), lazily.
+
+    A file the reader cannot parse, or one without a frame, raises :class:`DataError` naming
+    the file (and how many frames came before the fault) when the iteration reaches it.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such log file")
     if _log_suffix(path) not in LOG_SUFFIXES:
         raise ValueError(f"{path}: replay reads {', '.join(LOG_SUFFIXES)} logs (by suffix)")
-    reader = can.LogReader(str(path))
+    try:
+        reader = can.LogReader(str(path))
+    except Exception as exc:  # noqa: BLE001 - a .blf reader parses its header here
+        raise DataError(f"{path}: unreadable as a CAN log ({one_line_error(exc)})") from None
 
     def gen() -> Iterator[can.Message]:
+        n = 0
         try:
-            yield from reader
+            for msg in reader:
+                n += 1
+                yield msg
+        except Exception as exc:  # noqa: BLE001 - each of python-can's readers fails in its own way
+            raise DataError(f"{path}: unreadable after {n:,} frames ({one_line_error(exc)})") from None
         finally:
             stop = getattr(reader, "stop", None)
             if stop is not None:
                 stop()
+        if n == 0:
+            raise DataError(f"{path}: no CAN frame in the log")
 
     return gen()
 

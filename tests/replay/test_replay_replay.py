@@ -167,6 +167,23 @@ def test_replay_command_on_a_virtual_bus(encoded, tmp_path, capsys):
     assert main(["replay", str(tmp_path / "missing.log")]) == 3  # a data error
 
 
+@pytest.mark.parametrize("name, content, message", [
+    ("empty.log", b"", "empty.log: no CAN frame in the log"),
+    ("words.log", b"hello world\n", "words.log: unreadable after 0 frames (ValueError: "),
+    ("bad.blf", b"garbage\n", "bad.blf: unreadable as a CAN log ("),
+    ("late.log", b"(1.000000) can0 123#00\n(1.010000) can0 123#01\nnonsense\n", "late.log: unreadable after 2 frames"),
+])
+def test_replay_of_an_unreadable_or_empty_log_is_a_data_error(tmp_path, capsys, name, content, message):
+    """Each was exit 2 with python-can's bare message ('not enough values to unpack'), or exit 0 having sent
+    nothing; now one line naming the file (exit 3)."""
+    path = tmp_path / name
+    path.write_bytes(content)
+    assert main(["replay", str(path), "-i", "virtual", "-c", _channel(), "--speed", "max", "--no-progress"]) == 3
+    err = capsys.readouterr().err
+    assert err.startswith(f"bms-estimator replay: error: {path}") and message in err, err
+    assert len(err.strip().splitlines()) == 1
+
+
 def test_udp_multicast_receiver_keeps_the_log_time(encoded):
     """python-can's udp_multicast receiver stamps frames on arrival; LogTimeUdpMulticastBus keeps the log's."""
     log = _first(encoded["log"], 1.0)
