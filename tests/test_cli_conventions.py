@@ -129,3 +129,23 @@ def test_check_config_names_an_interface_that_is_not_there(tmp_path, capsys):
     cfg.write_text('[can]\ninterface = "virtual"\nchannel = "x"\n')
     assert main(["run", "--config", str(cfg), "--check-config"]) == 0
     assert "configuration ok" in capsys.readouterr().err
+
+
+def test_warnings_are_one_line_and_a_missing_file_is_named_plainly(tmp_path):
+    """A repaired OCV table's warning came with the quoted source line of the library; a missing file read
+    "[Errno 2] No such file or directory: 'x'". Both are one line for the user now."""
+    from bms_estimator.samples import drive_cycle, ocv_table
+
+    rows = (Path(ocv_table("lg-hg2")).read_text()).splitlines()
+    a, b = rows[101].split(","), rows[102].split(",")
+    a[1], b[1] = b[1], a[1]  # a 4.7 mV dip: repaired, with a warning
+    rows[101], rows[102] = ",".join(a), ",".join(b)
+    dip = tmp_path / "dip.csv"
+    dip.write_text("\n".join(rows) + "\n")
+    res = _cli("fit", str(drive_cycle("lg-hg2", "la92")), "--ocv", str(dip), "--capacity-ah", "3")
+    assert res.returncode == 0, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("bms-estimator fit: warning: ") and "dip.csv: ocv_v is not" in lines[0]
+    res = _cli("soc", str(tmp_path / "missing.csv"), "--ocv", str(dip), "--capacity-ah", "3")
+    assert res.returncode == EXIT_DATA
+    assert res.stderr.strip() == f"bms-estimator soc: error: {tmp_path / 'missing.csv'}: No such file or directory"
