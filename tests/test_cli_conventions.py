@@ -149,3 +149,19 @@ def test_warnings_are_one_line_and_a_missing_file_is_named_plainly(tmp_path):
     res = _cli("soc", str(tmp_path / "missing.csv"), "--ocv", str(dip), "--capacity-ah", "3")
     assert res.returncode == EXIT_DATA
     assert res.stderr.strip() == f"bms-estimator soc: error: {tmp_path / 'missing.csv'}: No such file or directory"
+
+
+def test_a_dbc_without_the_needed_messages_names_each_once_and_the_way_out(tmp_path, capsys):
+    """A DBC without the mapping's messages listed 'PackMeasurement' three times (once per signal), and the
+    missing output messages as a bare 'can.dbc: CellStateA'."""
+    dbc = tmp_path / "other.dbc"
+    dbc.write_text('VERSION ""\n\nBS_:\n\nBU_: ECU\n\nBO_ 256 Other: 8 ECU\n'
+                   ' SG_ Speed : 0|16@1+ (0.1,0) [0|6553.5] "km/h" ECU\n')
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[can]\ninterface = "virtual"\nchannel = "x"\ndbc = "{dbc}"\n')
+    assert main(["run", "--config", str(cfg), "--check-config"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    for name in ("PackMeasurement", "CellVoltages", "CellTemperatures"):
+        assert err.count(f"can.mapping: message '{name}' not in the DBC") == 1, err
+    assert ("can.dbc: message 'CellStateA' not in the DBC: can.output.enabled sends the project DBC's output "
+            "messages; set [can.output] enabled = false") in err
