@@ -165,6 +165,20 @@ def test_bench_prints_the_figures(capsys):
     assert figures["cell_updates_per_s"] > 0 and figures["tick_ms_200_cells"] > 0
     assert main(["bench", "--figures", "warp_speed"]) == 2
     assert "warp_speed" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # printed 'cell_updates_per_s 0.000' with exit 0
+        main(["bench", "--figures", "cell_updates_per_s", "--seconds", "0"])
+    assert exc.value.code == 2 and "argument --seconds" in capsys.readouterr().err
+
+
+def test_bench_help_lists_every_figure(capsys):
+    """The help's list was a copy that missed six figures the README names (cell_updates_per_s_c0, ...)."""
+    from bms_estimator.cli.bench import FIGURES
+
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in FIGURES:
+        assert name in text, name
 
 
 def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
