@@ -175,3 +175,12 @@ def test_embedded_broker_is_a_child_process_that_ends_with_the_demo():
         assert asyncio.run(asyncio.wait_for(roundtrip(info.host, info.port), 30)) == b"hello"
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_a_demo_shorter_than_the_initialisation_says_so_instead_of_nan(tmp_path, capsys):
+    """`demo --duration-s 300` ended its summary with 'voltage OSA RMSE, mean over cells: nan mV'."""
+    rc = main(["demo", "--output", str(tmp_path / "demo"), "--duration-s", "300", "--broker", "none", "--plain"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "voltage OSA RMSE, mean over cells: n/a (the run is not longer than the 600 s initialisation)" in text
+    assert "nan" not in text.lower()
