@@ -315,3 +315,15 @@ def test_ocv_command_refuses_a_file_that_is_not_a_c20_test(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "hppc.csv: the current is zero in 90 % of the samples or more: not a C/20 test" in err
     assert "--hppc-steps" in err
+
+
+def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_plainly(tmp_path, capsys):
+    """The message read 'the recording's 2.011000000013155 degC'."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    cold = save_recording(CellRecording(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c - 22.123456789,
+                                        "cold"), tmp_path / "cold.csv.gz")
+    assert main(["soc", str(cold), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]) == 2
+    err = capsys.readouterr().err
+    assert "no C/20 table (with hysteresis) within 5 K of the recording's 2.1 degC among --ocv" in err, err

@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
         table, _ = _reference_table(args, ocv, temp_c)
         if table is None:
             raise ValueError(f"{args.data}: no C/20 table (with hysteresis) within {SAME_AMBIENT_K:g} K of the "
-                             f"recording's {temp_c} degC among --ocv: give --reference-ocv or --reference-capacity-ah")
+                             f"recording's {'unknown' if temp_c is None else f'{temp_c:.1f}'} degC among --ocv: give "
+                             "--reference-ocv or --reference-capacity-ah")
         ref = soc_reference(rec.current_a, rec.voltage_v, dt, table)
         q_ref, why, relaxed, soc_ref = ref.capacity_ah, ref.why, ref.relaxed, ref.soc
     if args.start_soc == "ocv":
