@@ -78,10 +78,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .core.ecm import soc_from_current
 from .errors import DataError
 
 __all__ = [
     "CellRecording",
+    "check_charge_span",
     "DataError",
     "load_recording",
     "save_recording",
@@ -97,6 +99,10 @@ CELL_VOLTAGE_RANGE_V = (-1.0, 10.0)
 SIGN_CORRELATION_MIN = -0.2
 #: steps with a current change needed before the sign is judged
 SIGN_MIN_STEPS = 30
+#: A cell cannot move more than its capacity between its fullest and its emptiest point; a recording whose
+#: coulomb count spans more than this many times the stated capacity has its current in mA, its time not in
+#: seconds, or a stated capacity that is not the cell's (the measured files span 0.19-1.03 of theirs).
+CHARGE_SPAN_MAX = 1.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -352,6 +358,23 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
         rec = CellRecording(time_s, current_a, voltage_v, temperature_c, str(path), 0)
     _check_current_sign(path, rec.current_a, rec.voltage_v)
     return rec
+
+
+def check_charge_span(rec: CellRecording, capacity_ah: float, what: str = "capacity") -> None:
+    """Refuse a recording whose charge does not fit one cell of ``capacity_ah``.
+
+    The coulomb count ``Q(t) = integral i dt`` of one cell spans at most its capacity
+    (SOC stays in [0, 1]): ``max Q - min Q > CHARGE_SPAN_MAX * capacity_ah`` raises
+    :class:`DataError` naming the file, the span and ``what`` stated the capacity.
+    """
+    if len(rec) < 2:
+        return
+    span = float(np.ptp(soc_from_current(rec.current_a, rec.dt_s, capacity_ah, 1.0)))
+    if span > CHARGE_SPAN_MAX:
+        raise DataError(
+            f"{rec.source}: its coulomb count spans {span * capacity_ah:.4g} Ah, {span:.1f} times the stated "
+            f"{what} {capacity_ah:g}: one cell cannot move more than its capacity (is current_a in mA, "
+            f"time_s not in seconds, or {what} not this cell's?)")
 
 
 def _check_current_sign(path: Path, current_a: np.ndarray, voltage_v: np.ndarray) -> None:

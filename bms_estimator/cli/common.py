@@ -10,22 +10,17 @@ from typing import Sequence
 
 import numpy as np
 
-from ..core.ecm import soc_from_current
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
 from ..core.soc import SocConfig
-from ..data import CellRecording, load_recording
+from ..data import CellRecording, check_charge_span, load_recording
 from ..errors import DataError, UsageError
 from ..jsonsafe import to_jsonable
 
 _ID = IdentifierConfig()
 _SOC = SocConfig()
 
-#: A cell cannot move more than its capacity between its fullest and its emptiest point; a recording whose
-#: coulomb count spans more than this many times the stated capacity has its current in mA, its time not in
-#: seconds, or a stated capacity that is not the cell's (the measured files span 0.19-1.03 of theirs).
-CHARGE_SPAN_MAX = 1.5
 #: --capacity-ah this many times the OCV tables' C/20 capacity, or below its inverse, is not that cell's
 STATED_CAPACITY_RATIO_MAX = 2.0
 
@@ -137,22 +132,14 @@ def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig
 
 
 def load(path: Path, args: argparse.Namespace) -> CellRecording:
-    """The recording at ``--resample-s``; with ``--capacity-ah``, one whose charge fits that capacity.
-
-    The coulomb count ``Q(t) = integral i dt`` of one cell spans at most its capacity
-    (SOC stays in [0, 1]): ``max Q - min Q > CHARGE_SPAN_MAX * capacity_ah`` is a data error.
-    """
+    """The recording at ``--resample-s``; with ``--capacity-ah``, one whose charge fits that capacity
+    (:func:`~bms_estimator.data.check_charge_span`)."""
     rec = load_recording(path, resample_s=args.resample_s)
     if len(rec) < 10:
         raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
     capacity_ah = getattr(args, "capacity_ah", None)
     if capacity_ah:
-        span = float(np.ptp(soc_from_current(rec.current_a, rec.dt_s, capacity_ah, 1.0)))
-        if span > CHARGE_SPAN_MAX:
-            raise DataError(
-                f"{path}: its coulomb count spans {span * capacity_ah:.4g} Ah, {span:.1f} times the stated "
-                f"--capacity-ah {capacity_ah:g}: one cell cannot move more than its capacity (is current_a in mA, "
-                f"time_s not in seconds, or --capacity-ah not this cell's?)")
+        check_charge_span(rec, capacity_ah, "--capacity-ah")
     return rec
 
 

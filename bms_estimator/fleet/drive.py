@@ -99,10 +99,11 @@ def is_recording(path: str | Path) -> bool:
 
 
 def _recording_samples(log: Path, svc) -> SampleArrays:
-    from ..data import load_recording
+    from ..data import check_charge_span, load_recording
 
     try:
         rec = load_recording(log, resample_s=svc.period_s)
+        check_charge_span(rec, svc.cfg.pack.capacity_ah, "pack.capacity_ah")
         return SampleArrays.from_recording(rec, svc.period_s)
     except ValueError as exc:  # DataError is one; the step check another
         raise DataError(str(exc).splitlines()[0]) from None
