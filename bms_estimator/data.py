@@ -372,9 +372,9 @@ def check_charge_span(rec: CellRecording, capacity_ah: float, what: str = "capac
     span = float(np.ptp(soc_from_current(rec.current_a, rec.dt_s, capacity_ah, 1.0)))
     if span > CHARGE_SPAN_MAX:
         raise DataError(
-            f"{rec.source}: its coulomb count spans {span * capacity_ah:.4g} Ah, {span:.1f} times the stated "
-            f"{what} {capacity_ah:g}: one cell cannot move more than its capacity (is current_a in mA, "
-            f"time_s not in seconds, or {what} not this cell's?)")
+            f"{rec.source}: its coulomb count spans {span * capacity_ah:.4g} Ah, {span:.1f} times {what} = "
+            f"{capacity_ah:g} Ah: one cell cannot move more than its capacity (is current_a in mA, time_s not in "
+            f"seconds, or {what} not this cell's?)")
 
 
 def _check_current_sign(path: Path, current_a: np.ndarray, voltage_v: np.ndarray) -> None:

@@ -266,7 +266,7 @@ def test_a_recording_that_does_not_fit_one_cell_is_a_data_error(tmp_path, capsys
                  ["sop-backtest", str(milliamp)], ["compare", "--train", str(lg), "--validate", str(milliamp)]):
         assert main([*argv, *cell]) == 3, argv
         err = capsys.readouterr().err
-        assert "milliamp.csv.gz: its coulomb count spans 2593 Ah, 864.3 times the stated --capacity-ah 3" in err, err
+        assert "milliamp.csv.gz: its coulomb count spans 2593 Ah, 864.3 times --capacity-ah = 3 Ah" in err, err
     # the stated capacity far from the cell's: too small is seen in the data, too large against the OCV table
     assert main(["fit", str(lg), "--ocv", lg_ocv, "--capacity-ah", "0.3"]) == 3
     assert "la92_1s.csv.gz: its coulomb count spans 2.593 Ah" in capsys.readouterr().err

@@ -62,7 +62,7 @@ def test_recording_in_milliamps_is_reported_not_estimated(tmp_path):
     csv.write_text(lines[0] + "\n" + "".join(f"{r[0]},{float(r[1]) * 1000!r},{r[2]},{r[3]}\n" for r in rows))
     res, _, _ = run_drive(csv, str(_config(tmp_path)), tmp_path / "out", "car")
     assert res.status == "skipped"
-    assert "milliamp.csv: its coulomb count spans" in res.error and "times the stated pack.capacity_ah 3" in res.error
+    assert "milliamp.csv: its coulomb count spans" in res.error and "times pack.capacity_ah = 3 Ah" in res.error
 
 
 def test_diagnose_names_a_cause_per_cell(tmp_path):
