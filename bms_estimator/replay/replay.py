@@ -100,16 +100,22 @@ def _log_suffix(path: Path) -> str:
 def read_log(path: str | Path) -> Iterator[can.Message]:
     """Messages of a candump ``.log``, ``.asc`` or ``.blf`` file (``can.LogReader``), lazily.
 
-    A file the reader cannot parse, or one without a frame, raises :class:`DataError` naming
-    the file (and how many frames came before the fault) when the iteration reaches it.
+    A truncated ``.blf`` or ``.asc`` raises :class:`DataError` at once (the checks of
+    ``batch``); a file the reader cannot parse, or one without a frame, when the iteration
+    reaches the fault, naming the file and how many frames came before it.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such log file")
     if _log_suffix(path) not in LOG_SUFFIXES:
         raise ValueError(f"{path}: replay reads {', '.join(LOG_SUFFIXES)} logs (by suffix)")
+    from ..fleet.frames import check_log_complete
+
     try:
+        check_log_complete(path, _log_suffix(path))  # python-can stops quietly at the cut of a truncated .blf/.asc
         reader = can.LogReader(str(path))
+    except DataError:
+        raise
     except Exception as exc:  # noqa: BLE001 - a .blf reader parses its header here
         raise DataError(f"{path}: unreadable as a CAN log ({one_line_error(exc)})") from None
 

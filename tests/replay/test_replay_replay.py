@@ -184,6 +184,25 @@ def test_replay_of_an_unreadable_or_empty_log_is_a_data_error(tmp_path, capsys, 
     assert len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("suffix, message", [(".blf", "truncated BLF file"), (".asc", "truncated ASC file")])
+def test_replay_of_a_truncated_log_is_refused_before_sending(tmp_path, capsys, suffix, message):
+    """python-can stops quietly at the cut of a .blf or .asc: replay sent the first part with exit 0."""
+    path = tmp_path / f"cut{suffix}"
+    with can.Logger(str(path)) as w:
+        for k in range(2000):
+            w.on_message_received(can.Message(timestamp=1.0 + 0.01 * k, arbitration_id=0x100, data=bytes(8)))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    ch = _channel()
+    rx = can.Bus(interface="virtual", channel=ch)
+    try:
+        assert main(["replay", str(path), "-i", "virtual", "-c", ch, "--speed", "max", "--no-progress"]) == 3
+        assert rx.recv(0) is None  # nothing went out
+    finally:
+        rx.shutdown()
+    assert f"{path}: {message}" in capsys.readouterr().err
+
+
 def test_udp_multicast_receiver_keeps_the_log_time(encoded):
     """python-can's udp_multicast receiver stamps frames on arrival; LogTimeUdpMulticastBus keeps the log's."""
     log = _first(encoded["log"], 1.0)
