@@ -101,7 +101,8 @@ SIGN_CORRELATION_MIN = -0.2
 SIGN_MIN_STEPS = 30
 #: A cell cannot move more than its capacity between its fullest and its emptiest point; a recording whose
 #: coulomb count spans more than this many times the stated capacity has its current in mA, its time not in
-#: seconds, or a stated capacity that is not the cell's (the measured files span 0.19-1.03 of theirs).
+#: seconds, or a stated capacity that is not the cell's (the data set's drive-cycle, C/20 and HPPC files span
+#: 0.19-1.03 of their nominal capacity at 1 s; its hppc_steps files, logged every minute, go to `ocv` only).
 CHARGE_SPAN_MAX = 1.5
 
 
