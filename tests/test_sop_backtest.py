@@ -74,3 +74,17 @@ def test_bad_input_exit_codes(tmp_path, nmc_like_ocv, capsys):
     assert main(["sop-backtest", str(bad), "--ocv", str(ocv), "--capacity-ah", "3"]) == 3
     err = capsys.readouterr().err
     assert "Traceback" not in err and "bad.csv" in err
+
+
+def test_a_long_run_says_at_its_start_that_it_takes_a_while(tmp_path, nmc_like_ocv, capsys, monkeypatch):
+    """27 h of HPPC ran 2 min 18 s without a word; a run of LONG_RUN_SAMPLES or more now says so first."""
+    import bms_estimator.cli.sop_backtest as cmd
+
+    data, ocv, i = _recording(tmp_path, nmc_like_ocv, pulses=4)
+    base = ["sop-backtest", str(data), "--ocv", str(ocv), "--capacity-ah", str(Q)]
+    assert main(base) == 0
+    assert "this takes minutes" not in capsys.readouterr().err  # a short file: no note
+    monkeypatch.setattr(cmd, "LONG_RUN_SAMPLES", len(i))
+    assert main(base) == 0
+    err = capsys.readouterr().err
+    assert f"bms-estimator sop-backtest: {len(i):,} samples" in err and "this takes minutes" in err
