@@ -493,6 +493,8 @@ def load_config(path: Path | str | None = None) -> ServiceConfig:
             raise ConfigError(f"config file not found: {p}") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"invalid TOML in {p}", [str(exc)]) from None
+        except UnicodeDecodeError as exc:  # TOML is UTF-8; without this the message named neither file nor byte
+            raise ConfigError(f"invalid TOML in {p}", [f"not UTF-8 text: {exc.reason} at byte {exc.start}"]) from None
         except OSError as exc:
             raise ConfigError(f"cannot read config file {p}: {exc.strerror or exc}") from None
     problems = _unknown_env_sections(os.environ)

@@ -182,6 +182,15 @@ def test_toml_syntax_error_and_missing_file(tmp_path):
         load_config(tmp_path / "nope.toml")
 
 
+def test_a_config_that_is_not_utf8_names_the_file(tmp_path):
+    """It read "'utf-8' codec can't decode byte 0xff in position 0" without the file, as a bare ValueError."""
+    path = tmp_path / "latin1.toml"
+    path.write_bytes('[pack]\npack_id = "k\xfchl"\n'.encode("latin-1"))
+    with pytest.raises(ConfigError, match="invalid TOML in .*latin1.toml") as exc:
+        load_config(path)
+    assert "not UTF-8 text: invalid start byte at byte 19" in str(exc.value)
+
+
 def test_secrets_never_in_redacted_dump_repr_or_logs(tmp_path, monkeypatch):
     secret = "pa55-Very-Secret"
     path = write(tmp_path, f"[mqtt]\nusername = 'bms'\npassword = '{secret}'\n")
