@@ -48,6 +48,7 @@ def test_recording_with_another_step_is_reported(tmp_path):
     csv.write_text("time_s,current_a,voltage_v\n0,1,3.7\n2,1,3.7\n4,1,3.7\n")
     res, _, _ = run_drive(csv, str(_config(tmp_path)), tmp_path / "out", "car")
     assert res.status == "skipped" and "sample period" in res.error
+    assert "c.csv: the recording's step (2..2 s, median 2 s after averaging to the period)" in res.error
 
 
 def test_recording_in_milliamps_is_reported_not_estimated(tmp_path):
