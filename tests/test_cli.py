@@ -327,3 +327,24 @@ def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_pla
     assert main(["soc", str(cold), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]) == 2
     err = capsys.readouterr().err
     assert "no C/20 table (with hysteresis) within 5 K of the recording's 2.1 degC among --ocv" in err, err
+
+
+def test_soc_on_a_file_without_a_discharge_names_the_file_and_the_way_out(tmp_path, capsys):
+    """A charge-only recording read 'the recording has no net discharge: no capacity to measure' (exit 2),
+    naming neither the file nor --reference-capacity-ah."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    n = 1200
+    t = np.arange(n, dtype=float)
+    i = np.r_[np.full(n - 300, 1.5), np.zeros(300)]  # a C/2 charge from 20 % SOC, then 300 s of rest
+    v = 3.55 + 0.5 * t / n + 0.03 * i
+    save_recording(CellRecording(t, i, v, rec.temperature_c[:n], "charge"), tmp_path / "charge.csv")
+    assert main(["soc", str(tmp_path / "charge.csv"), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]) == 3
+    err = capsys.readouterr().err
+    assert "charge.csv: no SOC reference from the file: the recording has no net discharge" in err, err
+    assert "--reference-capacity-ah" in err
+    # a file that ends under load: the same, naming the file (it read 'the recording ends with 0 s of rest')
+    save_recording(CellRecording(t[:600], -i[:600], v[::-1][:600], None, "load"), tmp_path / "load.csv")
+    assert main(["soc", str(tmp_path / "load.csv"), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]) == 3
+    assert "load.csv: no SOC reference from the file: the recording ends with 0 s of rest" in capsys.readouterr().err

@@ -10,6 +10,7 @@ import numpy as np
 from ..analysis import run_soc
 from ..core.identifier import IdentifierConfig
 from ..core.soc import SOC_METHODS, SocConfig
+from ..errors import DataError
 from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import (add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float,
                      soc_config, soc_difference, soc_fraction, write_json)
@@ -97,7 +98,11 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{args.data}: no C/20 table (with hysteresis) within {SAME_AMBIENT_K:g} K of the "
                              f"recording's {'unknown' if temp_c is None else f'{temp_c:.1f}'} degC among --ocv: give "
                              "--reference-ocv or --reference-capacity-ah")
-        ref = soc_reference(rec.current_a, rec.voltage_v, dt, table)
+        try:
+            ref = soc_reference(rec.current_a, rec.voltage_v, dt, table)
+        except ValueError as exc:  # the file cannot carry its own reference (no discharge, ends full)
+            raise DataError(f"{args.data}: no SOC reference from the file: {exc}; give --reference-capacity-ah "
+                            "to count the reference with a known capacity") from None
         q_ref, why, relaxed, soc_ref = ref.capacity_ah, ref.why, ref.relaxed, ref.soc
     if args.start_soc == "ocv":
         s0, start_text = None, "read from the OCV"
