@@ -348,3 +348,26 @@ def test_soc_on_a_file_without_a_discharge_names_the_file_and_the_way_out(tmp_pa
     save_recording(CellRecording(t[:600], -i[:600], v[::-1][:600], None, "load"), tmp_path / "load.csv")
     assert main(["soc", str(tmp_path / "load.csv"), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]) == 3
     assert "load.csv: no SOC reference from the file: the recording ends with 0 s of rest" in capsys.readouterr().err
+
+
+def test_a_file_that_does_not_start_at_initial_soc_is_warned_about(tmp_path, capsys):
+    """--initial-soc defaults to 1.0 (the data set's full starts); a file starting at rest half full ran to a
+    wrong capacity without a word. The measured sample starting full gets no warning."""
+    from bms_estimator.core.ecm import EcmParams, simulate_ecm
+
+    lg_ocv = str(ocv_table("lg-hg2"))
+    curve = OcvCurve.from_csv(lg_ocv)
+    i = np.r_[np.zeros(120), np.tile(np.r_[np.full(60, -3.0), np.zeros(60), np.full(20, 1.5), np.zeros(40)], 8)]
+    sim = simulate_ecm(i, 1.0, EcmParams.from_rc(0.02, [0.01, 0.02], [10.0, 200.0]), curve.ocv, soc0=0.5,
+                       capacity_ah=3.0)
+    half = save_recording(CellRecording(np.arange(len(i), dtype=float), i, sim.voltage_v, None, "half"),
+                          tmp_path / "half.csv")
+    assert main(["fit", str(half), "--ocv", lg_ocv, "--capacity-ah", "3", "--method", "arx"]) == 0
+    err = capsys.readouterr().err
+    assert "half.csv: its first voltage" in err and "reads SOC 0.50 on the --ocv table, not --initial-soc 1" in err
+    assert main(["fit", str(half), "--ocv", lg_ocv, "--capacity-ah", "3", "--method", "arx",
+                 "--initial-soc", "0.5"]) == 0
+    assert "first voltage" not in capsys.readouterr().err
+    assert main(["fit", str(drive_cycle("lg-hg2", "la92")), "--ocv", lg_ocv, "--capacity-ah", "3",
+                 "--method", "arx"]) == 0
+    assert "first voltage" not in capsys.readouterr().err

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -23,6 +24,10 @@ _SOC = SocConfig()
 
 #: --capacity-ah this many times the OCV tables' C/20 capacity, or below its inverse, is not that cell's
 STATED_CAPACITY_RATIO_MAX = 2.0
+#: a first sample below this C-rate is read on the OCV table as the file's start SOC ...
+START_REST_C = 0.05
+#: ... and one this far from --initial-soc is warned about (at rest the data set's files read 0.993-1.001)
+START_SOC_TOLERANCE = 0.1
 
 
 def _number(text: str, *, allow_zero: bool) -> float:
@@ -169,6 +174,23 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
                 f"--capacity-ah {capacity_ah:g} is {ratio:.3g} times the C/20 capacity {q_table:.3f} Ah of the "
                 f"--ocv table(s) ({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah")
     return surface
+
+
+def warn_if_start_is_not_initial_soc(rec: CellRecording, ocv: OcvSurface, args: argparse.Namespace) -> None:
+    """Warn when the file's first sample, at rest, reads an SOC on the OCV table far from ``--initial-soc``.
+
+    The identification counts SOC from ``--initial-soc`` (default 1.0, the data set's full starts); a
+    file that starts elsewhere runs without complaint to a wrong capacity and wrong parameters.
+    """
+    i0, v0 = float(rec.current_a[0]), float(rec.voltage_v[0])
+    if abs(i0) > START_REST_C * args.capacity_ah:
+        return  # under load the terminal voltage is not the OCV
+    t0 = None if rec.temperature_c is None else float(rec.temperature_c[0])
+    s0 = float(ocv.soc_from_ocv(v0) if t0 is None or not math.isfinite(t0) else ocv.soc_from_ocv(v0, t0))
+    if abs(s0 - args.initial_soc) > START_SOC_TOLERANCE:
+        warnings.warn(f"{rec.source}: its first voltage {v0:.3f} V (at rest) reads SOC {s0:.2f} on the --ocv "
+                      f"table, not --initial-soc {args.initial_soc:g}: give the file's start SOC with --initial-soc",
+                      UserWarning, stacklevel=2)
 
 
 def write_json(data: dict, path: Path | None) -> None:
