@@ -184,3 +184,19 @@ def test_a_demo_shorter_than_the_initialisation_says_so_instead_of_nan(tmp_path,
     text = capsys.readouterr().out
     assert "voltage OSA RMSE, mean over cells: n/a (the run is not longer than the 600 s initialisation)" in text
     assert "nan" not in text.lower()
+
+
+def test_a_demo_whose_broker_is_never_reached_fails_after_its_summary(tmp_path, capsys):
+    """`demo --broker HOST:PORT` with nothing listening printed its summary and exited 0: the MQTT half of the
+    demo had failed silently. Now the summary, then one error line, exit 1 (a broker failure)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens here
+    rc = main(["demo", "--output", str(tmp_path / "demo"), "--duration-s", "60", "--broker", f"127.0.0.1:{port}",
+               "--plain"])
+    assert rc == 1
+    out, err = capsys.readouterr()
+    assert "Summary: 16-cell pack" in out
+    assert f"bms-estimator demo: error: MQTT broker 127.0.0.1:{port} never reached: nothing was published" in err
