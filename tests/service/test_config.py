@@ -93,11 +93,14 @@ enabled = false
 @pytest.mark.parametrize(
     ("toml", "env", "expected"),
     [
-        ("[mqtt]\nhostt = 'x'\n", {}, "mqtt.hostt: Extra inputs are not permitted"),
+        ("[mqtt]\nhostt = 'x'\n", {}, "mqtt.hostt: Extra inputs are not permitted (did you mean 'host'?)"),
         ("[mqtt.tls]\nca = 'x'\n", {}, "mqtt.tls.ca: Extra inputs are not permitted"),
         ("[nonsense]\na = 1\n", {}, "nonsense: Extra inputs are not permitted"),
-        ("[health]\nhost = '127.0.0.1'\nprot = 1\n", {}, "health.prot: Extra inputs are not permitted"),
-        ("", {"BMS_MQTT__PROT": "1"}, "mqtt.prot: Extra inputs are not permitted"),
+        ("[health]\nhost = '127.0.0.1'\nprot = 1\n", {}, "health.prot: Extra inputs are not permitted (did you mean 'port'?)"),
+        ("", {"BMS_MQTT__PROT": "1"}, "mqtt.prot: Extra inputs are not permitted (did you mean 'port'?)"),
+        ("[estimator.core]\nwindw = 20\n", {}, "estimator.core.windw: Extra inputs are not permitted (did you mean "
+                                                  "'window'?)"),
+        ("[can.output]\nperiod = 1\n", {}, "can.output.period: Extra inputs are not permitted (did you mean 'period_s'?)"),
         ("", {"BMS_MQTTT__PORT": "1"},
          "BMS_MQTTT__PORT (environment): unknown setting; sections are can, estimator, health, "
          "logging, mqtt, pack, state"),
