@@ -154,6 +154,7 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
     if len(est) == 0:
         return out
     out["soc_final"] = est.cells["soc"][-1].tolist()
+    out["valid_samples"] = np.count_nonzero(est.valid, axis=0).tolist() if n else []
     out["capacity_ah_final"] = est.cells["capacity_ah"][-1].tolist()
     out["r0_ohm_final"] = est.cells["r0_ohm"][-1].tolist()
     with warnings.catch_warnings():  # an all-NaN column (a cell never valid) is NaN, not a warning
