@@ -88,3 +88,19 @@ def test_a_long_run_says_at_its_start_that_it_takes_a_while(tmp_path, nmc_like_o
     assert main(base) == 0
     err = capsys.readouterr().err
     assert f"bms-estimator sop-backtest: {len(i):,} samples" in err and "this takes minutes" in err
+
+
+def test_sox_figures_without_the_data_set_writes_nothing(tmp_path):
+    """On a clone without ../shared/data, scripts/sox_figures.py overwrote the committed SOX tables and figures
+    with empty ones and exited 0. Now it says where it looked and writes nothing (exit 2)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "sox"
+    res = subprocess.run([sys.executable, str(repo / "scripts" / "sox_figures.py"), "--data", str(tmp_path / "none"),
+                          "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stderr
+    assert f"no Panasonic files under {tmp_path / 'none' / 'panasonic-18650pf'}" in res.stderr
+    assert not (out / "sox_tables.md").exists() and not (out / "hppc_error.png").exists()
