@@ -111,6 +111,8 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
         raise ValueError(f"{path}: replay reads {', '.join(LOG_SUFFIXES)} logs (by suffix)")
     from ..fleet.frames import check_log_complete
 
+    if path.suffix.lower() == ".log" and _cut_last_line(path):  # python-can sends a cut line's frame, shortened
+        raise DataError(f"{path}: its last line has no line end: the log is truncated (a cut frame would be sent)")
     try:
         check_log_complete(path, _log_suffix(path))  # python-can stops quietly at the cut of a truncated .blf/.asc
         reader = can.LogReader(str(path))
@@ -135,6 +137,16 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
             raise DataError(f"{path}: no CAN frame in the log")
 
     return gen()
+
+
+def _cut_last_line(path: Path) -> bool:
+    """A candump log whose last byte is not a line end: every writer ends each line with one."""
+    size = path.stat().st_size
+    if size == 0:
+        return False
+    with open(path, "rb") as fh:
+        fh.seek(size - 1)
+        return fh.read(1) not in (b"\n", b"\r")
 
 
 def _tail_lines(path: Path, nbytes: int = 8192) -> list[str]:

@@ -172,6 +172,8 @@ def test_replay_command_on_a_virtual_bus(encoded, tmp_path, capsys):
     ("words.log", b"hello world\n", "words.log: unreadable after 0 frames (ValueError: "),
     ("bad.blf", b"garbage\n", "bad.blf: unreadable as a CAN log ("),
     ("late.log", b"(1.000000) can0 123#00\n(1.010000) can0 123#01\nnonsense\n", "late.log: unreadable after 2 frames"),
+    # cut in the middle of its last frame's data: python-can sent 123#0011 as a 2-byte frame
+    ("cut.log", b"(1.000000) can0 123#0011223344556677\n(1.010000) can0 123#0011", "cut.log: its last line has no line end"),
 ])
 def test_replay_of_an_unreadable_or_empty_log_is_a_data_error(tmp_path, capsys, name, content, message):
     """Each was exit 2 with python-can's bare message ('not enough values to unpack'), or exit 0 having sent
