@@ -33,7 +33,7 @@ sys.path.insert(0, str(REPO))
 
 from bms_estimator.cli.common import load_ocv  # noqa: E402
 from bms_estimator.core.sop import SopConfig  # noqa: E402
-from bms_estimator.data import load_recording  # noqa: E402
+from bms_estimator.data import load_recording, shared_data_dir  # noqa: E402
 from bms_estimator.jsonsafe import to_jsonable  # noqa: E402
 from bms_estimator.sop_backtest import run_backtest, summary  # noqa: E402
 
@@ -183,7 +183,7 @@ def _plots(results: list[dict], out: Path) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--data", type=Path, default=shared_data_dir() or REPO.parent / "shared" / "data")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "sox")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--only", default="", help="substring of the files to run (default: all)")
@@ -191,17 +191,24 @@ def main() -> int:
                     help="make the tables and plots from the files already in <out>/cache only")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    tables = _ocv_tables(args.data, args.out)
     files = sorted(p for t in TEMPS for p in (args.data / CELL / t).glob("*.csv.gz")
                    if "c20" not in p.name and "hppc_steps" not in p.name and args.only in str(p))
     # HPPC first, then one drive cycle per ambient before the rest (an interrupted run still covers them)
     first = ("us06", "la92")
     files.sort(key=lambda p: ("hppc" not in p.name, not any(p.name.startswith(f) for f in first),
                               TEMPS.index(p.parent.name), p.name))
+    if not files:  # a checkout without the data set: say so, and leave the committed tables and figures alone
+        print(f"no Panasonic files under {args.data / CELL} (give --data, the measured data set's folder); "
+              f"nothing written", file=sys.stderr)
+        return 2
+    tables = _ocv_tables(args.data, args.out)
     cache_dir = args.out / "cache"
     cache_dir.mkdir(exist_ok=True)
     if args.cached_only:
         files = [p for p in files if (cache_dir / f"{p.parent.name}_{p.name}.json").exists()]
+        if not files:
+            print(f"--cached-only: no cached result in {cache_dir}; nothing written", file=sys.stderr)
+            return 2
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         results = list(pool.map(_one, [(p, tables, cache_dir) for p in files]))
     for r in results:

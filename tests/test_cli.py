@@ -165,6 +165,20 @@ def test_bench_prints_the_figures(capsys):
     assert figures["cell_updates_per_s"] > 0 and figures["tick_ms_200_cells"] > 0
     assert main(["bench", "--figures", "warp_speed"]) == 2
     assert "warp_speed" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # printed 'cell_updates_per_s 0.000' with exit 0
+        main(["bench", "--figures", "cell_updates_per_s", "--seconds", "0"])
+    assert exc.value.code == 2 and "argument --seconds" in capsys.readouterr().err
+
+
+def test_bench_help_lists_every_figure(capsys):
+    """The help's list was a copy that missed six figures the README names (cell_updates_per_s_c0, ...)."""
+    from bms_estimator.cli.bench import FIGURES
+
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in FIGURES:
+        assert name in text, name
 
 
 def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
@@ -236,3 +250,124 @@ def test_compare_brings_the_resistances_to_the_validation_temperature(tmp_path, 
     with pytest.raises(SystemExit) as exc:
         main([*common, "--activation-k", "-5"])
     assert exc.value.code == 2 and "--activation-k" in capsys.readouterr().err
+
+
+def test_a_recording_that_does_not_fit_one_cell_is_a_data_error(tmp_path, capsys):
+    """Current in mA (or time in ms) spans 1000 times the stated capacity: every command that takes
+    --capacity-ah refuses it (exit 3, the file named) instead of running to nonsense with exit 0."""
+    from bms_estimator.data import load_recording
+
+    lg, lg_ocv = drive_cycle("lg-hg2", "la92"), str(ocv_table("lg-hg2"))
+    rec = load_recording(lg)
+    milliamp = save_recording(CellRecording(rec.time_s, rec.current_a * 1000, rec.voltage_v, rec.temperature_c, "mA"),
+                              tmp_path / "milliamp.csv.gz")
+    cell = ["--ocv", lg_ocv, "--capacity-ah", "3"]
+    for argv in (["soc", str(milliamp)], ["fit", str(milliamp)], ["diagnose", str(milliamp)],
+                 ["sop-backtest", str(milliamp)], ["compare", "--train", str(lg), "--validate", str(milliamp)]):
+        assert main([*argv, *cell]) == 3, argv
+        err = capsys.readouterr().err
+        assert "milliamp.csv.gz: its coulomb count spans 2593 Ah, 864.3 times --capacity-ah = 3 Ah" in err, err
+    # the stated capacity far from the cell's: too small is seen in the data, too large against the OCV table
+    assert main(["fit", str(lg), "--ocv", lg_ocv, "--capacity-ah", "0.3"]) == 3
+    assert "la92_1s.csv.gz: its coulomb count spans 2.593 Ah" in capsys.readouterr().err
+    assert main(["soc", str(lg), "--ocv", lg_ocv, "--capacity-ah", "3000"]) == 2
+    assert ("--capacity-ah 3000 is 1.08e+03 times the C/20 capacity 2.779 Ah of the --ocv table(s) "
+            "(lg-hg2_25degC_ocv.csv)") in capsys.readouterr().err
+
+
+def test_a_recording_too_short_to_estimate_is_a_data_error(tmp_path, capsys):
+    short = tmp_path / "short.csv"
+    short.write_text("time_s,current_a,voltage_v\n" + "".join(f"{k},-1,3.7\n" for k in range(5)))
+    assert main(["fit", str(short), "--ocv", PAN_OCV, "--capacity-ah", "2.9"]) == 3  # the file, not the options
+    assert "short.csv: only 5 samples after resampling" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["soc", "--reference-capacity-ah", "-1"], "--reference-capacity-ah"),
+    (["soc", "--reference-capacity-ah", "nan"], "--reference-capacity-ah"),
+    (["soc", "--initial-soc-error", "nan"], "--initial-soc-error"),
+    (["soc", "--initial-soc-error", "2"], "--initial-soc-error"),
+    (["soc", "--start-soc", "1.5"], "--start-soc"),
+    (["fit", "--initial-soc", "5"], "--initial-soc"),
+    (["diagnose", "--initial-soc", "-0.1"], "--initial-soc"),
+])
+def test_soc_and_capacity_options_out_of_range_are_usage_errors(argv, option, capsys):
+    """Each ran to 'nan %' or to a reference of -1 Ah with exit 0; now argparse names the option (exit 2)."""
+    data = str(drive_cycle("lg-hg2", "la92"))
+    with pytest.raises(SystemExit) as exc:
+        main([argv[0], data, "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3", *argv[1:]])
+    assert exc.value.code == 2
+    assert f"argument {option}" in capsys.readouterr().err
+
+
+def test_ocv_command_refuses_a_file_that_is_not_a_c20_test(tmp_path, capsys):
+    """A drive cycle given to 'ocv' wrote a 48 mV-wide 'OCV table' with exit 0; now it is named as not a C/20
+    test (exit 3), as is a test at rest most of the time (HPPC), with the option that reads one."""
+    out = tmp_path / "ocv.csv"
+    assert main(["ocv", str(drive_cycle("lg-hg2", "la92")), "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "la92_1s.csv.gz: not a C/20 test: its longest discharge run removes 0.0612 Ah of the 3.69 Ah" in err, err
+    assert not out.exists()
+    t = np.arange(3000.0)
+    i = np.where((t % 300) < 10, -3.0, 0.0)  # 10 s pulses, rest between: an HPPC-like test
+    save_recording(CellRecording(t, i, 3.7 + 0.02 * i, None, "pulses"), tmp_path / "hppc.csv")
+    assert main(["ocv", str(tmp_path / "hppc.csv"), "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "hppc.csv: the current is zero in 90 % of the samples or more: not a C/20 test" in err
+    assert "--hppc-steps" in err
+
+
+def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_plainly(tmp_path, capsys):
+    """The message read 'the recording's 2.011000000013155 degC'."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    cold = save_recording(CellRecording(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c - 22.123456789,
+                                        "cold"), tmp_path / "cold.csv.gz")
+    assert main(["soc", str(cold), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]) == 2
+    err = capsys.readouterr().err
+    assert "no C/20 table (with hysteresis) within 5 K of the recording's 2.1 degC among --ocv" in err, err
+
+
+def test_soc_on_a_file_without_a_discharge_names_the_file_and_the_way_out(tmp_path, capsys):
+    """A charge-only recording read 'the recording has no net discharge: no capacity to measure' (exit 2),
+    naming neither the file nor --reference-capacity-ah."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    n = 1200
+    t = np.arange(n, dtype=float)
+    i = np.r_[np.full(n - 300, 1.5), np.zeros(300)]  # a C/2 charge from 20 % SOC, then 300 s of rest
+    v = 3.55 + 0.5 * t / n + 0.03 * i
+    save_recording(CellRecording(t, i, v, rec.temperature_c[:n], "charge"), tmp_path / "charge.csv")
+    assert main(["soc", str(tmp_path / "charge.csv"), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]) == 3
+    err = capsys.readouterr().err
+    assert "charge.csv: no SOC reference from the file: the recording has no net discharge" in err, err
+    assert "--reference-capacity-ah" in err
+    # a file that ends under load: the same, naming the file (it read 'the recording ends with 0 s of rest')
+    save_recording(CellRecording(t[:600], -i[:600], v[::-1][:600], None, "load"), tmp_path / "load.csv")
+    assert main(["soc", str(tmp_path / "load.csv"), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]) == 3
+    assert "load.csv: no SOC reference from the file: the recording ends with 0 s of rest" in capsys.readouterr().err
+
+
+def test_a_file_that_does_not_start_at_initial_soc_is_warned_about(tmp_path, capsys):
+    """--initial-soc defaults to 1.0 (the data set's full starts); a file starting at rest half full ran to a
+    wrong capacity without a word. The measured sample starting full gets no warning."""
+    from bms_estimator.core.ecm import EcmParams, simulate_ecm
+
+    lg_ocv = str(ocv_table("lg-hg2"))
+    curve = OcvCurve.from_csv(lg_ocv)
+    i = np.r_[np.zeros(120), np.tile(np.r_[np.full(60, -3.0), np.zeros(60), np.full(20, 1.5), np.zeros(40)], 8)]
+    sim = simulate_ecm(i, 1.0, EcmParams.from_rc(0.02, [0.01, 0.02], [10.0, 200.0]), curve.ocv, soc0=0.5,
+                       capacity_ah=3.0)
+    half = save_recording(CellRecording(np.arange(len(i), dtype=float), i, sim.voltage_v, None, "half"),
+                          tmp_path / "half.csv")
+    assert main(["fit", str(half), "--ocv", lg_ocv, "--capacity-ah", "3", "--method", "arx"]) == 0
+    err = capsys.readouterr().err
+    assert "half.csv: its first voltage" in err and "reads SOC 0.50 on the --ocv table, not --initial-soc 1" in err
+    assert main(["fit", str(half), "--ocv", lg_ocv, "--capacity-ah", "3", "--method", "arx",
+                 "--initial-soc", "0.5"]) == 0
+    assert "first voltage" not in capsys.readouterr().err
+    assert main(["fit", str(drive_cycle("lg-hg2", "la92")), "--ocv", lg_ocv, "--capacity-ah", "3",
+                 "--method", "arx"]) == 0
+    assert "first voltage" not in capsys.readouterr().err

@@ -105,7 +105,9 @@ def test_dashboard_that_never_connected_fails(tmp_path, capsys):
         port = s.getsockname()[1]  # nothing listens here
     rc = main(["dashboard", "--broker", f"127.0.0.1:{port}", "--duration-s", "1"])
     assert rc == EXIT_RUNTIME
-    assert "never connected to the broker" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # which broker and why (it read 'never connected to the broker: stopped')
+    assert f"never connected to the broker at 127.0.0.1:{port} (" in err and "refused" in err, err
 
 
 def test_unit_does_not_restart_on_configuration_or_data_errors():
@@ -129,3 +131,39 @@ def test_check_config_names_an_interface_that_is_not_there(tmp_path, capsys):
     cfg.write_text('[can]\ninterface = "virtual"\nchannel = "x"\n')
     assert main(["run", "--config", str(cfg), "--check-config"]) == 0
     assert "configuration ok" in capsys.readouterr().err
+
+
+def test_warnings_are_one_line_and_a_missing_file_is_named_plainly(tmp_path):
+    """A repaired OCV table's warning came with the quoted source line of the library; a missing file read
+    "[Errno 2] No such file or directory: 'x'". Both are one line for the user now."""
+    from bms_estimator.samples import drive_cycle, ocv_table
+
+    rows = (Path(ocv_table("lg-hg2")).read_text()).splitlines()
+    a, b = rows[101].split(","), rows[102].split(",")
+    a[1], b[1] = b[1], a[1]  # a 4.7 mV dip: repaired, with a warning
+    rows[101], rows[102] = ",".join(a), ",".join(b)
+    dip = tmp_path / "dip.csv"
+    dip.write_text("\n".join(rows) + "\n")
+    res = _cli("fit", str(drive_cycle("lg-hg2", "la92")), "--ocv", str(dip), "--capacity-ah", "3")
+    assert res.returncode == 0, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("bms-estimator fit: warning: ") and "dip.csv: ocv_v is not" in lines[0]
+    res = _cli("soc", str(tmp_path / "missing.csv"), "--ocv", str(dip), "--capacity-ah", "3")
+    assert res.returncode == EXIT_DATA
+    assert res.stderr.strip() == f"bms-estimator soc: error: {tmp_path / 'missing.csv'}: No such file or directory"
+
+
+def test_a_dbc_without_the_needed_messages_names_each_once_and_the_way_out(tmp_path, capsys):
+    """A DBC without the mapping's messages listed 'PackMeasurement' three times (once per signal), and the
+    missing output messages as a bare 'can.dbc: CellStateA'."""
+    dbc = tmp_path / "other.dbc"
+    dbc.write_text('VERSION ""\n\nBS_:\n\nBU_: ECU\n\nBO_ 256 Other: 8 ECU\n'
+                   ' SG_ Speed : 0|16@1+ (0.1,0) [0|6553.5] "km/h" ECU\n')
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[can]\ninterface = "virtual"\nchannel = "x"\ndbc = "{dbc}"\n')
+    assert main(["run", "--config", str(cfg), "--check-config"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    for name in ("PackMeasurement", "CellVoltages", "CellTemperatures"):
+        assert err.count(f"can.mapping: message '{name}' not in the DBC") == 1, err
+    assert ("can.dbc: message 'CellStateA' not in the DBC: can.output.enabled sends the project DBC's output "
+            "messages; set [can.output] enabled = false") in err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -200,6 +201,55 @@ def test_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: str) -
         load_recording(path)
     assert str(path) in str(exc.value)
     assert isinstance(exc.value, ValueError)
+
+
+def test_values_in_errors_are_plain_numbers(tmp_path: Path) -> None:
+    """numpy 2's reprs (np.float64(nan)) are not for a user: the value is written as Python writes a float."""
+    path = _write(tmp_path / "bad.csv", "time_s,current_a,voltage_v\n0,1,4\n1,nan,4\n2,1,4\n")
+    with pytest.raises(DataError, match=r"line 3: value nan in column 'current_a'") as exc:
+        load_recording(path)
+    assert "np." not in str(exc.value)
+    path = _write(tmp_path / "back.csv", "time_s,current_a,voltage_v\n0,1,4\n5,1,4\n3,1,4\n")
+    with pytest.raises(DataError, match=r"5.0 -> 3.0 s") as exc:
+        load_recording(path)
+    assert "np." not in str(exc.value)
+
+
+def test_a_header_without_rows_is_one_error_and_no_numpy_warning(tmp_path: Path) -> None:
+    path = _write(tmp_path / "h.csv", "time_s,current_a,voltage_v\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "input contained no data" would fail here
+        with pytest.raises(DataError, match="at least 2 data rows, found 0"):
+            load_recording(path)
+
+
+@pytest.mark.parametrize("value, line", [("3702.5", 3), ("48.1", 3), ("-3.7", 3)])
+def test_a_voltage_that_is_not_a_cells_is_named_with_its_line(tmp_path: Path, value: str, line: int) -> None:
+    """A voltage column in mV, or a pack's voltage, would run every command on nonsense: refused, line named."""
+    path = _write(tmp_path / "v.csv", f"time_s,current_a,voltage_v\n0,1,3.7\n1,1,{value}\n2,1,3.7\n")
+    with pytest.raises(DataError, match=rf"v.csv: line {line}: voltage_v {value} is not a single cell's"):
+        load_recording(path)
+
+
+def test_a_discharge_positive_current_is_refused(tmp_path: Path) -> None:
+    """The measured sample loads; the same file with the current negated (discharge positive) is refused."""
+    from bms_estimator.samples import drive_cycle
+
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    flipped = CellRecording(rec.time_s, -rec.current_a, rec.voltage_v, rec.temperature_c, "flipped")
+    path = save_recording(flipped, tmp_path / "flipped.csv.gz")
+    with pytest.raises(DataError, match=r"flipped.csv.gz: current_a looks discharge-positive.*negate the column"):
+        load_recording(path)
+    # the synthetic recording's voltage follows its current (R0 > 0): it loads; its current negated does not
+    syn = _jittered_recording()
+    assert len(load_recording(save_recording(syn, tmp_path / "s.csv"))) > 0
+    neg = CellRecording(syn.time_s, -syn.current_a, syn.voltage_v, None, "neg")
+    with pytest.raises(DataError, match="discharge-positive"):
+        load_recording(save_recording(neg, tmp_path / "neg.csv"))
+    # a recording with too few current steps to judge is not refused
+    t = np.arange(20.0)
+    few = CellRecording(t, -np.r_[np.zeros(10), np.ones(10)], 3.7 + 0.01 * np.r_[np.zeros(10), np.ones(10)], None, "f")
+    assert len(load_recording(save_recording(few, tmp_path / "few.csv"))) == 20
 
 
 def test_error_line_numbers_in_gzip_with_blank_lines(tmp_path: Path) -> None:

@@ -359,7 +359,10 @@ def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
     "text, pattern",
     [
         ("soc,voltage\n0,3\n1,4\n", r"missing column\(s\) ocv_v"),
-        ("soc,ocv_v\n0,3\n0.6,3.5\n0.5,3.6\n1,4\n", r"soc is not strictly increasing at line 4"),
+        ("soc,ocv_v\n0,3\n0.6,3.5\n0.5,3.6\n1,4\n", r"soc is not strictly increasing at line 4 \(0.6 -> 0.5\)$"),
+        ("soc,ocv_v\n0,3\n0.5,3.5\n0.5,3.6\n1,4\n", r"soc is not strictly increasing at line 4 \(0.5 -> 0.5\)$"),
+        ("soc,ocv_v\n0,3000\n0.5,3600\n1,4100\n", r"line 2: ocv_v 3000.0 is not a cell's open-circuit voltage .*in mV\?"),
+        ("soc,ocv_v,hysteresis_v\n0,3,0.01\n1,4,-0.01\n", r"line 3: hysteresis_v -0.01 is negative$"),
         ("soc,ocv_v\n0,3\n0.5,nan\n1,4\n", r"line 3: value 'nan' in column 'ocv_v' is not finite"),
         ("soc,ocv_v\n0,3\n0.5,x\n1,4\n", r"line 3: non-numeric value 'x'"),
         ("soc,ocv_v\n0,3\n50,3.5\n100,4\n", r"percent\?"),

@@ -74,3 +74,33 @@ def test_bad_input_exit_codes(tmp_path, nmc_like_ocv, capsys):
     assert main(["sop-backtest", str(bad), "--ocv", str(ocv), "--capacity-ah", "3"]) == 3
     err = capsys.readouterr().err
     assert "Traceback" not in err and "bad.csv" in err
+
+
+def test_a_long_run_says_at_its_start_that_it_takes_a_while(tmp_path, nmc_like_ocv, capsys, monkeypatch):
+    """27 h of HPPC ran 2 min 18 s without a word; a run of LONG_RUN_SAMPLES or more now says so first."""
+    import bms_estimator.cli.sop_backtest as cmd
+
+    data, ocv, i = _recording(tmp_path, nmc_like_ocv, pulses=4)
+    base = ["sop-backtest", str(data), "--ocv", str(ocv), "--capacity-ah", str(Q)]
+    assert main(base) == 0
+    assert "this takes minutes" not in capsys.readouterr().err  # a short file: no note
+    monkeypatch.setattr(cmd, "LONG_RUN_SAMPLES", len(i))
+    assert main(base) == 0
+    err = capsys.readouterr().err
+    assert f"bms-estimator sop-backtest: {len(i):,} samples" in err and "this takes minutes" in err
+
+
+def test_sox_figures_without_the_data_set_writes_nothing(tmp_path):
+    """On a clone without ../shared/data, scripts/sox_figures.py overwrote the committed SOX tables and figures
+    with empty ones and exited 0. Now it says where it looked and writes nothing (exit 2)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "sox"
+    res = subprocess.run([sys.executable, str(repo / "scripts" / "sox_figures.py"), "--data", str(tmp_path / "none"),
+                          "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stderr
+    assert f"no Panasonic files under {tmp_path / 'none' / 'panasonic-18650pf'}" in res.stderr
+    assert not (out / "sox_tables.md").exists() and not (out / "hppc_error.png").exists()

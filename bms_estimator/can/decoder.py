@@ -241,8 +241,8 @@ class FrameDecoder:
         self.temperature_cells: set[int] = set()
         problems: list[str] = []
         self._build(problems)
-        if problems:
-            raise MappingError("CAN mapping does not fit the DBC:", problems)
+        if problems:  # a message several signals use is missing once, not once per signal
+            raise MappingError("CAN mapping does not fit the DBC:", list(dict.fromkeys(problems)))
         if bit_fields:
             for plan in self._plans.values():
                 _compile_fields(plan)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 import can
 
@@ -52,14 +53,22 @@ def main(argv: list[str] | None = None) -> int:
 
     configure_logging(level="WARNING", fmt="console", stream=sys.stderr)
     where = f"bms-estimator {args.command}"
+
+    def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+        # a warning is for the user: one line, without the source line Python would quote
+        print(f"{where}: warning: {message}", file=sys.stderr if file is None else file)
+
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():  # restores the previous hook when the command returns
+            warnings.showwarning = one_line_warning
+            return int(args.func(args) or 0)
     except BmsEstimatorError as exc:
         print(f"{where}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, EOFError) as exc:
-        # an input file that cannot be read
-        print(f"{where}: error: {exc}", file=sys.stderr)
+        # an input file that cannot be read: "PATH: reason", not Python's "[Errno 2] ... 'PATH'"
+        text = f"{exc.filename}: {exc.strerror}" if getattr(exc, "filename", None) and exc.strerror else exc
+        print(f"{where}: error: {text}", file=sys.stderr)
         return EXIT_DATA
     except ValueError as exc:  # an option value the commands or the core refuse
         print(f"{where}: error: {exc}", file=sys.stderr)

@@ -125,11 +125,15 @@ def run(args: argparse.Namespace) -> int:
     ok = [d for d in drives if d.status == "ok"]
     hours = sum(d.duration_s for d in ok) / 3600.0
     workers = result.workers if result is not None else 0
+    no_data = [r for r in rows if r["status"] == "no data"]
     print(f"batch: {len(ok)} of {len(drives)} drives estimated ({hours:.2f} h of logs, "
-          f"{sum(len(d.cells.get('soc_final', [])) for d in ok)} cell-drives) in {wall:.1f} s on {workers} "
-          f"worker(s): {hours * 3600 / wall if wall > 0 else 0:.0f}x real time; {args.out}/summary.csv")
+          f"{sum(len(d.cells.get('soc_final', [])) for d in ok) - len(no_data)} cell-drives) in {wall:.1f} s on "
+          f"{workers} worker(s): {hours * 3600 / wall if wall > 0 else 0:.0f}x real time; {args.out}/summary.csv")
     for d in failed:
         print(f"  skipped: {d.error}")
+    if no_data:
+        print(f"  {len(no_data)} cell-drive(s) without a valid sample (status 'no data' in summary.csv), e.g. "
+              f"{no_data[0]['drive']}: {no_data[0]['error']}")
     if not ok:
         raise DataError("no drive could be estimated:", [d.error for d in failed] or ["no input"])
     return 0

@@ -5,20 +5,29 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
 from ..core.soc import SocConfig
-from ..data import CellRecording, load_recording
-from ..errors import DataError
+from ..data import CellRecording, check_charge_span, load_recording
+from ..errors import DataError, UsageError
 from ..jsonsafe import to_jsonable
 
 _ID = IdentifierConfig()
 _SOC = SocConfig()
+
+#: --capacity-ah this many times the OCV tables' C/20 capacity, or below its inverse, is not that cell's
+STATED_CAPACITY_RATIO_MAX = 2.0
+#: a first sample below this C-rate is read on the OCV table as the file's start SOC ...
+START_REST_C = 0.05
+#: ... and one this far from --initial-soc is warned about (at rest the data set's files read 0.993-1.001)
+START_SOC_TOLERANCE = 0.1
 
 
 def _number(text: str, *, allow_zero: bool) -> float:
@@ -36,13 +45,33 @@ def positive_float(text: str) -> float:
     return _number(text, allow_zero=False)
 
 
+def _fraction(text: str, low: float) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not low <= value <= 1.0:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"{text!r} must be a fraction in [{low:g}, 1]")
+    return value
+
+
+def soc_fraction(text: str) -> float:
+    """An SOC option's value: a fraction in [0, 1]."""
+    return _fraction(text, 0.0)
+
+
+def soc_difference(text: str) -> float:
+    """A difference of two SOCs: a fraction in [-1, 1]."""
+    return _fraction(text, -1.0)
+
+
 def add_cell_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ocv", required=True, type=Path, action="append",
                    help="OCV CSV (soc,ocv_v[,hysteresis_v][,temperature_c]), e.g. from 'bms-estimator ocv'; give it "
                         "once per table (one per test and temperature, each with its temperature_c column)")
     p.add_argument("--capacity-ah", required=True, type=positive_float,
                    help="the capacity you state (nominal); the effective one is estimated from the data and reported")
-    p.add_argument("--initial-soc", type=float, default=1.0,
+    p.add_argument("--initial-soc", type=soc_fraction, default=1.0,
                    help="SOC at the file's start (default 1.0: the drive cycles of ../shared/data start full)")
 
 
@@ -108,25 +137,60 @@ def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig
 
 
 def load(path: Path, args: argparse.Namespace) -> CellRecording:
+    """The recording at ``--resample-s``; with ``--capacity-ah``, one whose charge fits that capacity
+    (:func:`~bms_estimator.data.check_charge_span`)."""
     rec = load_recording(path, resample_s=args.resample_s)
     if len(rec) < 10:
-        raise ValueError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
+        raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
+    capacity_ah = getattr(args, "capacity_ah", None)
+    if capacity_ah:
+        check_charge_span(rec, capacity_ah, "--capacity-ah")
     return rec
 
 
-def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None) -> OcvSurface:
+def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
+             capacity_ah: float | None = None) -> OcvSurface:
     """The ``--ocv`` tables as one :class:`OcvSurface` (one path: that table, at every temperature).
 
     Calls without a temperature read the tables at the recording's median cell
     temperature when ``rec`` logs one, else at 25 degC: the commands that
     identify on a whole file (fit, compare, diagnose) use one OCV per file.
+    With ``capacity_ah`` (the stated ``--capacity-ah``), a capacity more than
+    ``STATED_CAPACITY_RATIO_MAX`` times away from the tables' C/20 capacity is a
+    usage error: it is not the capacity of the cell the tables were measured on.
     """
     t = median_temperature_c(rec.temperature_c) if rec is not None else None
+    path_list = [paths] if isinstance(paths, (str, Path)) else list(paths)
     try:
-        return OcvSurface.from_csvs([paths] if isinstance(paths, (str, Path)) else paths,
-                                    default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
+        surface = OcvSurface.from_csvs(path_list, default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
     except ValueError as exc:  # a malformed table is a data error (exit 3); the message names the file
         raise DataError(f"OCV table: {exc}") from None
+    tables = [c.capacity_discharge_ah for c in surface.curves if c.capacity_discharge_ah]
+    if capacity_ah and tables:
+        q_table = float(np.median(tables))
+        ratio = capacity_ah / q_table
+        if not 1.0 / STATED_CAPACITY_RATIO_MAX <= ratio <= STATED_CAPACITY_RATIO_MAX:
+            raise UsageError(
+                f"--capacity-ah {capacity_ah:g} is {ratio:.3g} times the C/20 capacity {q_table:.3f} Ah of the "
+                f"--ocv table(s) ({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah")
+    return surface
+
+
+def warn_if_start_is_not_initial_soc(rec: CellRecording, ocv: OcvSurface, args: argparse.Namespace) -> None:
+    """Warn when the file's first sample, at rest, reads an SOC on the OCV table far from ``--initial-soc``.
+
+    The identification counts SOC from ``--initial-soc`` (default 1.0, the data set's full starts); a
+    file that starts elsewhere runs without complaint to a wrong capacity and wrong parameters.
+    """
+    i0, v0 = float(rec.current_a[0]), float(rec.voltage_v[0])
+    if abs(i0) > START_REST_C * args.capacity_ah:
+        return  # under load the terminal voltage is not the OCV
+    t0 = None if rec.temperature_c is None else float(rec.temperature_c[0])
+    s0 = float(ocv.soc_from_ocv(v0) if t0 is None or not math.isfinite(t0) else ocv.soc_from_ocv(v0, t0))
+    if abs(s0 - args.initial_soc) > START_SOC_TOLERANCE:
+        warnings.warn(f"{rec.source}: its first voltage {v0:.3f} V (at rest) reads SOC {s0:.2f} on the --ocv "
+                      f"table, not --initial-soc {args.initial_soc:g}: give the file's start SOC with --initial-soc",
+                      UserWarning, stacklevel=2)
 
 
 def write_json(data: dict, path: Path | None) -> None:

@@ -8,10 +8,8 @@ from pathlib import Path
 from ..analysis import DEFAULT_METHODS, compare_methods
 from ..core.arrhenius import RESISTANCE_ACTIVATION_K
 from ..core.identifier import METHODS
-from .common import (
-    METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv, non_negative_float,
-    soc_config, write_json,
-)
+from .common import (METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
+                     non_negative_float, soc_config, warn_if_start_is_not_initial_soc, write_json)
 
 
 def add_parser(sub) -> None:
@@ -45,7 +43,9 @@ def run(args: argparse.Namespace) -> int:
     tr, va = load(args.train, args), load(args.validate, args)
     if abs(tr.dt_s - va.dt_s) > 1e-9:
         raise ValueError(f"training and validation files have different sample periods ({tr.dt_s} vs {va.dt_s} s)")
-    ocv = load_ocv(args.ocv, tr)
+    ocv = load_ocv(args.ocv, tr, capacity_ah=args.capacity_ah)
+    for rec in (tr, va):
+        warn_if_start_is_not_initial_soc(rec, ocv, args)
     window = (0.0, 1.0) if args.full_range else (args.soc_min, args.soc_max)
     if not 0.0 <= window[0] < window[1] <= 1.0:
         raise ValueError(f"SOC window {window} must satisfy 0 <= min < max <= 1")

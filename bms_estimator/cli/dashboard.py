@@ -92,5 +92,7 @@ def _outcome(state) -> int:
     """0 when the broker was reached; else the runtime-failure code with one line saying why."""
     if state.ever_connected:
         return 0
-    print(f"bms-estimator dashboard: error: never connected to the broker: {state.status}", file=sys.stderr)
+    why = f" ({state.last_error})" if state.last_error else ""
+    where = f" at {state.broker}" if state.broker else ""
+    print(f"bms-estimator dashboard: error: never connected to the broker{where}{why}", file=sys.stderr)
     return EXIT_RUNTIME

@@ -28,6 +28,7 @@ from pathlib import Path
 from ..analysis import compare_methods, reference_capacity, reference_soc, run_soc, soc_errors
 from ..core.ocv import OcvCurve
 from ..data import load_recording
+from ..errors import EXIT_RUNTIME
 from ..samples import CELLS, drive_cycle, ocv_table
 from .common import positive_float, write_json
 
@@ -135,6 +136,10 @@ def run_pack(args: argparse.Namespace) -> int:
     print(format_summary(a, fig), file=out)
     print(f"\npack_summary.json, pack.truth.json and the figure in {out_dir}/; demo finished in {a['wall_s']:.0f} s. "
           f"{ATTRIBUTION}", file=out, flush=True)
+    if broker.enabled and not a["mqtt_published"]:  # the MQTT half of the demo failed: a runtime error (exit 1)
+        print(f"bms-estimator demo: error: MQTT broker {broker.host}:{broker.port} never reached: nothing was "
+              "published (the summary above is the service's own state)", file=sys.stderr)
+        return EXIT_RUNTIME
     return 0
 
 

@@ -12,7 +12,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import add_cell_options, add_method_option, load, load_ocv, positive_float, write_json
+from .common import (add_cell_options, add_method_option, load, load_ocv, positive_float,
+                     warn_if_start_is_not_initial_soc, write_json)
 
 
 def add_parser(sub) -> None:
@@ -54,11 +55,13 @@ def run(args: argparse.Namespace) -> int:
                          soc_window=(-1.0 if args.soc_min is None else args.soc_min,
                                      2.0 if args.soc_max is None else args.soc_max))  # ValueError: an unknown cause
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv, rec)
+    ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
+    warn_if_start_is_not_initial_soc(rec, ocv, args)
     data = Series.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
     val = None
     if args.validate is not None:
         rv = load(args.validate, args)
+        warn_if_start_is_not_initial_soc(rv, ocv, args)
         val = Series.from_recording(rv, ocv, args.capacity_ah, args.initial_soc)
     d = diagnose(data, validate=val, config=cfg)
     out = d.to_json()

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .common import positive_float
+from .common import positive_float, soc_fraction
 
 
 def add_parser(sub) -> None:
@@ -30,7 +30,7 @@ def add_parser(sub) -> None:
     p.add_argument("--reference-capacity-ah", type=positive_float, default=None,
                    help="capacity of the reference SOC path (default: measured from the file's end-of-test rest, "
                         "else the online SOC estimator's)")
-    p.add_argument("--initial-soc", type=float, default=1.0, help="SOC at the file's start (default 1.0)")
+    p.add_argument("--initial-soc", type=soc_fraction, default=1.0, help="SOC at the file's start (default 1.0)")
     p.add_argument("--seed", type=int, default=0, help="seed of the cell-to-cell spread (default 0)")
     p.add_argument("--spread", default=None,
                    help="1-sigma spread: a factor on the defaults ('0' = identical cells, '2' = twice the defaults) "

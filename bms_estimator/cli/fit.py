@@ -11,9 +11,8 @@ from ..analysis import (
     IDENTIFICATION_METHOD, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
     simulate_with_params, soc_lookup_table,
 )
-from .common import (
-    add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv, soc_config, write_json,
-)
+from .common import (add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv,
+                     soc_config, warn_if_start_is_not_initial_soc, write_json)
 
 
 def add_parser(sub) -> None:
@@ -34,7 +33,8 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv, rec)
+    ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
+    warn_if_start_is_not_initial_soc(rec, ocv, args)
     ident = soc_config(args).identifier.with_(c0_prior_weight=args.c0_prior)
     dt = rec.dt_s
     q_eff, _ = output_error_capacity(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, args.initial_soc, dt, ident)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..core.ocv import OcvCurve
 from ..data import load_recording
+from ..errors import DataError
 
 
 def add_parser(sub) -> None:
@@ -42,12 +43,18 @@ def run(args: argparse.Namespace) -> int:
     temperature = args.temperature_c if args.temperature_c is not None else rec.temperature_c
     if args.hppc_steps is not None:
         steps = load_recording(args.hppc_steps, resample_s=None)
-        curve = OcvCurve.from_hppc(
-            (rec.time_s, rec.current_a, rec.voltage_v), (steps.time_s, steps.current_a, steps.voltage_v),
-            temperature_c=temperature,
-        )
+        try:
+            curve = OcvCurve.from_hppc(
+                (rec.time_s, rec.current_a, rec.voltage_v), (steps.time_s, steps.current_a, steps.voltage_v),
+                temperature_c=temperature,
+            )
+        except ValueError as exc:  # the pair of files is not an HPPC test and its steps
+            raise DataError(f"{args.data} with --hppc-steps {args.hppc_steps}: {exc}") from None
     else:
-        curve = OcvCurve.from_c20(rec.time_s, rec.current_a, rec.voltage_v, temperature_c=temperature)
+        try:
+            curve = OcvCurve.from_c20(rec.time_s, rec.current_a, rec.voltage_v, temperature_c=temperature)
+        except ValueError as exc:  # the file is not a C/20 test
+            raise DataError(f"{args.data}: {exc} (an HPPC test needs --hppc-steps)") from None
     curve.to_csv(args.output)
     msg = f"wrote {args.output}: {len(curve.soc)} points, OCV {curve.ocv_v[0]:.3f}..{curve.ocv_v[-1]:.3f} V"
     if curve.temperature_c is None:

@@ -10,8 +10,10 @@ import numpy as np
 from ..analysis import run_soc
 from ..core.identifier import IdentifierConfig
 from ..core.soc import SOC_METHODS, SocConfig
+from ..errors import DataError
 from ..scoring import counted_soc, soc_error_figures, soc_reference
-from .common import add_cell_options, add_method_option, add_tuning_options, load, load_ocv, soc_config, write_json
+from .common import (add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float,
+                     soc_config, soc_difference, soc_fraction, write_json)
 
 #: A C/20 table within this of the recording's median temperature is "the same ambient".
 SAME_AMBIENT_K = 5.0
@@ -21,12 +23,9 @@ def _start_soc(text: str) -> str | float:
     if text.strip().lower() == "ocv":
         return "ocv"
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is neither a SOC fraction nor 'ocv'") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"--start-soc {text!r} must be a fraction in [0, 1] (or 'ocv')")
-    return value
+        return soc_fraction(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"--start-soc {text!r} must be a fraction in [0, 1] (or 'ocv')") from None
 
 
 def add_parser(sub) -> None:
@@ -44,7 +43,7 @@ def add_parser(sub) -> None:
     p.add_argument("--start-soc", type=_start_soc, default=None,
                    help="SOC the estimator begins with (a fraction), or 'ocv' to read it from the first sample's "
                         "voltage as the service does after a rest (default: reference - --initial-soc-error)")
-    p.add_argument("--initial-soc-error", type=float, default=0.2,
+    p.add_argument("--initial-soc-error", type=soc_difference, default=0.2,
                    help="without --start-soc: start this far below the reference (default 0.2, the paper's Fig. 10)")
     p.add_argument("--soc-method", choices=SOC_METHODS, default=SocConfig().soc_method,
                    help=f"how the voltage corrects the count (default {SocConfig().soc_method}): c0 = the paper's "
@@ -52,7 +51,7 @@ def add_parser(sub) -> None:
                         "capacity, driven by the identified model (core/soc_ekf.py)")
     p.add_argument("--reference-ocv", type=Path, default=None,
                    help="the same cell's C/20 OCV table at the recording's ambient, for the reference")
-    p.add_argument("--reference-capacity-ah", type=float, default=None,
+    p.add_argument("--reference-capacity-ah", type=positive_float, default=None,
                    help="count the reference with this capacity instead (e.g. a recording without a final rest)")
     add_method_option(p, IdentifierConfig().method, "(the SOC estimator's identification)")
     p.add_argument("--trace", type=Path, default=None,
@@ -92,8 +91,13 @@ def _reference(args: argparse.Namespace, rec, ocv) -> tuple[float, str, bool, np
     table, _ = _reference_table(args, ocv, temp_c)
     if table is None:
         raise ValueError(f"{args.data}: no C/20 table (with hysteresis) within {SAME_AMBIENT_K:g} K of the "
-                         f"recording's {temp_c} degC among --ocv: give --reference-ocv or --reference-capacity-ah")
-    ref = soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, table)
+                         f"recording's {'unknown' if temp_c is None else f'{temp_c:.1f}'} degC among --ocv: give "
+                         "--reference-ocv or --reference-capacity-ah")
+    try:
+        ref = soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, table)
+    except ValueError as exc:  # the file cannot carry its own reference (no discharge, ends full)
+        raise DataError(f"{args.data}: no SOC reference from the file: {exc}; give --reference-capacity-ah "
+                        "to count the reference with a known capacity") from None
     return ref.capacity_ah, ref.why, ref.relaxed, ref.soc
 
 
@@ -120,7 +124,7 @@ def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray
 
 def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv, rec)
+    ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     dt = rec.dt_s
     t = rec.time_s - rec.time_s[0]
     k0 = int(np.searchsorted(t, args.start_s - 1e-9))

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from ..core.identifier import IdentifierConfig
 from ..core.sop import SopConfig
 from ..sop_backtest import run_backtest, summary
-from .common import add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float, soc_config, write_json
+from .common import (add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float,
+                     soc_config, warn_if_start_is_not_initial_soc, write_json)
 
 _SOP = SopConfig()
+#: from this many samples on, the command says at its start that it will take a while
+LONG_RUN_SAMPLES = 30_000
 
 
 def add_parser(sub) -> None:
@@ -43,7 +47,11 @@ def run(args: argparse.Namespace) -> int:
     if not args.v_min < args.v_max:
         raise ValueError(f"--v-min {args.v_min:g} must be below --v-max {args.v_max:g}")
     rec = load(args.data, args)
-    ocv = load_ocv(args.ocv, rec)
+    ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
+    warn_if_start_is_not_initial_soc(rec, ocv, args)
+    if len(rec) >= LONG_RUN_SAMPLES:  # minutes of silence otherwise (27 h of HPPC: 2 min 18 s on 2 shared cores)
+        print(f"bms-estimator sop-backtest: {len(rec):,} samples ({rec.duration_s / 3600:.1f} h) through the "
+              "estimator and the SOP, one at a time: this takes minutes", file=sys.stderr, flush=True)
     sop = SopConfig(v_min=args.v_min, v_max=args.v_max, i_discharge_max_a=args.i_discharge_max_a,
                     i_charge_max_a=args.i_charge_max_a)
     res = run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv, args.capacity_ah,

@@ -62,6 +62,10 @@ GRID_POINTS = 2001
 INVERSE_GRID_POINTS = 8001
 #: A user OCV table may dip by up to this much [V] and be repaired with a warning.
 MAX_OCV_DIP_V = 5e-3
+#: A table's ocv_v must lie in this range [V] (a single cell's open-circuit voltage).
+OCV_RANGE_V = (0.0, 10.0)
+#: A C/20 test's discharge branch holds at least this share of all the charge its file discharges.
+C20_BRANCH_SHARE_MIN = 0.5
 #: Step of the strictly-increasing repair [V].
 _EPS_V = 1e-6
 #: Optional one-value-per-table CSV columns (the test's temperature, its C/20 discharge capacity).
@@ -370,7 +374,9 @@ class OcvCurve:
            samples (their median, NaN ignored) becomes :attr:`temperature_c`.
 
         Raises:
-            ValueError: no discharge or no charge branch after it, bad arrays.
+            ValueError: no discharge or no charge branch after it, a discharge branch
+                with less than ``C20_BRANCH_SHARE_MIN`` of the file's discharged
+                charge (not a C/20 test: a drive cycle, an HPPC test), bad arrays.
         """
         t, i, v = _check_arrays(time_s, current_a, voltage_v)
         if n_points < 3:
@@ -378,7 +384,7 @@ class OcvCurve:
         if current_threshold_a is None:
             ref = float(np.percentile(np.abs(i), 90))
             if ref <= 0:
-                raise ValueError("current is zero everywhere: not a C/20 test")
+                raise ValueError("the current is zero in 90 % of the samples or more: not a C/20 test")
             current_threshold_a = 0.2 * ref
         runs_d = _runs(i < -current_threshold_a)
         runs_c = _runs(i > current_threshold_a)
@@ -398,6 +404,12 @@ class OcvCurve:
         cap_d, cap_c = float(q_d[-1]), float(q_c[-1])
         if cap_d <= 0 or cap_c <= 0:
             raise ValueError("C/20 branch throughput is zero")
+        # step 1's check: a C/20 test discharges in one run; a drive cycle's longest run is a sliver of its charge
+        total_d = float(np.sum(np.maximum(-i[:-1], 0.0) * np.diff(t))) / 3600.0
+        if cap_d < C20_BRANCH_SHARE_MIN * total_d:
+            raise ValueError(
+                f"not a C/20 test: its longest discharge run removes {cap_d:.3g} Ah of the {total_d:.3g} Ah the "
+                "file discharges (a C/20 test is one slow discharge, a rest and one slow charge)")
 
         if capacity_ah is None:
             soc_d = 1.0 - q_d / cap_d
@@ -657,11 +669,17 @@ class OcvCurve:
             k = int(np.flatnonzero(ds <= 0)[0]) + 1
             raise ValueError(
                 f"{path}: soc is not strictly increasing at line {lines[k + 1][0]} "
-                f"({s[k - 1]!r} -> {s[k]!r})"
+                f"({float(s[k - 1])!r} -> {float(s[k])!r})"
             )
         if h is not None and np.any(h < 0):
             k = int(np.flatnonzero(h < 0)[0])
-            raise ValueError(f"{path}: line {lines[k + 1][0]}: hysteresis_v {h[k]!r} is negative")
+            raise ValueError(f"{path}: line {lines[k + 1][0]}: hysteresis_v {float(h[k])!r} is negative")
+        lo, hi = OCV_RANGE_V
+        off = np.flatnonzero((v < lo) | (v > hi))
+        if off.size:
+            k = int(off[0])
+            raise ValueError(f"{path}: line {lines[k + 1][0]}: ocv_v {float(v[k])!r} is not a cell's open-circuit "
+                             f"voltage (expected {lo:g}..{hi:g} V; is the column in mV?)")
         if np.any(np.diff(v) <= 0):
             dip = np.maximum.accumulate(v) - v
             k = int(np.argmax(dip))

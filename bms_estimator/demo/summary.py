@@ -238,7 +238,9 @@ def format_summary(a: dict[str, Any], figure: Path | None = None) -> str:
         + (f", {late:.2f} % after the first hour (counting with the stated {a['capacity_ah_stated']:g} Ah from the "
            f"same start: {a['counting_soc_rmse_after_3600s_pct_mean']:.2f} %)" if math.isfinite(late)
            else " (the run is shorter than 1 h)")
-        + f"; voltage OSA RMSE, mean over cells: {a['voltage_osa_rmse_mv_mean']:.2f} mV"
+        + "; voltage OSA RMSE, mean over cells: "
+        + (f"{osa:.2f} mV" if math.isfinite(osa := a["voltage_osa_rmse_mv_mean"])
+           else f"n/a (the run is not longer than the {a['osa_from_s']:.0f} s initialisation)")
     )
     rho = a["spearman_r0_median_vs_injected"]
     if math.isfinite(rho):

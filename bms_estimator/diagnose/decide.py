@@ -442,7 +442,7 @@ def _diagnose(data: Series, validate: Series | None, config: DiagnoseConfig) -> 
         noise_mv=float(noise_mv),
         scoring=("validation file" if validate is not None else
                  f"{config.folds}-fold cross-validation over {int(scorer.blocks.max()) + 1} interleaved time blocks")
-        + ("" if win.all() else f", SOC window {config.soc_window[0]:g}..{config.soc_window[1]:g}"),
+        + ("" if win.all() else f", SOC window {max(config.soc_window[0], 0.0):g}..{min(config.soc_window[1], 1.0):g}"),
         seconds=time.perf_counter() - t_start,
         secondary=secondary,
         ties=ties,

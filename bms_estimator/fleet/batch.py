@@ -208,7 +208,8 @@ SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final",
 
 
 def summary_rows(drives: list[DriveResult]) -> list[dict[str, Any]]:
-    """One row per drive and cell (one row per skipped drive, cell = -1, with its error)."""
+    """One row per drive and cell (one row per skipped drive, cell = -1, with its error); a cell without
+    a valid sample in its drive has status ``no data``, not ``ok``."""
     rows: list[dict[str, Any]] = []
     for d in drives:
         base = {"vehicle": d.vehicle, "drive": Path(d.path).name, "status": d.status, "samples": d.samples,
@@ -218,10 +219,15 @@ def summary_rows(drives: list[DriveResult]) -> list[dict[str, Any]]:
         if d.status != "ok" or n == 0:
             rows.append({**base, "cell": -1})
             continue
+        valid = d.cells.get("valid_samples")
         for c in range(n):
             row = {**base, "cell": c}
             for key in SUMMARY_COLUMNS:
                 if key in d.cells:
                     row[key] = d.cells[key][c]
+            if valid is not None and valid[c] == 0:  # a cell the log never carried: not an estimate
+                row["status"] = "no data"
+                row["error"] = (f"no valid sample of cell {c} in the log (pack.n_cells {n}: more cells than "
+                                "the log's pack?)")
             rows.append(row)
     return [{k: r.get(k) for k in SUMMARY_COLUMNS} for r in rows]

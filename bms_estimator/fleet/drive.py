@@ -37,7 +37,7 @@ import numpy as np
 import structlog
 
 from ..core.soc import SocEstimator
-from ..data import load_recording
+from ..data import check_charge_span, load_recording
 from ..errors import BmsEstimatorError, DataError, one_line_error
 from ..scoring import counted_soc, soc_error_figures
 from .assemble import assemble_samples
@@ -107,6 +107,7 @@ def is_recording(path: str | Path) -> bool:
 def _recording_samples(log: Path, svc) -> SampleArrays:
     try:
         rec = load_recording(log, resample_s=svc.period_s)
+        check_charge_span(rec, svc.cfg.pack.capacity_ah, "pack.capacity_ah")
         return SampleArrays.from_recording(rec, svc.period_s)
     except ValueError as exc:  # DataError is one; the step check another
         raise DataError(str(exc).splitlines()[0]) from None
@@ -153,6 +154,7 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
     if len(est) == 0:
         return out
     out["soc_final"] = est.cells["soc"][-1].tolist()
+    out["valid_samples"] = np.count_nonzero(est.valid, axis=0).tolist() if n else []
     out["capacity_ah_final"] = est.cells["capacity_ah"][-1].tolist()
     out["r0_ohm_final"] = est.cells["r0_ohm"][-1].tolist()
     with warnings.catch_warnings():  # an all-NaN column (a cell never valid) is NaN, not a warning

@@ -116,7 +116,7 @@ def read_frames(path: str | Path) -> FrameTable:
         import can
 
         if not path.name.lower().endswith(".gz"):
-            _check_complete(path, kind)
+            check_log_complete(path, kind)
         reader = can.LogReader(str(path))
         try:
             return FrameTable.from_messages(reader)
@@ -131,7 +131,7 @@ def read_frames(path: str | Path) -> FrameTable:
         raise DataError(f"{path}: cannot read the log: {type(exc).__name__}: {text[0] if text else ''}") from None
 
 
-def _check_complete(path: Path, kind: str) -> None:
+def check_log_complete(path: Path, kind: str) -> None:
     """A truncated ``.blf`` or ``.asc`` reads without an error in python-can (it stops at the cut): refuse it.
 
     BLF: the header states the file size its writer closed it with; ASC: writers close the

@@ -65,8 +65,10 @@ class SampleArrays:
         stamps). Raises ``ValueError`` when the recording's step is not ``period_s``."""
         t = np.asarray(rec.time_s, dtype=float)
         if len(t) > 1 and not np.allclose(np.diff(t), period_s, rtol=0, atol=1e-9 * period_s):
-            raise ValueError(f"{rec.source}: the recording's step is not the estimator's sample period "
-                             f"{period_s:g} s")
+            step = np.diff(t)
+            raise ValueError(f"{rec.source}: the recording's step ({np.min(step):g}..{np.max(step):g} s, median "
+                             f"{np.median(step):g} s after averaging to the period) is not the estimator's sample "
+                             f"period {period_s:g} s: batch takes recordings logged at that period or finer")
         k = t.shape[0]
         v = np.asarray(rec.voltage_v, dtype=float).reshape(k, 1)
         temp = (np.full((k, 1), np.nan) if rec.temperature_c is None

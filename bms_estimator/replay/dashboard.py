@@ -117,6 +117,7 @@ class DashboardState:
         self.connected: bool = False
         self.ever_connected: bool = False  # the broker was reached at least once
         self.status: str = "not connected"
+        self.last_error: str = ""  # why the broker was last out of reach, for the exit message
         self.broker: str = ""
 
     # ---------------------------------------------------------------- topics
@@ -410,6 +411,7 @@ async def run_dashboard(
                                 await task
             except aiomqtt.MqttError as exc:
                 state.connected, state.status = False, f"broker unreachable ({exc}); retrying"
+                state.last_error = str(exc)
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(stop.wait(), timeout=delay)
                 delay = min(delay * 2.0, reconnect_max_s)

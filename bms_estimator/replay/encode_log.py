@@ -106,7 +106,7 @@ from ..can.dbc import load_project_db
 from ..can.e2e import E2EStamper
 from ..can.signals import SignalCodec
 from ..core.ocv import OcvCurve
-from ..data import CellRecording, load_recording
+from ..data import CellRecording, check_charge_span, load_recording
 from ..jsonsafe import to_jsonable
 from ..samples import CELLS, ocv_table
 
@@ -721,6 +721,7 @@ def encode_log(
         raise ValueError(f"initial SOC must be in [0, 1], got {initial_soc}")
     curve, ocv_source, q = resolve_cell_defaults(data, ocv, capacity_ah)
     rec = load_recording(data)
+    check_charge_span(rec, q, "--capacity-ah" if capacity_ah is not None else "the shipped cell's capacity")
     trace = build_pack(
         rec, n_cells, curve, q, seed=seed, spread=spread if spread is not None else CellSpread(),
         initial_soc=initial_soc, reference_capacity_ah=reference_capacity_ah, duration_s=duration_s,

@@ -52,7 +52,7 @@ from typing import Any
 
 import can
 
-from ..errors import CanBusError, UsageError, one_line_error
+from ..errors import CanBusError, DataError, UsageError, one_line_error
 
 __all__ = [
     "bus_config_from_args",
@@ -96,23 +96,55 @@ def _log_suffix(path: Path) -> str:
 
 
 def read_log(path: str | Path) -> Iterator[can.Message]:
-    """Messages of a candump ``.log``, ``.asc`` or ``.blf`` file (``can.LogReader``), lazily."""
+    """Messages of a candump ``.log``, ``.asc`` or ``.blf`` file (``can.LogReader``), lazily.
+
+    A truncated ``.blf`` or ``.asc`` raises :class:`DataError` at once (the checks of
+    ``batch``); a file the reader cannot parse, or one without a frame, when the iteration
+    reaches the fault, naming the file and how many frames came before it.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such log file")
     if _log_suffix(path) not in LOG_SUFFIXES:
         raise ValueError(f"{path}: replay reads {', '.join(LOG_SUFFIXES)} logs (by suffix)")
-    reader = can.LogReader(str(path))
+    from ..fleet.frames import check_log_complete
+
+    if path.suffix.lower() == ".log" and _cut_last_line(path):  # python-can sends a cut line's frame, shortened
+        raise DataError(f"{path}: its last line has no line end: the log is truncated (a cut frame would be sent)")
+    try:
+        check_log_complete(path, _log_suffix(path))  # python-can stops quietly at the cut of a truncated .blf/.asc
+        reader = can.LogReader(str(path))
+    except DataError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a .blf reader parses its header here
+        raise DataError(f"{path}: unreadable as a CAN log ({one_line_error(exc)})") from None
 
     def gen() -> Iterator[can.Message]:
+        n = 0
         try:
-            yield from reader
+            for msg in reader:
+                n += 1
+                yield msg
+        except Exception as exc:  # noqa: BLE001 - each of python-can's readers fails in its own way
+            raise DataError(f"{path}: unreadable after {n:,} frames ({one_line_error(exc)})") from None
         finally:
             stop = getattr(reader, "stop", None)
             if stop is not None:
                 stop()
+        if n == 0:
+            raise DataError(f"{path}: no CAN frame in the log")
 
     return gen()
+
+
+def _cut_last_line(path: Path) -> bool:
+    """A candump log whose last byte is not a line end: every writer ends each line with one."""
+    size = path.stat().st_size
+    if size == 0:
+        return False
+    with open(path, "rb") as fh:
+        fh.seek(size - 1)
+        return fh.read(1) not in (b"\n", b"\r")
 
 
 def _tail_lines(path: Path, nbytes: int = 8192) -> list[str]:

@@ -15,6 +15,7 @@ Secrets (the MQTT password) are :class:`pydantic.SecretStr`; use
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import ipaddress
 import os
 import tomllib
@@ -470,8 +471,27 @@ def _problems(exc: ValidationError) -> list[str]:
             # Never echo anything that might be the password.
             if not any(isinstance(p, str) and "password" in p.lower() for p in loc):
                 msg = f"{msg} (got {inp!r})"
+        if err.get("type") == "extra_forbidden" and loc:
+            near = difflib.get_close_matches(str(loc[-1]), _known_keys(loc[:-1]), n=1, cutoff=0.6)
+            if near:
+                msg = f"{msg} (did you mean '{near[0]}'?)"
         lines.append(f"{_format_loc(tuple(loc))}: {msg}")
     return lines
+
+
+def _known_keys(loc: list[Any]) -> list[str]:
+    """The keys the section at ``loc`` takes (its model's fields), or none where ``loc`` is not a model."""
+    model: Any = ServiceConfig
+    for part in loc:
+        field = getattr(model, "model_fields", {}).get(part)
+        if field is None:
+            return []
+        ann = field.annotation
+        model = next((c for c in (ann, *typing.get_args(ann))
+                      if isinstance(c, type) and issubclass(c, BaseModel)), None)
+        if model is None:
+            return []
+    return list(getattr(model, "model_fields", {}))
 
 
 def load_config(path: Path | str | None = None) -> ServiceConfig:
@@ -493,6 +513,8 @@ def load_config(path: Path | str | None = None) -> ServiceConfig:
             raise ConfigError(f"config file not found: {p}") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"invalid TOML in {p}", [str(exc)]) from None
+        except UnicodeDecodeError as exc:  # TOML is UTF-8; without this the message named neither file nor byte
+            raise ConfigError(f"invalid TOML in {p}", [f"not UTF-8 text: {exc.reason} at byte {exc.start}"]) from None
         except OSError as exc:
             raise ConfigError(f"cannot read config file {p}: {exc.strerror or exc}") from None
     problems = _unknown_env_sections(os.environ)

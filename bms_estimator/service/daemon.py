@@ -126,8 +126,10 @@ class Service:
                 try:
                     self.encoder = StateEncoder(self.db)
                 except KeyError as exc:
-                    problems.append(f"can.dbc: {exc.args[0] if exc.args else exc} "
-                                    "(can.output.enabled needs the project's output messages)")
+                    what = exc.args[0] if exc.args else exc
+                    what = f"message {what!r} not in the DBC" if isinstance(what, str) and " " not in what else what
+                    problems.append(f"can.dbc: {what}: can.output.enabled sends the project DBC's output "
+                                    "messages; set [can.output] enabled = false, or use a DBC that has them")
         try:
             bus_kwargs = cfg.can.bus_kwargs()
             if cfg.can.kernel_filters and "can_filters" not in bus_kwargs and self.decoder is not None:

@@ -101,6 +101,12 @@ def test_json_has_the_issue_fields_and_is_serialisable():
     assert hy["params"]["m_v"] > 0 and hy["params"]["gamma"] > 0
 
 
+def test_the_soc_window_is_said_within_0_and_1():
+    """--soc-min 0.1 alone (the findings table's window) read 'SOC window 0.1..2': the open end is SOC 1."""
+    d = diagnose(cell(LG, "none", 0.0, 2).series(), config=FAST.with_(pairs=False, soc_window=(0.1, 2.0)))
+    assert d.scoring.endswith(", SOC window 0.1..1"), d.scoring
+
+
 def test_validate_file_scores_on_the_other_file():
     # same hidden cell (seed) on two profiles of the same cell type: fit on one, score on the other
     i1, _, _, ocv = profile(PAN1)

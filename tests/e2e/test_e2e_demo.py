@@ -175,3 +175,28 @@ def test_embedded_broker_is_a_child_process_that_ends_with_the_demo():
         assert asyncio.run(asyncio.wait_for(roundtrip(info.host, info.port), 30)) == b"hello"
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_a_demo_shorter_than_the_initialisation_says_so_instead_of_nan(tmp_path, capsys):
+    """`demo --duration-s 300` ended its summary with 'voltage OSA RMSE, mean over cells: nan mV'."""
+    rc = main(["demo", "--output", str(tmp_path / "demo"), "--duration-s", "300", "--broker", "none", "--plain"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "voltage OSA RMSE, mean over cells: n/a (the run is not longer than the 600 s initialisation)" in text
+    assert "nan" not in text.lower()
+
+
+def test_a_demo_whose_broker_is_never_reached_fails_after_its_summary(tmp_path, capsys):
+    """`demo --broker HOST:PORT` with nothing listening printed its summary and exited 0: the MQTT half of the
+    demo had failed silently. Now the summary, then one error line, exit 1 (a broker failure)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens here
+    rc = main(["demo", "--output", str(tmp_path / "demo"), "--duration-s", "60", "--broker", f"127.0.0.1:{port}",
+               "--plain"])
+    assert rc == 1
+    out, err = capsys.readouterr()
+    assert "Summary: 16-cell pack" in out
+    assert f"bms-estimator demo: error: MQTT broker 127.0.0.1:{port} never reached: nothing was published" in err

@@ -130,3 +130,20 @@ def test_scheduler_address_puts_the_work_on_that_cluster(fleet, capsys):
     assert main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out),
                  "--scheduler", "tcp://127.0.0.1:9", "--no-progress"]) == EXIT_USAGE
     assert "cannot reach the Dask scheduler" in capsys.readouterr().err
+
+
+def test_cells_the_log_does_not_carry_are_no_data_not_ok(fleet, tmp_path):
+    """A configuration with more cells than the logged pack (the example config's 16 on a 3-cell log) gave
+    the extra cells rows of status 'ok' with SOC nan; now 'no data' with the reason, and the others as before."""
+    from bms_estimator.fleet.drive import run_drive
+
+    d, cfg = fleet
+    more = tmp_path / "more.toml"
+    more.write_text(cfg.read_text().replace(f"n_cells = {N_CELLS}", f"n_cells = {N_CELLS + 2}"))
+    res, _, _ = run_drive(d / "logs" / "car1" / "drive0.log", str(more), tmp_path / "out", "car1")
+    assert res.status == "ok", res.error
+    rows = summary_rows([res])
+    assert [r["status"] for r in rows] == ["ok"] * N_CELLS + ["no data"] * 2
+    assert all(np.isfinite(r["soc_final"]) and not r["error"] for r in rows[:N_CELLS])
+    assert rows[N_CELLS]["error"] == f"no valid sample of cell {N_CELLS} in the log (pack.n_cells {N_CELLS + 2}: " \
+                                      "more cells than the log's pack?)"

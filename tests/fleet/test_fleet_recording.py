@@ -48,6 +48,22 @@ def test_recording_with_another_step_is_reported(tmp_path):
     csv.write_text("time_s,current_a,voltage_v\n0,1,3.7\n2,1,3.7\n4,1,3.7\n")
     res, _, _ = run_drive(csv, str(_config(tmp_path)), tmp_path / "out", "car")
     assert res.status == "skipped" and "sample period" in res.error
+    assert "c.csv: the recording's step (2..2 s, median 2 s after averaging to the period)" in res.error
+
+
+def test_recording_in_milliamps_is_reported_not_estimated(tmp_path):
+    """A cell's current in mA spans 1000 times pack.capacity_ah: the drive is skipped with the reason, where it
+    was estimated to nonsense before (the shipped LG UDDS sample, Kollmeyer, CC BY 4.0, its current x 1000)."""
+    import gzip
+
+    lines = gzip.open(SAMPLES / "lg-hg2_25degC_udds_1s.csv.gz", "rt").read().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    csv = tmp_path / "car" / "milliamp.csv"
+    csv.parent.mkdir()
+    csv.write_text(lines[0] + "\n" + "".join(f"{r[0]},{float(r[1]) * 1000!r},{r[2]},{r[3]}\n" for r in rows))
+    res, _, _ = run_drive(csv, str(_config(tmp_path)), tmp_path / "out", "car")
+    assert res.status == "skipped"
+    assert "milliamp.csv: its coulomb count spans" in res.error and "times pack.capacity_ah = 3 Ah" in res.error
 
 
 def test_diagnose_names_a_cause_per_cell(tmp_path):

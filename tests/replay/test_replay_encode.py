@@ -249,3 +249,14 @@ def test_missing_ocv_for_an_unknown_cell_is_a_clear_error(tmp_path, capsys):
     assert rc == 2 and "--ocv" in err and "--capacity-ah" in err
     rc = main(["encode-log", str(src), "--cells", "4", "-o", str(tmp_path / "x.csv"), "--no-progress"])
     assert rc == 2 and ".log" in capsys.readouterr().err
+
+
+def test_a_recording_in_milliamps_is_refused_not_encoded(tmp_path, capsys):
+    """A current in mA was encoded as a pack 'with model RMSE 515808 mV' and exit 0."""
+    rec = load_recording(drive_cycle("lg-hg2", "udds"))
+    src = save_recording(CellRecording(rec.time_s, rec.current_a * 1000, rec.voltage_v), tmp_path / "lg-hg2_mA.csv")
+    out = tmp_path / "x.log"
+    assert main(["encode-log", str(src), "--cells", "2", "-o", str(out), "--no-progress"]) == 3
+    err = capsys.readouterr().err
+    assert "lg-hg2_mA.csv: its coulomb count spans" in err and "times the shipped cell's capacity = 3 Ah" in err, err
+    assert not out.exists()

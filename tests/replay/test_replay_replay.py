@@ -167,6 +167,44 @@ def test_replay_command_on_a_virtual_bus(encoded, tmp_path, capsys):
     assert main(["replay", str(tmp_path / "missing.log")]) == 3  # a data error
 
 
+@pytest.mark.parametrize("name, content, message", [
+    ("empty.log", b"", "empty.log: no CAN frame in the log"),
+    ("words.log", b"hello world\n", "words.log: unreadable after 0 frames (ValueError: "),
+    ("bad.blf", b"garbage\n", "bad.blf: unreadable as a CAN log ("),
+    ("late.log", b"(1.000000) can0 123#00\n(1.010000) can0 123#01\nnonsense\n", "late.log: unreadable after 2 frames"),
+    # cut in the middle of its last frame's data: python-can sent 123#0011 as a 2-byte frame
+    ("cut.log", b"(1.000000) can0 123#0011223344556677\n(1.010000) can0 123#0011", "cut.log: its last line has no line end"),
+])
+def test_replay_of_an_unreadable_or_empty_log_is_a_data_error(tmp_path, capsys, name, content, message):
+    """Each was exit 2 with python-can's bare message ('not enough values to unpack'), or exit 0 having sent
+    nothing; now one line naming the file (exit 3)."""
+    path = tmp_path / name
+    path.write_bytes(content)
+    assert main(["replay", str(path), "-i", "virtual", "-c", _channel(), "--speed", "max", "--no-progress"]) == 3
+    err = capsys.readouterr().err
+    assert err.startswith(f"bms-estimator replay: error: {path}") and message in err, err
+    assert len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("suffix, message", [(".blf", "truncated BLF file"), (".asc", "truncated ASC file")])
+def test_replay_of_a_truncated_log_is_refused_before_sending(tmp_path, capsys, suffix, message):
+    """python-can stops quietly at the cut of a .blf or .asc: replay sent the first part with exit 0."""
+    path = tmp_path / f"cut{suffix}"
+    with can.Logger(str(path)) as w:
+        for k in range(2000):
+            w.on_message_received(can.Message(timestamp=1.0 + 0.01 * k, arbitration_id=0x100, data=bytes(8)))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    ch = _channel()
+    rx = can.Bus(interface="virtual", channel=ch)
+    try:
+        assert main(["replay", str(path), "-i", "virtual", "-c", ch, "--speed", "max", "--no-progress"]) == 3
+        assert rx.recv(0) is None  # nothing went out
+    finally:
+        rx.shutdown()
+    assert f"{path}: {message}" in capsys.readouterr().err
+
+
 def test_udp_multicast_receiver_keeps_the_log_time(encoded):
     """python-can's udp_multicast receiver stamps frames on arrival; LogTimeUdpMulticastBus keeps the log's."""
     log = _first(encoded["log"], 1.0)

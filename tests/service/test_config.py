@@ -93,11 +93,14 @@ enabled = false
 @pytest.mark.parametrize(
     ("toml", "env", "expected"),
     [
-        ("[mqtt]\nhostt = 'x'\n", {}, "mqtt.hostt: Extra inputs are not permitted"),
+        ("[mqtt]\nhostt = 'x'\n", {}, "mqtt.hostt: Extra inputs are not permitted (did you mean 'host'?)"),
         ("[mqtt.tls]\nca = 'x'\n", {}, "mqtt.tls.ca: Extra inputs are not permitted"),
         ("[nonsense]\na = 1\n", {}, "nonsense: Extra inputs are not permitted"),
-        ("[health]\nhost = '127.0.0.1'\nprot = 1\n", {}, "health.prot: Extra inputs are not permitted"),
-        ("", {"BMS_MQTT__PROT": "1"}, "mqtt.prot: Extra inputs are not permitted"),
+        ("[health]\nhost = '127.0.0.1'\nprot = 1\n", {}, "health.prot: Extra inputs are not permitted (did you mean 'port'?)"),
+        ("", {"BMS_MQTT__PROT": "1"}, "mqtt.prot: Extra inputs are not permitted (did you mean 'port'?)"),
+        ("[estimator.core]\nwindw = 20\n", {}, "estimator.core.windw: Extra inputs are not permitted (did you mean "
+                                                  "'window'?)"),
+        ("[can.output]\nperiod = 1\n", {}, "can.output.period: Extra inputs are not permitted (did you mean 'period_s'?)"),
         ("", {"BMS_MQTTT__PORT": "1"},
          "BMS_MQTTT__PORT (environment): unknown setting; sections are can, estimator, health, "
          "logging, mqtt, pack, state"),
@@ -180,6 +183,15 @@ def test_toml_syntax_error_and_missing_file(tmp_path):
     assert "line 1" in str(exc.value)
     with pytest.raises(ConfigError, match="config file not found"):
         load_config(tmp_path / "nope.toml")
+
+
+def test_a_config_that_is_not_utf8_names_the_file(tmp_path):
+    """It read "'utf-8' codec can't decode byte 0xff in position 0" without the file, as a bare ValueError."""
+    path = tmp_path / "latin1.toml"
+    path.write_bytes('[pack]\npack_id = "k\xfchl"\n'.encode("latin-1"))
+    with pytest.raises(ConfigError, match="invalid TOML in .*latin1.toml") as exc:
+        load_config(path)
+    assert "not UTF-8 text: invalid start byte at byte 19" in str(exc.value)
 
 
 def test_secrets_never_in_redacted_dump_repr_or_logs(tmp_path, monkeypatch):
