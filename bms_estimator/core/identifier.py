@@ -36,7 +36,6 @@ from .params import (
     PhysicalParams,
     ct_c0_from_theta,
     ct_physical_from_rows,
-    ct_physical_from_theta,
     ct_theta_from_physical,
     dt_physical_from_theta,
     dt_theta_from_physical,

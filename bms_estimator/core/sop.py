@@ -64,7 +64,7 @@ negative and never NaN: a cell whose inputs or model are not finite gets 0.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Annotated, Callable
 
