@@ -10,7 +10,7 @@ import pytest
 
 from bms_estimator.data import load_recording
 from bms_estimator.fleet.batch import stack_groups
-from bms_estimator.fleet.drive import _service, _stack_factory, run_drive, run_drives
+from bms_estimator.fleet.drive import _stack_factory, service_for, run_drive, run_drives
 from bms_estimator.fleet.estimate import estimate_drive
 from bms_estimator.fleet.samples import SampleArrays
 from bms_estimator.fleet.stack import StackError, estimate_stacked
@@ -27,7 +27,7 @@ def svc(tmp_path_factory):
     cfg = d / "config.toml"
     cfg.write_text(f'[pack]\nn_cells = {N_CELLS}\ncapacity_ah = 3.0\nocv_csv = "{SAMPLES / "lg-hg2_25degC_ocv.csv"}"\n'
                    '[can]\ninterface = "virtual"\n[mqtt]\nenabled = false\n')
-    return _service(str(cfg)), cfg
+    return service_for(str(cfg)), cfg
 
 
 def _drive(base: SampleArrays, a: int, b: int, rng, stale: float = 0.0, bad_rows: int = 0,
