@@ -14,7 +14,14 @@ after ``restart_after_rejections`` in a row its identification restarts from a
 fresh block.  Until a cell's block-LS initialisation is done the cell reports a
 prior; a block whose least-squares theta is not physical (too short to place the
 slow pole) grows sample by sample up to ``init_max_samples``, after which the
-cell starts from the prior.
+cell starts from the prior.  The prior's resistances are stated at 25 degC and
+brought to each cell's temperature at its first sample, when the caller knows it
+(:meth:`Identifier.start_prior_at`), by the resistances' Arrhenius line
+``R(T) = R(25 degC) exp(B (1/T - 1/T_ref))`` (``prior_activation_k``, the project's
+B = 2500 K; x2.2 at 0 degC, x4.6 at -20 degC), the time constants kept.  A cold
+cell whose block start does not turn physical (on the measured LG cell at 0 and
+-10 degC, the first 1240 s) then runs on resistances of its own order, not a
+warm cell's.
 
 Currents are regressed in C-rate (``i / I_ref``, ``I_ref`` = capacity in A for
 1C) and the LIF columns are time-scaled by the window, so the same tuning
@@ -28,6 +35,8 @@ from typing import Annotated, Literal
 
 import numpy as np
 from annotated_types import Ge, Gt, Interval
+
+from .arrhenius import RESISTANCE_ACTIVATION_K, arrhenius_factor
 
 from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector
@@ -98,6 +107,9 @@ class IdentifierConfig:
     prior_tau1_s: Annotated[float, Gt(0)] = 10.0
     prior_r2_ohm_ah: Annotated[float, Gt(0)] = 0.03
     prior_tau2_s: Annotated[float, Gt(0)] = 200.0
+    # their Arrhenius temperature B = E_a / R_gas, kelvin: the prior's resistances at the cell's
+    # temperature at its first sample (module docstring; 0: the same at every temperature)
+    prior_activation_k: Annotated[float, Ge(0)] = RESISTANCE_ACTIVATION_K
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -144,20 +156,7 @@ class Identifier:
             raise ValueError("capacity_ah must be positive")
         self.rls = self.rls_class(self.n_cells, self.n_params, config.rls())
         self._init_scales()
-        q = self.i_ref_a
-        # the prior must itself pass the guard, whatever bounds the user set
-        tau2 = min(config.prior_tau2_s, 0.9 * config.tau_max_s)
-        tau1 = min(max(config.prior_tau1_s, 1.1 * config.tau_min_s, 1.5 * self.dt_s), 0.5 * tau2)
-        self._prior_theta_s = self._theta_s_from_physical(
-            config.prior_r0_ohm_ah / q,
-            config.prior_r1_ohm_ah / q,
-            np.full(self.n_cells, tau1),
-            config.prior_r2_ohm_ah / q,
-            np.full(self.n_cells, tau2),
-            np.zeros(self.n_cells),
-        )
-        self.rls.theta_ref = self._prior_theta_s.copy()  # unexcited directions of the block start
-        self.theta_good = self._prior_theta_s.copy()  # last admissible scaled theta
+        self._set_prior(np.ones(self.n_cells))
         self.identified = np.zeros(self.n_cells, dtype=bool)
         # cells whose first admissible model came in this sample (whoever used the prior's can restart)
         self.newly_identified = np.zeros(self.n_cells, dtype=bool)
@@ -168,6 +167,36 @@ class Identifier:
         self.error = np.full(self.n_cells, np.nan)
         self.accepted = np.zeros(self.n_cells, dtype=bool)  # learnt an admissible theta this sample
         self.params: PhysicalParams = self._physical(self.theta_good)
+
+    def _set_prior(self, factor: np.ndarray) -> None:
+        """The prior model with its resistances times ``factor`` (per cell): where the block start pulls
+        and where a cell starts (theta_ref, theta_good)."""
+        config = self.config
+        q = self.i_ref_a
+        # the prior must itself pass the guard, whatever bounds the user set
+        tau2 = min(config.prior_tau2_s, 0.9 * config.tau_max_s)
+        tau1 = min(max(config.prior_tau1_s, 1.1 * config.tau_min_s, 1.5 * self.dt_s), 0.5 * tau2)
+        self._prior_theta_s = self._theta_s_from_physical(
+            config.prior_r0_ohm_ah / q * factor,
+            config.prior_r1_ohm_ah / q * factor,
+            np.full(self.n_cells, tau1),
+            config.prior_r2_ohm_ah / q * factor,
+            np.full(self.n_cells, tau2),
+            np.zeros(self.n_cells),
+        )
+        self.rls.theta_ref = self._prior_theta_s.copy()  # unexcited directions of the block start
+        self.theta_good = self._prior_theta_s.copy()  # last admissible scaled theta
+
+    def start_prior_at(self, temperature_c: np.ndarray, reference_c: float) -> None:
+        """The prior's resistances brought to each cell's temperature (module docstring).
+
+        Call once, before the first update (after it, it does nothing: a restored or running
+        identification keeps its own); a temperature that is not finite keeps the reference's.
+        """
+        if self.updates:
+            return
+        self._set_prior(arrhenius_factor(temperature_c, reference_c, self.config.prior_activation_k))
+        self.params = self._physical(self.theta_good)
 
     # -- to be provided by subclasses -------------------------------------------
     def _init_scales(self) -> None:

@@ -376,10 +376,13 @@ class SocEstimator:
         self.samples += 1
 
     def _take_temperature(self, t: np.ndarray) -> None:
-        """The cells' temperatures this sample: the diffusion prior at the first one (with or without
-        tables by temperature), and with them the tables' temperature and relative capacity."""
-        if self.samples == 0 and self.ekf is not None:
-            self.ekf.start_diffusion_at(t, self.config.default_temperature_c)
+        """The cells' temperatures this sample: the identifier's and the diffusion branch's priors at the
+        first one (with or without tables by temperature), and with them the tables' temperature and
+        relative capacity."""
+        if self.samples == 0:  # the priors follow the start temperature, with or without T-tables
+            self.identifier.start_prior_at(t, self.config.default_temperature_c)
+            if self.ekf is not None:
+                self.ekf.start_diffusion_at(t, self.config.default_temperature_c)
         if self._t_aware:
             self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last
             self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)

@@ -5,6 +5,7 @@ import pytest
 
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.core.ocv import OcvCurve
+from bms_estimator.core.identifier import IdentifierConfig
 from bms_estimator.core.soc import SOC_METHODS, SocConfig, SocEstimator
 from bms_estimator.core.soc_ekf import SocEkfConfig
 from bms_estimator.scoring import counted_soc
@@ -394,3 +395,27 @@ def test_the_diffusion_prior_follows_the_start_temperature_once():
                         config=SocConfig(ekf=SocEkfConfig(diffusion_r_activation_k=0.0)))
     flat.update(0.0, np.array([4.0]), temperature_c=-20.0)
     np.testing.assert_allclose(flat.ekf.r_diffusion_ohm, at_25)
+
+
+def test_the_identifiers_prior_follows_the_start_temperature_once():
+    """Until a cell has a model of its own it runs on the prior: its resistances (stated in ohm Ah at
+    25 degC) are brought to the temperature at the first update by the same Arrhenius line, the time
+    constants kept, and only then; the block start pulls toward the same prior."""
+    icfg = IdentifierConfig()
+    est = SocEstimator(3, _ocv(), STATED_AH, 1.0, initial_soc=0.9)
+    p25 = est.identifier.params
+    np.testing.assert_allclose(p25.r0_ohm, icfg.prior_r0_ohm_ah / STATED_AH, rtol=1e-9)
+    est.update(0.0, np.full(3, 4.0), temperature_c=np.array([0.0, 25.0, np.nan]))
+    f0 = np.exp(2500.0 * (1 / 273.15 - 1 / 298.15))
+    p = est.identifier.params
+    assert not est.identifier.identified.any()  # still on the prior after one sample
+    for name in ("r0_ohm", "r1_ohm", "r2_ohm"):
+        np.testing.assert_allclose(getattr(p, name), getattr(p25, name) * [f0, 1.0, 1.0], rtol=1e-9, err_msg=name)
+    for name in ("tau1_s", "tau2_s"):
+        np.testing.assert_allclose(getattr(p, name), getattr(p25, name), rtol=1e-9, err_msg=name)
+    est.update(0.0, np.full(3, 4.0), temperature_c=np.array([25.0, 0.0, 0.0]))  # once: the start's
+    np.testing.assert_allclose(est.identifier.params.r0_ohm, p25.r0_ohm * [f0, 1.0, 1.0], rtol=1e-9)
+    flat = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=0.9,
+                        config=SocConfig(identifier=IdentifierConfig(prior_activation_k=0.0)))
+    flat.update(0.0, np.array([4.0]), temperature_c=-20.0)
+    np.testing.assert_allclose(flat.identifier.params.r0_ohm, icfg.prior_r0_ohm_ah / STATED_AH, rtol=1e-9)
