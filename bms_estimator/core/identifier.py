@@ -19,9 +19,9 @@ brought to each cell's temperature at its first sample, when the caller knows it
 (:meth:`Identifier.start_prior_at`), by the resistances' Arrhenius line
 ``R(T) = R(25 degC) exp(B (1/T - 1/T_ref))`` (``prior_activation_k``, the project's
 B = 2500 K; x2.2 at 0 degC, x4.6 at -20 degC), the time constants kept.  A cold
-cell whose block start does not turn physical (on the measured LG cell at 0 and
--10 degC, the first 1240 s) then runs on resistances of its own order, not a
-warm cell's.
+cell whose block start does not turn physical (on six of the seven measured LG
+drive cycles at 0 and -10 degC, for the first 1240 s) then runs on resistances of
+its own order, not a warm cell's.
 
 Currents are regressed in C-rate (``i / I_ref``, ``I_ref`` = capacity in A for
 1C) and the LIF columns are time-scaled by the window, so the same tuning
