@@ -18,7 +18,7 @@ cell starts from the prior.  The prior's resistances are stated at 25 degC and
 brought to each cell's temperature at its first sample, when the caller knows it
 (:meth:`Identifier.start_prior_at`), by the resistances' Arrhenius line
 ``R(T) = R(25 degC) exp(B (1/T - 1/T_ref))`` (``prior_activation_k``, the project's
-B = 2500 K; x2.2 at 0 degC, x4.6 at -20 degC), the time constants kept.  A cold
+B = 2500 K; x2.2 at 0 degC, x4.4 at -20 degC), the time constants kept.  A cold
 cell whose block start does not turn physical (on six of the seven measured LG
 drive cycles at 0 and -10 degC, for the first 1240 s) then runs on resistances of
 its own order, not a warm cell's.
@@ -37,7 +37,6 @@ import numpy as np
 from annotated_types import Ge, Gt, Interval
 
 from .arrhenius import RESISTANCE_ACTIVATION_K, arrhenius_factor
-
 from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector
 from .lif import LifHistory
