@@ -383,6 +383,7 @@ class Identifier:
             restarts=self.restarts.copy(),
             rejected_run=self._rejected_run.copy(),
             updates=np.array(self.updates),
+            prior_theta=self._prior_theta_s.copy(),  # at the start temperature: a restart's block pulls to it
         )
         return out
 
@@ -398,6 +399,14 @@ class Identifier:
         self.restarts = np.asarray(s.get("restarts", np.zeros(self.n_cells)), dtype=np.int64).copy()
         self._rejected_run = np.asarray(s.get("rejected_run", np.zeros(self.n_cells)), dtype=np.int64).copy()
         self.updates = int(s["updates"])
+        prior = s.get("prior_theta")  # (a state saved before the prior followed the temperature: the 25 degC one)
+        if prior is not None:
+            prior = np.asarray(prior, dtype=float)
+            if prior.shape != self._prior_theta_s.shape or not np.all(np.isfinite(prior)):
+                raise ValueError(f"prior_theta has shape {prior.shape} or non-finite values, expected "
+                                 f"{self._prior_theta_s.shape}")
+            self._prior_theta_s = prior.copy()
+            self.rls.theta_ref = prior.copy()
         self.params = self._physical(self.theta_good)
 
 

@@ -73,12 +73,13 @@ def bus_data_csv(log_path, out_path) -> None:
     t = np.array([s.t_s - 1.0 for s in samples])  # a sample at t_s covers [t_s - 1, t_s)
     i = np.array([s.current_a for s in samples])
     v = np.array([s.cell_voltage_v[0] for s in samples])
-    save_recording(CellRecording(t, i, v, None, "bus"), out_path)
+    temp = np.array([s.cell_temperature_c[0] for s in samples])  # the service's priors start at it
+    save_recording(CellRecording(t, i, v, temp, "bus"), out_path)
 
 
 def offline_soc(data=None) -> tuple[float, np.ndarray]:
     """``bms-estimator soc`` on a recording (default the measured file), started from the OCV SOC
-    of its first sample."""
+    of its first sample, with the recording's cell temperature (the service's priors start at it)."""
     data = drive_cycle(CELL, CYCLE) if data is None else data
     base = build_parser().parse_args(["soc", str(data), "--ocv", str(ocv_table(CELL)),
                                       "--capacity-ah", str(CAPACITY_AH)])
@@ -91,7 +92,8 @@ def offline_soc(data=None) -> tuple[float, np.ndarray]:
     start_cli = min(max(args.initial_soc - args.initial_soc_error, 0.0), 1.0)  # as cli/soc.py computes it
     # read from the first sample's OCV, as the service does (a reading, not a given start: the EKF
     # starts with the OCV's sigma and does not use that sample's voltage twice), = --start-soc ocv
-    run = run_soc(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, None, rec.dt_s, soc_config(args))
+    run = run_soc(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, None, rec.dt_s, soc_config(args),
+                  temperature_c=rec.temperature_c)
     assert run.soc[0] == pytest.approx(start_cli, abs=1e-9)
     return start_cli, run.soc
 
