@@ -129,7 +129,7 @@ def test_sigma_coverage_counts_the_samples_within_one_and_two_sigma():
 def test_a_start_read_from_the_ocv_at_the_first_sample():
     """What the service does after a rest (and ``soc --start-soc ocv``): the SOC read from the first
     sample's voltage, every scored file starting at rest after a charge.  Measured 17 of 18 within 2 %
-    from 30 min (median 0.56 %); the miss is Panasonic hwfet_a, 2.56 % (1.15 % when told it is full: from
+    from 30 min (median 0.56 %); the miss is Panasonic hwfet_a, 2.56 % (1.14 % when told it is full: from
     35 min the identifier's slow branch and its c0 drift together, README)."""
     rows = []
     for cell, pattern in (("lg-hg2", "lg-hg2/[02]*degC/*"), ("panasonic-18650pf", "panasonic-18650pf/25degC/*")):
