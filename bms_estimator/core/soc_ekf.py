@@ -78,15 +78,6 @@ Noise, stated in the cell's terms rather than tuned per file:
   sigma ``diffusion_r_sigma_ohm_ah / Q`` (resistances per C-rate, so the same numbers
   fit any cell size); ``v_d`` starts at 0 with sigma ``diffusion_v_sigma_v`` (the cell
   may not be at rest).
-
-Why a prior mean above 0.  Under a steady mean current ``r_d`` and an SOC offset are
-the same signal: only the OCV curve's shape over a long discharge separates them, so
-``r_d`` stays near where it starts (from 0 it learnt 0.000-0.026 ohm Ah on the
-measured drive cycles, where the cells show 30-60 mV of slow overpotential at 1C).
-Started at 0, every such cell's slow overpotential was read as a low SOC; started at
-the cells' own order of magnitude (0.04 ohm Ah: 40 mV at 1C at 25 degC), and larger in
-the cold as every resistance is, the SOC matrix went from 63 to 70 of 72 runs within
-2 % (README, SOC matrix).
 * ``Rv`` = (``voltage_sigma_v``^2 + (rho |R0 i + v1 + v2|)^2 + (``ocv_table_sigma_soc`` dOCV/dz)^2)
   ``correlation_s / Ts`` + (``(1 - |h|) H``)^2.  The table term: a C/20 OCV table places the curve to about a
   percent of SOC, so where the curve is steep (near empty) a reading is worth that percent,
@@ -102,6 +93,15 @@ the cold as every resistance is, the SOC matrix went from 63 to 70 of 72 runs wi
   filter reads the SOC mostly where the OCV shows through: at low current and
   after the RC voltages have decayed.  Inside a hysteresis transition (``|h| < 1``)
   the branch is uncertain by up to ``H``, so the filter trusts the voltage less there.
+
+Why a prior mean above 0.  Under a steady mean current ``r_d`` and an SOC offset are
+the same signal: only the OCV curve's shape over a long discharge separates them, so
+``r_d`` stays near where it starts (from 0 it learnt 0.000-0.026 ohm Ah on the
+measured drive cycles, where the cells show 30-60 mV of slow overpotential at 1C).
+Started at 0, every such cell's slow overpotential was read as a low SOC; started at
+the cells' own order of magnitude (0.04 ohm Ah: 40 mV at 1C at 25 degC), and larger in
+the cold as every resistance is, the SOC matrix went from 63 to 70 of 72 runs within
+2 % (README, SOC matrix).
 
 The 1-sigma SOC uncertainty is ``sqrt(P[0, 0])`` (:attr:`soc_sigma`).
 Everything is vectorised over cells: ``P`` is ``(N, 5, 5)``, the update is a

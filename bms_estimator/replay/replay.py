@@ -53,6 +53,7 @@ from typing import Any
 import can
 
 from ..errors import CanBusError, DataError, UsageError, one_line_error
+from ..fleet.frames import check_log_complete
 
 __all__ = [
     "bus_config_from_args",
@@ -107,8 +108,6 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
         raise FileNotFoundError(f"{path}: no such log file")
     if _log_suffix(path) not in LOG_SUFFIXES:
         raise ValueError(f"{path}: replay reads {', '.join(LOG_SUFFIXES)} logs (by suffix)")
-    from ..fleet.frames import check_log_complete
-
     if path.suffix.lower() == ".log" and _cut_last_line(path):  # python-can sends a cut line's frame, shortened
         raise DataError(f"{path}: its last line has no line end: the log is truncated (a cut frame would be sent)")
     try:
