@@ -12,34 +12,13 @@ from bms_estimator.fleet.batch import summary_rows
 from bms_estimator.fleet.drive import run_drive, run_vehicle
 from bms_estimator.replay.encode_log import encode_log
 
+from .fleet_helpers import write_batch_config
+
 N_CELLS = 2
 SAMPLE = Path(__file__).parents[2] / "bms_estimator" / "samples" / "lg-hg2_25degC_udds_1s.csv.gz"
-OCV = Path(__file__).parents[2] / "bms_estimator" / "samples" / "lg-hg2_25degC_ocv.csv"
 EPOCH = 1.7e9
 DURATION_S = 300.0
 PARKED_S = 7200.0
-
-
-def _config(d: Path) -> Path:
-    cfg = d / "config.toml"
-    cfg.write_text(f"""
-[pack]
-pack_id = "car1"
-n_cells = {N_CELLS}
-capacity_ah = 3.0
-ocv_csv = "{OCV}"
-[can]
-interface = "virtual"
-channel = "fleet-rest"
-output = {{ enabled = false }}
-[mqtt]
-enabled = false
-[health]
-enabled = false
-[state]
-path = "{d / 'state.npz'}"
-""")
-    return cfg
 
 
 def _logs(d: Path, t0s: list[float], suffix: str = ".log") -> list[Path]:
@@ -55,7 +34,7 @@ def _logs(d: Path, t0s: list[float], suffix: str = ".log") -> list[Path]:
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     d = tmp_path_factory.mktemp("fleet-rest")
-    return d, _config(d)
+    return d, write_batch_config(d, N_CELLS, "fleet-rest")
 
 
 def test_two_chained_logs_two_hours_apart_are_rested_over(setup):
