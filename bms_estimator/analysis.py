@@ -222,13 +222,16 @@ def run_soc(
     *,
     temperature_c: np.ndarray | None = None,
     start_index: int = 0,
+    rest_s: np.ndarray | None = None,
 ) -> SocRun:
     """The online SOC estimator over a recording (one cell).
 
     It starts at sample ``start_index`` with ``initial_soc`` (``None``: read from
     the OCV at that sample, as after a rest); samples before it are NaN.
     ``temperature_c`` (per sample) reads the OCV at the cell temperature when
-    ``ocv`` holds several tables.
+    ``ocv`` holds several tables.  ``rest_s`` (per sample): seconds without samples
+    before sample ``k`` (a recording with holes, fed contiguously), rested over first
+    (``SocEstimator.rest``: the cell parked).
     """
     n = len(current_a)
     k0 = int(start_index)
@@ -242,6 +245,8 @@ def run_soc(
     v1 = np.empty(1)
     t1 = None if temperature_c is None else np.empty(1)
     for k in range(k0, n):
+        if rest_s is not None and rest_s[k] > 0 and k > k0:
+            est.rest(float(rest_s[k]))
         v1[0] = voltage_v[k]
         if t1 is not None:
             t1[0] = temperature_c[k]

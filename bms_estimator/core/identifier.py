@@ -324,6 +324,16 @@ class Identifier:
         h[:, 5] = np.sqrt(self.config.c0_prior_weight) / np.where(ok, g, 1.0)  # h' theta = sqrt(w) c0
         self.rls.pseudo_update(h, np.zeros(self.n_cells), ok)
 
+    def rest(self, gap_s: float, cells: np.ndarray) -> None:
+        """``gap_s`` seconds of the ``cells`` without samples (the pack parked, the bus silent).
+
+        Their regressor window restarts: it is marked contaminated, as after a bad sample, so
+        they learn again only once it holds ``2L + 1`` samples after the gap (a window across
+        the gap would see the cell's relaxation as a step in ``v_o``: an identification
+        transient).  What was learnt stays: theta, the RLS covariance P and the guard's state.
+        """
+        self._taint = np.where(cells, self._window_samples, self._taint)
+
     def set_groups(self, sizes) -> None:
         """Cells in consecutive groups of ``sizes``, independent packs side by side (the batch's stacked
         drives): what is shared across the cells (the RLS error window's head, a step taken when any
@@ -424,7 +434,8 @@ class LifEstimator(Identifier):
 
     def __init__(self, n_cells, dt_s, capacity_ah, config: IdentifierConfig = IdentifierConfig()):
         super().__init__(n_cells, dt_s, capacity_ah, config)
-        self._taint = np.full(self.n_cells, self.history.length, dtype=np.int64)
+        self._window_samples = self.history.length  # a sample taints the window this long
+        self._taint = np.full(self.n_cells, self._window_samples, dtype=np.int64)
         self._v_hold = np.zeros(self.n_cells)
 
     def _init_scales(self) -> None:
@@ -507,7 +518,8 @@ class ArxEstimator(Identifier):
         super().__init__(n_cells, dt_s, capacity_ah, config)
         self._hist = np.zeros((n_cells, 4))  # v_o[k-1], v_o[k-2], i[k-1], i[k-2] (C-rate)
         self._count = 0
-        self._taint = np.full(self.n_cells, 3, dtype=np.int64)
+        self._window_samples = 3  # a sample taints the regressor this long
+        self._taint = np.full(self.n_cells, self._window_samples, dtype=np.int64)
         self._v_hold = np.zeros(self.n_cells)
 
     def _init_scales(self) -> None:
@@ -539,7 +551,7 @@ class ArxEstimator(Identifier):
         self._hist[:, 3] = self._hist[:, 2]
         self._hist[:, 2] = i_c
         self._count += 1
-        self._taint = np.where(ok, np.maximum(self._taint - 1, 0), 3)
+        self._taint = np.where(ok, np.maximum(self._taint - 1, 0), self._window_samples)
         return v_in, phi, (self._taint == 0) & (self._count >= 3)
 
     def _c0_gain(self, theta_s):

@@ -108,6 +108,12 @@ class LifIvCtEstimator(LifIvEstimator):
         self._ct_state = p * self._ct_state + (1.0 - p) * w
         return d
 
+    def rest(self, gap_s, cells):
+        """As :meth:`LifIvEstimator.rest`; the fast branch's response to the kinetic excess relaxes too."""
+        super().rest(gap_s, cells)
+        decay = self._aux_pole[:, 0] ** (gap_s / self.dt_s)
+        self._ct_state = np.where(cells, self._ct_state * decay, self._ct_state)
+
     def _regress(self, i, v, ok):
         if self._aux_age >= self.config.iv_model_every:
             self._refresh_aux()  # (LifIvEstimator._regress then finds it fresh)

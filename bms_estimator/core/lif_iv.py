@@ -104,6 +104,13 @@ class LifIvEstimator(LifEstimator):
         self._aux_state = self._aux_pole * self._aux_state + self._aux_in * i_a[:, None]
         return x
 
+    def rest(self, gap_s, cells):
+        """The window restarts (:meth:`Identifier.rest`); the auxiliary model's RC voltages relax,
+        ``x_j <- x_j exp(-gap / tau_j)`` (zero current over the gap)."""
+        super().rest(gap_s, cells)
+        decay = self._aux_pole ** (gap_s / self.dt_s)  # exp(-gap / tau_j)
+        self._aux_state = np.where(cells[:, None], self._aux_state * decay, self._aux_state)
+
     def _learn(self, phi, y, learn):
         return self.rls.update(phi, y, learn, zeta=self._zeta)
 

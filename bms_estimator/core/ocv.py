@@ -52,7 +52,7 @@ from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
 from .cells import any_cell, clip
 
-__all__ = ["OcvCurve", "MIN_SLOPE_V", "median_temperature_c"]
+__all__ = ["OcvCurve", "MIN_SLOPE_V", "hppc_gap_charges", "median_temperature_c"]
 
 #: Floor of ``docv_dsoc`` [V per unit SOC].
 MIN_SLOPE_V = 1e-3
@@ -510,9 +510,7 @@ class OcvCurve:
                 aligned with the ``hppc`` gaps.
         """
         t, i, v = _check_arrays(*_unpack(hppc, "hppc"))
-        dt = np.diff(t)
-        gap_s = max(30.0, 20.0 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 30.0)
-        gaps = np.flatnonzero(dt > gap_s)  # gap between sample g and g+1
+        gaps, gap_s = _hppc_gaps(t)  # gap between sample g and g+1
         block_starts = np.r_[0, gaps + 1]
         block_ends = np.r_[gaps + 1, t.size]
         # pulse charge per block (step 2)
@@ -909,6 +907,25 @@ def _current_runs(
     ends = np.flatnonzero(nz & ~np.r_[link, False])
     seg = np.r_[0.0, np.cumsum(np.where(link, 0.5 * (i[1:] + i[:-1]) * dt, 0.0))]
     return starts, ends, seg[ends] - seg[starts], delta
+
+
+def _hppc_gaps(t: np.ndarray) -> tuple[np.ndarray, float]:
+    """The logging gaps of an ``hppc`` file (:meth:`OcvCurve.from_hppc`, step 1): indices ``g`` with
+    ``t[g+1] - t[g] > max(30 s, 20 median dt)``, and that limit."""
+    dt = np.diff(t)
+    gap_s = max(30.0, 20.0 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 30.0)
+    return np.flatnonzero(dt > gap_s), gap_s
+
+
+def hppc_gap_charges(hppc: Any, steps: Any, current_threshold_a: float = 0.01) -> tuple[np.ndarray, np.ndarray, float]:
+    """Where an ``hppc`` log pauses for the discharge steps ``steps`` logs, and how much charge each
+    pause removed: ``(gap indices g (between samples g and g+1), charge per gap [Ah, signed], charge
+    after the end [Ah])``, by the alignment of :meth:`OcvCurve.from_hppc` (steps 1, 3, 4).  Both as logged."""
+    t, i, _ = _check_arrays(*_unpack(hppc, "hppc"))
+    gaps, _ = _hppc_gaps(t)
+    gap_q, tail_q = _steps_charge(_check_arrays(*_unpack(steps, "steps")), gap_start=t[gaps], gap_end=t[gaps + 1],
+                                  t_end=float(t[-1]), threshold=current_threshold_a)
+    return gaps, gap_q, tail_q
 
 
 def _steps_charge(

@@ -50,11 +50,12 @@ HG2 tables and every deep discharge ended 2-3 % low.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, replace
 from typing import Annotated, Literal, get_args
 
 import numpy as np
-from annotated_types import Ge, Gt
+from annotated_types import Ge, Gt, Interval
 
 from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector, clip
@@ -63,7 +64,7 @@ from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
 from .soc_ekf import SocEkf, SocEkfConfig
 
-__all__ = ["SocConfig", "SocEstimator", "CAPACITY_SOC_UPDATES", "SOC_METHODS"]
+__all__ = ["SocConfig", "SocEstimator", "CAPACITY_SOC_UPDATES", "REST_SOC_READINGS", "SOC_METHODS"]
 
 #: How the OCV evidence corrects the counted SOC (``SocConfig.soc_method``).
 SocMethod = Literal["ekf", "c0"]
@@ -72,6 +73,10 @@ SOC_METHODS = get_args(SocMethod)
 #: What a new capacity estimate may do to the SOC now (``SocConfig.capacity_soc_update``).
 CapacitySocUpdate = Literal["none", "recount", "line"]
 CAPACITY_SOC_UPDATES = get_args(CapacitySocUpdate)
+
+#: How a relaxed cell's voltage after a long rest meets the count (``SocConfig.rest_soc_reading``).
+RestSocReading = Literal["ocv", "fused"]
+REST_SOC_READINGS = get_args(RestSocReading)
 
 
 @dataclass(frozen=True)
@@ -111,10 +116,24 @@ class SocConfig:
     # cap on H(soc), the other branch moved to within 2 cap of the measured one (module docstring):
     # the C/20 gap near empty is the charge leg's start transient, near full the discharge leg's
     hysteresis_max_v: Annotated[float, Ge(0)] = 0.05
+    # A rest without samples (SocEstimator.rest: the pack parked, the gateway asleep) at least this
+    # long has relaxed the cell: its first sample after it, taken at rest, reads the SOC from the
+    # voltage as an OCV.  (The LG HG2 and Panasonic rests move the reading 0.2-1.3 % SOC per doubling
+    # after 300-600 s: scoring.py; 30 min leaves the diffusion branch at exp(-1800/1200) = 22 %.)
+    rest_relaxation_s: Annotated[float, Interval(ge=60.0, le=86400.0)] = 1800.0
+    rest_current_c: Annotated[float, Interval(ge=0.0, le=0.2)] = 0.02  # |i| below this C-rate is rest
+    # How that reading meets the count (README "Across a gap"):
+    #   "ocv"    it replaces the count, with the EKF's ocv_start_soc_sigma (a start from rest)
+    #   "fused"  one EKF update with the count's grown variance; a reading more than
+    #            rest_gate_sigma of its own sigmas away (a charge while parked) replaces it
+    rest_soc_reading: RestSocReading = "ocv"
+    rest_gate_sigma: Annotated[float, Gt(0)] = 3.0
 
     def __post_init__(self) -> None:
         if self.soc_method not in SOC_METHODS:
             raise ValueError(f"soc_method must be one of {SOC_METHODS}, got {self.soc_method!r}")
+        if self.rest_soc_reading not in REST_SOC_READINGS:
+            raise ValueError(f"rest_soc_reading must be one of {REST_SOC_READINGS}, got {self.rest_soc_reading!r}")
         if self.capacity_soc_update not in CAPACITY_SOC_UPDATES:
             raise ValueError(f"capacity_soc_update must be one of {CAPACITY_SOC_UPDATES}, got {self.capacity_soc_update!r}")
         check_bounds(self)
@@ -223,6 +242,9 @@ class SocEstimator:
         self._start_hysteresis(np.isfinite(self.soc))
         self.ekf = (SocEkf(self.n_cells, self.dt_s, self.capacity_ah, config.ekf)
                     if config.soc_method == "ekf" else None)
+        # cells whose next valid sample follows a rest longer than the relaxation (rest())
+        self._rest_due = np.zeros(self.n_cells, dtype=bool)
+        self._any_rest_due = False
 
     # ------------------------------------------------------------------ OCV at the cell temperature
     def _table_capacity_ah(self) -> float | None:
@@ -337,6 +359,9 @@ class SocEstimator:
             read_now = unset & ok
             if any_cell(read_now):
                 self._start_from_voltage(read_now, v)
+        if self._any_rest_due:
+            read_rest = self._read_after_rest(i, v, ok)
+            read_now = read_rest if read_now is None else read_now | read_rest
         # 1. coulomb counting (the previous sample's current moved the SOC to now)
         q_now = self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah  # (x 1.0 is x: no copy)
         dq = self._i_prev * (self.dt_s / 3600.0)
@@ -370,8 +395,8 @@ class SocEstimator:
             # (gating the correction on an identified model, or on rest, was measured worse on the
             # 25 degC matrix, 40 against 47 of 56 runs within 2 %: the strong early evidence of a
             # wrong start is read through the prior impedance)
-            # (no cell unset: have_soc is all True and read_now all False, so the mask is use's)
-            self._ekf_step(i_prev, i_use, dz, slope_mid, use if read_now is None else use & have_soc & ~read_now)
+            # (no cell read now: the mask is use's, which holds have_soc where some cell has none)
+            self._ekf_step(i_prev, i_use, dz, slope_mid, use if read_now is None else use & ~read_now)
         self._compensate(use)
         self.samples += 1
 
@@ -397,15 +422,118 @@ class SocEstimator:
         if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
             self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, cells)
 
-    def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, slope: np.ndarray,
-                  use: np.ndarray) -> None:
-        """Steps 4.-6. by the EKF; ``slope`` is dOCV/dSOC at the period's middle SOC."""
+    def _rc_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The identified RC pairs, ``(r_ohm, tau_s)``, each ``(N, 2)``."""
         p = self.identifier.params
         r = np.empty((self.n_cells, 2))  # (N, 2) pairs, filled column by column (np.stack's values)
         r[:, 0], r[:, 1] = p.r1_ohm, p.r2_ohm
         tau = np.empty((self.n_cells, 2))  # p.tau1_s, p.tau2_s, multiplied into place
         np.multiply(p.r1_ohm, p.c1_f, out=tau[:, 0])
         np.multiply(p.r2_ohm, p.c2_f, out=tau[:, 1])
+        return r, tau
+
+    def rest(self, gap_s: float, cells: np.ndarray | None = None) -> None:
+        """``gap_s`` seconds without samples, the pack parked (zero current): what the model says
+        happened to ``cells`` (a bool mask; all by default) meanwhile.  Cells not named are untouched;
+        ``rest(0)`` changes nothing.
+
+        * The period in progress when the samples stopped is counted (as the next :meth:`update`
+          would have), then the current is zero: the count does not move over the gap.
+        * The identified RC voltages and the diffusion voltage relax, ``v_j <- exp(-gap / tau_j) v_j``;
+          the EKF's covariance is its ``predict`` at ``i = 0``, ``gap / Ts`` times, in closed form
+          (:meth:`SocEkf.rest`): the SOC's variance grows by the filter's random walk,
+          ``drift_sigma_per_h^2 gap / 3600``.
+        * The hysteresis state is kept: it follows charge, not time.
+        * The identifier's regressor window restarts (:meth:`Identifier.rest`: it refills before it
+          learns again; theta, P and the guard's state kept); the c0 average restarts.
+        * A rest of ``rest_relaxation_s`` or longer relaxed the cell: at its next valid sample, if that
+          is at rest (``|i| <= rest_current_c`` C), the voltage less what is left of the modelled
+          overpotential is read as an OCV on the hysteresis branch, ``OCV(z) + h H(z) = v - eta``, and
+          replaces the count (``rest_soc_reading="ocv"``) or is fused with it (``"fused"``).  A
+          charge while parked (the count cannot see it) is thus caught at that first sample.
+        """
+        gap = float(gap_s)
+        if not (math.isfinite(gap) and gap >= 0.0):
+            raise ValueError(f"gap_s must be finite and >= 0 seconds, got {gap_s!r}")
+        sel = np.ones(self.n_cells, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
+        if sel.shape != (self.n_cells,):
+            raise ValueError(f"cells must be a bool mask of {self.n_cells} cells, got shape {sel.shape}")
+        if gap == 0.0 or not any_cell(sel):
+            return
+        # the last period before the gap, counted and predicted as update() would
+        q_now = self.counting_capacity_ah
+        dq = np.where(sel, self._i_prev * (self.dt_s / 3600.0), 0.0)
+        dz = dq / q_now
+        live = sel & np.isfinite(self.soc)
+        self.soc = np.where(live, clip(self.soc + dz, 0.0, 1.0), self.soc)
+        self.charge_ah = self.charge_ah + dq
+        self._charge_ref_ah = self._charge_ref_ah + dq / self._rel_q
+        r, tau = self._rc_pairs()
+        if self.ekf is not None:
+            self.ekf.predict(self._i_prev, dz, q_now, r, tau, live)
+            self.ekf.rest(gap, q_now, tau, live)
+        self._i_prev = np.where(sel, 0.0, self._i_prev)
+        self.identifier.rest(gap, sel)
+        self._c0_count = np.where(sel, 0, self._c0_count)
+        if gap >= self.config.rest_relaxation_s:
+            self._rest_due = self._rest_due | live
+            self._any_rest_due = any_cell(self._rest_due)
+
+    def _soc_on_branch(self, ocv_v: np.ndarray) -> np.ndarray:
+        """The SOC whose OCV on the hysteresis state's branch is ``ocv_v``: ``OCV(z) + h H(z) = ocv_v``
+        (the mean curve's inverse, then two fixed-point steps for ``h H``)."""
+        z = self._soc_at(ocv_v)
+        if self._hyst is not None:
+            for _ in range(2):
+                z = self._soc_at(ocv_v - self.hysteresis_state * self._half_gap(np.clip(z, 0.0, 1.0)))
+        return np.clip(z, 0.0, 1.0)
+
+    def _read_after_rest(self, i: np.ndarray, v: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """The first valid sample after a long rest (:meth:`rest`): the cells at rest read their SOC
+        from the voltage; returns them (their voltage is not used a second time this sample)."""
+        cfg = self.config
+        due = self._rest_due & ok
+        self._rest_due = self._rest_due & ~ok  # a cell without a valid sample yet waits for its first
+        self._any_rest_due = any_cell(self._rest_due)
+        read = due & np.isfinite(i) & (np.abs(i) <= cfg.rest_current_c * self.capacity_stated_ah) & np.isfinite(self.soc)
+        if not any_cell(read):
+            return read
+        i0 = np.where(read, i, 0.0)
+        v_ok = np.where(read, v, 0.0)
+        p = self.identifier.params
+        if self.ekf is None:  # the c0 method tracks no RC voltage: the resistive drop only
+            ocv_v = v_ok - p.r0_ohm * i0
+        else:  # what is left of the modelled overpotential after the rest
+            e = self.ekf
+            eta = p.r0_ohm * i0 + e.v_rc[:, 0] + e.v_rc[:, 1]
+            ocv_v = v_ok - (1.0 + e.overpotential_gain) * eta - e.v_diffusion
+        old = self.soc
+        replace_ = read
+        if self.ekf is not None and cfg.rest_soc_reading == "fused":
+            ocv_now = self._ocv(old)
+            slope = self._slope(old)
+            ec = cfg.ekf
+            unsure = (1.0 - np.abs(self.hysteresis_state)) * self._h_gap if self._hyst is not None else 0.0
+            r_v = ec.voltage_sigma_v**2 + (ec.ocv_table_sigma_soc * slope) ** 2 + np.square(unsure)
+            d_soc, replace_ = self.ekf.read_at_rest(ocv_v - ocv_now, slope, r_v, read, cfg.rest_gate_sigma)
+            self.soc = np.where(read & ~replace_, clip(old + d_soc, 0.0, 1.0), self.soc)
+        if any_cell(replace_):
+            self.soc = np.where(replace_, self._soc_on_branch(ocv_v), self.soc)
+            if self.ekf is not None:
+                self.ekf.set_soc_sigma(cfg.ekf.ocv_start_soc_sigma, replace_)
+        self._soc_fix = np.where(read, self.soc, self._soc_fix)
+        self._q_fix = np.where(read, self._charge_ref_ah, self._q_fix)
+        # the OCV the identifier saw moves with the SOC (as every EKF or c0 move does)
+        shift = np.where(read, self._ocv(self.soc) - self._ocv(old), 0.0)
+        if any_cell(shift):
+            self.identifier.shift_bias(shift)
+        return read
+
+    def _ekf_step(self, i_prev: np.ndarray, i_now: np.ndarray, dz: np.ndarray, slope: np.ndarray,
+                  use: np.ndarray) -> None:
+        """Steps 4.-6. by the EKF; ``slope`` is dOCV/dSOC at the period's middle SOC."""
+        p = self.identifier.params
+        r, tau = self._rc_pairs()
         live = np.isfinite(self.soc)
         self.ekf.predict(i_prev, dz, self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah, r, tau, live)
         overpotential = p.r0_ohm * i_now + self.ekf.v_rc[:, 0] + self.ekf.v_rc[:, 1]  # the identified model's

@@ -299,6 +299,66 @@ class SocEkf:
             self._pt = np.where(live, p, self._pt)
             self.v_rc = np.where(live[:, None], v_rc, self.v_rc)
 
+    def rest(self, gap_s: float, capacity_ah: np.ndarray, tau_s: np.ndarray, cells: np.ndarray) -> None:
+        """``gap_s`` seconds at zero current without samples (the pack parked): :meth:`predict` with
+        ``i = 0`` applied ``n = gap_s / Ts`` times, in closed form.
+
+        At ``i = 0`` the RC and diffusion voltages relax, ``v_j <- exp(-gap / tau_j) v_j`` and
+        ``v_d <- a_d^n v_d = exp(-gap / tau_d) v_d``; ``r_d``, ``dq`` and ``g`` stay.  ``F`` is
+        then ``diag(1, a_d, 1, 1, 1)`` and the noise ``Qn`` diagonal (module docstring, with
+        ``dz = 0``), so
+
+            P_n = F^n P F^n' + sum_{k<n} F^k Qn F^k'
+                = D P D + diag(n Qn[z], Qn[v_d] (1 - a_d^2n) / (1 - a_d^2), n Qn[r_d], n Qn[dq], n Qn[g]),
+            D = diag(1, a_d^n, 1, 1, 1):
+
+        the SOC's variance grows by the filter's own random walk (``drift_sigma_per_h^2`` per
+        hour, plus the current sensor's per-period term ``n`` times), the diffusion voltage's
+        settles at its stationary value.  ``n`` need not be whole (the formula is the same).
+        ``tau_s`` is the identified ``(N, 2)`` pairs'; only ``cells`` change.
+        """
+        n = gap_s / self.dt_s
+        a_dn = float(np.exp(-gap_s / self.config.diffusion_tau_s))
+        a_rc = np.exp(-gap_s / np.maximum(tau_s, 1e-9))
+        p = self._pt.copy()
+        p[1] *= a_dn
+        p[:, 1] *= a_dn
+        a_d2 = self._a_d * self._a_d
+        p[0, 0] += n * self._q00
+        p[1, 1] += self._q11 * (1.0 - a_dn * a_dn) / (1.0 - a_d2)
+        p[2, 2] += n * (self.config.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * self._h_frac
+        p[3, 3] += n * self._q33
+        p[4, 4] += n * self._q44
+        self._pt = np.where(cells, p, self._pt)
+        self.x[:, 1] = np.where(cells, a_dn * self.x[:, 1], self.x[:, 1])
+        self.v_rc = np.where(cells[:, None], a_rc * self.v_rc, self.v_rc)
+
+    def read_at_rest(self, innovation_v: np.ndarray, slope_v: np.ndarray, r_v: np.ndarray,
+                     cells: np.ndarray, gate_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+        """One voltage of a relaxed cell as an independent OCV reading: a Kalman update with
+        ``C = [dOCV/dz, 1, 0, 0, 0]`` (no load: ``g`` has nothing to scale), variance ``r_v``,
+        neither the correlation scaling nor the per-sample step cap of :meth:`correct` (one
+        reading, not one of a correlated stream)::
+
+            S = C P C' + r_v,  K = P C' / S,  x <- x + K e,  P <- P - P C' C P / S
+
+        A reading more than ``gate_sigma`` of its sigmas from the prediction (``|e| > gate sqrt(S)``)
+        contradicts the model (a charge while parked): it is not fused, and returned as such.
+        Returns the SOC correction of the fused ``cells`` (0 elsewhere) and the contradicted cells.
+        """
+        p = self._pt
+        pc = p[:, 0] * slope_v + p[:, 1]  # (5, N)
+        s = pc[0] * slope_v + pc[1] + r_v
+        contradicted = cells & (np.abs(innovation_v) > gate_sigma * np.sqrt(s))
+        fuse = cells & ~contradicted
+        k = pc / s
+        dx = (k * np.where(fuse, innovation_v, 0.0)).T
+        self._pt = np.where(fuse, p - pc[:, None, :] * k[None, :, :], p)
+        x = self.x + dx
+        x[:, 2] = np.maximum(x[:, 2], 0.0)  # a resistance is never negative
+        self.x = np.where(fuse[:, None], x, self.x)
+        return dx[:, 0], contradicted
+
     def correct(self, innovation_v: np.ndarray, slope_v: np.ndarray, hyst_uncertain_v: np.ndarray,
                 use: np.ndarray, model_uncertain_v: np.ndarray | float = 0.0,
                 overpotential_v: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -204,7 +204,7 @@ def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: st
 
 SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final", "capacity_ah_final", "r0_ohm_final",
                    "r0_ohm_median", "temperature_c_mean", "soc_error_final_pct", "soc_rmse_pct", "cause", "backward_frames",
-                   "decode_errors", "error")
+                   "decode_errors", "rested_s", "chain", "error")
 
 
 def summary_rows(drives: list[DriveResult]) -> list[dict[str, Any]]:
@@ -214,7 +214,7 @@ def summary_rows(drives: list[DriveResult]) -> list[dict[str, Any]]:
     for d in drives:
         base = {"vehicle": d.vehicle, "drive": Path(d.path).name, "status": d.status, "samples": d.samples,
                 "backward_frames": d.counters.get("backward_frames", 0), "decode_errors": d.counters.get("errors", 0),
-                "error": d.error}
+                "rested_s": d.rested_s, "chain": d.chain, "error": d.error}
         n = len(d.cells.get("soc_final", []))
         if d.status != "ok" or n == 0:
             rows.append({**base, "cell": -1})

@@ -42,7 +42,7 @@ from ..errors import BmsEstimatorError, DataError, one_line_error
 from ..scoring import counted_soc, soc_error_figures
 from .assemble import assemble_samples
 from .decode import decode_frames
-from .estimate import DriveEstimate, carry_state, estimate_drive
+from .estimate import DriveEstimate, carry_state, estimate_drive, rest_between_drives
 from .frames import read_frames
 from .samples import SampleArrays
 from .stack import StackError, estimate_stacked
@@ -76,6 +76,9 @@ class DriveResult:
     seconds: dict[str, float] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
     cells: dict[str, list[Any]] = field(default_factory=dict)  # per-cell summary values (and "cause")
+    # chained: seconds rested since the previous drive (None: not rested) and what was done, in words
+    rested_s: float | None = None
+    chain: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -294,11 +297,14 @@ def _skipped(res: DriveResult, exc: BaseException) -> DriveResult:
 
 def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle: str,
               state: dict[str, np.ndarray] | None = None, *, write: bool = True, diagnose: bool = False,
+              previous_end_s: float | None = None,
               ) -> tuple[DriveResult, dict[str, np.ndarray] | None, DriveEstimate | None]:
     """One drive; never raises for a bad log (the result says what was wrong).
 
     ``diagnose``: also name each cell's model error with ``diagnose`` (:func:`_diagnose_cells`;
-    slow: seconds per cell-hour).
+    slow: seconds per cell-hour).  ``previous_end_s``: with a carried ``state``, the previous
+    drive's last sample time; the time since is rested over when both logs carry absolute times
+    (:func:`.estimate.rest_between_drives`; ``res.rested_s``, ``res.chain`` say what was done).
 
     Returns the result, the estimator state at the end (``state`` unchanged when the
     drive was skipped) and the estimate itself (None when skipped).
@@ -310,6 +316,8 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
         svc, samples = _samples_of(log, config, res)
         t3 = time.perf_counter()
         est = carry_state(svc._new_estimator, state)  # noqa: SLF001 - the service's own factory
+        if state is not None:
+            res.rested_s, res.chain = rest_between_drives(est, previous_end_s, samples)
         out = estimate_drive(samples, est, svc.decoder, svc.sampler)
         res.seconds["estimate"] = time.perf_counter() - t3
         res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
@@ -401,12 +409,17 @@ def _finish(res: DriveResult, log: Path, svc, samples: SampleArrays, out: DriveE
 
 def run_vehicle(logs: list[str], config: str | None, out_dir: str | Path, vehicle: str,
                 chain: bool = True, diagnose: bool = False) -> list[DriveResult]:
-    """A vehicle's drives in time order, the estimator state carried from each to the next."""
+    """A vehicle's drives in time order, the estimator state carried from each to the next, rested over the
+    time between them when the logs carry absolute times (a skipped drive carries nothing: the next good one
+    rests from the last good one's end)."""
     results = []
-    state = None
+    state, end_s = None, None
     for log in sorted(logs, key=drive_order_key):
-        res, new_state, _ = run_drive(log, config, out_dir, vehicle, state if chain else None, diagnose=diagnose)
+        res, new_state, out = run_drive(log, config, out_dir, vehicle, state if chain else None, diagnose=diagnose,
+                                        previous_end_s=end_s)
         if chain:
             state = new_state
+            if out is not None and len(out):
+                end_s = float(out.t_s[-1])
         results.append(res)
     return results

@@ -14,11 +14,20 @@ for bit the per-sample values); ``voltage_v`` and ``temperature_c`` are the samp
 A sample whose update raises is logged and counted (``tick_errors``) and its row stays
 NaN, as the service's tick does (logged, no snapshot).
 
+Gaps: a sample that does not follow the previous one (the sampler's grid re-anchored on a time
+jump) rests the estimator over the hole first, as the service's pipeline does
+(``SocEstimator.rest``: the pack parked).
+
 Chaining: a vehicle's drives in time order, the estimator state carried from one drive to
 the next as the service carries it across a restart: ``SocEstimator.state_dict()`` at the
 end of a drive (what ``service/state.py`` saves), ``load_state_dict`` into a fresh
 estimator for the next (what the daemon's ``restore`` does); decoder and sampler start
-fresh, as after a restart.
+fresh, as after a restart.  The time between the drives is rested over
+(:func:`rest_between_drives`) when both logs carry absolute times: frame times that are
+epoch seconds (from 2000-01-01 on, :data:`EPOCH_MIN_S`), as candump ``.log`` and ``.blf``
+files and ``.mf4`` files with their start time carry them; an ``.asc`` file (python-can
+reads its times relative to the file's start) or a CSV recording (``time_s`` from 0) does
+not, and then the state is carried without a rest, which the drive's result says.
 """
 
 from __future__ import annotations
@@ -34,7 +43,11 @@ from ..core.soc import SocEstimator
 from ..service.schema import CELL_FIELDS
 from .samples import SampleArrays
 
-__all__ = ["DriveEstimate", "estimate_drive", "carry_state", "finish_estimate", "output_getters"]
+__all__ = ["DriveEstimate", "EPOCH_MIN_S", "estimate_drive", "carry_state", "finish_estimate", "output_getters",
+           "rest_between_drives", "sample_gaps"]
+
+#: frame times from this on (2000-01-01 00:00 UTC) are epoch seconds: the log carries absolute times
+EPOCH_MIN_S = 946_684_800.0
 
 log = structlog.get_logger("bms.fleet")
 
@@ -63,6 +76,34 @@ def carry_state(make_estimator: Callable[[], SocEstimator], state: dict[str, np.
     if state is not None:
         est.load_state_dict({k: np.array(v, copy=True) for k, v in state.items()})
     return est
+
+
+def sample_gaps(t_s: np.ndarray, period_s: float) -> np.ndarray:
+    """Seconds without samples before each sample, ``t_s[k] - period - t_s[k-1]`` where that is more than
+    half a period (a time jump: the sampler re-anchored its grid), else 0; 0 for the first."""
+    gaps = np.zeros(t_s.shape[0])
+    if t_s.shape[0] > 1:
+        d = np.diff(t_s) - period_s
+        gaps[1:] = np.where(d > 0.5 * period_s, d, 0.0)
+    return gaps
+
+
+def rest_between_drives(est: SocEstimator, previous_end_s: float | None, samples: SampleArrays
+                        ) -> tuple[float | None, str]:
+    """Rest a carried estimator over the time between the previous drive's last sample (its end,
+    ``previous_end_s``) and this drive's first period; returns ``(seconds rested or None, what was done)``."""
+    if previous_end_s is None:
+        return None, "not rested: the previous drive's end is unknown"
+    start = float(samples.t_s[0]) - samples.period_s
+    if not (previous_end_s >= EPOCH_MIN_S and start >= EPOCH_MIN_S):
+        return None, "not rested: the logs carry no absolute times (state carried as if no time had passed)"
+    gap = start - previous_end_s
+    if gap < 0:
+        return None, f"not rested: starts {-gap:.0f} s before the previous drive ended"
+    if gap <= 0.5 * samples.period_s:
+        return 0.0, "contiguous with the previous drive"
+    est.rest(gap)
+    return gap, f"rested {gap:.0f} s since the previous drive (parked)"
 
 
 def _estimator_fields(est: SocEstimator) -> list[tuple[str, str]]:
@@ -111,9 +152,12 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
     current_valid = samples.current_valid.tolist()
     volts, temps, valid = samples.cell_voltage_v, samples.cell_temperature_c, samples.valid
     update, isfinite = est.update, math.isfinite
+    gaps = sample_gaps(samples.t_s, samples.period_s).tolist()
     errors = 0
     for i in range(k):
         try:
+            if gaps[i]:
+                est.rest(gaps[i])
             c = current[i]
             if current_valid[i] and isfinite(c):
                 update(c, volts[i], valid[i], temperature_c=temps[i])

@@ -29,7 +29,8 @@ same state (all fresh: chained drives of a vehicle stay sequential, see :mod:`.d
 and the stacked estimator's fresh state must be the solo one repeated ``S`` times, which
 is checked once per stack.
 
-Anything unusual (an update that raises, a state that does not split by cells) raises
+Anything unusual (an update that raises, a state that does not split by cells, a drive with a
+time jump, where the estimator rests its cells alone) raises
 :class:`StackError`; the caller then runs the drives one by one (the service's per-sample
 error handling applies there).
 """
@@ -41,7 +42,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..core.soc import SocEstimator
-from .estimate import DriveEstimate, finish_estimate, output_getters
+from .estimate import DriveEstimate, finish_estimate, output_getters, sample_gaps
 from .samples import SampleArrays
 
 __all__ = ["StackError", "estimate_stacked"]
@@ -108,6 +109,8 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
     n = drives[0].n_cells
     if any(d.n_cells != n or d.period_s != drives[0].period_s for d in drives):
         raise StackError("stacked drives must have the same cells and sample period")
+    if any(sample_gaps(d.t_s, d.period_s).any() for d in drives):  # rested over at its own step: run alone
+        raise StackError("a drive has a time jump in its samples")
     s = len(drives)
     big = n * s
     solo = make_estimator(n)

@@ -25,7 +25,8 @@ own task with a bounded latest-value buffer, so a broker that is down never
 holds the estimator or the CAN output back.
 
 State: restored at start by :func:`~bms_estimator.service.state.load_state`
-(stale/corrupt/foreign files are set aside there). A file made with another
+(stale/corrupt/foreign files are set aside there), then rested over its age (the pack
+parked while the service was down: ``SocEstimator.rest``). A file made with another
 structural estimator configuration (sample period, identification method,
 LIF window, stated capacity) or that the estimator rejects is set aside as
 ``foreign`` and the estimator starts fresh (SOC from the OCV of the first valid
@@ -255,10 +256,24 @@ class Service:
             return False
         self.restored = True
         self._restored_saved_at = float(meta.get("saved_at", time.time()))
+        self._rest_since_saved(self._restored_saved_at)
         soc = self.estimator.soc
         log.info("estimator resumed from saved state", path=str(st.path), age_s=round(float(meta.get("age_s", 0)), 1),
                  t_s=meta.get("t_s"), soc_mean=float(np.nanmean(soc)) if np.isfinite(soc).any() else None)
         return True
+
+    def _rest_since_saved(self, saved_at: float) -> None:
+        """The resumed estimate is ``now - saved_at`` seconds old (``saved_at``: the wall time of its newest
+        sample): the estimator rests over that time (the pack parked while the service was down) when it is
+        longer than the sampler's ``max_gap_s``, the gap it would bridge with stale samples rather than call a
+        time jump (a quick restart resumes exactly as saved). A wall clock now behind ``saved_at`` (set back,
+        or the state file's clock ahead) rests over nothing, logged."""
+        age = time.time() - saved_at
+        if age > self.sampler.max_gap_s:
+            self.pipeline.rest(age, "restart")
+        elif age < 0:
+            log.warning("wall clock is behind the saved state's time: the resumed state does not rest",
+                        behind_s=round(-age, 3))
 
     def _restore_sox(self, saved: Any) -> None:
         """The SOX part of a resumed state (the commissioning R0, energy counters); a state without

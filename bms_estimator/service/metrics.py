@@ -16,7 +16,8 @@ Families (``bms_`` prefix; counters end in ``_total``):
   socketcan and ``/proc/net/udp`` on udp_multicast), ``can_rx_backlog``, ``can_rx_error_frames``,
   ``can_tx_frames``, ``can_tx_dropped``, ``can_tx_errors``, ``can_encode_problems{kind}``
 * estimator: ``estimator_state{bms_estimator_state}`` (Enum), ``estimator_rejections``,
-  ``estimator_corrections``, ``estimator_restarts``, ``state_restored``, ``tick_seconds``
+  ``estimator_corrections``, ``estimator_restarts``, ``estimator_rests`` and ``estimator_rest_seconds``
+  (gaps without samples rested over: a time jump, a restart), ``state_restored``, ``tick_seconds``
   (histogram), ``last_sample_time_seconds``
 * battery: ``pack_soc{stat=min|mean|max}``, ``pack_current_amperes``, ``pack_voltage_volts``,
   ``pack_capacity_ah``, ``cells_stale``; SOP/SOE/SOH: ``pack_current_limit_amperes`` and
@@ -172,6 +173,9 @@ class _ServiceCollector(Collector):
                        pc.samples_current_invalid)
         yield _counter("bms_tick_errors", "exceptions while processing a frame, a sample or an output (logged, skipped)",
                        pc.tick_errors)
+        yield _counter("bms_estimator_rests", "gaps without samples (time jump, restart) the estimator rested over, "
+                       "the pack taken as parked", pc.rests)
+        yield _counter("bms_estimator_rest_seconds", "seconds of those gaps", pc.rest_s)
         est = svc.estimator
         yield _counter("bms_estimator_rejections", "identifier updates rejected by the admissibility guard, all cells",
                        int(np.sum(est.identifier.rejections)))

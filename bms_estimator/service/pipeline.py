@@ -20,6 +20,12 @@ hooks with :meth:`Pipeline.add_hook` instead of subclassing the daemon.
 
 Time: everything here runs on the frames' time base (``msg.timestamp``); the clocks passed
 in are read only for the snapshot's ``wall_time`` (state files) and the uptime counter.
+
+Gaps: a sample that does not follow the previous one (the sampler re-anchored its grid on a
+time jump: the bus was silent, the gateway asleep) has ``t_s - period_s - t_prev`` seconds
+without samples before its period; the estimator rests over them
+(:meth:`~bms_estimator.core.soc.SocEstimator.rest`: the pack parked) before the sample,
+logged in one line and counted (``counters.rests``, ``counters.rest_s``).
 """
 
 from __future__ import annotations
@@ -96,6 +102,8 @@ class PipelineCounters:
     samples: int = 0  # samples estimated
     samples_current_invalid: int = 0  # samples without a valid current: estimator update skipped
     tick_errors: int = 0  # exceptions in a frame, a tick or a hook (logged, skipped)
+    rests: int = 0  # gaps without samples the estimator rested over (a time jump, a restart)
+    rest_s: float = 0.0  # their total length, seconds
 
 
 class Pipeline:
@@ -131,6 +139,7 @@ class Pipeline:
         self._wall_clock = wall_clock
         self._started = clock()
         self._errors_logged = 0
+        self._last_t_s: float | None = None  # the previous sample's end
 
     def add_hook(self, hook: Callable[[Snapshot], None]) -> None:
         self.hooks.append(hook)
@@ -156,6 +165,9 @@ class Pipeline:
             c = self.counters
             c.samples += 1
             est = self.estimator
+            last, self._last_t_s = self._last_t_s, sample.t_s
+            if last is not None and sample.t_s - sample.period_s - last > 0.5 * sample.period_s:
+                self.rest(sample.t_s - sample.period_s - last, "time jump")
             if sample.current_valid and math.isfinite(sample.current_a):
                 est.update(sample.current_a, sample.cell_voltage_v, sample.valid,
                            temperature_c=sample.cell_temperature_c)
@@ -177,6 +189,14 @@ class Pipeline:
             if self.observe_tick is not None:
                 self.observe_tick(dt)
         return snap
+
+    def rest(self, gap_s: float, why: str) -> None:
+        """The estimator rests over ``gap_s`` seconds without samples (the pack parked); one log line, counted."""
+        self.estimator.rest(gap_s)
+        self.counters.rests += 1
+        self.counters.rest_s += gap_s
+        log.info("estimator rested over a gap without samples", gap_s=round(gap_s, 3), why=why,
+                 rests=self.counters.rests)
 
     def _snapshot(self, sample: Sample) -> Snapshot:
         est = self.estimator

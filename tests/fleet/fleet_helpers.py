@@ -1,6 +1,8 @@
-"""The service's per-frame path (FrameDecoder -> SampleAssembler) as the reference for bulk decode."""
+"""The service's per-frame path (FrameDecoder -> SampleAssembler) as the reference for bulk decode; a batch configuration."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import can
 import numpy as np
@@ -46,3 +48,29 @@ def assert_same_samples(a: SampleArrays, b: SampleArrays) -> None:
         x, y = getattr(a, f), getattr(b, f)
         assert x.shape == y.shape, f
         assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), f"{f} differs at {np.argwhere(~((x == y) | (np.isnan(x) & np.isnan(y)) if x.dtype.kind == 'f' else x == y))[:5]}"
+
+
+def write_batch_config(d: Path, n_cells: int, channel: str) -> Path:
+    """``d/config.toml``: a pack of ``n_cells`` shipped LG HG2 cells (3.0 Ah, the 25 degC OCV sample), no
+    outputs, the state file in ``d`` (kept 10 days)."""
+    ocv = Path(__file__).parents[2] / "bms_estimator" / "samples" / "lg-hg2_25degC_ocv.csv"
+    cfg = d / "config.toml"
+    cfg.write_text(f"""
+[pack]
+pack_id = "car1"
+n_cells = {n_cells}
+capacity_ah = 3.0
+ocv_csv = "{ocv}"
+[can]
+interface = "virtual"
+channel = "{channel}"
+output = {{ enabled = false }}
+[mqtt]
+enabled = false
+[health]
+enabled = false
+[state]
+path = "{d / 'state.npz'}"
+max_age_s = 864000
+""")
+    return cfg

@@ -28,6 +28,8 @@ from bms_estimator.replay.encode_log import encode_log
 from bms_estimator.replay.replay import open_replay_bus, read_log, replay_messages
 from bms_estimator.service.config import load_config
 
+from .fleet_helpers import write_batch_config
+
 N_CELLS = 5
 KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "capacity_ah", "temperature_c", "voltage_v")
 SAMPLE = Path(__file__).parents[2] / "bms_estimator" / "samples" / "lg-hg2_25degC_udds_1s.csv.gz"
@@ -42,25 +44,7 @@ def drives(tmp_path_factory):
         out.parent.mkdir(exist_ok=True)
         encode_log(SAMPLE, out, N_CELLS, initial_soc=soc0, duration_s=dur, reference_capacity_ah=3.0, seed=i)
         logs.append(out)
-    cfg = d / "config.toml"
-    cfg.write_text(f"""
-[pack]
-pack_id = "car1"
-n_cells = {N_CELLS}
-capacity_ah = 3.0
-ocv_csv = "{Path(__file__).parents[2] / 'bms_estimator' / 'samples' / 'lg-hg2_25degC_ocv.csv'}"
-[can]
-interface = "virtual"
-channel = "fleet-eq-{time.monotonic_ns()}"
-output = {{ enabled = false }}
-[mqtt]
-enabled = false
-[health]
-enabled = false
-[state]
-path = "{d / 'state.npz'}"
-max_age_s = 864000
-""")
+    cfg = write_batch_config(d, N_CELLS, f"fleet-eq-{time.monotonic_ns()}")
     return logs, cfg
 
 

@@ -169,8 +169,12 @@ class Offline:
 
     def feed(self, frames) -> Offline:
         est = self.est
+        last_t = None
         for m in frames:
             for s in self.smp.feed_frame(self.dec.decode(m), m.timestamp):
+                if last_t is not None and s.t_s - s.period_s - last_t > 0.5 * s.period_s:  # a time jump: parked
+                    est.rest(s.t_s - s.period_s - last_t)
+                last_t = s.t_s
                 if s.current_valid and math.isfinite(s.current_a):
                     est.update(s.current_a, s.cell_voltage_v, s.valid, temperature_c=s.cell_temperature_c)
                 p = {k: v.copy() for k, v in est.params.items()}

@@ -1,0 +1,128 @@
+"""The service across a gap: a 2 h hole in the frames' timestamps (the gateway asleep while parked) and a
+restart from a state saved hours ago, through the service's own pipeline (frames handed to it directly)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from structlog.testing import capture_logs
+
+from bms_estimator.core.ecm import EcmParams, simulate_ecm
+from bms_estimator.service.daemon import Service
+from bms_estimator.service.state import save_state
+
+from test_daemon import CAPACITY_AH, N, Offline, channel, current_frame, make_cfg, msg, ocv, restamp, voltage_frame
+
+PARK_S = 7200
+AWAKE_S = 10  # the gateway wakes with the ignition, seconds before the drive
+T_START = 1.7e9  # epoch frame times, as socketcan stamps them
+
+
+def _trip(charge_while_parked: float = 0.0, soc0: float = 0.8):
+    """(current, cell voltages (K, N), true SOC) of 600 s of driving, 2 h parked, 300 s of driving."""
+    rng = np.random.default_rng(7)
+    drive = lambda n: np.repeat(rng.uniform(-2.5 * CAPACITY_AH, 0.5 * CAPACITY_AH, n // 20), 20)  # noqa: E731
+    park = np.zeros(PARK_S)
+    if charge_while_parked:
+        park[600:2400] = charge_while_parked * CAPACITY_AH * 3600 / 1800
+    i = np.concatenate([np.zeros(20), drive(580), park, drive(300)])  # the first drive starts from rest
+    p = EcmParams.from_rc(0.025, [0.01, 0.015, 0.02], [8.0, 120.0, 1500.0])
+    sim = simulate_ecm(i, 1.0, p, ocv().ocv, soc0=soc0, capacity_ah=CAPACITY_AH, output="mean")
+    v = sim.voltage_v[:, None] + np.linspace(-0.001, 0.001, N)[None, :]
+    keep = np.ones(i.size, dtype=bool)
+    keep[600:600 + PARK_S - AWAKE_S] = False
+    return i, v, sim.soc, np.flatnonzero(keep)
+
+
+def _cfg(tmp_path):
+    # the simulated cell's OCV is the table's mean curve: no hysteresis branch to read it on
+    return make_cfg(tmp_path, channel(), estimator={"core": {"hysteresis": False}})
+
+
+def _frames(i, v, rows) -> list:
+    out = []
+    for k in rows:
+        t_row = T_START + k
+        for j in range(10):
+            t = t_row + 0.1 * j
+            out.append(current_frame(t, float(i[k])))
+            for base in range(0, N, 3):
+                out.append(voltage_frame(t + 0.002, base, v[k, base:base + 3]))
+    out.append(current_frame(T_START + rows[-1] + 1, 0.0))  # completes the last sample
+    return restamp(out)
+
+
+def _through_service(tmp_path, frames):
+    svc = Service(_cfg(tmp_path))
+    svc.pipeline.hooks.clear()  # the daemon's outputs (MQTT, CAN, state saves) need its event loop
+    soc = {}
+    svc.pipeline.add_hook(lambda snap: soc.__setitem__(snap.t_s, snap.cells["soc"].copy()))
+    for m in frames:
+        svc.pipeline.process_frame(m)
+    return svc, soc
+
+
+@pytest.mark.parametrize("charged", [0.0, 0.3])
+def test_a_two_hour_hole_in_the_timestamps_is_rested_over_once(tmp_path, charged):
+    i, v, soc_true, rows = _trip(charged)
+    frames = _frames(i, v, rows)
+    with capture_logs() as logs:
+        svc, soc = _through_service(tmp_path, frames)
+    c = svc.pipeline.counters
+    assert c.rests == 1 and svc.sampler.counters.time_jumps == 1
+    assert c.rest_s == pytest.approx(PARK_S - AWAKE_S, abs=1.0)  # the frames' own times
+    assert sum("rested over a gap" in r["event"] for r in logs) == 1
+    assert c.tick_errors == 0
+    # the SOC just after the gap (the first samples are the awake seconds at rest) and a minute on
+    t_first = T_START + 600 + PARK_S - AWAKE_S + 1
+    truth = soc_true[600 + PARK_S - AWAKE_S]
+    offline = Offline(core={"hysteresis": False})
+    blind = []
+    est = offline.est
+    # the same samples without rest: the estimator as it was before (the gap read as one period)
+    for m in frames:
+        for s in offline.smp.feed_frame(offline.dec.decode(m), m.timestamp):
+            est.update(s.current_a, s.cell_voltage_v, s.valid)
+            blind.append((s.t_s, est.soc.copy()))
+    blind = dict(blind)
+    err_rest = np.abs(soc[t_first + 60] - soc_true[600 + PARK_S - AWAKE_S + 60])
+    err_blind = np.abs(blind[t_first + 60] - soc_true[600 + PARK_S - AWAKE_S + 60])
+    # measured: within 0.12 % of the truth at the first sample, 0.3 % a minute on
+    assert np.all(np.abs(soc[t_first] - truth) < 0.005), (soc[t_first], truth)
+    assert np.all(err_rest < 0.005) and np.all(err_rest < err_blind), (err_rest, err_blind)
+    if charged:
+        assert np.all(err_blind > 0.2)  # without rest the charge is missed for long
+
+
+def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
+    i, v, _, rows = _trip()
+    cfg = _cfg(tmp_path)
+    svc = Service(cfg)
+    svc.pipeline.hooks.clear()
+    for m in _frames(i, v, rows[:600]):  # the drive, up to the moment the car is parked
+        svc.pipeline.process_frame(m)
+    state, meta, _ = svc._state_to_save()  # noqa: SLF001 - what the daemon saves
+    before = svc.estimator
+    assert np.abs(before.ekf.v_diffusion).max() > 1e-3  # under load: the diffusion branch holds millivolts
+    save_state(Path(cfg.state.path), state, meta, saved_at=time.time() - 3 * 3600)
+    resumed = Service(cfg)
+    with capture_logs() as logs:
+        assert resumed.restore()
+    c = resumed.pipeline.counters
+    assert c.rests == 1 and c.rest_s == pytest.approx(3 * 3600, abs=60)
+    est = resumed.estimator
+    np.testing.assert_array_less(np.abs(est.ekf.v_diffusion), 0.01 * np.abs(before.ekf.v_diffusion) + 1e-9)
+    assert np.all(est.soc_sigma > before.soc_sigma)  # 3 h of the filter's random walk
+    assert sum("rested over a gap" in r["event"] for r in logs) == 1
+
+    # a wall clock behind the state's time (within the tolerance load_state accepts): no rest, said so
+    save_state(Path(cfg.state.path), state, meta, saved_at=time.time() + 120)
+    again = Service(cfg)
+    with capture_logs() as logs:
+        assert again.restore()
+    assert again.pipeline.counters.rests == 0
+    np.testing.assert_array_equal(again.estimator.ekf.v_diffusion, before.ekf.v_diffusion)
+    assert any("behind the saved state" in r["event"] for r in logs)
