@@ -528,9 +528,9 @@ class OcvCurve:
                 gap_start=t[gaps], gap_end=t[gaps + 1], t_end=float(t[-1]),
                 threshold=current_threshold_a,
             )
-        elif gaps.size and np.max(dt[gaps]) > 600.0:
+        elif gaps.size and np.max(t[gaps + 1] - t[gaps]) > 600.0:
             warnings.warn(
-                f"from_hppc: hppc has {gaps.size} logging gaps (longest {np.max(dt[gaps]):.0f} s) "
+                f"from_hppc: hppc has {gaps.size} logging gaps (longest {np.max(t[gaps + 1] - t[gaps]):.0f} s) "
                 "but no steps were given; discharge during the gaps is not counted",
                 UserWarning,
                 stacklevel=2,

@@ -14,7 +14,7 @@ from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.service.daemon import Service
 from bms_estimator.service.state import save_state
 
-from test_daemon import CAPACITY_AH, N, Offline, channel, current_frame, make_cfg, msg, ocv, restamp, voltage_frame
+from test_daemon import CAPACITY_AH, N, Offline, channel, current_frame, make_cfg, ocv, restamp, voltage_frame
 
 PARK_S = 7200
 AWAKE_S = 10  # the gateway wakes with the ignition, seconds before the drive
