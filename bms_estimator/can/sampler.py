@@ -66,7 +66,7 @@ import structlog
 
 from .decoder import Event, EventKind
 
-__all__ = ["Sample", "SampleAssembler", "SamplerCounters"]
+__all__ = ["Sample", "SampleAssembler", "SamplerCounters", "gap_before_s"]
 
 log = structlog.get_logger(__name__)
 
@@ -75,6 +75,15 @@ _PACK_VOLTAGE = int(EventKind.PACK_VOLTAGE)
 _CELL_VOLTAGE = int(EventKind.CELL_VOLTAGE)
 _CELL_TEMPERATURE = int(EventKind.CELL_TEMPERATURE)
 
+
+
+def gap_before_s(t_s, t_prev_s, period_s: float):
+    """Seconds without samples before a sample that ends at ``t_s`` when the previous one ended at
+    ``t_prev_s``: ``t_s - period_s - t_prev_s`` where that is more than half a period (the grid was
+    re-anchored on a time jump), else 0.  Scalars or arrays (elementwise): the service's pipeline asks
+    it per sample, the fleet's bulk path for a whole drive at once."""
+    d = np.asarray(t_s, dtype=float) - period_s - t_prev_s
+    return np.where(d > 0.5 * period_s, d, 0.0)
 
 @dataclass(frozen=True, eq=False)
 class Sample:

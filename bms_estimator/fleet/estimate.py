@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import structlog
 
+from ..can.sampler import gap_before_s
 from ..core.soc import SocEstimator
 from ..service.schema import CELL_FIELDS
 from .samples import SampleArrays
@@ -79,12 +80,11 @@ def carry_state(make_estimator: Callable[[], SocEstimator], state: dict[str, np.
 
 
 def sample_gaps(t_s: np.ndarray, period_s: float) -> np.ndarray:
-    """Seconds without samples before each sample, ``t_s[k] - period - t_s[k-1]`` where that is more than
-    half a period (a time jump: the sampler re-anchored its grid), else 0; 0 for the first."""
+    """Seconds without samples before each sample (the sampler's :func:`~bms_estimator.can.sampler.gap_before_s`
+    of its predecessor); 0 for the first."""
     gaps = np.zeros(t_s.shape[0])
     if t_s.shape[0] > 1:
-        d = np.diff(t_s) - period_s
-        gaps[1:] = np.where(d > 0.5 * period_s, d, 0.0)
+        gaps[1:] = gap_before_s(t_s[1:], t_s[:-1], period_s)
     return gaps
 
 

@@ -39,7 +39,7 @@ import numpy as np
 import structlog
 
 from ..can.decoder import FrameDecoder
-from ..can.sampler import Sample, SampleAssembler
+from ..can.sampler import Sample, SampleAssembler, gap_before_s
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
 from .schema import CELL_FIELDS, EstimatorState, SocStats, soc_stats
@@ -166,8 +166,9 @@ class Pipeline:
             c.samples += 1
             est = self.estimator
             last, self._last_t_s = self._last_t_s, sample.t_s
-            if last is not None and sample.t_s - sample.period_s - last > 0.5 * sample.period_s:
-                self.rest(sample.t_s - sample.period_s - last, "time jump")
+            gap = float(gap_before_s(sample.t_s, last, sample.period_s)) if last is not None else 0.0
+            if gap:
+                self.rest(gap, "time jump")
             if sample.current_valid and math.isfinite(sample.current_a):
                 est.update(sample.current_a, sample.cell_voltage_v, sample.valid,
                            temperature_c=sample.cell_temperature_c)
