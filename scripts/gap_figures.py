@@ -197,10 +197,9 @@ def table_md(res: dict) -> str:
 
 
 def plot(res: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from bms_estimator.plots import save_figure
 
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
     for ax, start in zip(axes, ("correct start", "20 % low")):
@@ -212,10 +211,7 @@ def plot(res: dict, path: Path) -> None:
         ax.set_title(f"Panasonic 18650PF 25 degC HPPC, {start}", fontsize=10)
         ax.legend(markerscale=6, fontsize=8)
     axes[-1].set_xlabel("time in the test, h")
-    fig.text(0.01, 0.005, "Data: P. Kollmeyer, Panasonic 18650PF Li-ion Battery Data, Mendeley Data, CC BY 4.0",
-             fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, "Data: P. Kollmeyer, Panasonic 18650PF Li-ion Battery Data, Mendeley Data, CC BY 4.0")
 
 
 def main(argv: list[str] | None = None) -> int:
