@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,17 @@ SHARED = shared_data_dir()
 needs_shared = pytest.mark.skipif(
     SHARED is None, reason="../shared/data (the full measured data set) is absent; CI has it"
 )
+
+
+def shared_file(rel: str) -> Path:
+    """A file of the measured data set by its path inside it; the test skips, saying why, when the set
+    or the file is absent."""
+    if SHARED is None:
+        pytest.skip("shared data set not available (set BMS_SHARED_DATA or provide ../shared/data)")
+    path = SHARED / rel
+    if not path.exists():
+        pytest.skip(f"{rel} not in the shared data set")
+    return path
 
 # The issue's synthetic cell: R0 20 mOhm; R1 10 mOhm, tau1 10 s; R2 15 mOhm, tau2 200 s; c0 5 mV
 TRUE = dict(r0_ohm=0.020, r1_ohm=0.010, tau1_s=10.0, r2_ohm=0.015, tau2_s=200.0, c0_v=0.005)

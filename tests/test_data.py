@@ -17,6 +17,7 @@ from bms_estimator.data import (
     save_recording,
     shared_data_dir,
 )
+from tests.conftest import shared_file
 
 
 def _write(path: Path, text: str) -> Path:
@@ -296,19 +297,11 @@ def test_shared_data_dir_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) ->
     assert shared_data_dir() == (default if default.is_dir() else None)
 
 
-def _shared_file(rel: str) -> Path:
-    d = shared_data_dir()
-    if d is None:
-        pytest.skip("shared data set not available (set BMS_SHARED_DATA or provide ../shared/data)")
-    path = d / rel
-    if not path.exists():
-        pytest.skip(f"{rel} not in the shared data set")
-    return path
 
 
 @pytest.mark.shared_data
 def test_real_drive_cycle_resampled_keeps_charge() -> None:
-    path = _shared_file("panasonic-18650pf/25degC/us06.csv.gz")
+    path = shared_file("panasonic-18650pf/25degC/us06.csv.gz")
     native = load_recording(path, resample_s=None)
     res = load_recording(path)
     assert native.dt_s == pytest.approx(0.1, abs=0.01)
@@ -322,7 +315,7 @@ def test_real_drive_cycle_resampled_keeps_charge() -> None:
 
 @pytest.mark.shared_data
 def test_real_c20_log_is_not_resampled() -> None:
-    path = _shared_file("panasonic-18650pf/25degC/c20_ocv.csv.gz")
+    path = shared_file("panasonic-18650pf/25degC/c20_ocv.csv.gz")
     rec = load_recording(path)
     assert rec.dt_s == pytest.approx(60.0, abs=0.1)
     assert rec.gaps_filled == 0

@@ -11,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bms_estimator.core.ocv import MIN_SLOPE_V, OcvCurve
-from bms_estimator.data import load_recording, shared_data_dir
+from bms_estimator.data import load_recording
+from tests.conftest import shared_file
 
 
 def true_ocv(soc):
@@ -394,18 +395,10 @@ def test_csv_small_dip_is_repaired_with_warning(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- real data
 
 
-def _shared_file(rel: str) -> Path:
-    d = shared_data_dir()
-    if d is None:
-        pytest.skip("shared data set not available (set BMS_SHARED_DATA or provide ../shared/data)")
-    path = d / rel
-    if not path.exists():
-        pytest.skip(f"{rel} not in the shared data set")
-    return path
 
 
 def _c20(rel: str) -> OcvCurve:
-    rec = load_recording(_shared_file(rel), resample_s=None)
+    rec = load_recording(shared_file(rel), resample_s=None)
     return OcvCurve.from_c20(rec.time_s, rec.current_a, rec.voltage_v, temperature_c=rec.temperature_c)
 
 
@@ -433,8 +426,8 @@ def test_real_c20_capacities_and_gap(rel: str, cap_d: float, cap_c: float, gap50
 @pytest.mark.shared_data
 def test_real_hppc_agrees_with_c20_at_25degC() -> None:
     c20 = _c20("panasonic-18650pf/25degC/c20_ocv.csv.gz")
-    h = load_recording(_shared_file("panasonic-18650pf/25degC/hppc.csv.gz"), resample_s=None)
-    s = load_recording(_shared_file("panasonic-18650pf/25degC/hppc_steps.csv.gz"), resample_s=None)
+    h = load_recording(shared_file("panasonic-18650pf/25degC/hppc.csv.gz"), resample_s=None)
+    s = load_recording(shared_file("panasonic-18650pf/25degC/hppc_steps.csv.gz"), resample_s=None)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # every gap gets its step
         hc = OcvCurve.from_hppc(h, s)
