@@ -58,10 +58,12 @@ def _frames(i, v, rows) -> list:
 def _through_service(tmp_path, frames):
     svc = Service(_cfg(tmp_path))
     svc.pipeline.hooks.clear()  # the daemon's outputs (MQTT, CAN, state saves) need its event loop
-    soc = {}
+    soc, tte = {}, {}
     svc.pipeline.add_hook(lambda snap: soc.__setitem__(snap.t_s, snap.cells["soc"].copy()))
+    svc.pipeline.add_hook(lambda snap: tte.__setitem__(snap.t_s, snap.pack_sox.get("time_to_empty_s")))
     for m in frames:
         svc.pipeline.process_frame(m)
+    svc.tte = tte  # the pack's time to empty per sample (SOX)
     return svc, soc
 
 
@@ -95,6 +97,10 @@ def test_a_two_hour_hole_in_the_timestamps_is_rested_over_once(tmp_path, charged
     assert np.all(err_rest < 0.005) and np.all(err_rest < err_blind), (err_rest, err_blind)
     if charged:
         assert np.all(err_blind > 0.2)  # without rest the charge is missed for long
+    # the SOX part rested with it: the drive's mean current (about -1 C) decayed over the park, so the
+    # time to empty at the first sample after it is idle, not the drive's (SoxEstimator.rest)
+    t_last = max(t for t in svc.tte if t < t_first)  # the last sample before the park
+    assert np.isfinite(svc.tte[t_last]) and svc.tte[t_first] == np.inf
 
 
 def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
@@ -115,6 +121,12 @@ def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
     assert c.rests == 1 and c.rest_s == pytest.approx(3 * 3600, abs=60)
     est = resumed.estimator
     np.testing.assert_array_less(np.abs(est.ekf.v_diffusion), 0.01 * np.abs(before.ekf.v_diffusion) + 1e-9)
+    # and the SOX part: the drive's RC voltages and mean current are 3 h gone, its health kept
+    sox_before, sox = svc.pipeline.sox, resumed.pipeline.sox
+    assert np.abs(sox_before.x_v).max() > 1e-3 and np.abs(sox_before.mean_current_a).min() > 0.1
+    np.testing.assert_array_less(np.abs(sox.x_v), 1e-6 * np.abs(sox_before.x_v).max())
+    np.testing.assert_allclose(sox.mean_current_a, sox_before.mean_current_a * np.exp(-c.rest_s / 300.0), rtol=1e-9)
+    np.testing.assert_array_equal(sox.energy_discharged_wh, sox_before.energy_discharged_wh)
     assert np.all(est.soc_sigma > before.soc_sigma)  # 3 h of the filter's random walk
     assert sum("rested over a gap" in r["event"] for r in logs) == 1
 
