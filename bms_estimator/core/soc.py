@@ -686,6 +686,7 @@ class SocEstimator:
             q_min=self._q_min.copy(),
             q_max=self._q_max.copy(),
             samples=np.array(self.samples),
+            rest_due=self._rest_due.copy(),  # a rest's OCV reading still to be taken (rest())
         )
         if self._hyst is not None:
             s.update({f"hyst.{k}": v for k, v in self._hyst.state_dict().items()})
@@ -742,6 +743,12 @@ class SocEstimator:
         self._q_min = np.asarray(s["q_min"], dtype=float).copy()
         self._q_max = np.asarray(s["q_max"], dtype=float).copy()
         self.samples = int(s["samples"])
+        # states saved before it existed: no reading due
+        due = np.asarray(s.get("rest_due", np.zeros(n, dtype=bool)), dtype=bool)
+        if due.shape != (n,):
+            raise ValueError(f"state field 'rest_due' has shape {due.shape}, expected ({n},)")
+        self._rest_due = due.copy()
+        self._any_rest_due = any_cell(self._rest_due)
         if self._hyst is not None:
             if "hyst.h" in s:
                 self._hyst.load_state_dict({"h": s["hyst.h"], "s": s["hyst.s"]})
