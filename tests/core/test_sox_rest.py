@@ -21,8 +21,13 @@ from tests.core.test_rest import AWAKE_S, DRIVE_S, PARK_S, Q_AH, _ocv, _park_tri
 FIRST = DRIVE_S + PARK_S - AWAKE_S  # the first sample after the hole
 # the design current limits out of the way: the limits shown are the voltage-bound ones the RC state moves
 SOP = SopConfig(i_discharge_max_a=1e4, i_charge_max_a=1e4)
-CONFIGS = {"margin": SoxConfig(sop=SOP), "no margin": SoxConfig(sop=SopConfig(**{**SOP.__dict__, "margin_sigmas": 0.0}))}
+CONFIGS = {"margin": SoxConfig(sop=SOP),
+           "no margin": SoxConfig(sop=SopConfig(**{**SOP.__dict__, "margin_sigmas": 0.0}))}
 LIMITS = [f"{k}_max_{d:g}s_a" for d in SOP.horizons_s for k in ("i_discharge", "i_charge")]
+
+
+def _kept(s: SoxEstimator) -> tuple:
+    return s.x_v.copy(), s.mean_current_a.copy(), s.error_ms_v2.copy()
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +42,7 @@ def runs():
     for k in idx:
         if prev is not None and k - prev > 1:
             gap = float(k - prev - 1)
-            at_gap["before"] = {key: (s.x_v.copy(), s.mean_current_a.copy(), s.error_ms_v2.copy()) for key, s in sox.items()}
+            at_gap["before"] = {key: _kept(s) for key, s in sox.items()}
             for (c, kind), s in sox.items():
                 if kind == "rested":
                     s.rest(gap, est=est)  # as the service's pipeline: before the estimator's own rest
@@ -46,7 +51,7 @@ def runs():
                 if kind == "fed":
                     for j in range(prev + 1, k):
                         s.update(est, 0.0, np.array([v[j]]))
-            at_gap["after"] = {key: (s.x_v.copy(), s.mean_current_a.copy(), s.error_ms_v2.copy()) for key, s in sox.items()}
+            at_gap["after"] = {key: _kept(s) for key, s in sox.items()}
         est.update(i[k], np.array([v[k]]))
         for key, s in sox.items():
             s.update(est, i[k], np.array([v[k]]))
@@ -63,7 +68,8 @@ def _rel(a: dict, b: dict) -> float:
 def test_the_first_limits_after_a_park_are_those_of_the_parked_samples_fed_at_zero_current(runs):
     out, _ = runs
     # without the model-error margin the rest is the per-sample recursion in closed form: the same limits
-    # (measured: equal to the last bit) at the first sample, at the step out of rest, 1 and 5 min into the drive
+    # (measured: equal to the last bit) at the first sample, at the drive's first sample (+10 s), 1 and 5 min
+    # into the drive
     for k in (FIRST, FIRST + AWAKE_S, FIRST + AWAKE_S + 60, FIRST + AWAKE_S + 300):
         rested, fed = out[("no margin", "rested")][k], out[("no margin", "fed")][k]
         assert _rel(rested, fed) < 1e-9, (k, rested, fed)
@@ -74,14 +80,15 @@ def test_the_first_limits_after_a_park_are_those_of_the_parked_samples_fed_at_ze
     # by 0.59 % at the first sample, 1.0 % a minute into the drive; the drive's mean current is still
     # "now": 48 min to empty while parked
     assert _rel(out[("no margin", "old")][FIRST], out[("no margin", "fed")][FIRST]) > 0.004
-    assert _rel(out[("no margin", "old")][FIRST + AWAKE_S + 60], out[("no margin", "fed")][FIRST + AWAKE_S + 60]) > 0.008
+    minute = FIRST + AWAKE_S + 60
+    assert _rel(out[("no margin", "old")][minute], out[("no margin", "fed")][minute]) > 0.008
     assert out[("no margin", "old")][FIRST]["time_to_empty_s"] < 3600
 
 
 def test_with_the_margin_the_difference_is_the_margin_learnt_at_rest(runs):
     """The rest keeps the margin learnt under load (RMS 1.44-1.70 mV over 2-30 s here); fed the parked samples it
     decays toward the error at rest, the 1 mV noise (1.40-1.47 mV).  Measured: the limits 0.22 % apart at the first
-    sample, 0.17 % at the step out of rest; before rest (old) 4.3 % and 7.0 % a minute later, its residual history
+    sample, 0.17 % at the drive's first sample; before rest (old) 4.3 % and 7.0 % a minute later, its residual history
     spanning the gap."""
     out, at_gap = runs
     ms_rested = at_gap["after"][("margin", "rested")][2]
