@@ -50,7 +50,6 @@ HG2 tables and every deep discharge ended 2-3 % low.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field, replace
 from typing import Annotated, Literal, get_args
 
@@ -58,7 +57,7 @@ import numpy as np
 from annotated_types import Ge, Gt, Interval
 
 from .bounds import check_bounds
-from .cells import all_cells, any_cell, cell_vector, clip
+from .cells import all_cells, any_cell, cell_vector, clip, rest_arguments
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
@@ -452,12 +451,7 @@ class SocEstimator:
           replaces the count (``rest_soc_reading="ocv"``) or is fused with it (``"fused"``).  A
           charge while parked (the count cannot see it) is thus caught at that first sample.
         """
-        gap = float(gap_s)
-        if not (math.isfinite(gap) and gap >= 0.0):
-            raise ValueError(f"gap_s must be finite and >= 0 seconds, got {gap_s!r}")
-        sel = np.ones(self.n_cells, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
-        if sel.shape != (self.n_cells,):
-            raise ValueError(f"cells must be a bool mask of {self.n_cells} cells, got shape {sel.shape}")
+        gap, sel = rest_arguments(gap_s, cells, self.n_cells)
         if gap == 0.0 or not any_cell(sel):
             return
         # the last period before the gap, counted and predicted as update() would

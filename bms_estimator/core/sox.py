@@ -55,6 +55,7 @@ import numpy as np
 from annotated_types import Ge
 
 from .bounds import check_bounds
+from .cells import rest_arguments
 from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from .soh import ResistanceSoh, SohConfig, capacity_soh
 from .ocv_surface import OcvAtTemperatures
@@ -264,12 +265,7 @@ class SoxEstimator:
           commissioning R0 and R0 at the reference point: a parked pack does not forget its health).
         * The slow outputs (energy left, time to empty/full, SOH) are recomputed at the next sample.
         """
-        gap = float(gap_s)
-        if not (math.isfinite(gap) and gap >= 0.0):
-            raise ValueError(f"gap_s must be finite and >= 0 seconds, got {gap_s!r}")
-        sel = np.ones(self.n_cells, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
-        if sel.shape != (self.n_cells,):
-            raise ValueError(f"cells must be a bool mask of {self.n_cells} cells, got shape {sel.shape}")
+        gap, sel = rest_arguments(gap_s, cells, self.n_cells)
         if gap == 0.0 or not sel.any():
             return
         m = self._inputs(est)
