@@ -258,7 +258,7 @@ class SoxEstimator:
           it would decay toward the error at rest, measurement noise included: on the synthetic
           cell of tests/core/test_sox_rest.py, 1 mV noise: 1.40-1.47 mV RMS over the 2-30 s horizons
           after 2 h, against 1.44-1.70 mV kept; the limits 0.2 % apart.)
-          the learnt D-second resistance's open windows close unscored, its dRs age by ``T`` and
+        * The learnt D-second resistance's open windows close unscored, its dRs age by ``T`` and
           the cells count ``T / Ts`` samples at rest (:meth:`ResidualResistance.rest`); the last
           SOP's prediction basis is dropped for them (a window it would open is not scored).
         * Kept: the energy counters (no current, no energy) and the resistance SOH (the
