@@ -13,13 +13,18 @@ results, bit for bit:
 ``clip(a, lo, hi, out=None)``
     numpy's ``clip`` ufunc, the one ``np.clip`` ends in: ``min(max(a, lo), hi)``
     elementwise, NaN propagated.
+
+And the arguments of every estimator's ``rest`` (a gap without samples), checked once:
+``rest_arguments(gap_s, cells, n)``.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-__all__ = ["all_cells", "any_cell", "cell_vector", "clip"]
+__all__ = ["all_cells", "any_cell", "cell_vector", "clip", "rest_arguments"]
 
 try:  # numpy >= 2: the ufunc behind np.clip, and the C function behind np.count_nonzero(x)
     from numpy._core.multiarray import count_nonzero as _count_nonzero  # type: ignore[attr-defined]
@@ -51,3 +56,15 @@ def any_cell(x: np.ndarray) -> bool:
 def all_cells(x: np.ndarray) -> bool:
     """``x.all()`` for a per-cell array, as :func:`any_cell`."""
     return bool(_count_nonzero(x) == x.size)
+
+
+def rest_arguments(gap_s: float, cells, n: int) -> tuple[float, np.ndarray]:
+    """``(gap, mask)`` of a rest over ``gap_s`` seconds for ``cells`` (a bool mask of ``n`` cells; None: all);
+    ValueError naming the argument when the gap is not a finite number >= 0 or the mask does not fit."""
+    gap = float(gap_s)
+    if not (math.isfinite(gap) and gap >= 0.0):
+        raise ValueError(f"gap_s must be finite and >= 0 seconds, got {gap_s!r}")
+    sel = np.ones(n, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
+    if sel.shape != (n,):
+        raise ValueError(f"cells must be a bool mask of {n} cells, got shape {sel.shape}")
+    return gap, sel

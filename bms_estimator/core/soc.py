@@ -50,7 +50,6 @@ HG2 tables and every deep discharge ended 2-3 % low.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field, replace
 from typing import Annotated, Literal, get_args
 
@@ -58,7 +57,7 @@ import numpy as np
 from annotated_types import Ge, Gt, Interval
 
 from .bounds import check_bounds
-from .cells import all_cells, any_cell, cell_vector, clip
+from .cells import all_cells, any_cell, cell_vector, clip, rest_arguments
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
@@ -452,12 +451,7 @@ class SocEstimator:
           replaces the count (``rest_soc_reading="ocv"``) or is fused with it (``"fused"``).  A
           charge while parked (the count cannot see it) is thus caught at that first sample.
         """
-        gap = float(gap_s)
-        if not (math.isfinite(gap) and gap >= 0.0):
-            raise ValueError(f"gap_s must be finite and >= 0 seconds, got {gap_s!r}")
-        sel = np.ones(self.n_cells, dtype=bool) if cells is None else np.asarray(cells, dtype=bool)
-        if sel.shape != (self.n_cells,):
-            raise ValueError(f"cells must be a bool mask of {self.n_cells} cells, got shape {sel.shape}")
+        gap, sel = rest_arguments(gap_s, cells, self.n_cells)
         if gap == 0.0 or not any_cell(sel):
             return
         # the last period before the gap, counted and predicted as update() would
@@ -686,6 +680,7 @@ class SocEstimator:
             q_min=self._q_min.copy(),
             q_max=self._q_max.copy(),
             samples=np.array(self.samples),
+            rest_due=self._rest_due.copy(),  # a rest's OCV reading still to be taken (rest())
         )
         if self._hyst is not None:
             s.update({f"hyst.{k}": v for k, v in self._hyst.state_dict().items()})
@@ -742,6 +737,12 @@ class SocEstimator:
         self._q_min = np.asarray(s["q_min"], dtype=float).copy()
         self._q_max = np.asarray(s["q_max"], dtype=float).copy()
         self.samples = int(s["samples"])
+        # states saved before it existed: no reading due
+        due = np.asarray(s.get("rest_due", np.zeros(n, dtype=bool)), dtype=bool)
+        if due.shape != (n,):
+            raise ValueError(f"state field 'rest_due' has shape {due.shape}, expected ({n},)")
+        self._rest_due = due.copy()
+        self._any_rest_due = any_cell(self._rest_due)
         if self._hyst is not None:
             if "hyst.h" in s:
                 self._hyst.load_state_dict({"h": s["hyst.h"], "s": s["hyst.s"]})

@@ -152,6 +152,19 @@ class ResidualResistance:
             self.dr_seen_k[row] = np.where(m, self._k, self.dr_seen_k[row])
         self.windows_scored += int(np.count_nonzero(use))
 
+    def rest(self, gap_s: float, cells: np.ndarray) -> None:
+        """``gap_s`` seconds without samples at zero current for ``cells`` (a bool mask), as
+        ``gap_s / Ts`` samples at rest would have been seen: an open window is closed unscored (it
+        would mix samples from before and after the gap), the cells count ``gap_s / Ts`` more
+        samples at rest (a step right after the gap is a step out of rest), their last current is 0,
+        and every dR learnt is ``gap_s`` older (``max_age_s`` counts the parked time).  The dR
+        values themselves are kept."""
+        n = float(gap_s) / self.dt_s
+        self._age = np.where(cells, -1, self._age)
+        self._rest_n = np.where(cells, self._rest_n + n, self._rest_n)
+        self._i_last = np.where(cells, 0.0, self._i_last)
+        self.dr_seen_k = np.where(cells, self.dr_seen_k - n, self.dr_seen_k)
+
     def correction(self, soc) -> np.ndarray | None:
         """(2H, N) dR in ohm for the SOP's rows (discharge horizons, then charge); None when none applies."""
         if not self.config.enabled:

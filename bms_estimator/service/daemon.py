@@ -26,7 +26,9 @@ holds the estimator or the CAN output back.
 
 State: restored at start by :func:`~bms_estimator.service.state.load_state`
 (stale/corrupt/foreign files are set aside there), then rested over its age (the pack
-parked while the service was down: ``SocEstimator.rest``). A file made with another
+parked while the service was down: ``SocEstimator.rest`` and ``SoxEstimator.rest``); a state
+saved again before any sample records in its meta the time it is rested up to
+(``rested_until``), so the next restart rests it only over the time since. A file made with another
 structural estimator configuration (sample period, identification method,
 LIF window, stated capacity) or that the estimator rejects is set aside as
 ``foreign`` and the estimator starts fresh (SOC from the OCV of the first valid
@@ -197,6 +199,7 @@ class Service:
         self._started_mono = time.monotonic()
         self._last_sample_mono: float | None = None
         self._restored_saved_at: float | None = None
+        self._rested_until: float | None = None  # the wall time the resumed state is rested up to
         self._out_bucket: int | None = None
         self._save_anchor: float | None = None
         self._save_task: asyncio.Task[None] | None = None
@@ -256,24 +259,28 @@ class Service:
             return False
         self.restored = True
         self._restored_saved_at = float(meta.get("saved_at", time.time()))
-        self._rest_since_saved(self._restored_saved_at)
+        self._rested_until = self._rest_since_saved(_rested_until(meta, self._restored_saved_at))
         soc = self.estimator.soc
         log.info("estimator resumed from saved state", path=str(st.path), age_s=round(float(meta.get("age_s", 0)), 1),
                  t_s=meta.get("t_s"), soc_mean=float(np.nanmean(soc)) if np.isfinite(soc).any() else None)
         return True
 
-    def _rest_since_saved(self, saved_at: float) -> None:
-        """The resumed estimate is ``now - saved_at`` seconds old (``saved_at``: the wall time of its newest
-        sample): the estimator rests over that time (the pack parked while the service was down) when it is
-        longer than the sampler's ``max_gap_s``, the gap it would bridge with stale samples rather than call a
-        time jump (a quick restart resumes exactly as saved). A wall clock now behind ``saved_at`` (set back,
-        or the state file's clock ahead) rests over nothing, logged."""
-        age = time.time() - saved_at
+    def _rest_since_saved(self, saved_at: float) -> float:
+        """The resumed state is ``now - saved_at`` seconds behind (``saved_at``: the wall time of its newest
+        sample, or the time a state saved without a sample since its restore was rested up to): the estimator
+        rests over that time (the pack parked while the service was down) when it is longer than the
+        sampler's ``max_gap_s``, the gap it would bridge with stale samples rather than call a time jump (a
+        quick restart resumes exactly as saved). A wall clock now behind ``saved_at`` (set back, or the state
+        file's clock ahead) rests over nothing, logged. Returns the wall time the state is rested up to."""
+        now = time.time()
+        age = now - saved_at
         if age > self.sampler.max_gap_s:
             self.pipeline.rest(age, "restart")
-        elif age < 0:
+            return now
+        if age < 0:
             log.warning("wall clock is behind the saved state's time: the resumed state does not rest",
                         behind_s=round(-age, 3))
+        return saved_at
 
     def _restore_sox(self, saved: Any) -> None:
         """The SOX part of a resumed state (the commissioning R0, energy counters); a state without
@@ -339,7 +346,10 @@ class Service:
         if last is not None:
             saved_at = last.wall_time
         elif self._restored_saved_at is not None:
+            # no sample since the restore: the estimate is as old as its newest sample, but it has been
+            # rested up to the restore; a restart rests it only over the time since (restore)
             saved_at = self._restored_saved_at
+            meta["rested_until"] = self._rested_until
         else:
             saved_at = time.time()
         # own copies: the worker thread writes them while the estimator moves on
@@ -564,6 +574,15 @@ class Service:
             with contextlib.suppress(Exception):
                 await self.health.close()
         log.info("service stopped", samples=self.pipeline.counters.samples)
+
+
+def _rested_until(meta: dict[str, Any], saved_at: float) -> float:
+    """The wall time a saved state is rested up to: its meta's ``rested_until`` (a state saved after a
+    restore without a sample since), else ``saved_at`` (older files, and every state saved after a sample)."""
+    r = meta.get("rested_until")
+    if isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r):
+        return max(float(r), saved_at)
+    return saved_at
 
 
 class _WatchdogGate:

@@ -24,8 +24,9 @@ in are read only for the snapshot's ``wall_time`` (state files) and the uptime c
 Gaps: a sample that does not follow the previous one (the sampler re-anchored its grid on a
 time jump: the bus was silent, the gateway asleep) has ``t_s - period_s - t_prev`` seconds
 without samples before its period; the estimator rests over them
-(:meth:`~bms_estimator.core.soc.SocEstimator.rest`: the pack parked) before the sample,
-logged in one line and counted (``counters.rests``, ``counters.rest_s``).
+(:meth:`~bms_estimator.core.soc.SocEstimator.rest`: the pack parked; with it
+:meth:`~bms_estimator.core.sox.SoxEstimator.rest`) before the sample, logged in one line and
+counted (``counters.rests``, ``counters.rest_s``).
 """
 
 from __future__ import annotations
@@ -192,7 +193,10 @@ class Pipeline:
         return snap
 
     def rest(self, gap_s: float, why: str) -> None:
-        """The estimator rests over ``gap_s`` seconds without samples (the pack parked); one log line, counted."""
+        """The estimator (and the SOP/SOE/SOH part, when given) rests over ``gap_s`` seconds without
+        samples (the pack parked); one log line, counted."""
+        if self.sox is not None:  # first: it relaxes with the model it tracked the last sample with
+            self.sox.rest(gap_s, est=self.estimator)
         self.estimator.rest(gap_s)
         self.counters.rests += 1
         self.counters.rest_s += gap_s

@@ -277,3 +277,26 @@ def test_rest_properties(seed, gap_s, method, soc_method, cells):
     for k in range(30):  # and it goes on: no NaN, SOC in [0, 1]
         est.update(rng.uniform(-3, 3) if k else 0.0, 3.3 + 0.9 * rng.random(3))
         assert np.all(np.isfinite(est.soc)) and np.all((est.soc >= 0) & (est.soc <= 1))
+
+
+@pytest.mark.parametrize("saved_before_the_field", [False, True])
+def test_a_due_rest_reading_survives_the_state_file(saved_before_the_field):
+    """rest, state_dict, load into a fresh estimator, one sample at rest: the SOC is read from the voltage (a
+    charge while parked, +30 %); a state saved before the field existed loads as 'not due'."""
+    est = SocEstimator(2, _ocv(), Q_AH, 1.0, initial_soc=0.5)
+    for _ in range(60):
+        est.update(0.0, np.full(2, float(_ocv().ocv(0.5))))
+    est.rest(2 * 3600.0, np.array([True, False]))
+    state = est.state_dict()
+    if saved_before_the_field:
+        del state["rest_due"]
+    fresh = SocEstimator(2, _ocv(), Q_AH, 1.0, initial_soc=0.5)
+    fresh.load_state_dict(state)
+    fresh.update(0.0, np.full(2, float(_ocv().ocv(0.8))))  # charged while parked
+    if saved_before_the_field:
+        assert np.all(fresh.soc < 0.52)  # the EKF's per-sample step, not a reading
+    else:
+        assert fresh.soc[0] == pytest.approx(0.8, abs=0.005)  # read from the voltage
+        assert fresh.soc[1] < 0.52  # the cell not rested had nothing due
+    with pytest.raises(ValueError, match="rest_due"):
+        SocEstimator(2, _ocv(), Q_AH, 1.0).load_state_dict({**est.state_dict(), "rest_due": np.zeros(3, bool)})

@@ -1,6 +1,7 @@
 """The learnt R_D correction (core.sop_residual): what it learns, when, and where it applies."""
 
 import numpy as np
+import pytest
 
 from bms_estimator.core.sop_residual import ResidualConfig, ResidualResistance
 
@@ -57,3 +58,30 @@ def test_a_window_whose_current_did_not_hold_or_was_too_small_is_not_used():
     _feed(res, [np.zeros(2)] * 30 + [np.array([-3.0, 2.0])] * 10, **kw)
     assert res.windows_scored == 0
     assert ResidualResistance(2, 1.0, (10.0,), ResidualConfig(enabled=False)).correction(np.zeros(2)) is None
+
+
+def test_rest_ages_the_learnt_resistance_closes_open_windows_and_counts_the_park_as_rest():
+    """rest(T) is T / Ts samples at zero current: a dR learnt before a 2 h park is too old after it (kept,
+    not used); a window open when the samples stopped is not scored; a step right after the park is a step
+    out of rest; the cell not named keeps all of it."""
+    kw = dict(base=np.array([[3.70, 3.65]]), r_d=np.array([[0.030, 0.040]]), ocv0=np.array([3.68, 3.64]),
+              true_extra=np.array([0.004, -0.006]), ocv_end=np.array([3.678, 3.638]))
+    res = ResidualResistance(2, 1.0, (10.0,))
+    _feed(res, [np.zeros(2)] * 61 + [np.array([-3.0, 2.0])] * 10, **kw)
+    learnt = res.dr_ohm.copy()
+    assert np.isfinite(res.correction(np.array([0.5, 0.5]))).all()
+    res.rest(2 * 3600.0, np.array([True, False]))
+    np.testing.assert_array_equal(res.dr_ohm, learnt)  # kept
+    corr = res.correction(np.array([0.5, 0.5]))
+    assert corr[0, 0] == 0.0 and corr[1, 1] == pytest.approx(-0.006)  # cell 0's discharge dR aged out; cell 1's charge dR used
+    # a window open at the gap is closed unscored
+    res = ResidualResistance(2, 1.0, (10.0,))
+    _feed(res, [np.zeros(2)] * 61 + [np.array([-3.0, 2.0])] * 5, **kw)
+    res.rest(600.0, np.array([True, True]))
+    _feed(res, [np.array([-3.0, 2.0])] * 5, **kw)
+    assert res.windows_scored == 0
+    # a step at the first sample after the park opens a window (the park counted as rest), scored as usual
+    res = ResidualResistance(2, 1.0, (10.0,))
+    res.rest(600.0, np.array([True, True]))
+    _feed(res, [np.array([-3.0, 2.0])] * 10, **kw)
+    assert res.windows_scored == 2

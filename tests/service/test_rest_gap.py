@@ -58,10 +58,12 @@ def _frames(i, v, rows) -> list:
 def _through_service(tmp_path, frames):
     svc = Service(_cfg(tmp_path))
     svc.pipeline.hooks.clear()  # the daemon's outputs (MQTT, CAN, state saves) need its event loop
-    soc = {}
+    soc, tte = {}, {}
     svc.pipeline.add_hook(lambda snap: soc.__setitem__(snap.t_s, snap.cells["soc"].copy()))
+    svc.pipeline.add_hook(lambda snap: tte.__setitem__(snap.t_s, snap.pack_sox.get("time_to_empty_s")))
     for m in frames:
         svc.pipeline.process_frame(m)
+    svc.tte = tte  # the pack's time to empty per sample (SOX)
     return svc, soc
 
 
@@ -95,6 +97,10 @@ def test_a_two_hour_hole_in_the_timestamps_is_rested_over_once(tmp_path, charged
     assert np.all(err_rest < 0.005) and np.all(err_rest < err_blind), (err_rest, err_blind)
     if charged:
         assert np.all(err_blind > 0.2)  # without rest the charge is missed for long
+    # the SOX part rested with it: the drive's mean current (about -1 C) decayed over the park, so the
+    # time to empty at the first sample after it is idle, not the drive's (SoxEstimator.rest)
+    t_last = max(t for t in svc.tte if t < t_first)  # the last sample before the park
+    assert np.isfinite(svc.tte[t_last]) and svc.tte[t_first] == np.inf
 
 
 def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
@@ -115,6 +121,12 @@ def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
     assert c.rests == 1 and c.rest_s == pytest.approx(3 * 3600, abs=60)
     est = resumed.estimator
     np.testing.assert_array_less(np.abs(est.ekf.v_diffusion), 0.01 * np.abs(before.ekf.v_diffusion) + 1e-9)
+    # and the SOX part: the drive's RC voltages and mean current are 3 h gone, its health kept
+    sox_before, sox = svc.pipeline.sox, resumed.pipeline.sox
+    assert np.abs(sox_before.x_v).max() > 1e-3 and np.abs(sox_before.mean_current_a).min() > 0.1
+    np.testing.assert_array_less(np.abs(sox.x_v), 1e-6 * np.abs(sox_before.x_v).max())
+    np.testing.assert_allclose(sox.mean_current_a, sox_before.mean_current_a * np.exp(-c.rest_s / 300.0), rtol=1e-9)
+    np.testing.assert_array_equal(sox.energy_discharged_wh, sox_before.energy_discharged_wh)
     assert np.all(est.soc_sigma > before.soc_sigma)  # 3 h of the filter's random walk
     assert sum("rested over a gap" in r["event"] for r in logs) == 1
 
@@ -126,3 +138,47 @@ def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
     assert again.pipeline.counters.rests == 0
     np.testing.assert_array_equal(again.estimator.ekf.v_diffusion, before.ekf.v_diffusion)
     assert any("behind the saved state" in r["event"] for r in logs)
+
+
+def test_a_restart_without_a_sample_since_rests_only_over_the_time_since(tmp_path, monkeypatch):
+    """A state saved 3 h ago is resumed (rested 3 h), saved again before any sample (what the daemon writes),
+    and resumed 1 h later: it rests 1 h more, 4 h in all, as the original state rested once over 4 h."""
+    i, v, _, rows = _trip()
+    cfg = _cfg(tmp_path)
+    svc = Service(cfg)
+    svc.pipeline.hooks.clear()
+    for m in _frames(i, v, rows[:600]):
+        svc.pipeline.process_frame(m)
+    state, meta, _ = svc._state_to_save()  # noqa: SLF001
+    t0 = time.time()
+    monkeypatch.setattr(time, "time", lambda: t0)
+    save_state(Path(cfg.state.path), state, meta, saved_at=t0 - 3 * 3600)
+    resumed = Service(cfg)
+    assert resumed.restore()
+    assert resumed.pipeline.counters.rest_s == pytest.approx(3 * 3600)
+    # the daemon's save of the resumed state, no sample since (as its worker writes it)
+    again_state, again_meta, again_saved_at = resumed._state_to_save()  # noqa: SLF001
+    save_state(Path(cfg.state.path), again_state, again_meta, saved_at=again_saved_at)
+    assert again_saved_at == pytest.approx(t0 - 3 * 3600)  # the estimate is as old as its newest sample
+    monkeypatch.setattr(time, "time", lambda: t0 + 3600)
+    later = Service(cfg)
+    with capture_logs() as logs:
+        assert later.restore()
+    assert later.pipeline.counters.rest_s == pytest.approx(3600)  # only the hour since
+    assert sum("rested over a gap" in r["event"] for r in logs) == 1
+    once = Service(cfg).estimator  # the original state rested once over 4 h
+    once.load_state_dict(state)
+    once.rest(4 * 3600.0)
+    est = later.estimator
+    # (each rest counts the period in progress first, the second one at zero current: 1 s more of the
+    # filter's prediction in 4 h; measured 2.4e-6 relative on the SOC sigma; rested 7 h instead: 2.5e-2)
+    np.testing.assert_allclose(est.soc_sigma, once.soc_sigma, rtol=1e-5)
+    # (the same second relaxes the diffusion voltage by exp(-1 s / tau_d) more: 8e-4; rested 7 h, 1e-4 of it left)
+    np.testing.assert_allclose(est.ekf.v_diffusion, once.ekf.v_diffusion, rtol=2e-3)
+
+    # from the same file 10 min after the first restore instead: 10 min rested, and the OCV reading that the
+    # 3 h rest made due is still due (from the file: a 10 min rest alone does not make it due)
+    monkeypatch.setattr(time, "time", lambda: t0 + 600)
+    soon = Service(cfg)
+    assert soon.restore() and soon.pipeline.counters.rest_s == pytest.approx(600)
+    assert 600 < soon.soc_config.rest_relaxation_s and np.all(soon.estimator._rest_due)  # noqa: SLF001
