@@ -165,6 +165,28 @@ class ResidualResistance:
         self._i_last = np.where(cells, 0.0, self._i_last)
         self.dr_seen_k = np.where(cells, self.dr_seen_k - n, self.dr_seen_k)
 
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """What a restart keeps: every dR learnt with its SOC and age (samples since it was seen), and each
+        cell's time at rest and last current.  An open window is not kept (it would be scored against a
+        prediction from before the restart)."""
+        return {"dr_ohm": self.dr_ohm.copy(), "dr_soc": self.dr_soc.copy(),
+                "dr_age_samples": self._k - self.dr_seen_k, "rest_samples": self._rest_n.copy(),
+                "i_last_a": self._i_last.copy()}
+
+    def load_state_dict(self, s) -> None:
+        """The state of :meth:`state_dict`; ValueError naming the field whose shape does not fit."""
+        shapes = {"dr_ohm": self.dr_ohm.shape, "dr_soc": self.dr_soc.shape, "dr_age_samples": self.dr_seen_k.shape,
+                  "rest_samples": self._rest_n.shape, "i_last_a": self._i_last.shape}
+        a = {}
+        for k, shape in shapes.items():
+            a[k] = np.asarray(s[k], dtype=float)
+            if a[k].shape != shape:
+                raise ValueError(f"residual state {k!r} has shape {a[k].shape}, expected {shape}")
+        self.dr_ohm, self.dr_soc = a["dr_ohm"].copy(), a["dr_soc"].copy()
+        self.dr_seen_k = self._k - a["dr_age_samples"]
+        self._rest_n, self._i_last = a["rest_samples"].copy(), a["i_last_a"].copy()
+        self._age = np.full(self._age.shape, -1, dtype=np.int64)
+
     def correction(self, soc) -> np.ndarray | None:
         """(2H, N) dR in ohm for the SOP's rows (discharge horizons, then charge); None when none applies."""
         if not self.config.enabled:

@@ -388,6 +388,7 @@ class SoxEstimator:
 
     def state_dict(self) -> dict[str, np.ndarray]:
         s = {f"soh.{k}": v for k, v in self.resistance.state_dict().items()}
+        s.update({f"residual.{k}": v for k, v in self.residual.state_dict().items()})
         s.update({"x_v": self.x_v.copy(), "mean_current_a": self.mean_current_a.copy(),
                   "error_ms_v2": self.error_ms_v2.copy(),
                   "energy_discharged_wh": self.energy_discharged_wh.copy(),
@@ -397,6 +398,9 @@ class SoxEstimator:
     def load_state_dict(self, s) -> None:
         self._slow = {}  # the held slow outputs (the resistance SOH among them) are recomputed next sample
         self.resistance.load_state_dict({k[4:]: v for k, v in s.items() if k.startswith("soh.")})
+        residual = {k[9:]: v for k, v in s.items() if k.startswith("residual.")}
+        if residual:  # states saved before it was kept: learnt again
+            self.residual.load_state_dict(residual)
         for k in ("x_v", "mean_current_a", "energy_discharged_wh", "energy_delivered_wh", "error_ms_v2"):
             a = np.asarray(s[k], dtype=float)
             if a.shape != getattr(self, k).shape:

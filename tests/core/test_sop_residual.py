@@ -85,3 +85,43 @@ def test_rest_ages_the_learnt_resistance_closes_open_windows_and_counts_the_park
     res.rest(600.0, np.array([True, True]))
     _feed(res, [np.array([-3.0, 2.0])] * 10, **kw)
     assert res.windows_scored == 2
+
+
+def test_what_was_learnt_survives_a_restart_with_its_age_and_an_open_window_does_not():
+    """state_dict / load_state_dict into a fresh instance (a service restart): the dRs, their SOC and age
+    (counted on from the new instance's samples), the time at rest and the last current come back, so the
+    correction is the same at once and ages out at the same moment; a window open at the save is dropped;
+    a field of the wrong shape is named."""
+    kw = dict(base=np.array([[3.70, 3.65]]), r_d=np.array([[0.030, 0.040]]), ocv0=np.array([3.68, 3.64]),
+              true_extra=np.array([0.004, -0.006]), ocv_end=np.array([3.678, 3.638]))
+    res = ResidualResistance(2, 1.0, (10.0,))
+    _feed(res, [np.zeros(2)] * 61 + [np.array([-3.0, 2.0])] * 10, **kw)
+    for _ in range(100):  # back at rest a while: the dRs are 100 samples old
+        res.sample(np.zeros(2), kw["base"][0], kw["ocv_end"], 0.5, Q, None)
+    saved = res.state_dict()
+    back = ResidualResistance(2, 1.0, (10.0,))
+    back.load_state_dict(saved)
+    soc = np.array([0.5, 0.5])
+    np.testing.assert_array_equal(back.correction(soc), res.correction(soc))
+    assert np.isfinite(back.correction(soc)).all() and np.any(back.correction(soc) != 0.0)
+    steps = 0
+    while res.correction(soc) is not None:  # both age out at the same sample: an hour after each dR was seen
+        np.testing.assert_array_equal(back.correction(soc), res.correction(soc))
+        for r in (res, back):
+            r.sample(np.zeros(2), kw["base"][0], kw["ocv_end"], 0.5, Q, None)
+        steps += 1
+    assert back.correction(soc) is None and 3400 < steps <= 3600
+    # the time at rest came back: a step at the first sample after the restart opens a window
+    back = ResidualResistance(2, 1.0, (10.0,))
+    back.load_state_dict(saved)
+    _feed(back, [np.array([-3.0, 2.0])] * 10, **kw)
+    assert back.windows_scored == 2
+    # a window open at the save is not scored after the restart
+    res = ResidualResistance(2, 1.0, (10.0,))
+    _feed(res, [np.zeros(2)] * 61 + [np.array([-3.0, 2.0])] * 5, **kw)
+    back = ResidualResistance(2, 1.0, (10.0,))
+    back.load_state_dict(res.state_dict())
+    _feed(back, [np.array([-3.0, 2.0])] * 5, **kw)
+    assert back.windows_scored == 0
+    with pytest.raises(ValueError, match="dr_soc"):
+        back.load_state_dict(dict(saved, dr_soc=np.zeros(3)))

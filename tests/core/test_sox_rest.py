@@ -172,3 +172,24 @@ def test_bad_gaps_and_masks_are_refused():
             sox.rest(bad, est=est)
     with pytest.raises(ValueError, match="cells"):
         sox.rest(10.0, np.array([True, False]), est=est)
+
+
+def test_the_learnt_resistance_is_in_the_sox_state_and_older_states_still_load():
+    """The SOX state carries the learnt D-second resistance (``residual.*``): a SoxEstimator loaded from
+    it corrects the SOP as the saved one does; a state saved before it was kept loads and learns afresh."""
+    est, sox = _random_sox(7)
+    r = sox.residual
+    learnt = [0, 2]  # a discharge dR learnt on cells 0 and 2, seen now at SOC 0.5 (as sample() sets it)
+    r.dr_ohm[0, 0, learnt] = [0.004, -0.002]
+    r.dr_soc[0, 0, learnt] = 0.5
+    r.dr_seen_k[0, 0, learnt] = r._k  # noqa: SLF001
+    back = SoxEstimator(3, 1.0)
+    back.load_state_dict(sox.state_dict())
+    soc = np.full(3, 0.5)
+    np.testing.assert_array_equal(back.residual.correction(soc), sox.residual.correction(soc))
+    assert back.residual.correction(soc)[0].tolist() == [0.004, 0.0, -0.002]
+    old = {k: v for k, v in sox.state_dict().items() if not k.startswith("residual.")}
+    fresh = SoxEstimator(3, 1.0)
+    fresh.load_state_dict(old)
+    assert fresh.residual.correction(soc) is None
+    np.testing.assert_array_equal(fresh.x_v, sox.x_v)
