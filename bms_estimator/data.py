@@ -56,7 +56,10 @@ under which the coulomb count is ``Q = sum_k I[k] (t_{k+1} - t_k)``.  With bins
    the bin's charge.  Current and voltage are averaged over the same bins, so
    their relative timing is unchanged.
 4. Bins that contain no sample (logging gaps) are counted in
-   :attr:`CellRecording.gaps_filled`.  Voltage and temperature there are filled
+   :attr:`CellRecording.gaps_filled` and marked in :attr:`CellRecording.filled`
+   (one boolean per bin: what a user of the 1 s grid needs to tell a logged bin
+   from a made-up one, e.g. the SOP back-test resting over the long gaps as the
+   service does).  Voltage and temperature there are filled
    by linear interpolation between the neighbouring non-empty bins.  The
    current keeps its step-1 value (the held current of the last sample before
    the gap), because that is what the native coulomb count ``sum I dt``
@@ -118,6 +121,10 @@ class CellRecording:
         source: file path or a name.
         gaps_filled: number of resampling bins that held no sample and were
             filled by linear interpolation (0 when not resampled).
+        filled: per sample, True where its resampling bin held no sample of the
+            file (voltage and temperature interpolated, current held: module
+            docstring, "Resampling"); all False when not resampled or not given.
+            ``filled.sum() == gaps_filled`` for a loaded file.
 
     The arrays are converted to read-only float64 arrays; copy before editing.
     """
@@ -128,6 +135,7 @@ class CellRecording:
     temperature_c: np.ndarray | None = None
     source: str = ""
     gaps_filled: int = field(default=0)
+    filled: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = None
@@ -150,6 +158,11 @@ class CellRecording:
             object.__setattr__(self, name, arr)
         object.__setattr__(self, "source", str(self.source))
         object.__setattr__(self, "gaps_filled", int(self.gaps_filled))
+        filled = np.zeros(n, dtype=bool) if self.filled is None else np.array(self.filled, dtype=bool, copy=True)
+        if filled.shape != (n,):
+            raise ValueError(f"CellRecording.filled has shape {filled.shape}, time_s has {n} samples")
+        filled.setflags(write=False)
+        object.__setattr__(self, "filled", filled)
 
     def __len__(self) -> int:
         return int(self.time_s.size)
@@ -344,7 +357,7 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     native_dt = float(np.median(np.diff(time_s)))
     if resample_s is not None and native_dt < resample_s:
         cols = [current_a, voltage_v] + ([temperature_c] if temperature_c is not None else [])
-        t_new, values, gaps = _resample_bins(
+        t_new, values, empty = _resample_bins(
             time_s, np.column_stack(cols), float(resample_s), (False,) + (True,) * (len(cols) - 1)
         )
         rec = CellRecording(
@@ -353,7 +366,8 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
             voltage_v=values[:, 1],
             temperature_c=values[:, 2] if temperature_c is not None else None,
             source=str(path),
-            gaps_filled=gaps,
+            gaps_filled=int(np.count_nonzero(empty)),
+            filled=empty,
         )
     else:
         rec = CellRecording(time_s, current_a, voltage_v, temperature_c, str(path), 0)
@@ -395,12 +409,12 @@ def _check_current_sign(path: Path, current_a: np.ndarray, voltage_v: np.ndarray
 
 def _resample_bins(
     t: np.ndarray, y: np.ndarray, ts: float, interp_gaps: tuple[bool, ...]
-) -> tuple[np.ndarray, np.ndarray, int]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Time-average ``y`` (n, m) over bins ``[j ts, (j+1) ts)``; see the module docstring.
 
     ``t`` must be strictly increasing.  Columns with ``interp_gaps[c]`` true get
     their empty bins linearly interpolated; the others keep the zero-order-hold
-    average.  Returns (bin start times, bin values, number of empty bins).
+    average.  Returns (bin start times, bin values, per bin: True if it held no sample).
     """
     j0 = int(math.floor(t[0] / ts))
     j1 = int(math.floor(t[-1] / ts))
@@ -426,14 +440,13 @@ def _resample_bins(
     idx = np.floor(t / ts).astype(np.int64) - j0
     np.clip(idx, 0, nb - 1, out=idx)
     occupied = np.bincount(idx, minlength=nb) > 0
-    n_empty = int(nb - np.count_nonzero(occupied))
-    if n_empty:
+    if not occupied.all():
         occ = np.flatnonzero(occupied)
         emp = np.flatnonzero(~occupied)
         for c in range(y.shape[1]):
             if interp_gaps[c]:
                 out[emp, c] = np.interp(emp, occ, out[occ, c])
-    return starts, out, n_empty
+    return starts, out, ~occupied
 
 
 # ---------------------------------------------------------------------------

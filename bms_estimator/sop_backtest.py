@@ -23,6 +23,33 @@ At the start ``a`` of each window (the estimator has seen the samples before ``a
 Under a current within the limits at every instant, the model says the voltage stays
 inside the bounds over the whole window (the constant limit current is the worst
 case), so an exceedance is the model's failure, not the driver's.
+
+Logging gaps (``rest_over_gaps``, the default)
+----------------------------------------------
+A recording on a resampled grid marks the bins that held no sample of the file
+(``unlogged``: :attr:`CellRecording.filled <bms_estimator.data.CellRecording.filled>`).
+A run of them longer than the sampler's :data:`~bms_estimator.can.sampler.MAX_GAP_S`
+(:func:`logging_gaps`) is what the service sees as a time jump: the logger was off,
+and whatever the cell did meanwhile (the HPPC files' SOC steps) is not in the file.
+The back-test does what the service does there: the bins of the run are not fed
+(no update), and before the first sample after it the estimator rests over the
+time without samples, ``T = gap_before_s`` of the samples either side (= the run's
+length), ``sox.rest(T, est=est)`` then ``est.rest(T)`` (the service pipeline's order;
+a rest of ``rest_relaxation_s`` or longer reads the SOC from the OCV at the next
+sample at rest).  A window is scored only if none of its samples, nor the sample
+before it (the state the prediction is made from, which the service would have
+published), lies in such a run, and no rest falls inside it: a window across a gap is
+not scored.  A file not resampled (logged at the grid's step or coarser) has no
+filled bins; a jump of its time axis longer than ``MAX_GAP_S`` is rested over the
+same way.  Shorter runs
+(the HPPC files' 1.2 s holes at the pulse edges) the service bridges with stale
+samples; they are fed as ``load_recording`` filled them.  ``rest_over_gaps=False``
+feeds every bin, the gaps as if contiguous samples.
+
+The energy delivered to the end counts the file's own charge only (every bin's
+``-v i Ts``, the gap bins' held current included, as ``load_recording``'s coulomb
+count): the charge taken out inside a logging gap is not in the file, so on the
+HPPC files it is short of what the cell delivered.
 """
 
 from __future__ import annotations
@@ -31,13 +58,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .can.sampler import MAX_GAP_S, gap_before_s
 from .core.soc import SocConfig, SocEstimator
 from .core.soe import SoeConfig, energy_left_wh
 from .core.sop import SopConfig, predict_voltage, sop_limits
 from .core.sop_residual import ResidualConfig
 from .core.sox import SoxConfig, SoxEstimator
 
-__all__ = ["BacktestResult", "find_pulses", "run_backtest", "summary"]
+__all__ = ["BacktestResult", "find_pulses", "logging_gaps", "run_backtest", "summary"]
 
 MIN_REST_S = 60.0  # rest before a pulse
 MAX_PULSE_S = 60.0  # a longer current run is not a pulse
@@ -71,6 +99,9 @@ class BacktestResult:
     energy_to_end_wh: np.ndarray  # what the cell then delivered to the recording's end
     #: v_min -> (within, exceeded) of the model limits computed for that v_min
     by_v_min: dict = None  # type: ignore[assignment]
+    logging_gaps: int = 0  # logging gaps rested over (module docstring)
+    rested_s: float = 0.0  # their total length
+    windows_across_gaps: int = 0  # windows not scored because they span (or start right after) one
 
     @property
     def error_mv(self) -> np.ndarray:
@@ -101,13 +132,28 @@ def find_pulses(current_a: np.ndarray, dt_s: float, capacity_ah: float) -> list[
     return out
 
 
+def logging_gaps(unlogged, dt_s: float, bridged_s: float = MAX_GAP_S) -> list[tuple[int, int]]:
+    """``[start, end)`` of the runs of samples without a logged sample (``unlogged``, one bool per
+    sample of a grid of step ``dt_s``) longer than ``bridged_s``, ``(end - start) dt_s > bridged_s``:
+    the stretches the service's sampler calls a time jump rather than bridge with stale samples."""
+    d = np.diff(np.r_[0, np.asarray(unlogged, dtype=np.int8), 0])
+    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))
+            if (b - a) * dt_s > bridged_s]
+
+
 def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity_ah: float, *,
                  horizon_s: float = 10.0, initial_soc: float | None = 1.0, soc_config: SocConfig = SocConfig(),
                  sop_config: SopConfig | None = None, mode: str = "auto",
-                 extra_v_min: tuple[float, ...] = (), residual: ResidualConfig = ResidualConfig()) -> BacktestResult:
+                 extra_v_min: tuple[float, ...] = (), residual: ResidualConfig = ResidualConfig(),
+                 time_s=None, unlogged=None, rest_over_gaps: bool = True) -> BacktestResult:
     """Run the estimator over the recording and score every window (module docstring).
 
     ``extra_v_min``: further cut-offs to compute the model's discharge limits for and check.
+    ``time_s``: the samples' times (None: ``k dt_s``); ``unlogged``: per sample, True where the file logged
+    nothing (``CellRecording.filled``; None: every sample logged).  With ``rest_over_gaps`` the estimator
+    rests over the :func:`logging_gaps` of ``unlogged`` instead of being fed them, and over a jump of
+    ``time_s`` longer than the sampler bridges (a file logged at its own step, not resampled) (module
+    docstring, "Logging gaps").
     """
     i = np.asarray(current_a, dtype=float)
     v = np.asarray(voltage_v, dtype=float)
@@ -118,6 +164,21 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
         raise ValueError(f"--horizon-s {horizon_s:g} is shorter than one sample ({dt_s:g} s)")
     if n_w >= n_all:
         raise ValueError(f"--horizon-s {horizon_s:g} is longer than the recording ({n_all * dt_s:.0f} s)")
+    for name, x in (("time_s", time_s), ("unlogged", unlogged)):
+        if x is not None and np.shape(x) != (n_all,):
+            raise ValueError(f"{name} has shape {np.shape(x)}, the recording {n_all} samples")
+    skip = np.zeros(n_all, dtype=bool)  # the samples of the logging gaps: not fed
+    rest_before = np.zeros(n_all)  # seconds to rest before each fed sample
+    if rest_over_gaps:
+        for a, b in ([] if unlogged is None else logging_gaps(unlogged, dt_s)):
+            skip[a:b] = True
+        # the service's rule on the fed samples' period ends (a skipped run's length, or a jump of the time axis)
+        fed = np.flatnonzero(~skip)
+        t = np.arange(n_all) * dt_s if time_s is None else np.asarray(time_s, dtype=float)
+        t_end = t[fed] + dt_s
+        gap = gap_before_s(t_end[1:], t_end[:-1], dt_s)
+        rest_before[fed[1:]] = np.where(gap > MAX_GAP_S, gap, 0.0)  # a shorter one the sampler bridges
+    gaps = np.flatnonzero(rest_before)
     pulses = find_pulses(i, dt_s, capacity_ah)
     use_pulses = mode == "hppc" or (mode == "auto" and len(pulses) >= 3)
     if use_pulses:
@@ -126,6 +187,15 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
             raise ValueError(f"no pulse of the recording is as long as the horizon ({horizon_s:g} s)")
     else:
         starts = list(range(1, n_all - n_w + 1, n_w))
+    # a window is scored only if neither it nor the sample before it lies in a logging gap, and no rest
+    # falls inside it (its first sample, or a later one, the first after a gap)
+    skipped = np.r_[0, np.cumsum(skip)]  # skipped[k] = skipped samples among 0..k-1
+    rested = np.r_[0, np.cumsum(rest_before > 0)]
+    spans = [skipped[a + n_w] - skipped[max(a - 1, 0)] + rested[a + n_w] - rested[a] > 0 for a in starts]
+    across = [a for a, x in zip(starts, spans) if x]
+    starts = [a for a, x in zip(starts, spans) if not x]
+    if not starts:
+        raise ValueError("every window of the recording spans a logging gap: none can be scored")
     d = n_w * dt_s
     sop_cfg = sop_config or SopConfig()
     sop_cfg = replace(sop_cfg, horizons_s=(d,))
@@ -139,6 +209,11 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
     v1 = np.empty(1)
     t1 = None if temp is None else np.empty(1)
     for k in range(n_all):
+        if skip[k]:
+            continue
+        if rest_before[k]:  # the first sample after a logging gap: rest over it, as the service's pipeline
+            sox.rest(float(rest_before[k]), est=est)
+            est.rest(float(rest_before[k]))
         if k in start_set and np.isfinite(sox.v_anchor[0]):
             ocv_f, slope_f = sox.ocv_functions(est)
             kw = sox.model(est)
@@ -190,12 +265,14 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
         lim = np.asarray(lims)
         within_vm = -i_min <= lim + 1e-9
         by_v_min[vm] = (within_vm, within_vm & (r["v_min_meas"] < vm))
-    # energy delivered from each window's start to the end (positive = out of the cell)
+    # energy delivered from each window's start to the end (positive = out of the cell): the file's own
+    # charge only (module docstring), the same with and without rest_over_gaps
     e_out = -np.nan_to_num(v * i) * dt_s / 3600.0
     tail = np.cumsum(e_out[::-1])[::-1]
     return BacktestResult("hppc" if use_pulses else "drive", d, within=w, exceeded=e, within_hppc=wh,
                           exceeded_hppc=eh, capacity_ah=float(est.capacity_ah[0]), energy_to_end_wh=tail[starts_k],
-                          by_v_min=by_v_min, **r)
+                          by_v_min=by_v_min, logging_gaps=int(gaps.size), rested_s=float(rest_before.sum()),
+                          windows_across_gaps=len(across), **r)
 
 
 def _stats(x: np.ndarray) -> dict[str, float]:
@@ -230,6 +307,8 @@ def summary(res: BacktestResult, capacity_stated_ah: float | None = None) -> dic
         },
         "discharge_limit_a": {"model": _stats(res.i_dis_a), "hppc": _stats(res.i_dis_hppc_a)},
         "capacity_ah_estimated": res.capacity_ah,
+        "logging_gaps": {"rested": res.logging_gaps, "rested_s": res.rested_s,
+                         "windows_not_scored": res.windows_across_gaps},
     }
     # breakdowns of the loaded windows: by SOC decile and C-rate (of the window's mean current)
     soc = res.soc[loaded]

@@ -5,7 +5,8 @@
 For every Panasonic file (HPPC and drive cycles at 25, 10, 0, -10 degC) it runs the
 SOP back-test of ``bms-estimator sop-backtest`` (bms_estimator.sop_backtest) with the four
 OCV tables (25 degC C/20 shipped sample; HPPC-rest tables at the others, made here with
-``bms-estimator ocv``), 2.9 Ah stated, 10 s horizon, and writes:
+``bms-estimator ocv``), 2.9 Ah stated, 10 s horizon, the files' logging gaps rested over as the
+service would (the command's default, bms_estimator.sop_backtest "Logging gaps"), and writes:
 
     <out>/sox_results.json   every file's summary plus the SOE and SOH rows
     <out>/cache/*.json       each file's result (a re-run reuses them; delete to recompute)
@@ -63,7 +64,8 @@ def _one(args: tuple[Path, list[Path], Path]) -> dict:
     rec = load_recording(path, resample_s=1.0)
     ocv = load_ocv(tables, rec)
     res = run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv, CAPACITY_AH,
-                       horizon_s=10.0, initial_soc=1.0, sop_config=SopConfig(), extra_v_min=STRICT_V_MIN)
+                       horizon_s=10.0, initial_soc=1.0, sop_config=SopConfig(), extra_v_min=STRICT_V_MIN,
+                       time_s=rec.time_s, unlogged=rec.filled)  # the logging gaps rested over, as the service
     out = summary(res, CAPACITY_AH)
     out["file"] = f"{path.parent.name}/{path.name}"
     q_out = float(-np.sum(np.minimum(rec.current_a, 0.0)) * rec.dt_s / 3600.0)

@@ -104,3 +104,114 @@ def test_sox_figures_without_the_data_set_writes_nothing(tmp_path):
     assert res.returncode == 2, res.stderr
     assert f"no Panasonic files under {tmp_path / 'none' / 'panasonic-18650pf'}" in res.stderr
     assert not (out / "sox_tables.md").exists() and not (out / "hppc_error.png").exists()
+
+
+# --- logging gaps: the logger off while the cell was discharged (the Panasonic HPPC files' SOC steps)
+
+GAP_AT_S, GAP_S = 1540.0, 3600.0  # the logger is off over [GAP_AT_S, GAP_AT_S + GAP_S)
+
+
+def _gap_recording(tmp_path, ocv_curve, *, step_s: float = 0.5, hole: bool = True):
+    """Pulses at full, then 1 h without samples in which the cell is discharged 10 % SOC (0.3C for
+    20 min, then 40 min at rest), then pulses again; logged every ``step_s`` (written to CSV, loaded
+    by load_recording).  Returns (recording, the true SOC at a time: a function)."""
+    from bms_estimator.data import load_recording, save_recording, CellRecording
+
+    def pulses():
+        out = [np.zeros(300)]
+        for c in (0.5, 1.0, 2.0, 1.0):
+            out += [np.full(10, -c * Q), np.zeros(300)]
+        return np.concatenate(out)
+
+    before = pulses()
+    before = np.r_[before, np.zeros(int(GAP_AT_S) - before.size)]
+    hidden = np.r_[np.full(1200, -0.3 * Q), np.zeros(2400)]  # 0.3C x 1200 s = 10 % of Q
+    i_1s = np.concatenate([before, hidden, pulses()])
+    rep = int(round(1.0 / step_s))
+    i = np.repeat(i_1s, rep)
+    t = np.arange(i.size) * step_s
+    sim = simulate_ecm(i, step_s, EcmParams.from_rc(0.03, [0.01, 0.02], [5.0, 100.0]), ocv_curve.ocv, soc0=1.0,
+                       capacity_ah=Q)
+    keep = ~((t >= GAP_AT_S) & (t < GAP_AT_S + GAP_S)) if hole else np.ones(t.size, dtype=bool)
+    path = save_recording(CellRecording(t[keep], i[keep], sim.voltage_v[keep], np.full(keep.sum(), 25.0), "gap"),
+                          tmp_path / f"gap_{step_s:g}_{hole}.csv")
+    rec = load_recording(path, resample_s=1.0)
+    return rec, lambda t_s: float(sim.soc[int(round(t_s / step_s))])
+
+
+def _run(rec, ocv_curve, **kw):
+    from bms_estimator.sop_backtest import run_backtest
+
+    return run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv_curve, Q, horizon_s=10.0,
+                        initial_soc=1.0, mode="drive", time_s=rec.time_s, unlogged=rec.filled, **kw)
+
+
+def test_a_logging_gap_is_rested_over_and_no_window_spans_it(tmp_path, nmc_like_ocv):
+    """The estimator rests over the hour without samples, as the service does at a time jump, and reads the
+    SOC from the OCV at the first sample after it: the hidden 10 % discharge is caught.  Fed the gap as
+    load_recording fills it (current held at zero, voltage interpolated), the SOC misses it."""
+    rec, soc_at = _gap_recording(tmp_path, nmc_like_ocv)
+    assert rec.dt_s == 1.0 and np.count_nonzero(rec.filled) == GAP_S  # the hole's bins, marked
+    assert np.all(rec.filled[int(GAP_AT_S):int(GAP_AT_S + GAP_S)])
+    rested = _run(rec, nmc_like_ocv)
+    fed = _run(rec, nmc_like_ocv, rest_over_gaps=False)
+    assert rested.logging_gaps == 1 and rested.rested_s == GAP_S
+    assert fed.logging_gaps == 0 and fed.windows_across_gaps == 0
+    # no scored window starts in the gap, ends in it, or starts at its first sample after it
+    s = rested.start_s
+    assert not np.any((s > GAP_AT_S - 10.0) & (s <= GAP_AT_S + GAP_S))
+    n_gap = np.count_nonzero((fed.start_s > GAP_AT_S - 10.0) & (fed.start_s <= GAP_AT_S + GAP_S))
+    assert rested.windows_across_gaps == n_gap and len(s) == len(fed.start_s) - n_gap
+    # the SOC at the first window after the gap, against the truth there
+    after = lambda res: int(np.flatnonzero(res.start_s > GAP_AT_S + GAP_S)[0])  # noqa: E731
+    k_r, k_f = after(rested), after(fed)
+    truth = soc_at(rested.start_s[k_r])  # (the grid's time: the file starts at 0)
+    assert truth == pytest.approx(1.0 - 0.1 - (0.5 + 1.0 + 2.0 + 1.0) * 10 / 3600, abs=1e-9)
+    assert abs(rested.soc[k_r] - truth) < 0.01
+    assert fed.soc[k_f] - soc_at(fed.start_s[k_f]) > 0.03  # the hidden discharge missed
+    # before the gap the two runs are the same run
+    pre = s < GAP_AT_S - 10.0
+    np.testing.assert_array_equal(rested.v_pred[pre], fed.v_pred[: np.count_nonzero(pre)])
+    # the energy to the end counts the file's own charge only: the same both ways
+    np.testing.assert_array_equal(rested.energy_to_end_wh[pre], fed.energy_to_end_wh[: np.count_nonzero(pre)])
+
+
+def test_a_time_jump_of_a_file_at_its_own_step_is_rested_over_too(tmp_path, nmc_like_ocv):
+    """Logged at 1 s, the file is not resampled and has no filled bins: its time axis jumps by the hour."""
+    rec, soc_at = _gap_recording(tmp_path, nmc_like_ocv, step_s=1.0)
+    assert not rec.filled.any() and np.max(np.diff(rec.time_s)) == GAP_S + 1.0
+    res = _run(rec, nmc_like_ocv)
+    assert res.logging_gaps == 1 and res.rested_s == GAP_S
+    t = rec.time_s[np.round(res.start_s / rec.dt_s).astype(int)]  # (start_s counts samples of dt_s)
+    assert not np.any((t > GAP_AT_S - 10.0) & (t <= GAP_AT_S + GAP_S))
+    k = int(np.flatnonzero(t > GAP_AT_S + GAP_S)[0])
+    assert abs(res.soc[k] - soc_at(t[k])) < 0.01
+    assert soc_at(t[k]) < 0.9
+
+
+def test_without_gaps_the_option_changes_nothing(tmp_path, nmc_like_ocv):
+    rec, _ = _gap_recording(tmp_path, nmc_like_ocv, hole=False)
+    assert rec.gaps_filled == 0 and not rec.filled.any()
+    a, b = _run(rec, nmc_like_ocv), _run(rec, nmc_like_ocv, rest_over_gaps=False)
+    assert a.logging_gaps == 0 and a.windows_across_gaps == 0
+    for name in ("start_s", "soc", "v_pred", "v_meas", "i_dis_a", "i_chg_a", "energy_left_wh", "energy_to_end_wh",
+                 "exceeded"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_cli_no_rest_over_gaps(tmp_path, nmc_like_ocv, capsys):
+    from bms_estimator.cli.__main__ import main
+
+    with pytest.raises(SystemExit):
+        main(["sop-backtest", "--help"])
+    assert "--no-rest-over-gaps" in capsys.readouterr().out
+    rec, _ = _gap_recording(tmp_path, nmc_like_ocv)
+    ocv = nmc_like_ocv.to_csv(tmp_path / "ocv.csv")
+    base = ["sop-backtest", str(tmp_path / "gap_0.5_True.csv"), "--ocv", str(ocv), "--capacity-ah", str(Q),
+            "--mode", "drive", "--json", "-"]
+    assert main(base) == 0
+    rested = json.loads(capsys.readouterr().out)
+    assert main(base + ["--no-rest-over-gaps"]) == 0
+    fed = json.loads(capsys.readouterr().out)
+    assert rested["logging_gaps"] == {"rested": 1, "rested_s": GAP_S, "windows_not_scored": 361}
+    assert fed["logging_gaps"]["rested"] == 0 and fed["windows"] == rested["windows"] + 361

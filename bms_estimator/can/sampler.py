@@ -66,7 +66,7 @@ import structlog
 
 from .decoder import Event, EventKind
 
-__all__ = ["Sample", "SampleAssembler", "SamplerCounters", "gap_before_s"]
+__all__ = ["MAX_GAP_S", "Sample", "SampleAssembler", "SamplerCounters", "gap_before_s"]
 
 log = structlog.get_logger(__name__)
 
@@ -75,6 +75,10 @@ _PACK_VOLTAGE = int(EventKind.PACK_VOLTAGE)
 _CELL_VOLTAGE = int(EventKind.CELL_VOLTAGE)
 _CELL_TEMPERATURE = int(EventKind.CELL_TEMPERATURE)
 
+#: the default ``max_gap_s``: a stretch without frames up to this long is bridged with stale samples,
+#: a longer one is a time jump (the estimator rests over it); the service's is max(this, staleness_s,
+#: 2 periods), this at its defaults
+MAX_GAP_S = 5.0
 
 
 def gap_before_s(t_s, t_prev_s, period_s: float):
@@ -131,7 +135,7 @@ class SampleAssembler:
         current_hold_s: float = 0.5,
         min_current_coverage: float = 0.9,
         voltage_mode: Literal["latest", "mean"] = "latest",
-        max_gap_s: float = 5.0,
+        max_gap_s: float = MAX_GAP_S,
         rewind_s: float = 5.0,
     ) -> None:
         if n_cells < 1:

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..can.sampler import MAX_GAP_S
 from ..core.identifier import IdentifierConfig
 from ..core.sop import SopConfig
 from ..sop_backtest import run_backtest, summary
@@ -38,6 +39,11 @@ def add_parser(sub) -> None:
     p.add_argument("--mode", choices=("auto", "hppc", "drive"), default="auto",
                    help="windows at the pulses (hppc), every horizon (drive), or whichever the file is (default auto)")
     add_method_option(p, IdentifierConfig().method, "(the online estimator's identification)")
+    p.add_argument("--no-rest-over-gaps", dest="rest_over_gaps", action="store_false",
+                   help="feed the file's logging gaps (no sample for longer than the service bridges, "
+                        f"{MAX_GAP_S:g} s; load_recording fills them) as contiguous samples, instead of resting the "
+                        "estimator over them as the service does at a time jump (default: rest; a window across a "
+                        "gap is then not scored)")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here ('-' = stdout)")
     add_tuning_options(p)
     p.set_defaults(func=run)
@@ -56,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
                     i_charge_max_a=args.i_charge_max_a)
     res = run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv, args.capacity_ah,
                        horizon_s=args.horizon_s, initial_soc=args.initial_soc, soc_config=soc_config(args),
-                       sop_config=sop, mode=args.mode)
+                       sop_config=sop, mode=args.mode, time_s=rec.time_s, unlogged=rec.filled,
+                       rest_over_gaps=args.rest_over_gaps)
     out = summary(res, args.capacity_ah)
     if args.json is not None:
         write_json(out, args.json)
@@ -66,4 +73,7 @@ def run(args: argparse.Namespace) -> int:
               f"{e['median']:.1f} mV, p95 {e['p95']:.1f} mV; limit exceeded in {out['limit_exceeded']} "
               f"({out['limit_exceeded_pct']:.2f} %) of them, {out['windows_within_limit']} stayed within the limit "
               f"(HPPC method: {out['hppc_method']['limit_exceeded']} exceeded)")
+        if res.logging_gaps:
+            print(f"rested over {res.logging_gaps} logging gaps ({res.rested_s / 3600:.1f} h without samples); "
+                  f"{res.windows_across_gaps} windows across them not scored")
     return 0
