@@ -133,6 +133,13 @@ def test_resampling_fills_gaps_and_counts_them(tmp_path: Path) -> None:
     path = save_recording(rec, tmp_path / "gap.csv")
     res = load_recording(path, resample_s=1.0)
     assert res.gaps_filled == 3
+    # which bins: marked per sample, for the users that must tell a made-up bin from a logged one
+    np.testing.assert_array_equal(np.flatnonzero(res.filled), [5, 6, 7])
+    assert not res.filled.flags.writeable
+    # not resampled, or made in memory: nothing filled
+    assert not load_recording(path, resample_s=None).filled.any() and not rec.filled.any()
+    with pytest.raises(ValueError, match="filled has shape"):
+        CellRecording(t, i, v, None, "gap", 3, filled=np.zeros(3, dtype=bool))
     # voltage in the gap: linear between the neighbouring bins (3.6 at bin 4, 3.9 at bin 8)
     np.testing.assert_allclose(res.voltage_v[5:8], [3.675, 3.75, 3.825], atol=1e-9)
     # current in the gap keeps the held value, so the coulomb count is unchanged
