@@ -9,7 +9,8 @@ import pytest
 
 from bms_estimator.cli.__main__ import main
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
-from bms_estimator.sop_backtest import find_pulses
+from bms_estimator.data import CellRecording, load_recording, save_recording
+from bms_estimator.sop_backtest import find_pulses, run_backtest
 
 Q = 3.0
 
@@ -115,8 +116,6 @@ def _gap_recording(tmp_path, ocv_curve, *, step_s: float = 0.5, hole: bool = Tru
     """Pulses at full, then 1 h without samples in which the cell is discharged 10 % SOC (0.3C for
     20 min, then 40 min at rest), then pulses again; logged every ``step_s`` (written to CSV, loaded
     by load_recording).  Returns (recording, the true SOC at a time: a function)."""
-    from bms_estimator.data import load_recording, save_recording, CellRecording
-
     def pulses():
         out = [np.zeros(300)]
         for c in (0.5, 1.0, 2.0, 1.0):
@@ -140,8 +139,6 @@ def _gap_recording(tmp_path, ocv_curve, *, step_s: float = 0.5, hole: bool = Tru
 
 
 def _run(rec, ocv_curve, **kw):
-    from bms_estimator.sop_backtest import run_backtest
-
     return run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv_curve, Q, horizon_s=10.0,
                         initial_soc=1.0, mode="drive", time_s=rec.time_s, unlogged=rec.filled, **kw)
 
@@ -200,8 +197,6 @@ def test_without_gaps_the_option_changes_nothing(tmp_path, nmc_like_ocv):
 
 
 def test_cli_no_rest_over_gaps(tmp_path, nmc_like_ocv, capsys):
-    from bms_estimator.cli.__main__ import main
-
     with pytest.raises(SystemExit):
         main(["sop-backtest", "--help"])
     assert "--no-rest-over-gaps" in capsys.readouterr().out
