@@ -41,9 +41,8 @@ before it (the state the prediction is made from, which the service would have
 published), lies in such a run, and no rest falls inside it: a window across a gap is
 not scored.  A file not resampled (logged at the grid's step or coarser) has no
 filled bins; a jump of its time axis longer than ``MAX_GAP_S`` is rested over the
-same way.  Shorter runs
-(the HPPC files' 1.2 s holes at the pulse edges) the service bridges with stale
-samples; they are fed as ``load_recording`` filled them.  ``rest_over_gaps=False``
+same way.  Shorter runs (the HPPC files' 1.2 s holes at the pulse edges) the service
+bridges with stale samples; they are fed as ``load_recording`` filled them.  ``rest_over_gaps=False``
 feeds every bin, the gaps as if contiguous samples.
 
 The energy delivered to the end counts the file's own charge only (every bin's
