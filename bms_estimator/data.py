@@ -18,7 +18,9 @@ Loading (:func:`load_recording`)
 2. Validate: every used value finite, at least 2 rows, time never decreasing
    (``t[k] < t[k-1]`` is an error naming line ``k``), the voltage a single cell's
    (within ``CELL_VOLTAGE_RANGE_V``: a column in mV, or a pack's voltage, is an
-   error naming the line), and the current positive for charge (below).
+   error naming the line), the temperature, where given, a cell's (within
+   ``CELL_TEMPERATURE_RANGE_C``: a column in kelvin, say, is an error naming the
+   line), and the current positive for charge (below).
 3. Drop repeated timestamps (``t[k] == t[k-1]``), keeping the first sample.
 4. Resample when the native step ``median(diff(t))`` is below ``resample_s``
    (see below).  Logs already at or above the requested step (e.g. the 60 s
@@ -98,6 +100,9 @@ OPTIONAL_COLUMNS = ("temperature_c",)
 
 #: a single cell's terminal voltage lies in this range [V]; outside it the column is in mV or a pack's
 CELL_VOLTAGE_RANGE_V = (-1.0, 10.0)
+#: a cell's temperature lies in this range [degC]; outside it the column is in kelvin or Fahrenheit, or a
+#: sensor's fault code (the estimator reads the OCV tables and its priors at the cell temperature)
+CELL_TEMPERATURE_RANGE_C = (-60.0, 150.0)
 #: correlation of the current's and the voltage's 1-sample steps below which the current is discharge-positive
 SIGN_CORRELATION_MIN = -0.2
 #: steps with a current change needed before the sign is judged
@@ -280,8 +285,8 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
         FileNotFoundError: the file does not exist.
         DataError: missing column, non-numeric / empty / NaN value (with its line
             number), fewer than 2 rows, time going backwards (with its line), a
-            voltage outside a single cell's range (with its line), a current that is
-            positive for discharge.
+            voltage outside a single cell's range (with its line), a temperature outside
+            a cell's (with its line), a current that is positive for discharge.
     """
     path = Path(path)
     if resample_s is not None and not (math.isfinite(resample_s) and resample_s > 0):
@@ -335,6 +340,18 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
             f"{path}: line {lineno}: voltage_v {float(v[row])!r} is not a single cell's terminal voltage "
             f"(expected {lo:g}..{hi:g} V; is the column in mV, or a pack's voltage?)"
         )
+
+    if data.shape[1] > 3:
+        temp = data[:, 3]
+        lo, hi = CELL_TEMPERATURE_RANGE_C
+        off = np.flatnonzero((temp < lo) | (temp > hi))
+        if off.size:
+            row = int(off[0])
+            lineno = int(_data_line_numbers(text, header_line)[row])
+            raise DataError(
+                f"{path}: line {lineno}: temperature_c {float(temp[row])!r} is not a cell temperature "
+                f"(expected {lo:g}..{hi:g} degC; is the column in kelvin or Fahrenheit?)"
+            )
 
     t = data[:, 0]
     dt = np.diff(t)

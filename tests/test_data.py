@@ -239,6 +239,18 @@ def test_a_voltage_that_is_not_a_cells_is_named_with_its_line(tmp_path: Path, va
         load_recording(path)
 
 
+@pytest.mark.parametrize("value, line", [("298.15", 4), ("77.0e1", 4), ("-273.15", 4)])
+def test_a_temperature_that_is_not_a_cells_is_named_with_its_line(tmp_path: Path, value: str, line: int) -> None:
+    """A temperature column in kelvin (or a sensor's fault code) would read the OCV tables and the priors at
+    the wrong temperature: refused, line named; the same file in degC loads."""
+    rows = "0,1,3.7,25.0\n1,1,3.7,25.1\n{}\n3,1,3.7,25.2\n"
+    path = _write(tmp_path / "t.csv", "time_s,current_a,voltage_v,temperature_c\n" + rows.format(f"2,1,3.7,{value}"))
+    with pytest.raises(DataError, match=rf"t.csv: line {line}: temperature_c {float(value)!r} is not a cell temperature"):
+        load_recording(path)
+    ok = _write(tmp_path / "ok.csv", "time_s,current_a,voltage_v,temperature_c\n" + rows.format("2,1,3.7,-40.0"))
+    assert load_recording(ok, resample_s=None).temperature_c[2] == -40.0
+
+
 def test_a_discharge_positive_current_is_refused(tmp_path: Path) -> None:
     """The measured sample loads; the same file with the current negated (discharge positive) is refused."""
     from bms_estimator.samples import drive_cycle
