@@ -330,28 +330,18 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
             "is not a finite number"
         )
 
-    v = data[:, 2]
-    lo, hi = CELL_VOLTAGE_RANGE_V
-    off = np.flatnonzero((v < lo) | (v > hi))
-    if off.size:
-        row = int(off[0])
-        lineno = int(_data_line_numbers(text, header_line)[row])
-        raise DataError(
-            f"{path}: line {lineno}: voltage_v {float(v[row])!r} is not a single cell's terminal voltage "
-            f"(expected {lo:g}..{hi:g} V; is the column in mV, or a pack's voltage?)"
-        )
-
+    checks = [(2, CELL_VOLTAGE_RANGE_V, "is not a single cell's terminal voltage (expected {lo:g}..{hi:g} V; "
+                                        "is the column in mV, or a pack's voltage?)")]
     if data.shape[1] > 3:
-        temp = data[:, 3]
-        lo, hi = CELL_TEMPERATURE_RANGE_C
-        off = np.flatnonzero((temp < lo) | (temp > hi))
+        checks.append((3, CELL_TEMPERATURE_RANGE_C, "is not a cell temperature (expected {lo:g}..{hi:g} degC; "
+                                                    "is the column in kelvin or Fahrenheit?)"))
+    for col, (lo, hi), what in checks:
+        off = np.flatnonzero((data[:, col] < lo) | (data[:, col] > hi))
         if off.size:
             row = int(off[0])
             lineno = int(_data_line_numbers(text, header_line)[row])
-            raise DataError(
-                f"{path}: line {lineno}: temperature_c {float(temp[row])!r} is not a cell temperature "
-                f"(expected {lo:g}..{hi:g} degC; is the column in kelvin or Fahrenheit?)"
-            )
+            raise DataError(f"{path}: line {lineno}: {wanted[col]} {float(data[row, col])!r} "
+                            + what.format(lo=lo, hi=hi))
 
     t = data[:, 0]
     dt = np.diff(t)
