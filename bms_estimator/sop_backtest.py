@@ -34,7 +34,7 @@ and whatever the cell did meanwhile (the HPPC files' SOC steps) is not in the fi
 The back-test does what the service does there: the bins of the run are not fed
 (no update), and before the first sample after it the estimator rests over the
 time without samples, ``T = gap_before_s`` of the samples either side (= the run's
-length), ``sox.rest(T, est=est)`` then ``est.rest(T)`` (the service pipeline's order;
+length), ``core.sox.rest_estimators`` (SOX, then SOC: the service pipeline's order;
 a rest of ``rest_relaxation_s`` or longer reads the SOC from the OCV at the next
 sample at rest).  A window is scored only if none of its samples, nor the sample
 before it (the state the prediction is made from, which the service would have
@@ -62,7 +62,7 @@ from .core.soc import SocConfig, SocEstimator
 from .core.soe import SoeConfig, energy_left_wh
 from .core.sop import SopConfig, predict_voltage, sop_limits
 from .core.sop_residual import ResidualConfig
-from .core.sox import SoxConfig, SoxEstimator
+from .core.sox import SoxConfig, SoxEstimator, rest_estimators
 
 __all__ = ["BacktestResult", "find_pulses", "logging_gaps", "run_backtest", "summary"]
 
@@ -211,8 +211,7 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
         if skip[k]:
             continue
         if rest_before[k]:  # the first sample after a logging gap: rest over it, as the service's pipeline
-            sox.rest(float(rest_before[k]), est=est)
-            est.rest(float(rest_before[k]))
+            rest_estimators(est, sox, float(rest_before[k]))
         if k in start_set and np.isfinite(sox.v_anchor[0]):
             ocv_f, slope_f = sox.ocv_functions(est)
             kw = sox.model(est)

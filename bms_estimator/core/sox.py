@@ -62,7 +62,7 @@ from .ocv_surface import OcvAtTemperatures
 from .sop import SopConfig, sop_and_pack_limits
 from .sop_residual import ResidualConfig, ResidualResistance
 
-__all__ = ["SoxConfig", "SoxEstimator"]
+__all__ = ["SoxConfig", "SoxEstimator", "rest_estimators"]
 
 
 @dataclass(frozen=True)
@@ -406,3 +406,12 @@ class SoxEstimator:
             if a.shape != getattr(self, k).shape:
                 raise ValueError(f"sox state {k!r} has shape {a.shape}, expected {getattr(self, k).shape}")
             setattr(self, k, a.copy())
+
+
+def rest_estimators(est, sox: SoxEstimator | None, gap_s: float) -> None:
+    """The pack parked for ``gap_s`` seconds without samples: the SOP/SOE/SOH part (if any) rests
+    first, with the model it tracked the last sample with, then the SOC estimator
+    (:meth:`SoxEstimator.rest`, ``SocEstimator.rest``).  The one order every caller keeps."""
+    if sox is not None:
+        sox.rest(gap_s, est=est)
+    est.rest(gap_s)

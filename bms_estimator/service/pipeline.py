@@ -42,7 +42,7 @@ import structlog
 from ..can.decoder import FrameDecoder
 from ..can.sampler import Sample, SampleAssembler, gap_before_s
 from ..core.soc import SocEstimator
-from ..core.sox import SoxEstimator
+from ..core.sox import SoxEstimator, rest_estimators
 from .schema import CELL_FIELDS, EstimatorState, SocStats, soc_stats
 
 __all__ = ["Pipeline", "PipelineCounters", "Snapshot", "StatusCounters"]
@@ -195,9 +195,7 @@ class Pipeline:
     def rest(self, gap_s: float, why: str) -> None:
         """The estimator (and the SOP/SOE/SOH part, when given) rests over ``gap_s`` seconds without
         samples (the pack parked); one log line, counted."""
-        if self.sox is not None:  # first: it relaxes with the model it tracked the last sample with
-            self.sox.rest(gap_s, est=self.estimator)
-        self.estimator.rest(gap_s)
+        rest_estimators(self.estimator, self.sox, gap_s)
         self.counters.rests += 1
         self.counters.rest_s += gap_s
         log.info("estimator rested over a gap without samples", gap_s=round(gap_s, 3), why=why,
