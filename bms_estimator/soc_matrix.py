@@ -175,9 +175,17 @@ def start_point(name: str, base_soc: np.ndarray) -> tuple[int, float]:
 
 
 def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,
-             overrides: dict | None = None, start_names: tuple[str, ...] = STARTS) -> list[dict]:
+             overrides: dict | None = None, start_names: tuple[str, ...] = STARTS,
+             current_gain: float = 1.0) -> list[dict]:
     """Every drive cycle of ``cell`` under ``data`` matching ``pattern`` (cell/ambient/file), each of
-    ``start_names``, per SOC method: one row of figures per run."""
+    ``start_names``, per SOC method: one row of figures per run.
+
+    ``current_gain`` multiplies every file's current before the estimator and the reference see it:
+    a cell whose capacity is that many times its files' against unchanged OCV tables (the reference's
+    Q_ref scales with it, the tables' C/20 capacities do not), or a current sensor's gain error.  A
+    stress test of how the figures carry to a cell that is not the one the tables were measured on."""
+    if not (np.isfinite(current_gain) and current_gain > 0):
+        raise ValueError(f"current_gain must be a positive number, got {current_gain!r}")
     stated = CELLS[cell]
     tables = build_tables(data, cell)
     rows = []
@@ -187,7 +195,10 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
             name = p.name.removesuffix(".csv.gz")
             if name in DRIVE_SKIP or not fnmatch.fnmatch(f"{cell}/{amb_dir.name}/{name}", pattern):
                 continue
-            files.append((amb_dir.name, name, load_recording(p, resample_s=1.0)))
+            rec = load_recording(p, resample_s=1.0)
+            if current_gain != 1.0:
+                rec = replace(rec, current_a=rec.current_a * current_gain)
+            files.append((amb_dir.name, name, rec))
     if not files:
         return rows
     own = {t.ambient: t for t in tables}

@@ -48,6 +48,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--starts", default=",".join(STARTS),
                     help="comma-separated starts (default: the README's four); atP+E / atP-E = at P %% of the file, "
                          "the reference + or - E %%; ocv = at the start, read from the first sample's voltage")
+    ap.add_argument("--current-gain", type=float, default=1.0, metavar="G",
+                    help="stress test: every file's current times G before the estimator and the reference see it "
+                         "(a cell G times the capacity its OCV tables were measured on, or a current sensor's gain "
+                         "error); default 1")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--readme", action="store_true",
                     help="write the summary into README.md between its markers and every run into docs/soc_matrix.md")
@@ -66,12 +70,16 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"--starts: {exc}", file=sys.stderr)
         return 2
-    if args.readme and starts != STARTS:
-        print("--readme writes the README's four starts only; drop --starts or --readme", file=sys.stderr)
+    if not (args.current_gain > 0 and args.current_gain < float("inf")):
+        print(f"--current-gain: a positive number, got {args.current_gain}", file=sys.stderr)
+        return 2
+    if args.readme and (starts != STARTS or args.current_gain != 1.0):
+        print("--readme writes the README's four starts at the files' own current only; drop --starts / "
+              "--current-gain or --readme", file=sys.stderr)
         return 2
     rows = []
     for cell in CELLS:
-        rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides, starts)
+        rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides, starts, args.current_gain)
     for line in summary_lines(rows):
         print(line)
     if args.json:
