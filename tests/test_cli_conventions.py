@@ -167,3 +167,19 @@ def test_a_dbc_without_the_needed_messages_names_each_once_and_the_way_out(tmp_p
         assert err.count(f"can.mapping: message '{name}' not in the DBC") == 1, err
     assert ("can.dbc: message 'CellStateA' not in the DBC: can.output.enabled sends the project DBC's output "
             "messages; set [can.output] enabled = false") in err
+
+
+def test_a_command_imports_only_what_it_needs():
+    """``bms-estimator run`` (the daemon's start) and ``soc`` build only their own parser: neither pays for
+    ``batch``'s Dask, and ``soc`` not for python-can; ``--help`` still lists every command."""
+    probe = ("import sys; from bms_estimator.cli.__main__ import main\n"
+             "try:\n    main([{args}])\nexcept SystemExit:\n    pass\n"
+             "print(sorted(m for m in ('can', 'dask', 'distributed') if m in sys.modules))")
+    for args, absent in (("'soc', '--help'", ["can", "dask", "distributed"]), ("'run', '--help'", ["dask", "distributed"])):
+        res = subprocess.run([sys.executable, "-c", probe.format(args=args)], capture_output=True, text=True,
+                             timeout=120, cwd=REPO)
+        assert res.returncode == 0, res.stderr
+        loaded = eval(res.stdout.strip().splitlines()[-1])
+        assert not set(loaded) & set(absent), (args, loaded)
+    listing = _cli("--help")
+    assert listing.returncode == 0 and all(c in listing.stdout for c in ("soc", "batch", "sop-backtest", "run"))

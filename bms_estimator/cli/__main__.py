@@ -7,8 +7,6 @@ import importlib
 import sys
 import warnings
 
-import can
-
 from .. import package_version
 from ..errors import EXIT_DATA, EXIT_RUNTIME, EXIT_USAGE, BmsEstimatorError, one_line_error
 
@@ -30,7 +28,10 @@ SUBCOMMANDS = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line, or (``command`` given, one of :data:`SUBCOMMANDS`) only that
+    subcommand's parser: each module imports what its command needs (python-can, scipy, Dask), so
+    ``bms-estimator soc ...`` does not pay for ``batch``'s imports."""
     parser = argparse.ArgumentParser(
         prog="bms-estimator",
         description="Online battery ECM identification (continuous-time LIF) and SOC estimation.",
@@ -40,13 +41,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module in SUBCOMMANDS.items():
-        mod = importlib.import_module(f"{__package__}.{module}")
-        mod.add_parser(sub)
+        if command is None or name == command:
+            importlib.import_module(f"{__package__}.{module}").add_parser(sub)
     return parser
 
 
+def _command(argv: list[str]) -> str | None:
+    """The subcommand named first on the command line, if it is one (else None: the whole parser, which
+    then lists them or names the unknown one)."""
+    first = next((a for a in argv if not a.startswith("-")), None)
+    return first if first in SUBCOMMANDS else None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command(argv))
     args = parser.parse_args(argv)
     # diagnostics go to stderr, so that stdout stays the command's output (JSON, tables)
     from ..service.logging import configure_logging
@@ -73,7 +82,10 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:  # an option value the commands or the core refuse
         print(f"{where}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except (OSError, can.CanError) as exc:
+    except Exception as exc:  # python-can's bus errors are not all OSErrors; imported only by the commands using it
+        can = sys.modules.get("can")
+        if not isinstance(exc, OSError) and not (can is not None and isinstance(exc, can.CanError)):
+            raise
         print(f"{where}: error: {one_line_error(exc)}", file=sys.stderr)
         return EXIT_RUNTIME
     except KeyboardInterrupt:
