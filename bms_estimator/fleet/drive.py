@@ -52,9 +52,9 @@ from ..core.soc import SocEstimator
 from ..data import check_charge_span, load_recording
 from ..errors import BmsEstimatorError, DataError, one_line_error
 from ..scoring import counted_soc, soc_error_figures
+from ..service.state import resume_sox
 from .assemble import assemble_samples
 from .decode import decode_frames
-from ..service.state import resume_sox
 from .estimate import DriveEstimate, carry_state, estimate_drive, rest_between_drives
 from .frames import read_frames
 from .samples import SampleArrays
