@@ -59,8 +59,8 @@ def add_parser(sub) -> None:
                         "soh_capacity_sigma_final), soh_resistance_final, energy_left_wh_final and the drive's "
                         "energy_discharged_wh and energy_charged_wh; with --chain the SOX state is carried like the "
                         "SOC's. Its drives run one by one, not stacked (--stack only groups them per task): the SOX "
-                        "part does not keep stacked drives apart; a drive takes about 2.2x as long as without it (README, Fleet "
-                        "re-estimation)")
+                        "part does not keep stacked drives apart; a drive takes about 2.2x as long as without "
+                        "it (README, Fleet re-estimation)")
     p.add_argument("--stack", type=_workers, default=DEFAULT_STACK, metavar="S",
                    help="unchained drives per task, estimated side by side as one vectorised estimator (each drive's "
                         f"results are its own, bit for bit; it shares the per-sample overhead; default {DEFAULT_STACK}, "

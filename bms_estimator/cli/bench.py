@@ -211,8 +211,9 @@ def _batch_sox(cpu: bool) -> float:
     from benchmarks.batch_speedup import bench_batch_sox
 
     r = bench_batch_sox()
-    print(f"batch_speedup_sox: {r.hours:g} h x {r.n_cells} cells, best of {len(r.runs)}: {r.speedup_sox:,.0f}x with SOX, "
-          f"{r.speedup:,.0f}x without (CPU {r.speedup_sox_cpu:,.0f}x / {r.speedup_cpu:,.0f}x); estimate stage "
+    print(f"batch_speedup_sox: {r.hours:g} h x {r.n_cells} cells, best of {len(r.runs)}: "
+          f"{r.speedup_sox:,.0f}x with SOX, {r.speedup:,.0f}x without (CPU {r.speedup_sox_cpu:,.0f}x / "
+          f"{r.speedup_cpu:,.0f}x); estimate stage "
           f"{r.estimate_s_sox:.1f} s against {r.estimate_s:.1f} s; every pair (without / with): "
           + ", ".join(f"{a:,.0f}x / {b:,.0f}x" for a, b in r.runs), file=sys.stderr)
     return r.speedup_sox_cpu if cpu else r.speedup_sox

@@ -30,8 +30,8 @@ Chaining: a vehicle's drives in time order, the estimator state carried from one
 the next as the service carries it across a restart: ``SocEstimator.state_dict()`` at the
 end of a drive (:func:`~bms_estimator.service.state.estimator_state`: what the daemon saves,
 with the SOX part under ``sox.``), ``load_state_dict`` into a fresh estimator for the next (what
-the daemon's ``restore`` does; the SOX part by :func:`~bms_estimator.service.state.resume_sox`); decoder and sampler start
-fresh, as after a restart.  The time between the drives is rested over
+the daemon's ``restore`` does; the SOX part by :func:`~bms_estimator.service.state.resume_sox`);
+decoder and sampler start fresh, as after a restart.  The time between the drives is rested over
 (:func:`rest_between_drives`) when both logs carry absolute times: frame times that are
 epoch seconds (from 2000-01-01 on, :data:`EPOCH_MIN_S`), as candump ``.log`` and ``.blf``
 files and ``.mf4`` files with their start time carry them; an ``.asc`` file (python-can
