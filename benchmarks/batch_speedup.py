@@ -34,6 +34,12 @@ Figures:
     one worker, the median of the runs) worker-hours; on N workers divide by ``N x efficiency`` (efficiency =
     scaling / 2, as measured here). Printed for a few N by :func:`estimate_text`.
 
+``batch_speedup_sox`` / ``batch_speedup_sox_cpu``
+    ``batch_speedup`` / ``_cpu`` with ``batch --sox`` (the service's SOP/SOE/SOH part after the
+    estimator; drives with it run unstacked): :func:`bench_batch_sox`, the best of ``repeats``
+    runs, each run with SOX right after one without on the same input, so that both figures (and
+    their ratio, printed) are measured at the same load.
+
 This process's allocator is set as a batch worker's (:func:`bms_estimator.fleet.memory.keep_freed_memory`:
 freed memory kept for the next array, as ``batch``'s ``LocalCluster`` starts its workers), so the
 figures are what a worker's task costs.
@@ -53,7 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BatchBenchResult", "bench_batch", "estimate_text"]
+__all__ = ["BatchBenchResult", "SoxBenchResult", "bench_batch", "bench_batch_sox", "estimate_text"]
 
 _CACHE: dict[tuple, "BatchBenchResult"] = {}
 
@@ -130,10 +136,10 @@ def _write_inputs(tmp: Path, hours: float, n_cells: int) -> tuple[Path, Path, Pa
     return log, mf4, cfg, len(fa)
 
 
-def _one_worker(path: Path, cfg: Path) -> tuple[float, dict[str, float]]:
+def _one_worker(path: Path, cfg: Path, sox: bool = False) -> tuple[float, dict[str, float]]:
     from bms_estimator.fleet.drive import run_drive
 
-    res, _, _ = run_drive(path, str(cfg), path.parent, "bench", write=False)
+    res, _, _ = run_drive(path, str(cfg), path.parent, "bench", write=False, sox=sox)
     if res.status != "ok":
         raise RuntimeError(res.error)
     secs = {k: v for k, v in res.seconds.items() if k != "write"}
@@ -234,6 +240,45 @@ def bench_batch(hours: float = 4.0, n_cells: int = 96, scaling_drives: int = 4,
     return r
 
 
+@dataclass
+class SoxBenchResult:
+    hours: float
+    n_cells: int
+    speedup: float  # best wall figure without SOX (log seconds / wall seconds)
+    speedup_cpu: float
+    speedup_sox: float  # best wall figure with SOX
+    speedup_sox_cpu: float
+    estimate_s: float  # the estimate stage's seconds of the best run without SOX
+    estimate_s_sox: float  # and with it
+    runs: list[tuple[float, float]]  # (without, with) wall figure of every pair of runs
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def bench_batch_sox(hours: float = 4.0, n_cells: int = 96, repeats: int = 3) -> SoxBenchResult:
+    """``batch --sox``'s cost on one drive (the ``.log`` of :func:`bench_batch`): pairs of runs, without
+    SOX then with it, the best of ``repeats`` of each (no Parquet)."""
+    from bms_estimator.fleet.memory import keep_freed_memory
+
+    key = ("sox", hours, n_cells, repeats)
+    if key in _CACHE:
+        return _CACHE[key]
+    keep_freed_memory()
+    with tempfile.TemporaryDirectory(prefix="bms-batch-sox-bench-") as tmpdir:
+        log, _mf4, cfg, _frames = _write_inputs(Path(tmpdir), hours, n_cells)
+        _one_worker(log, cfg, sox=True)  # warm
+        pairs = [(_one_worker(log, cfg), _one_worker(log, cfg, sox=True)) for _ in range(max(1, repeats))]
+    log_s = hours * 3600.0
+    plain = max((r for r, _ in pairs), key=lambda r: r[0])
+    sox = max((r for _, r in pairs), key=lambda r: r[0])
+    r = SoxBenchResult(hours, n_cells, plain[0], max(log_s / a[1]["cpu"] for a, _ in pairs), sox[0],
+                       max(log_s / b[1]["cpu"] for _, b in pairs), plain[1]["estimate"], sox[1]["estimate"],
+                       [(a[0], b[0]) for a, b in pairs])
+    _CACHE[key] = r
+    return r
+
+
 def bench_read_cost(hours: float = 0.1, n_cells: int = 96) -> dict[str, float]:
     """Microseconds per frame of :func:`~bms_estimator.fleet.frames.read_frames` by format (and python-can's
     candump reader, which the bulk .log parser replaces)."""
@@ -270,9 +315,13 @@ def main() -> None:
     ap.add_argument("--scaling-hours", type=float, default=0.5)
     ap.add_argument("--stack", type=int, default=4)
     ap.add_argument("--read-cost", action="store_true", help="only the per-frame read cost of each format")
+    ap.add_argument("--sox", action="store_true", help="only the cost of batch --sox on one drive")
     a = ap.parse_args()
     if a.read_cost:
         print(json.dumps(bench_read_cost(), indent=1))
+        return
+    if a.sox:
+        print(json.dumps(bench_batch_sox(a.hours, a.cells).as_dict(), indent=1))
         return
     r = bench_batch(a.hours, a.cells, a.scaling_drives, a.scaling_hours, a.stack)
     print(json.dumps(r.as_dict(), indent=1))

@@ -52,6 +52,15 @@ def add_parser(sub) -> None:
     p.add_argument("--diagnose", action="store_true",
                    help="also name each cell's model error with 'diagnose' (summary column 'cause'; on the cell's "
                         "longest stretch of valid samples, at least 30 min; slow: seconds per cell-hour)")
+    p.add_argument("--sox", action="store_true",
+                   help="also the service's power limits, energy and health (SOP/SOE/SOH, as it publishes them per "
+                        "cell): the Parquet gets every per-cell SOX output (i_discharge_max_10s_a, energy_left_wh, "
+                        "soh_capacity, soh_resistance, ...), the summary per cell soh_capacity_final (with "
+                        "soh_capacity_sigma_final), soh_resistance_final, energy_left_wh_final and the drive's "
+                        "energy_discharged_wh and energy_charged_wh; with --chain the SOX state is carried like the "
+                        "SOC's. Its drives run one by one, not stacked (--stack only groups them per task): the SOX "
+                        "part does not keep stacked drives apart; a drive takes about 2.2x as long as without "
+                        "it (README, Fleet re-estimation)")
     p.add_argument("--stack", type=_workers, default=DEFAULT_STACK, metavar="S",
                    help="unchained drives per task, estimated side by side as one vectorised estimator (each drive's "
                         f"results are its own, bit for bit; it shares the per-sample overhead; default {DEFAULT_STACK}, "
@@ -77,7 +86,7 @@ def _write_csv(path: Path, rows: list[dict], columns) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..fleet.batch import SUMMARY_COLUMNS, expand_inputs, run_batch, summary_rows
+    from ..fleet.batch import expand_inputs, run_batch, summary_columns, summary_rows
 
     if args.scheduler and args.workers:
         raise UsageError("--workers sizes the local cluster; with --scheduler the cluster has its own workers")
@@ -107,14 +116,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = run_batch(logs, str(args.config.resolve()), args.out, chain=args.chain, scheduler=args.scheduler,
                            workers=args.workers, progress=progress, diagnose=args.diagnose,
-                           stack=args.stack) if logs else None
+                           stack=args.stack, sox=args.sox) if logs else None
     finally:
         if bar is not None:
             bar.stop()
     wall = time.perf_counter() - t0
     drives = (result.drives if result is not None else []) + unmatched
-    rows = summary_rows(drives)
-    _write_csv(args.out / "summary.csv", rows, SUMMARY_COLUMNS)
+    rows = summary_rows(drives, sox=args.sox)
+    _write_csv(args.out / "summary.csv", rows, summary_columns(args.sox))
     import pyarrow as pa
     import pyarrow.parquet as pq
 

@@ -24,6 +24,8 @@ Figures (one core, this machine, one run):
   the same against the process's CPU time (the figure on a core of its own);
   ``batch_speedup_stack4`` / ``batch_speedup_stack4_cpu``: one worker's throughput (times real
   time) when its task holds 4 such drives, their estimation stacked (``batch --stack 4``).
+* ``batch_speedup_sox`` / ``batch_speedup_sox_cpu``: ``batch_speedup`` / ``_cpu`` with ``batch --sox``
+  (SOP/SOE/SOH too; unstacked), measured in pairs with runs without it (the ratio on stderr).
 * ``batch_scaling_2_workers``: ``batch`` throughput on a 2-process Dask LocalCluster over
   1 process; ``batch_10k_drives_worker_h``: the measured cost of 10,000 such 4-hour drives
   in worker-hours (the estimate for N workers is printed on stderr).
@@ -201,6 +203,22 @@ def _batch(figure: str) -> float:
             "batch_scaling_2_workers": r.scaling_2_workers}[figure]
 
 
+def _batch_sox(cpu: bool) -> float:
+    """``batch --sox`` on one drive, paired with runs without it: see benchmarks/batch_speedup.py."""
+    import sys
+
+    _benchmarks()
+    from benchmarks.batch_speedup import bench_batch_sox
+
+    r = bench_batch_sox()
+    print(f"batch_speedup_sox: {r.hours:g} h x {r.n_cells} cells, best of {len(r.runs)}: "
+          f"{r.speedup_sox:,.0f}x with SOX, {r.speedup:,.0f}x without (CPU {r.speedup_sox_cpu:,.0f}x / "
+          f"{r.speedup_cpu:,.0f}x); estimate stage "
+          f"{r.estimate_s_sox:.1f} s against {r.estimate_s:.1f} s; every pair (without / with): "
+          + ", ".join(f"{a:,.0f}x / {b:,.0f}x" for a, b in r.runs), file=sys.stderr)
+    return r.speedup_sox_cpu if cpu else r.speedup_sox
+
+
 #: figure name -> how to measure it (each prints on its own; slow ones can be left out)
 FIGURES = {
     "cell_updates_per_s": lambda args: bench_cell_updates(2000, args.seconds),
@@ -222,6 +240,8 @@ FIGURES = {
     "batch_speedup_mf4_cpu": lambda args: _batch("batch_speedup_mf4_cpu"),
     "batch_speedup_stack4": lambda args: _batch("batch_speedup_stack4"),
     "batch_speedup_stack4_cpu": lambda args: _batch("batch_speedup_stack4_cpu"),
+    "batch_speedup_sox": lambda args: _batch_sox(False),
+    "batch_speedup_sox_cpu": lambda args: _batch_sox(True),
     "batch_scaling_2_workers": lambda args: _batch("batch_scaling_2_workers"),
     "batch_10k_drives_worker_h": lambda args: _batch("batch_10k_drives_worker_h"),
 }

@@ -9,7 +9,8 @@ Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``s
     SOE           core.soe.energy_left_wh at SoeConfig.rate_c; time to empty/full at the mean
                   current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m); these and the capacity SOH are
                   recomputed every SoxConfig.slow_period_s (10 s) and held in between
-    energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing); E_net (Wh out since
+    energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing), E_chg += v i Ts / 3600 for
+                  i > 0 (Wh in, never decreasing; kept in the state, not an output); E_net (Wh out since
                   the last full cell, soc >= full_soc) goes down again with charge
     SOH           core.soh: capacity SOH (once justified) and resistance SOH at the reference point
                   (both on the slow cadence, the R0 reading counting for slow_period_s of samples)
@@ -91,6 +92,7 @@ class SoxEstimator:
         self.mean_current_a = np.zeros(self.n_cells)
         self.energy_discharged_wh = np.zeros(self.n_cells)
         self.energy_delivered_wh = np.zeros(self.n_cells)  # net, since the last full cell
+        self.energy_charged_wh = np.zeros(self.n_cells)  # Wh in (fleet analytics: energy per drive)
         self._slow_every = max(int(round(config.slow_period_s / self.dt_s)), 1)  # samples
         # the resistance SOH is updated on the slow cadence, each reading standing for that many samples
         self.resistance = ResistanceSoh(self.n_cells, self.dt_s * self._slow_every, config.soh)
@@ -205,6 +207,7 @@ class SoxEstimator:
         if not ok_all:
             e = np.where(ok, e, 0.0)
         self.energy_discharged_wh += np.maximum(-e, 0.0)
+        self.energy_charged_wh += np.maximum(e, 0.0)
         self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
         # OCV at the SOC now (the model error) and OCV and slope at the next period's start (the
         # SOP's, see _compute) in one table lookup
@@ -288,6 +291,18 @@ class SoxEstimator:
             self._basis = (np.where(sel, np.nan, base), r_d, ocv_s)
         self._slow_due = 0
 
+    #: the keys of :attr:`outputs` after the limits' (held slow outputs, energy counters, resistance SOH)
+    _SLOW_KEYS = ("energy_left_wh", "time_to_empty_s", "time_to_full_s", "soh_capacity", "soh_capacity_sigma")
+    _ENERGY_KEYS = ("energy_delivered_wh", "energy_discharged_wh")
+    _RESISTANCE_KEYS = ("soh_resistance", "r0_ref_ohm")
+
+    @property
+    def output_keys(self) -> tuple[str, ...]:
+        """The per-cell keys :attr:`outputs` holds from the first :meth:`update` on, in its order
+        (empty before it): the limits per horizon, then the SOE, energy and SOH figures."""
+        return (*(k for keys in self._limit_keys for k in keys), *self._SLOW_KEYS, *self._ENERGY_KEYS,
+                *self._RESISTANCE_KEYS)
+
     @property
     def v_margin(self) -> np.ndarray:
         """(H, N) volts the limits keep the prediction inside the bounds (module docstring of core.sop)."""
@@ -330,7 +345,7 @@ class SoxEstimator:
             self.resistance.update(kw["r0_ohm"], est.temperature_c, m["soc"], identified & self._ok,
                                    samples=self._slow_every)
             # the resistance SOH changes only here: its outputs are held like the slow ones
-            self._slow_r = {"soh_resistance": self.resistance.ratio, "r0_ref_ohm": self.resistance.r0_ref_ohm.copy()}
+            self._slow_r = dict(zip(self._RESISTANCE_KEYS, (self.resistance.ratio, self.resistance.r0_ref_ohm.copy())))
             self._slow_due = self._slow_every
         self._slow_due -= 1
         out = {}
@@ -340,8 +355,8 @@ class SoxEstimator:
             out[k_pa] = res.discharge_w[h]
             out[k_pc] = res.charge_w[h]
         out.update(self._slow)
-        out["energy_delivered_wh"] = self.energy_delivered_wh.copy()
-        out["energy_discharged_wh"] = self.energy_discharged_wh.copy()
+        for key in self._ENERGY_KEYS:
+            out[key] = getattr(self, key).copy()
         out.update(self._slow_r)
         self.outputs = out
 
@@ -359,8 +374,7 @@ class SoxEstimator:
             else np.full(self.n_cells, np.nan)
         soh_q, soh_q_sigma = capacity_soh(est.capacity_ah, est.capacity_stated_ah, rel_sigma * est.capacity_ah,
                                           est.capacity_estimated)
-        return dict(energy_left_wh=e_left, time_to_empty_s=tte, time_to_full_s=ttf, soh_capacity=soh_q,
-                    soh_capacity_sigma=soh_q_sigma)
+        return dict(zip(self._SLOW_KEYS, (e_left, tte, ttf, soh_q, soh_q_sigma)))
 
     def pack_outputs(self) -> dict[str, float]:
         """Pack figures: the SOP per horizon, and the sums/extremes of the cell figures."""
@@ -392,7 +406,8 @@ class SoxEstimator:
         s.update({"x_v": self.x_v.copy(), "mean_current_a": self.mean_current_a.copy(),
                   "error_ms_v2": self.error_ms_v2.copy(),
                   "energy_discharged_wh": self.energy_discharged_wh.copy(),
-                  "energy_delivered_wh": self.energy_delivered_wh.copy()})
+                  "energy_delivered_wh": self.energy_delivered_wh.copy(),
+                  "energy_charged_wh": self.energy_charged_wh.copy()})
         return s
 
     def load_state_dict(self, s) -> None:
@@ -406,6 +421,11 @@ class SoxEstimator:
             if a.shape != getattr(self, k).shape:
                 raise ValueError(f"sox state {k!r} has shape {a.shape}, expected {getattr(self, k).shape}")
             setattr(self, k, a.copy())
+        # states saved before it was counted: the energy charged counts from the restore
+        a = np.asarray(s.get("energy_charged_wh", np.zeros(self.n_cells)), dtype=float)
+        if a.shape != (self.n_cells,):
+            raise ValueError(f"sox state 'energy_charged_wh' has shape {a.shape}, expected ({self.n_cells},)")
+        self.energy_charged_wh = a.copy()
 
 
 def rest_estimators(est, sox: SoxEstimator | None, gap_s: float) -> None:

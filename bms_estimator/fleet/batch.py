@@ -35,11 +35,12 @@ from typing import Any
 
 from ..errors import UsageError, one_line_error
 from ..service.logging import configure_logging
-from .drive import DriveResult, run_drives, run_vehicle
+from .drive import SOX_SUMMARY, DriveResult, run_drives, run_vehicle
 from .frames import FRAME_SUFFIXES
 from .memory import MALLOC_ENV
 
-__all__ = ["BatchResult", "DEFAULT_STACK", "expand_inputs", "run_batch", "stack_groups", "summary_rows", "vehicle_of"]
+__all__ = ["BatchResult", "DEFAULT_STACK", "expand_inputs", "run_batch", "stack_groups", "summary_columns",
+           "summary_rows", "vehicle_of"]
 
 
 def vehicle_of(path: str | Path) -> str:
@@ -123,10 +124,13 @@ def _client(scheduler: str | None, workers: int | None):
 def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain: bool = False,
               scheduler: str | None = None, workers: int | None = None,
               progress: Callable[[int, int, DriveResult | None], None] | None = None,
-              client: Any = None, diagnose: bool = False, stack: int = DEFAULT_STACK) -> BatchResult:
+              client: Any = None, diagnose: bool = False, stack: int = DEFAULT_STACK, sox: bool = False,
+              ) -> BatchResult:
     """Every log through bulk decode and the estimator on Dask; never raises for a bad log.
 
     ``stack``: at most this many unchained drives per task, estimated side by side (1: one per task).
+    ``sox``: also the service's SOP/SOE/SOH part (:mod:`.drive`); its drives are grouped by ``stack``
+    all the same but estimated one by one.
 
     ``progress(done_drives, total_drives, last_result)`` is called as tasks finish.
     ``client``: an existing ``dask.distributed.Client`` (then ``scheduler``/``workers`` are unused).
@@ -148,11 +152,11 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
     try:
         n_workers = len(client.scheduler_info().get("workers", {}))
         if chain:
-            futures = [client.submit(_vehicle_task, sorted(paths), config, out_dir, vehicle, diagnose,
+            futures = [client.submit(_vehicle_task, sorted(paths), config, out_dir, vehicle, diagnose, sox,
                                      key=f"vehicle-{vehicle}-{i}", pure=False)
                        for i, (vehicle, paths) in enumerate(sorted(by_vehicle.items()))]
         else:
-            futures = [client.submit(_drives_task, group, config, out_dir, diagnose,
+            futures = [client.submit(_drives_task, group, config, out_dir, diagnose, sox,
                                      key=f"drives-{i}-{Path(group[0][0]).name}", pure=False)
                        for i, group in enumerate(stack_groups(logs, stack, max(n_workers, 1)))]
         results: list[DriveResult] = []
@@ -191,25 +195,33 @@ def _quiet_worker() -> None:
 
 
 def _drives_task(group: list[tuple[str, str]], config: str | None, out_dir: str,
-                 diagnose: bool = False) -> list[DriveResult]:
+                 diagnose: bool = False, sox: bool = False) -> list[DriveResult]:
     _quiet_worker()
-    return run_drives(group, config, out_dir, diagnose=diagnose)
+    return run_drives(group, config, out_dir, diagnose=diagnose, sox=sox)
 
 
 def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: str,
-                  diagnose: bool = False) -> list[DriveResult]:
+                  diagnose: bool = False, sox: bool = False) -> list[DriveResult]:
     _quiet_worker()
-    return run_vehicle(logs, config, out_dir, vehicle, chain=True, diagnose=diagnose)
+    return run_vehicle(logs, config, out_dir, vehicle, chain=True, diagnose=diagnose, sox=sox)
 
 
 SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final", "capacity_ah_final", "r0_ohm_final",
                    "r0_ohm_median", "temperature_c_mean", "soc_error_final_pct", "soc_rmse_pct", "cause", "backward_frames",
                    "decode_errors", "rested_s", "chain", "error")
+#: with ``--sox`` (fleet/drive.py's SOX_SUMMARY), after SUMMARY_COLUMNS
+SOX_SUMMARY_COLUMNS = tuple(SOX_SUMMARY)
 
 
-def summary_rows(drives: list[DriveResult]) -> list[dict[str, Any]]:
+def summary_columns(sox: bool = False) -> tuple[str, ...]:
+    return SUMMARY_COLUMNS + (SOX_SUMMARY_COLUMNS if sox else ())
+
+
+def summary_rows(drives: list[DriveResult], sox: bool = False) -> list[dict[str, Any]]:
     """One row per drive and cell (one row per skipped drive, cell = -1, with its error); a cell without
-    a valid sample in its drive has status ``no data``, not ``ok``."""
+    a valid sample in its drive has status ``no data``, not ``ok``. ``sox``: with the SOX columns
+    (:data:`SOX_SUMMARY_COLUMNS`; empty for a drive without them)."""
+    columns = summary_columns(sox)
     rows: list[dict[str, Any]] = []
     for d in drives:
         base = {"vehicle": d.vehicle, "drive": Path(d.path).name, "status": d.status, "samples": d.samples,
@@ -222,7 +234,7 @@ def summary_rows(drives: list[DriveResult]) -> list[dict[str, Any]]:
         valid = d.cells.get("valid_samples")
         for c in range(n):
             row = {**base, "cell": c}
-            for key in SUMMARY_COLUMNS:
+            for key in columns:
                 if key in d.cells:
                     row[key] = d.cells[key][c]
             if valid is not None and valid[c] == 0:  # a cell the log never carried: not an estimate
@@ -230,4 +242,4 @@ def summary_rows(drives: list[DriveResult]) -> list[dict[str, Any]]:
                 row["error"] = (f"no valid sample of cell {c} in the log (pack.n_cells {n}: more cells than "
                                 "the log's pack?)")
             rows.append(row)
-    return [{k: r.get(k) for k in SUMMARY_COLUMNS} for r in rows]
+    return [{k: r.get(k) for k in columns} for r in rows]

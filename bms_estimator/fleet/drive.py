@@ -16,6 +16,18 @@ A single-cell recording in the project's CSV layout (``.csv``/``.csv.gz``,
 a one-cell pack: its 1 s bins are the samples (:meth:`.samples.SampleArrays.from_recording`),
 the estimator is the configuration's with ``n_cells = 1``.
 
+SOP/SOE/SOH (``sox=True``, ``batch --sox``): each drive also runs the service's
+:class:`~bms_estimator.core.sox.SoxEstimator` (built by the service, as the daemon builds its
+own) after the estimator, sample by sample (:func:`.estimate.estimate_drive`); its per-cell
+outputs go to the Parquet (:attr:`SoxEstimator.output_keys`) and the summary gets per cell the
+final capacity and resistance SOH (the capacity SOH with its 1-sigma; the core has none for the
+resistance SOH), the final energy left (SOE) and the energy out and in during the drive. Chained,
+the SOX state is carried with the estimator's (the daemon's state file layout,
+:func:`~bms_estimator.service.state.resume_sox`) and rested over the time between drives. Drives
+with SOX run one by one, never stacked: the SOX part does not keep stacked drives apart (its
+learnt-resistance correction is refreshed for every cell when any cell scores a window, so a
+drive's limits would depend on the drives beside it).
+
 A drive is reported and skipped (never fatal to the batch) when its log is unreadable or
 corrupt, empty, holds no frame the configured DBC and mapping decode (another DBC), or
 its timestamps go back by more than the sampler's rewind limit (a reset; a chained state
@@ -40,6 +52,7 @@ from ..core.soc import SocEstimator
 from ..data import check_charge_span, load_recording
 from ..errors import BmsEstimatorError, DataError, one_line_error
 from ..scoring import counted_soc, soc_error_figures
+from ..service.state import resume_sox
 from .assemble import assemble_samples
 from .decode import decode_frames
 from .estimate import DriveEstimate, carry_state, estimate_drive, rest_between_drives
@@ -53,6 +66,12 @@ __all__ = ["DriveResult", "drive_order_key", "run_drive", "run_drives", "run_veh
 #: per-cell series written to each drive's Parquet (besides t_s, cell, valid, current_a)
 PARQUET_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s", "c0_v", "capacity_ah",
                 "temperature_c", "voltage_v")
+
+#: per-cell summary values of a drive with SOX (its last sample's value, or the change over the drive) -> the
+#: SoxEstimator output (or energy counter) it is read from
+SOX_SUMMARY = {"soh_capacity_final": "soh_capacity", "soh_capacity_sigma_final": "soh_capacity_sigma",
+               "soh_resistance_final": "soh_resistance", "energy_left_wh_final": "energy_left_wh",
+               "energy_discharged_wh": "energy_discharged_wh", "energy_charged_wh": "energy_charged_wh"}
 
 _SETUPS: dict[tuple[str, float], Any] = {}
 
@@ -175,6 +194,9 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
             rmse.append(soc_error_figures(est.cells["soc"][:, c], soc_ref, est.t_s, float(est.t_s[0]))["rmse_all_pct"])
         out["soc_error_final_pct"] = final
         out["soc_rmse_pct"] = rmse
+    if est.sox_keys:
+        for key, name in SOX_SUMMARY.items():
+            out[key] = (est.energy_wh[name] if name in est.energy_wh else est.cells[name][-1]).tolist()
     return out
 
 
@@ -230,7 +252,7 @@ def _write_parquet(path: Path, est: DriveEstimate) -> None:
         "valid": est.valid.reshape(-1),
         "current_a": np.repeat(est.current_a, n),
     }
-    for key in PARQUET_KEYS:
+    for key in PARQUET_KEYS + est.sox_keys:
         if key in est.cells:
             cols[key] = est.cells[key].reshape(-1)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -297,9 +319,12 @@ def _skipped(res: DriveResult, exc: BaseException) -> DriveResult:
 
 def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle: str,
               state: dict[str, np.ndarray] | None = None, *, write: bool = True, diagnose: bool = False,
-              previous_end_s: float | None = None,
+              previous_end_s: float | None = None, sox: bool = False,
               ) -> tuple[DriveResult, dict[str, np.ndarray] | None, DriveEstimate | None]:
     """One drive; never raises for a bad log (the result says what was wrong).
+
+    ``sox``: also run the service's SOP/SOE/SOH part (module docstring); a carried ``state``'s SOX
+    part (``sox.`` keys) resumes it.
 
     ``diagnose``: also name each cell's model error with ``diagnose`` (:func:`_diagnose_cells`;
     slow: seconds per cell-hour).  ``previous_end_s``: with a carried ``state``, the previous
@@ -316,9 +341,10 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
         svc, samples = _samples_of(log, config, res)
         t3 = time.perf_counter()
         est = carry_state(svc._new_estimator, state)  # noqa: SLF001 - the service's own factory
+        sox_est = resume_sox(svc._new_sox, state or {}) if sox else None  # noqa: SLF001 - likewise
         if state is not None:
-            res.rested_s, res.chain = rest_between_drives(est, previous_end_s, samples)
-        out = estimate_drive(samples, est, svc.decoder, svc.sampler)
+            res.rested_s, res.chain = rest_between_drives(est, previous_end_s, samples, sox_est)
+        out = estimate_drive(samples, est, svc.decoder, svc.sampler, sox=sox_est)
         res.seconds["estimate"] = time.perf_counter() - t3
         res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
         _finish(res, log, svc, samples, out, out_dir, vehicle, write, diagnose)
@@ -339,7 +365,7 @@ def _stack_factory(svc):
 
 
 def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | Path, *, write: bool = True,
-               diagnose: bool = False) -> list[DriveResult]:
+               diagnose: bool = False, sox: bool = False) -> list[DriveResult]:
     """Independent drives ((log, vehicle) each, every one from a fresh estimator), their estimation stacked.
 
     Each drive is read, decoded and assembled on its own; then the drives of one pack layout
@@ -347,7 +373,8 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
     drive's results are those it has alone, bit for bit), which shares the estimator's
     per-sample overhead among them. A drive's ``seconds["estimate"]`` and its CPU seconds hold
     its share (1/S) of the stacked run; ``counters["stacked_with"]`` says how many ran together.
-    If the drives cannot run stacked, they run one by one. Never raises for a bad log.
+    If the drives cannot run stacked, they run one by one; with ``sox`` (the SOP/SOE/SOH part, see
+    the module docstring) they always do (``counters["stacked_with"]`` 1). Never raises for a bad log.
     """
     results: list[DriveResult] = []
     ready: dict[int, list[tuple[DriveResult, Path, Any, SampleArrays]]] = {}
@@ -365,18 +392,22 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
     for group in ready.values():
         svc = group[0][2]
         t0, c0 = time.perf_counter(), time.process_time()
+        outs: list[DriveEstimate | None] = [None] * len(group)
+        together = 1
         try:
-            outs: list[DriveEstimate | None] = estimate_stacked([g[3] for g in group], _stack_factory(svc))
-            wall, cpu = (time.perf_counter() - t0) / len(group), (time.process_time() - c0) / len(group)
-            together = len(group)
+            if not sox:  # SOX keeps no stacked drives apart: one by one
+                outs = estimate_stacked([g[3] for g in group], _stack_factory(svc))
+                wall, cpu = (time.perf_counter() - t0) / len(group), (time.process_time() - c0) / len(group)
+                together = len(group)
         except (StackError, MemoryError) as exc:  # then one by one (each with the service's error handling)
             _log.warning("drives run one by one", reason=str(exc))
-            outs, together = [None] * len(group), 1
+            outs = [None] * len(group)
         for (res, path, _svc, samples), out in zip(group, outs):
             try:
                 if out is None:
                     t0, c0 = time.perf_counter(), time.process_time()
-                    out = estimate_drive(samples, svc._new_estimator())  # noqa: SLF001
+                    out = estimate_drive(samples, svc._new_estimator(),  # noqa: SLF001
+                                         sox=svc._new_sox() if sox else None)  # noqa: SLF001
                     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
                 res.seconds["estimate"] = wall
                 res.seconds["cpu"] += cpu
@@ -408,7 +439,7 @@ def _finish(res: DriveResult, log: Path, svc, samples: SampleArrays, out: DriveE
 
 
 def run_vehicle(logs: list[str], config: str | None, out_dir: str | Path, vehicle: str,
-                chain: bool = True, diagnose: bool = False) -> list[DriveResult]:
+                chain: bool = True, diagnose: bool = False, sox: bool = False) -> list[DriveResult]:
     """A vehicle's drives in time order, the estimator state carried from each to the next, rested over the
     time between them when the logs carry absolute times (a skipped drive carries nothing: the next good one
     rests from the last good one's end)."""
@@ -416,7 +447,7 @@ def run_vehicle(logs: list[str], config: str | None, out_dir: str | Path, vehicl
     state, end_s = None, None
     for log in sorted(logs, key=drive_order_key):
         res, new_state, out = run_drive(log, config, out_dir, vehicle, state if chain else None, diagnose=diagnose,
-                                        previous_end_s=end_s)
+                                        previous_end_s=end_s, sox=sox)
         if chain:
             state = new_state
             if out is not None and len(out):

@@ -6,23 +6,32 @@ finite, else no update; then the per-cell values the service's snapshot would ca
 written into row k of preallocated ``(K, N)`` arrays. The results are the service's: the
 same estimator object, fed the same arguments sample by sample, in time order. What the
 batch does not need per sample is left out: the snapshot object, its pack statistics and
-status counters, the output hooks (SOX is not part of the batch's outputs). Values that
+status counters, the output hooks. Values that
 are functions of others are computed once over the whole drive, with the snapshot's own
 arithmetic: ``tau1_s = r1_ohm * c1_f``, ``tau2_s = r2_ohm * c2_f`` (elementwise, so bit
 for bit the per-sample values); ``voltage_v`` and ``temperature_c`` are the samples'.
+
+SOP/SOE/SOH (``batch --sox``): with a :class:`~bms_estimator.core.sox.SoxEstimator` given,
+each update is followed by ``SoxEstimator.update(est, i, v, valid)``, as the pipeline's tick
+does, and row k also holds the per-cell values of ``SoxEstimator.outputs`` the snapshot carries
+(its keys: ``SoxEstimator.output_keys``, the service's MQTT cell keys); before the drive's first
+update they are NaN (the snapshot has none yet). The pack figures (``pack_outputs``) are not
+kept. The drive's energy in and out per cell (the SOX counters' change over the drive) is
+``DriveEstimate.energy_wh``.
 
 A sample whose update raises is logged and counted (``tick_errors``) and its row stays
 NaN, as the service's tick does (logged, no snapshot).
 
 Gaps: a sample that does not follow the previous one (the sampler's grid re-anchored on a time
 jump) rests the estimator over the hole first, as the service's pipeline does
-(``SocEstimator.rest``: the pack parked).
+(:func:`~bms_estimator.core.sox.rest_estimators`: the pack parked; the SOX part first when given).
 
 Chaining: a vehicle's drives in time order, the estimator state carried from one drive to
 the next as the service carries it across a restart: ``SocEstimator.state_dict()`` at the
-end of a drive (what ``service/state.py`` saves), ``load_state_dict`` into a fresh
-estimator for the next (what the daemon's ``restore`` does); decoder and sampler start
-fresh, as after a restart.  The time between the drives is rested over
+end of a drive (:func:`~bms_estimator.service.state.estimator_state`: what the daemon saves,
+with the SOX part under ``sox.``), ``load_state_dict`` into a fresh estimator for the next (what
+the daemon's ``restore`` does; the SOX part by :func:`~bms_estimator.service.state.resume_sox`);
+decoder and sampler start fresh, as after a restart.  The time between the drives is rested over
 (:func:`rest_between_drives`) when both logs carry absolute times: frame times that are
 epoch seconds (from 2000-01-01 on, :data:`EPOCH_MIN_S`), as candump ``.log`` and ``.blf``
 files and ``.mf4`` files with their start time carry them; an ``.asc`` file (python-can
@@ -41,11 +50,13 @@ import structlog
 
 from ..can.sampler import gap_before_s
 from ..core.soc import SocEstimator
+from ..core.sox import SoxEstimator, rest_estimators
 from ..service.schema import CELL_FIELDS
+from ..service.state import estimator_state
 from .samples import SampleArrays
 
 __all__ = ["DriveEstimate", "EPOCH_MIN_S", "estimate_drive", "carry_state", "finish_estimate", "output_getters",
-           "rest_between_drives", "sample_gaps"]
+           "rest_between_drives", "sample_gaps", "sox_getters"]
 
 #: frame times from this on (2000-01-01 00:00 UTC) are epoch seconds: the log carries absolute times
 EPOCH_MIN_S = 946_684_800.0
@@ -66,6 +77,9 @@ class DriveEstimate:
     cells: dict[str, np.ndarray]
     state: dict[str, np.ndarray] = field(repr=False)  # estimator state at the end (for the next drive)
     tick_errors: int = 0  # samples whose update raised (their row is NaN)
+    sox_keys: tuple[str, ...] = ()  # the SOX outputs among cells (batch --sox), in SoxEstimator.output_keys order
+    # with SOX: (N,) Wh per cell that went out ("energy_discharged_wh") and in ("energy_charged_wh") in this drive
+    energy_wh: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -88,10 +102,11 @@ def sample_gaps(t_s: np.ndarray, period_s: float) -> np.ndarray:
     return gaps
 
 
-def rest_between_drives(est: SocEstimator, previous_end_s: float | None, samples: SampleArrays
-                        ) -> tuple[float | None, str]:
-    """Rest a carried estimator over the time between the previous drive's last sample (its end,
-    ``previous_end_s``) and this drive's first period; returns ``(seconds rested or None, what was done)``."""
+def rest_between_drives(est: SocEstimator, previous_end_s: float | None, samples: SampleArrays,
+                        sox: SoxEstimator | None = None) -> tuple[float | None, str]:
+    """Rest a carried estimator (and its SOX part, when given) over the time between the previous drive's
+    last sample (its end, ``previous_end_s``) and this drive's first period; returns ``(seconds rested or
+    None, what was done)``."""
     if previous_end_s is None:
         return None, "not rested: the previous drive's end is unknown"
     start = float(samples.t_s[0]) - samples.period_s
@@ -102,7 +117,7 @@ def rest_between_drives(est: SocEstimator, previous_end_s: float | None, samples
         return None, f"not rested: starts {-gap:.0f} s before the previous drive ended"
     if gap <= 0.5 * samples.period_s:
         return 0.0, "contiguous with the previous drive"
-    est.rest(gap)
+    rest_estimators(est, sox, gap)
     return gap, f"rested {gap:.0f} s since the previous drive (parked)"
 
 
@@ -126,8 +141,22 @@ def output_getters(est: SocEstimator) -> list[tuple[str, Callable[[], np.ndarray
             *((key, attr(name)) for key, name in _estimator_fields(est))]
 
 
+def sox_getters(sox: SoxEstimator) -> list[tuple[str, Callable[[], np.ndarray | float]]]:
+    """(key, call) per per-cell SOX output (:attr:`SoxEstimator.output_keys`); each call returns the (N,)
+    value now, NaN before the first update (when the snapshot carries none)."""
+    def out(key: str) -> Callable[[], np.ndarray | float]:
+        return lambda: sox.outputs.get(key, math.nan)
+
+    return [(key, out(key)) for key in sox.output_keys]
+
+
+#: the SOX energy counters (Wh out, Wh in) whose change over a drive is its energy
+ENERGY_COUNTERS = ("energy_discharged_wh", "energy_charged_wh")
+
+
 def finish_estimate(samples: SampleArrays, cells: dict[str, np.ndarray], state: dict[str, np.ndarray],
-                    errors: int) -> DriveEstimate:
+                    errors: int, sox_keys: tuple[str, ...] = (),
+                    energy_wh: dict[str, np.ndarray] | None = None) -> DriveEstimate:
     """The drive's estimate from the per-step outputs ``cells`` ((K, N) each): the derived and input columns added."""
     with np.errstate(all="ignore"):
         cells["tau1_s"] = cells["r1_ohm"] * cells["c1_f"]
@@ -135,17 +164,26 @@ def finish_estimate(samples: SampleArrays, cells: dict[str, np.ndarray], state: 
     cells["voltage_v"] = np.array(samples.cell_voltage_v, dtype=float, copy=True)
     cells["temperature_c"] = np.array(samples.cell_temperature_c, dtype=float, copy=True)
     return DriveEstimate(t_s=samples.t_s.copy(), current_a=samples.current_a.copy(), valid=samples.valid.copy(),
-                         cells=cells, state=state, tick_errors=errors)
+                         cells=cells, state=state, tick_errors=errors, sox_keys=sox_keys,
+                         energy_wh=energy_wh or {})
 
 
-def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None, sampler=None) -> DriveEstimate:
-    """Run ``estimator`` over every sample of one drive; row k of each output is the service's snapshot after sample k.
+def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None, sampler=None,
+                   sox: SoxEstimator | None = None) -> DriveEstimate:
+    """Run ``estimator`` (and ``sox`` after it, when given) over every sample of one drive; row k of each
+    output is the service's snapshot after sample k.
 
     (``decoder``/``sampler`` are accepted for the callers of the snapshot-based version and not used.)
     """
     k = len(samples)
     est = estimator
     getters = output_getters(est)
+    sox_keys: tuple[str, ...] = ()
+    if sox is not None:
+        more = sox_getters(sox)
+        sox_keys = tuple(key for key, _ in more)
+        getters += more
+        energy0 = {key: np.array(getattr(sox, key), copy=True) for key in ENERGY_COUNTERS}
     store = {key: np.empty((k, samples.n_cells)) for key, _ in getters}  # every row is written below (NaN on error)
     targets = [(store[key], get) for key, get in getters]
     current = samples.current_a.tolist()  # Python floats, as Sample carries them
@@ -157,10 +195,12 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
     for i in range(k):
         try:
             if gaps[i]:
-                est.rest(gaps[i])
+                rest_estimators(est, sox, gaps[i])
             c = current[i]
             if current_valid[i] and isfinite(c):
                 update(c, volts[i], valid[i], temperature_c=temps[i])
+                if sox is not None:
+                    sox.update(est, c, volts[i], valid[i])
             for out, get in targets:
                 out[i] = get()
         except Exception as exc:  # noqa: BLE001 - the service's tick logs, counts and goes on; so does the batch
@@ -170,5 +210,7 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
             if errors <= 5:
                 log.error("estimator step failed", sample=i, t_s=float(samples.t_s[i]),
                           error=f"{type(exc).__name__}: {exc}", exc_info=exc)
-    state = {key: np.array(v, copy=True) for key, v in est.state_dict().items()}
-    return finish_estimate(samples, store, state, errors)
+    energy = None
+    if sox is not None:
+        energy = {key: np.asarray(getattr(sox, key), dtype=float) - energy0[key] for key in ENERGY_COUNTERS}
+    return finish_estimate(samples, store, estimator_state(est, sox), errors, sox_keys, energy)

@@ -75,7 +75,7 @@ from .metrics import ServiceMetrics
 from .mqtt import MqttPublisher
 from .pipeline import Pipeline, Snapshot
 from .schema import EstimatorState
-from .state import _move_aside, load_state, save_state
+from .state import _move_aside, estimator_state, load_state, resume_sox, save_state
 
 __all__ = ["DEFAULT_OCV_CELL", "Service", "ServiceMetrics", "run_service"]
 
@@ -285,16 +285,7 @@ class Service:
     def _restore_sox(self, saved: Any) -> None:
         """The SOX part of a resumed state (the commissioning R0, energy counters); a state without
         it (older files) or one that does not fit starts these afresh, the SOC state stays resumed."""
-        sox = self._new_sox()
-        part = {k[4:]: v for k, v in dict(saved).items() if k.startswith("sox.")}
-        if part:
-            try:
-                sox.load_state_dict(part)
-            except Exception as exc:  # noqa: BLE001 - ValueError, KeyError, shape errors...
-                log.warning("saved SOP/SOE/SOH state not used; starting it fresh",
-                            reason=f"{type(exc).__name__}: {exc}")
-                sox = self._new_sox()
-        self.pipeline.sox = sox
+        self.pipeline.sox = resume_sox(self._new_sox, saved)
 
     # ---------------------------------------------------------------- outputs
     def _on_snapshot(self, snap: Snapshot) -> None:
@@ -353,9 +344,7 @@ class Service:
         else:
             saved_at = time.time()
         # own copies: the worker thread writes them while the estimator moves on
-        state = {k: np.array(v, copy=True) for k, v in est.state_dict().items()}
-        if self.pipeline.sox is not None:
-            state.update({f"sox.{k}": np.array(v, copy=True) for k, v in self.pipeline.sox.state_dict().items()})
+        state = estimator_state(est, self.pipeline.sox)
         return state, meta, saved_at
 
     async def _write(self, state: dict[str, Any], meta: dict[str, Any], saved_at: float) -> bool:

@@ -29,7 +29,7 @@ import tempfile
 import time
 import zipfile
 import zlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +42,9 @@ __all__ = [
     "FORMAT_TAG",
     "FORMAT_VERSION",
     "StateDict",
+    "estimator_state",
     "load_state",
+    "resume_sox",
     "save_state",
 ]
 
@@ -338,3 +340,31 @@ def _load(
     out.meta = meta
     log.info("estimator state restored", path=str(path), age_s=round(max(0.0, age), 1), keys=len(out))
     return out
+
+
+#: the prefix of the SOP/SOE/SOH part's keys in a state (the rest is the SOC estimator's)
+SOX_PREFIX = "sox."
+
+
+def estimator_state(est: Any, sox: Any = None) -> dict[str, np.ndarray]:
+    """What a state file holds of the estimators: ``est.state_dict()`` and, when given, the SOX part's
+    ``state_dict()`` under :data:`SOX_PREFIX`; own copies (a writer may hold them while the estimators go on)."""
+    state = {k: np.array(v, copy=True) for k, v in est.state_dict().items()}
+    if sox is not None:
+        state.update({f"{SOX_PREFIX}{k}": np.array(v, copy=True) for k, v in sox.state_dict().items()})
+    return state
+
+
+def resume_sox(make_sox: Callable[[], Any], saved: Mapping[str, Any]) -> Any:
+    """A fresh SOX estimator from ``make_sox()``, resumed from the SOX part of ``saved`` (an
+    :func:`estimator_state`); a state without it (older files) or one that does not fit starts it
+    afresh (logged), whatever the SOC part does."""
+    sox = make_sox()
+    part = {k[len(SOX_PREFIX):]: v for k, v in dict(saved).items() if k.startswith(SOX_PREFIX)}
+    if part:
+        try:
+            sox.load_state_dict(part)
+        except Exception as exc:  # noqa: BLE001 - ValueError, KeyError, shape errors...
+            log.warning("saved SOP/SOE/SOH state not used; starting it fresh", reason=f"{type(exc).__name__}: {exc}")
+            sox = make_sox()
+    return sox

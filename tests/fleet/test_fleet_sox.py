@@ -1,0 +1,170 @@
+"""``batch --sox``: the service's SOP/SOE/SOH per cell, carried across chained drives, in the summary.
+
+Drives: slices of the shipped LG HG2 UDDS recording (one-cell CSV recordings, as ``batch``
+reads them), cut where the cell is inside the resistance SOH's SOC band (0.3..0.8), so that
+the resistance SOH is defined within a drive; the whole 4.4 h recording for the capacity SOH
+(justified only once the capacity estimate's uncertainty has halved). That the per-cell SOX
+outputs are the service's, bit for bit, is tests/fleet/test_fleet_equivalence.py.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import gzip
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from bms_estimator.core.sox import SoxEstimator
+from bms_estimator.data import load_recording
+from bms_estimator.fleet.batch import SOX_SUMMARY_COLUMNS, summary_rows
+from bms_estimator.fleet.drive import run_drive, run_drives, run_vehicle, service_for
+from bms_estimator.fleet.estimate import carry_state, rest_between_drives
+from bms_estimator.fleet.samples import SampleArrays
+from bms_estimator.service.state import load_state, resume_sox, save_state
+
+from .fleet_helpers import write_batch_config
+
+ROOT = Path(__file__).parents[2]
+SAMPLE = ROOT / "bms_estimator" / "samples" / "lg-hg2_25degC_udds_1s.csv.gz"
+SLICES = ((3000, 5500), (5500, 8000))  # rows (seconds) of the recording: SOC about 0.75 -> 0.55
+
+
+@pytest.fixture(scope="module")
+def slices(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet-sox")
+    lines = gzip.open(SAMPLE, "rt").read().splitlines()
+    head, rows = lines[0], [r.split(",") for r in lines[1:]]
+    logs = []
+    for k, (a, b) in enumerate(SLICES):
+        out = d / "car1" / f"drive{k}.csv"
+        out.parent.mkdir(exist_ok=True)
+        t0 = float(rows[a][0])
+        out.write_text(head + "\n" + "\n".join(",".join([f"{float(r[0]) - t0:g}", *r[1:]]) for r in rows[a:b]) + "\n")
+        logs.append(out)
+    return d, logs, write_batch_config(d, 1, "fleet-sox")
+
+
+def _column(parquet: str, key: str) -> np.ndarray:
+    return pq.read_table(parquet).column(key).to_numpy()
+
+
+def test_chained_drives_carry_the_soh_and_the_energy_across_drives(slices, tmp_path):
+    d, logs, cfg = slices
+    chained = run_vehicle([str(p) for p in logs], str(cfg), tmp_path / "chained", "car1", sox=True)
+    alone = run_vehicle([str(p) for p in logs], str(cfg), tmp_path / "alone", "car1", sox=True, chain=False)
+    assert [r.status for r in chained + alone] == ["ok"] * 4
+    # drive 2 alone commissions its R0 again: no resistance SOH for its first 600 s in the SOC band;
+    # chained it has drive 1's commissioning R0 from its first sample on
+    soh_alone = _column(alone[1].parquet, "soh_resistance")
+    soh_chained = _column(chained[1].parquet, "soh_resistance")
+    assert np.isnan(soh_alone[:600]).all() and np.isfinite(soh_alone[-1])  # finite from 750 s on
+    assert np.isfinite(soh_chained).all()
+    soh1 = chained[0].cells["soh_resistance_final"][0]
+    assert 0.8 < soh1 < 1.2 and soh_chained[0] == pytest.approx(soh1, rel=0.01)
+    # the counters go on: drive 2's Wh out starts where drive 1's ended; the summary has each drive's own
+    out1 = _column(chained[0].parquet, "energy_discharged_wh")
+    out2 = _column(chained[1].parquet, "energy_discharged_wh")
+    assert out2[0] >= out1[-1] > 0
+    assert chained[1].cells["energy_discharged_wh"][0] == pytest.approx(out2[-1] - out1[-1], rel=1e-9)
+    # the energy of a drive does not depend on the state it starts from (up to the counter's rounding)
+    assert chained[1].cells["energy_discharged_wh"] == pytest.approx(alone[1].cells["energy_discharged_wh"], rel=1e-9)
+    assert 0 < chained[1].cells["energy_charged_wh"][0] < chained[1].cells["energy_discharged_wh"][0]
+    # the carried state is the daemon's state file: saved and loaded, it resumes drive 2 the same
+    _, state1, _ = run_drive(logs[0], str(cfg), tmp_path / "x", "car1", sox=True)
+    assert any(k.startswith("sox.") for k in state1)
+    save_state(tmp_path / "state.npz", state1, {"pack_id": "car1", "n_cells": 1})
+    loaded = load_state(tmp_path / "state.npz", pack_id="car1", n_cells=1, max_age_s=None)
+    _, _, est2 = run_drive(logs[1], str(cfg), tmp_path / "x", "car1", dict(loaded), sox=True)
+    for key in est2.sox_keys + ("soc",):
+        assert np.array_equal(est2.cells[key].reshape(-1), _column(chained[1].parquet, key), equal_nan=True), key
+
+
+def test_the_carried_sox_state_is_rested_over_the_gap(slices):
+    d, logs, cfg = slices
+    _, state, _ = run_drive(logs[0], str(cfg), d / "x", "car1", sox=True)
+    svc = service_for(str(cfg), n_cells=1)
+    samples = SampleArrays.from_recording(load_recording(logs[1]), 1.0)
+    before = np.asarray(state["sox.mean_current_a"], dtype=float)
+    assert np.all(np.abs(before) > 0)
+    epoch = 1.7e9  # the drive's samples on epoch times: its logs carry absolute times
+    shifted = dataclasses.replace(samples, t_s=samples.t_s + epoch)
+    est = carry_state(svc._new_estimator, state)
+    sox = resume_sox(svc._new_sox, state)
+    gap, what = rest_between_drives(est, epoch - 1800.0, shifted, sox)
+    assert gap == pytest.approx(1800.0) and "rested" in what
+    tau = svc.cfg.estimator.sox_config.soe.mean_current_tau_s
+    assert np.allclose(sox.mean_current_a, before * math.exp(-1800.0 / tau), rtol=1e-12)
+
+
+def test_summary_has_the_soh_columns_finite_where_defined(slices, tmp_path):
+    d, logs, cfg = slices
+    res, state, est = run_drive(SAMPLE, str(cfg), tmp_path, "lg", sox=True)  # 4.4 h: the capacity is estimated
+    assert res.status == "ok" and bool(state["capacity_estimated"][0])
+    rows = summary_rows([res], sox=True)
+    assert set(SOX_SUMMARY_COLUMNS) <= set(rows[0])
+    row = rows[0]
+    for key in SOX_SUMMARY_COLUMNS:
+        assert math.isfinite(row[key]), key
+    assert 0.8 < row["soh_capacity_final"] < 1.1 and 0 < row["soh_capacity_sigma_final"] < 0.1
+    assert row["soh_capacity_final"] == pytest.approx(est.cells["capacity_ah"][-1, 0] / 3.0, rel=1e-12)
+    assert 0.5 < row["soh_resistance_final"] < 1.5
+    # undefined until the capacity is justified: NaN before, then finite to the end
+    soh = est.cells["soh_capacity"][:, 0]
+    first = int(np.flatnonzero(np.isfinite(soh))[0])
+    assert first > 600 and np.isnan(soh[:first]).all() and np.isfinite(soh[first:]).all()
+    # the energy left at the end of a drive to 6 % SOC is a small part of the 10.8 Wh cell; out > in
+    assert 0 <= row["energy_left_wh_final"] < 1.5 and row["energy_discharged_wh"] > row["energy_charged_wh"] > 0
+    # without sox: the summary's columns as before
+    plain, _, _ = run_drive(SAMPLE, str(cfg), tmp_path, "lg", write=False)
+    assert not set(SOX_SUMMARY_COLUMNS) & set(summary_rows([plain])[0])
+
+
+def test_sox_drives_run_one_by_one_as_run_drive_runs_them(slices, tmp_path):
+    d, logs, cfg = slices
+    results = run_drives([(str(p), "car1") for p in logs], str(cfg), tmp_path / "group", sox=True)
+    assert [r.counters.get("stacked_with") for r in results] == [1, 1]
+    for log, res in zip(logs, results):
+        solo, _, est = run_drive(log, str(cfg), tmp_path / "solo", "car1", sox=True)
+        table = pq.read_table(res.parquet)
+        assert table.column_names == pq.read_table(solo.parquet).column_names
+        for key in est.sox_keys:
+            assert np.array_equal(table.column(key).to_numpy(), est.cells[key].reshape(-1), equal_nan=True), key
+        assert res.cells.keys() == solo.cells.keys()
+        for key, values in solo.cells.items():
+            assert np.array_equal(res.cells[key], values, equal_nan=True), key
+
+
+def test_cli_batch_sox_writes_the_soh_columns(slices, tmp_path):
+    d, logs, cfg = slices
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "bms_estimator.cli", "batch", str(d / "car1"), "--config", str(cfg),
+                           "--out", str(out), "--chain", "--sox", "--workers", "1", "--no-progress"],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with (out / "summary.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["drive"] for r in rows] == ["drive0.csv", "drive1.csv"]
+    for r in rows:
+        for key in ("soh_resistance_final", "energy_left_wh_final", "energy_discharged_wh", "energy_charged_wh"):
+            assert math.isfinite(float(r[key])), key
+        assert r["soh_capacity_final"] in ("", "nan")  # not justified within these drives
+    parquet = out / "drives" / "car1" / "drive1.csv.parquet"
+    assert {"i_discharge_max_10s_a", "i_charge_max_10s_a", "energy_left_wh", "soh_capacity",
+            "soh_resistance"} <= set(pq.read_table(parquet).column_names)
+
+
+def test_output_keys_are_the_outputs_after_the_first_update(slices):
+    svc = service_for(str(slices[2]), n_cells=3)
+    est, sox = svc._new_estimator(), svc._new_sox()
+    assert isinstance(sox, SoxEstimator) and sox.outputs == {}
+    est.update(-1.0, np.full(3, 3.9), np.ones(3, bool), temperature_c=np.full(3, 25.0))
+    sox.update(est, -1.0, np.full(3, 3.9), np.ones(3, bool))
+    assert tuple(sox.outputs) == sox.output_keys
+    assert "energy_charged_wh" in sox.state_dict() and "energy_charged_wh" not in sox.outputs
