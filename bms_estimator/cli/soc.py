@@ -15,8 +15,8 @@ from ..core.soc import SOC_METHODS, SocConfig
 from ..errors import DataError
 from ..gaps import recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
-from .common import (add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float,
-                     soc_config, soc_difference, soc_fraction, write_json)
+from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
+                     load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
 
 #: A C/20 table within this of the recording's median temperature is "the same ambient".
 SAME_AMBIENT_K = 5.0
@@ -62,11 +62,7 @@ def add_parser(sub) -> None:
     p.add_argument("--reference-capacity-ah", type=positive_float, default=None,
                    help="count the reference with this capacity instead (e.g. a recording without a final rest)")
     add_method_option(p, IdentifierConfig().method, "(the SOC estimator's identification)")
-    p.add_argument("--no-rest-over-gaps", dest="rest_over_gaps", action="store_false",
-                   help="feed the file's logging gaps (no sample for longer than the service bridges, "
-                        f"{MAX_GAP_S:g} s; load_recording fills them) as contiguous samples, instead of resting the "
-                        "estimator over them as the service does at a time jump (default: rest; the samples inside "
-                        "a gap are not fed and hold the last estimate)")
+    add_rest_over_gaps_option(p, "the samples inside a gap are not fed and hold the last estimate")
     p.add_argument("--trace", type=Path, default=None,
                    help="write time_s,soc,soc_sigma,soc_reference,soc_counted,capacity_ah,temperature_c,fed (CSV) "
                         "here, one row per sample of the file's time base; fed = 0 in a logging gap rested over, "
