@@ -139,19 +139,21 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
     capacity = np.full(len(recs), np.nan)
     for key, cells in parts.items():
         plan = None if key is None else plans[cells[0]]
-        run = _run_cells([recs[c] for c in cells], [starts[c] for c in cells], ocv, stated_ah, config, plan)
-        out[: len(run.soc), cells] = run.soc
-        sigma[: len(run.soc), cells] = run.soc_sigma
+        run = _run_cells([recs[c] for c in cells], [starts[c] for c in cells], ocv, stated_ah, config, plan, n_max)
+        out[:, cells] = run.soc
+        sigma[:, cells] = run.soc_sigma
         capacity[cells] = run.capacity_ah
     return GroupRun(out, sigma, capacity)
 
 
 def _run_cells(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
-               plan: RestPlan | None) -> GroupRun:
-    """:func:`run_group`'s cells of one estimator: every sample fed (``plan`` None; shorter recordings
-    padded with invalid samples), or the samples of one recording by its ``plan``."""
+               plan: RestPlan | None, n_max: int) -> GroupRun:
+    """:func:`run_group`'s cells of one estimator over ``n_max`` samples: every sample fed (``plan`` None), or
+    the samples of one recording by its ``plan``; past a recording's end, invalid samples.  (Every estimator
+    runs to the group's longest recording, as the one estimator did before the gaps were rested over: the c0
+    method's capacity keeps taking anchors from a stable c0 window after a file's end, so its end capacity
+    depends on how long the group runs on.)"""
     n_cells = len(recs)
-    n_max = max(len(r) for r in recs)
     cur = np.full((n_max, n_cells), np.nan)
     vol = np.full((n_max, n_cells), np.nan)
     tmp = np.full((n_max, n_cells), np.nan)
@@ -171,7 +173,7 @@ def _run_cells(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: floa
     out = np.full((n_max, n_cells), np.nan)
     sigma = np.full((n_max, n_cells), np.nan)
     for k in range(n_max):
-        if plan is not None:
+        if plan is not None and k < plan.fed.size:
             if not plan.fed[k]:  # in a logging gap: not fed, the estimate held (k > 0: sample 0 is logged)
                 out[k], sigma[k] = out[k - 1], sigma[k - 1]
                 continue

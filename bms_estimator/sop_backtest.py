@@ -64,9 +64,9 @@ from .core.soe import SoeConfig, energy_left_wh
 from .core.sop import SopConfig, predict_voltage, sop_limits
 from .core.sop_residual import ResidualConfig
 from .core.sox import SoxConfig, SoxEstimator, rest_estimators
-from .gaps import logging_gaps, rest_plan
+from .gaps import rest_plan
 
-__all__ = ["BacktestResult", "find_pulses", "logging_gaps", "run_backtest", "summary"]
+__all__ = ["BacktestResult", "find_pulses", "run_backtest", "summary"]
 
 MIN_REST_S = 60.0  # rest before a pulse
 MAX_PULSE_S = 60.0  # a longer current run is not a pulse
