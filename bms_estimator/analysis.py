@@ -223,6 +223,7 @@ def run_soc(
     temperature_c: np.ndarray | None = None,
     start_index: int = 0,
     rest_s: np.ndarray | None = None,
+    fed: np.ndarray | None = None,
 ) -> SocRun:
     """The online SOC estimator over a recording (one cell).
 
@@ -231,12 +232,18 @@ def run_soc(
     ``temperature_c`` (per sample) reads the OCV at the cell temperature when
     ``ocv`` holds several tables.  ``rest_s`` (per sample): seconds without samples
     before sample ``k`` (a recording with holes, fed contiguously), rested over first
-    (``SocEstimator.rest``: the cell parked).
+    (``SocEstimator.rest``: the cell parked).  ``fed`` (per sample; None: all): the
+    samples the estimator is fed; the others (a file's logging gaps,
+    :func:`bms_estimator.gaps.rest_plan`) are skipped and hold the state of the last
+    fed sample, as the service publishes nothing new while it has no samples.  A start
+    on a sample not fed begins at the next fed one.
     """
     n = len(current_a)
     k0 = int(start_index)
     if not 0 <= k0 < n:
         raise ValueError(f"start sample {k0} is outside the recording (0..{n - 1})")
+    if fed is not None and np.shape(fed) != (n,):
+        raise ValueError(f"fed has shape {np.shape(fed)}, the recording {n} samples")
     est = SocEstimator(1, ocv, capacity_ah, dt_s, initial_soc=initial_soc, config=config)
     soc = np.full(n, np.nan)
     sigma = np.full(n, np.nan)
@@ -244,9 +251,16 @@ def run_soc(
     traj = {k: np.full(n, np.nan) for k in PARAM_KEYS}
     v1 = np.empty(1)
     t1 = None if temperature_c is None else np.empty(1)
+    begun = False
     for k in range(k0, n):
-        if rest_s is not None and rest_s[k] > 0 and k > k0:
+        if fed is not None and not fed[k]:
+            if begun:  # a logging gap: the state of the last fed sample held
+                for x in (soc, sigma, cap, *traj.values()):
+                    x[k] = x[k - 1]
+            continue
+        if begun and rest_s is not None and rest_s[k] > 0:
             est.rest(float(rest_s[k]))
+        begun = True
         v1[0] = voltage_v[k]
         if t1 is not None:
             t1[0] = temperature_c[k]

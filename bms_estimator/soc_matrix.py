@@ -21,7 +21,13 @@ hidden recordings at other ambients will be run.  Beside each run: plain coulomb
 counting with the stated capacity from the same start.
 
 All files x starts of one cell run as the cells of one vectorised estimator
-(shorter files are padded with invalid samples).  ``scripts/soc_matrix.py``
+(shorter files are padded with invalid samples).  A file's logging gaps (no sample
+for longer than the service's sampler bridges) are rested over as the service rests
+over a time jump (:func:`bms_estimator.gaps.rest_plan`; ``rest_over_gaps=False``:
+fed as ``load_recording`` fills them): its starts then run as an estimator of their
+own, not fed inside a gap (the estimate held there, and scored over every sample of
+the file as before) and rested before the sample after it; a start inside a gap
+begins at the next logged sample.  ``scripts/soc_matrix.py``
 writes the README table from it; ``tests/core/test_measured_soc.py`` checks it.
 """
 
@@ -40,6 +46,7 @@ from .core.ocv import OcvCurve
 from .core.ocv_surface import OcvSurface
 from .core.soc import SocConfig, SocEstimator
 from .data import load_recording
+from .gaps import RestPlan, recording_rest_plan
 from .scoring import counted_soc, soc_error_figures, soc_reference
 
 __all__ = ["CELLS", "STARTS", "ambient_c", "ambient_table", "build_tables", "check_start", "run_cell", "start_point", "summary_lines", "summary_table",
@@ -111,10 +118,42 @@ class GroupRun(NamedTuple):
     capacity_ah: np.ndarray  # (n_cells,) the capacity the count uses at the end
 
 
-def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig) -> GroupRun:
-    """One estimator, one cell per (recording, start), run over the samples of all of them."""
-    n_cells = len(recs)
+def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
+              rest_over_gaps: bool = True) -> GroupRun:
+    """One estimator, one cell per (recording, start), run over the samples of all of them.
+
+    With ``rest_over_gaps`` a recording's logging gaps are rested over as the service rests over a
+    time jump (:func:`bms_estimator.gaps.rest_plan`): their samples are not fed (the estimate held,
+    as ``soc`` traces it) and before the first sample after one, every cell of that recording that
+    has begun rests over it (``SocEstimator.rest``).  A cell not fed must not be updated at all, so
+    the starts of a recording with gaps run as the cells of an estimator of their own; the others
+    share one.  A start must be on a fed sample (:func:`start_point` moves one in a gap to the next).
+    """
+    plans = [recording_rest_plan(r, rest_over_gaps) for r in recs]
+    parts: dict[int | None, list[int]] = {}
+    for c, (r, plan) in enumerate(zip(recs, plans)):
+        parts.setdefault(id(r) if plan.gaps or plan.not_fed else None, []).append(c)
     n_max = max(len(r) for r in recs)
+    out = np.full((n_max, len(recs)), np.nan)
+    sigma = np.full((n_max, len(recs)), np.nan)
+    capacity = np.full(len(recs), np.nan)
+    for key, cells in parts.items():
+        plan = None if key is None else plans[cells[0]]
+        run = _run_cells([recs[c] for c in cells], [starts[c] for c in cells], ocv, stated_ah, config, plan, n_max)
+        out[:, cells] = run.soc
+        sigma[:, cells] = run.soc_sigma
+        capacity[cells] = run.capacity_ah
+    return GroupRun(out, sigma, capacity)
+
+
+def _run_cells(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
+               plan: RestPlan | None, n_max: int) -> GroupRun:
+    """:func:`run_group`'s cells of one estimator over ``n_max`` samples: every sample fed (``plan`` None), or
+    the samples of one recording by its ``plan``; past a recording's end, invalid samples.  (Every estimator
+    runs to the group's longest recording, as the one estimator did before the gaps were rested over: the c0
+    method's capacity keeps taking anchors from a stable c0 window after a file's end, so its end capacity
+    depends on how long the group runs on.)"""
+    n_cells = len(recs)
     cur = np.full((n_max, n_cells), np.nan)
     vol = np.full((n_max, n_cells), np.nan)
     tmp = np.full((n_max, n_cells), np.nan)
@@ -125,11 +164,21 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
             tmp[: len(r), j] = r.temperature_c
     k_start = np.array([k for k, _ in starts])
     soc_start = np.array([s for _, s in starts])
+    if plan is not None and not plan.fed[k_start].all():
+        k = int(k_start[~plan.fed[k_start]][0])
+        raise ValueError(f"start sample {k} of {recs[0].source} lies in a logging gap: start at the next logged "
+                         f"sample, {plan.first_fed(k)}")
     est = SocEstimator(n_cells, ocv, stated_ah, 1.0, initial_soc=np.where(k_start == 0, soc_start, np.nan),
                        config=config)
     out = np.full((n_max, n_cells), np.nan)
     sigma = np.full((n_max, n_cells), np.nan)
     for k in range(n_max):
+        if plan is not None and k < plan.fed.size:
+            if not plan.fed[k]:  # in a logging gap: not fed, the estimate held (k > 0: sample 0 is logged)
+                out[k], sigma[k] = out[k - 1], sigma[k - 1]
+                continue
+            if plan.rest_before_s[k] > 0:  # the first sample after one: the cells begun rest over it
+                est.rest(float(plan.rest_before_s[k]), k_start < k)
         before = k < k_start
         starting = k == k_start
         if starting.any() and k > 0:
@@ -154,10 +203,12 @@ def check_start(name: str) -> str:
                      f"(P % of the file, E % off)")
 
 
-def start_point(name: str, base_soc: np.ndarray) -> tuple[int, float]:
+def start_point(name: str, base_soc: np.ndarray, fed: np.ndarray | None = None) -> tuple[int, float]:
     """(sample, SOC told to the estimator) of a start in a file whose reference SOC is ``base_soc``.
 
-    NaN for ``ocv``: the estimator reads it from the first sample's voltage.
+    NaN for ``ocv``: the estimator reads it from the first sample's voltage.  ``fed`` (per sample,
+    :class:`~bms_estimator.gaps.RestPlan`): a start in a logging gap begins at the next fed sample,
+    told the reference there (as ``soc --start-s``).
     """
     n = len(base_soc)
     if name == "ocv":
@@ -171,14 +222,17 @@ def start_point(name: str, base_soc: np.ndarray) -> tuple[int, float]:
     else:
         m = _AT.fullmatch(check_start(name))
         k, err = int(n * float(m.group(1)) / 100.0), float(m.group(2)) / 100.0
+    if fed is not None and not fed[k]:
+        k += int(np.argmax(fed[k:]))
     return k, float(np.clip(base_soc[k] + err, 0.0, 1.0))
 
 
 def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,
              overrides: dict | None = None, start_names: tuple[str, ...] = STARTS,
-             current_gain: float = 1.0) -> list[dict]:
+             rest_over_gaps: bool = True, current_gain: float = 1.0) -> list[dict]:
     """Every drive cycle of ``cell`` under ``data`` matching ``pattern`` (cell/ambient/file), each of
-    ``start_names``, per SOC method: one row of figures per run.
+    ``start_names``, per SOC method: one row of figures per run.  ``rest_over_gaps``: the files' logging
+    gaps rested over (:func:`run_group`), else fed as ``load_recording`` fills them.
 
     ``current_gain`` multiplies every file's current before the estimator and the reference see it:
     a cell whose capacity is that many times its files' against unchanged OCV tables (the reference's
@@ -201,6 +255,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
             files.append((amb_dir.name, name, rec))
     if not files:
         return rows
+    plans = [recording_rest_plan(rec, rest_over_gaps) for _, _, rec in files]
     own = {t.ambient: t for t in tables}
     refs = []
     for amb, name, rec in files:
@@ -237,12 +292,12 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                     # no reference: a mid-file start is told the stated-capacity count
                     base = ref.soc if ref is not None else counted_soc(rec.current_a, rec.dt_s, stated)
                     for start in start_names:
-                        st = start_point(start, base)
+                        st = start_point(start, base, plans[j].fed)
                         recs.append(rec)
                         starts.append(st)
                         meta.append((j, start))
                 t0 = time.time()
-                run = run_group(recs, starts, ocv, stated, estimator_config(method, overrides))
+                run = run_group(recs, starts, ocv, stated, estimator_config(method, overrides), rest_over_gaps)
                 elapsed = time.time() - t0
                 for c, (j, start) in enumerate(meta):
                     amb, name, rec = files[j]
@@ -257,6 +312,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                         "tables": [f"{t.ambient}:{t.kind}" for t in tabs],
                         "capacity_ah_estimated": float(run.capacity_ah[c]),
                         "elapsed_s_group": elapsed,
+                        "logging_gaps_rested": plans[j].gaps, "rested_s": plans[j].rested_s,
                     }
                     if ref is not None:
                         t = rec.time_s - rec.time_s[0]

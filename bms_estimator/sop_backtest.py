@@ -29,7 +29,9 @@ Logging gaps (``rest_over_gaps``, the default)
 A recording on a resampled grid marks the bins that held no sample of the file
 (``unlogged``: :attr:`CellRecording.filled <bms_estimator.data.CellRecording.filled>`).
 A run of them longer than the sampler's :data:`~bms_estimator.can.sampler.MAX_GAP_S`
-(:func:`logging_gaps`) is what the service sees as a time jump: the logger was off,
+(:func:`~bms_estimator.gaps.logging_gaps`; which samples are fed and the rests before them
+are :func:`bms_estimator.gaps.rest_plan`'s, as for ``soc`` and the SOC matrix) is what the
+service sees as a time jump: the logger was off,
 and whatever the cell did meanwhile (the HPPC files' SOC steps) is not in the file.
 The back-test does what the service does there: the bins of the run are not fed
 (no update), and before the first sample after it the estimator rests over the
@@ -57,14 +59,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .can.sampler import MAX_GAP_S, gap_before_s
 from .core.soc import SocConfig, SocEstimator
 from .core.soe import SoeConfig, energy_left_wh
 from .core.sop import SopConfig, predict_voltage, sop_limits
 from .core.sop_residual import ResidualConfig
 from .core.sox import SoxConfig, SoxEstimator, rest_estimators
+from .gaps import rest_plan
 
-__all__ = ["BacktestResult", "find_pulses", "logging_gaps", "run_backtest", "summary"]
+__all__ = ["BacktestResult", "find_pulses", "run_backtest", "summary"]
 
 MIN_REST_S = 60.0  # rest before a pulse
 MAX_PULSE_S = 60.0  # a longer current run is not a pulse
@@ -131,15 +133,6 @@ def find_pulses(current_a: np.ndarray, dt_s: float, capacity_ah: float) -> list[
     return out
 
 
-def logging_gaps(unlogged, dt_s: float, bridged_s: float = MAX_GAP_S) -> list[tuple[int, int]]:
-    """``[start, end)`` of the runs of samples without a logged sample (``unlogged``, one bool per
-    sample of a grid of step ``dt_s``) longer than ``bridged_s``, ``(end - start) dt_s > bridged_s``:
-    the stretches the service's sampler calls a time jump rather than bridge with stale samples."""
-    d = np.diff(np.r_[0, np.asarray(unlogged, dtype=np.int8), 0])
-    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))
-            if (b - a) * dt_s > bridged_s]
-
-
 def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity_ah: float, *,
                  horizon_s: float = 10.0, initial_soc: float | None = 1.0, soc_config: SocConfig = SocConfig(),
                  sop_config: SopConfig | None = None, mode: str = "auto",
@@ -163,20 +156,10 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
         raise ValueError(f"--horizon-s {horizon_s:g} is shorter than one sample ({dt_s:g} s)")
     if n_w >= n_all:
         raise ValueError(f"--horizon-s {horizon_s:g} is longer than the recording ({n_all * dt_s:.0f} s)")
-    for name, x in (("time_s", time_s), ("unlogged", unlogged)):
-        if x is not None and np.shape(x) != (n_all,):
-            raise ValueError(f"{name} has shape {np.shape(x)}, the recording {n_all} samples")
-    skip = np.zeros(n_all, dtype=bool)  # the samples of the logging gaps: not fed
-    rest_before = np.zeros(n_all)  # seconds to rest before each fed sample
-    if rest_over_gaps:
-        for a, b in ([] if unlogged is None else logging_gaps(unlogged, dt_s)):
-            skip[a:b] = True
-        # the service's rule on the fed samples' period ends (a skipped run's length, or a jump of the time axis)
-        fed = np.flatnonzero(~skip)
-        t = np.arange(n_all) * dt_s if time_s is None else np.asarray(time_s, dtype=float)
-        t_end = t[fed] + dt_s
-        gap = gap_before_s(t_end[1:], t_end[:-1], dt_s)
-        rest_before[fed[1:]] = np.where(gap > MAX_GAP_S, gap, 0.0)  # a shorter one the sampler bridges
+    # the logging gaps: not fed, rested over before the next sample (module docstring; gaps.rest_plan)
+    plan = rest_plan(n_all, dt_s, unlogged=unlogged, time_s=time_s, rest_over_gaps=rest_over_gaps)
+    skip = ~plan.fed
+    rest_before = plan.rest_before_s
     gaps = np.flatnonzero(rest_before)
     pulses = find_pulses(i, dt_s, capacity_ah)
     use_pulses = mode == "hppc" or (mode == "auto" and len(pulses) >= 3)

@@ -2,7 +2,7 @@
 """The SOC matrix over ../shared/data, and the README table (:mod:`bms_estimator.soc_matrix`).
 
     python scripts/soc_matrix.py [--readme] [--json OUT] [--methods c0,ekf] [--files GLOB] [--set KEY=VALUE]
-                                 [--starts full,full-20,mid+10,mid-10,at50+20,at75-5,...]
+                                 [--starts full,full-20,mid+10,mid-10,at50+20,at75-5,...] [--no-rest-over-gaps]
 """
 
 from __future__ import annotations
@@ -52,6 +52,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="stress test: every file's current times G before the estimator and the reference see it "
                          "(a cell G times the capacity its OCV tables were measured on, or a current sensor's gain "
                          "error); default 1")
+    ap.add_argument("--no-rest-over-gaps", dest="rest_over_gaps", action="store_false",
+                    help="feed the files' logging gaps as load_recording fills them, instead of resting over them "
+                         "as the service does at a time jump")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--readme", action="store_true",
                     help="write the summary into README.md between its markers and every run into docs/soc_matrix.md")
@@ -77,9 +80,14 @@ def main(argv: list[str] | None = None) -> int:
         print("--readme writes the README's four starts at the files' own current only; drop --starts / "
               "--current-gain or --readme", file=sys.stderr)
         return 2
+    if args.readme and not args.rest_over_gaps:
+        print("--readme writes the default run (the logging gaps rested over); drop --no-rest-over-gaps or --readme",
+              file=sys.stderr)
+        return 2
     rows = []
     for cell in CELLS:
-        rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides, starts, args.current_gain)
+        rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides, starts,
+                         args.rest_over_gaps, args.current_gain)
     for line in summary_lines(rows):
         print(line)
     if args.json:

@@ -11,6 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..can.sampler import MAX_GAP_S
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
@@ -84,6 +85,15 @@ METHOD_HELP = ("identification method: lif = continuous time, LIF + RLS (the pap
 def add_method_option(p: argparse.ArgumentParser, default: str, what: str = "") -> None:
     p.add_argument("--method", choices=METHODS, default=default,
                    help=f"{METHOD_HELP}{' ' + what if what else ''} (default {default})")
+
+
+def add_rest_over_gaps_option(p: argparse.ArgumentParser, then: str) -> None:
+    """``--no-rest-over-gaps`` (``args.rest_over_gaps``): the file's logging gaps fed as samples instead of rested
+    over (:mod:`bms_estimator.gaps`); ``then`` says what resting does to the command's output."""
+    p.add_argument("--no-rest-over-gaps", dest="rest_over_gaps", action="store_false",
+                   help="feed the file's logging gaps (no sample for longer than the service bridges, "
+                        f"{MAX_GAP_S:g} s; load_recording fills them) as contiguous samples, instead of resting the "
+                        f"estimator over them as the service does at a time jump (default: rest; {then})")
 
 
 def non_negative_float(text: str) -> float:

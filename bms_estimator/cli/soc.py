@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..analysis import run_soc
+from ..can.sampler import MAX_GAP_S
 from ..core.identifier import IdentifierConfig
 from ..core.soc import SOC_METHODS, SocConfig
 from ..errors import DataError
+from ..gaps import recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
-from .common import (add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float,
-                     soc_config, soc_difference, soc_fraction, write_json)
+from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
+                     load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
 
 #: A C/20 table within this of the recording's median temperature is "the same ambient".
 SAME_AMBIENT_K = 5.0
@@ -36,10 +39,15 @@ def add_parser(sub) -> None:
                     "--initial-soc-error). The reference is coulomb counting from the recording's full start with "
                     "Q_ref = Ah_out(end) / (1 - SOC_end), SOC_end read from the relaxed end-of-test voltage on the "
                     "discharge branch of the same cell's C/20 table at the same ambient (--reference-ocv; by default "
-                    "the --ocv table with hysteresis within 5 K of the recording's temperature).")
+                    "the --ocv table with hysteresis within 5 K of the recording's temperature). A logging gap of the file "
+                    f"(no sample for longer than {MAX_GAP_S:g} s) is rested over as the service rests over a time "
+                    "jump (--no-rest-over-gaps: fed as samples); the scores count every sample of the file's time "
+                    "base from the start, a gap's with the estimate held from before it.")
     p.add_argument("data", type=Path, help="drive-cycle CSV(.gz) in the ../shared/data layout")
     add_cell_options(p)
-    p.add_argument("--start-s", type=float, default=0.0, help="the estimator begins at this time of the file (s)")
+    p.add_argument("--start-s", type=float, default=0.0,
+                   help="the estimator begins at this time of the file (s); inside a logging gap it begins at the "
+                        "next logged sample (its time is the JSON's start_s)")
     p.add_argument("--start-soc", type=_start_soc, default=None,
                    help="SOC the estimator begins with (a fraction), or 'ocv' to read it from the first sample's "
                         "voltage as the service does after a rest (default: reference - --initial-soc-error)")
@@ -54,8 +62,11 @@ def add_parser(sub) -> None:
     p.add_argument("--reference-capacity-ah", type=positive_float, default=None,
                    help="count the reference with this capacity instead (e.g. a recording without a final rest)")
     add_method_option(p, IdentifierConfig().method, "(the SOC estimator's identification)")
+    add_rest_over_gaps_option(p, "the samples inside a gap are not fed and hold the last estimate")
     p.add_argument("--trace", type=Path, default=None,
-                   help="write time_s,soc,soc_sigma,soc_reference,soc_counted,capacity_ah,temperature_c (CSV) here")
+                   help="write time_s,soc,soc_sigma,soc_reference,soc_counted,capacity_ah,temperature_c,fed (CSV) "
+                        "here, one row per sample of the file's time base; fed = 0 in a logging gap rested over, "
+                        "where the estimate is the one held from the last fed sample")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here ('-' = stdout)")
     p.add_argument("--plot", type=Path, default=None, help="write the SOC figure (PNG) here")
     add_tuning_options(p)
@@ -111,12 +122,12 @@ def _estimator_start(args: argparse.Namespace, soc_ref_at_start: float) -> tuple
     return s0, f"{s0:.3f} (reference {soc_ref_at_start:.3f} - {args.initial_soc_error:g})"
 
 
-def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray) -> None:
-    """``--trace``: one CSV row per sample."""
+def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray, fed: np.ndarray) -> None:
+    """``--trace``: one CSV row per sample (``fed`` 0: in a logging gap, the estimate held)."""
     temp = rec.temperature_c
     cols = {"time_s": rec.time_s, "soc": run_.soc, "soc_sigma": run_.soc_sigma, "soc_reference": soc_ref,
             "soc_counted": counted, "capacity_ah": run_.capacity_ah,
-            "temperature_c": temp if temp is not None else np.full(len(rec), np.nan)}
+            "temperature_c": temp if temp is not None else np.full(len(rec), np.nan), "fed": fed.astype(float)}
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
                comments="", fmt="%.6g")
@@ -130,12 +141,21 @@ def run(args: argparse.Namespace) -> int:
     k0 = int(np.searchsorted(t, args.start_s - 1e-9))
     if not 0 <= k0 < len(rec) or args.start_s < 0:
         raise ValueError(f"--start-s {args.start_s:g} is outside the recording (0..{t[-1]:.0f} s)")
+    plan = recording_rest_plan(rec, args.rest_over_gaps)  # the logging gaps rested over (gaps.py)
+    if not plan.fed[k0]:  # in a logging gap: the estimator begins at the next logged sample
+        k_fed = plan.first_fed(k0)
+        if k_fed is None:
+            raise ValueError(f"--start-s {args.start_s:g} lies in a logging gap that runs to the end of the "
+                             f"recording (no sample from {t[k0]:.0f} s on)")
+        print(f"bms-estimator soc: --start-s {args.start_s:g} lies in a logging gap; the estimator begins at "
+              f"the next logged sample, {t[k_fed]:.0f} s", file=sys.stderr)
+        k0 = k_fed
     temp = rec.temperature_c
     q_ref, why, relaxed, soc_ref = _reference(args, rec, ocv)
     s0, start_text = _estimator_start(args, soc_ref[k0])
     cfg = soc_config(args).with_(soc_method=args.soc_method)
     run_ = run_soc(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, s0, dt, cfg,
-                   temperature_c=temp, start_index=k0)
+                   temperature_c=temp, start_index=k0, rest_s=plan.rest_before_s, fed=plan.fed)
     counted = np.full(len(rec), np.nan)
     s_count0 = run_.soc[k0] if s0 is None else s0
     counted[k0:] = counted_soc(rec.current_a[k0:], dt, args.capacity_ah, s_count0)
@@ -156,9 +176,12 @@ def run(args: argparse.Namespace) -> int:
         soc_corrections=run_.corrections,
         estimator_rejections=run_.rejections,
         samples=len(rec),
+        logging_gaps={"rested": int(np.count_nonzero(plan.rest_before_s[k0 + 1:])),
+                      "rested_s": float(plan.rest_before_s[k0 + 1:].sum()),
+                      "samples_not_fed": int(np.count_nonzero(~plan.fed[k0:]))},
     )
     if args.trace is not None:
-        _write_trace(args.trace, rec, run_, soc_ref, counted)
+        _write_trace(args.trace, rec, run_, soc_ref, counted, plan.fed)
     if args.plot:
         from ..plots import plot_soc
 
@@ -172,4 +195,8 @@ def run(args: argparse.Namespace) -> int:
               f"{figs['rmse_1h_pct']:.2f} %, max {figs['max_abs_pct']:.2f} %); counting with the stated "
               f"{args.capacity_ah:g} Ah {base['rmse_30min_pct']:.2f} %; capacity estimated "
               f"{out['capacity_ah_estimated']:.3f} Ah (reference {q_ref:.3f}){note}")
+        gaps = out["logging_gaps"]
+        if gaps["rested"]:
+            print(f"rested over {gaps['rested']} logging gaps ({gaps['rested_s'] / 3600:.1f} h without samples; "
+                  "the estimate held there)")
     return 0

@@ -6,12 +6,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..can.sampler import MAX_GAP_S
 from ..core.identifier import IdentifierConfig
 from ..core.sop import SopConfig
 from ..sop_backtest import run_backtest, summary
-from .common import (add_cell_options, add_method_option, add_tuning_options, load, load_ocv, positive_float,
-                     soc_config, warn_if_start_is_not_initial_soc, write_json)
+from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
+                     load_ocv, positive_float, soc_config, warn_if_start_is_not_initial_soc, write_json)
 
 _SOP = SopConfig()
 #: from this many samples on, the command says at its start that it will take a while
@@ -39,11 +38,7 @@ def add_parser(sub) -> None:
     p.add_argument("--mode", choices=("auto", "hppc", "drive"), default="auto",
                    help="windows at the pulses (hppc), every horizon (drive), or whichever the file is (default auto)")
     add_method_option(p, IdentifierConfig().method, "(the online estimator's identification)")
-    p.add_argument("--no-rest-over-gaps", dest="rest_over_gaps", action="store_false",
-                   help="feed the file's logging gaps (no sample for longer than the service bridges, "
-                        f"{MAX_GAP_S:g} s; load_recording fills them) as contiguous samples, instead of resting the "
-                        "estimator over them as the service does at a time jump (default: rest; a window across a "
-                        "gap is then not scored)")
+    add_rest_over_gaps_option(p, "a window across a gap is then not scored")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here ('-' = stdout)")
     add_tuning_options(p)
     p.set_defaults(func=run)
