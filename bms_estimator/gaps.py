@@ -4,7 +4,7 @@ A recording on a resampled grid marks the bins that held no sample of the file
 (``unlogged``: :attr:`CellRecording.filled <bms_estimator.data.CellRecording.filled>`;
 ``load_recording`` holds the current and interpolates the voltage there).  The
 service never sees such bins: its sampler (:mod:`bms_estimator.can.sampler`) bridges
-a stretch without frames of up to :data:`~bms_estimator.can.sampler.MAX_GAP_S` with
+a stretch without frames of up to :data:`MAX_GAP_S` (the sampler's default ``max_gap_s``) with
 stale samples, and calls a longer one a time jump, over which the estimator rests
 (``SocEstimator.rest``, ``core.sox.rest_estimators``).  The offline paths that run
 the estimator over a file (``soc``, the SOC matrix, the SOP back-test) do the same
@@ -14,7 +14,7 @@ from one :class:`RestPlan`:
   (``fed[k] = False``); shorter runs (the HPPC files' 1.2 s holes at pulse edges) are
   fed as ``load_recording`` filled them, as the sampler's stale samples would be;
 * before every fed sample, the time without samples since the previous fed one,
-  :func:`~bms_estimator.can.sampler.gap_before_s` of the fed samples' period ends
+  :func:`gap_before_s` of the fed samples' period ends
   ``t_k + Ts`` (the sampler's own rule), is rested over when it exceeds ``MAX_GAP_S``:
   ``rest_before_s[k] = T``.  For a run of ``g`` unlogged bins between fed samples,
   ``T = g Ts``; a file not resampled (logged at the grid's step or coarser) has no
@@ -31,9 +31,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .can.sampler import MAX_GAP_S, gap_before_s
+__all__ = ["MAX_GAP_S", "RestPlan", "gap_before_s", "logging_gaps", "recording_rest_plan", "rest_plan"]
 
-__all__ = ["RestPlan", "logging_gaps", "recording_rest_plan", "rest_plan"]
+#: the default ``max_gap_s``: a stretch without frames up to this long is bridged with stale samples,
+#: a longer one is a time jump (the estimator rests over it); the service's is max(this, staleness_s,
+#: 2 periods), this at its defaults
+MAX_GAP_S = 5.0
+
+
+def gap_before_s(t_s, t_prev_s, period_s: float):
+    """Seconds without samples before a sample that ends at ``t_s`` when the previous one ended at
+    ``t_prev_s``: ``t_s - period_s - t_prev_s`` where that is more than half a period (the grid was
+    re-anchored on a time jump), else 0.  Scalars or arrays (elementwise): the service's pipeline asks
+    it per sample, the fleet's bulk path for a whole drive at once."""
+    d = np.asarray(t_s, dtype=float) - period_s - t_prev_s
+    return np.where(d > 0.5 * period_s, d, 0.0)
 
 
 def logging_gaps(unlogged, dt_s: float, bridged_s: float = MAX_GAP_S) -> list[tuple[int, int]]:

@@ -28,7 +28,7 @@ Logging gaps (``rest_over_gaps``, the default)
 ----------------------------------------------
 A recording on a resampled grid marks the bins that held no sample of the file
 (``unlogged``: :attr:`CellRecording.filled <bms_estimator.data.CellRecording.filled>`).
-A run of them longer than the sampler's :data:`~bms_estimator.can.sampler.MAX_GAP_S`
+A run of them longer than the sampler's :data:`~bms_estimator.gaps.MAX_GAP_S`
 (:func:`~bms_estimator.gaps.logging_gaps`; which samples are fed and the rests before them
 are :func:`bms_estimator.gaps.rest_plan`'s, as for ``soc`` and the SOC matrix) is what the
 service sees as a time jump: the logger was off,

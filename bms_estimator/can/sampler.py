@@ -64,6 +64,7 @@ from typing import Literal
 import numpy as np
 import structlog
 
+from ..gaps import MAX_GAP_S, gap_before_s  # the gap rule is shared with the offline commands
 from .decoder import Event, EventKind
 
 __all__ = ["MAX_GAP_S", "Sample", "SampleAssembler", "SamplerCounters", "gap_before_s"]
@@ -74,20 +75,6 @@ _CURRENT = int(EventKind.CURRENT)
 _PACK_VOLTAGE = int(EventKind.PACK_VOLTAGE)
 _CELL_VOLTAGE = int(EventKind.CELL_VOLTAGE)
 _CELL_TEMPERATURE = int(EventKind.CELL_TEMPERATURE)
-
-#: the default ``max_gap_s``: a stretch without frames up to this long is bridged with stale samples,
-#: a longer one is a time jump (the estimator rests over it); the service's is max(this, staleness_s,
-#: 2 periods), this at its defaults
-MAX_GAP_S = 5.0
-
-
-def gap_before_s(t_s, t_prev_s, period_s: float):
-    """Seconds without samples before a sample that ends at ``t_s`` when the previous one ended at
-    ``t_prev_s``: ``t_s - period_s - t_prev_s`` where that is more than half a period (the grid was
-    re-anchored on a time jump), else 0.  Scalars or arrays (elementwise): the service's pipeline asks
-    it per sample, the fleet's bulk path for a whole drive at once."""
-    d = np.asarray(t_s, dtype=float) - period_s - t_prev_s
-    return np.where(d > 0.5 * period_s, d, 0.0)
 
 @dataclass(frozen=True, eq=False)
 class Sample:

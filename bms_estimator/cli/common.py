@@ -11,7 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..can.sampler import MAX_GAP_S
+from ..gaps import MAX_GAP_S
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface

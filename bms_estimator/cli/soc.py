@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis import run_soc
-from ..can.sampler import MAX_GAP_S
+from ..gaps import MAX_GAP_S
 from ..core.identifier import IdentifierConfig
 from ..core.soc import SOC_METHODS, SocConfig
 from ..errors import DataError
