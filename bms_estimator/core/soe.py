@@ -102,7 +102,8 @@ def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_
 def time_to_empty_s(soc, cut_soc, capacity_ah, mean_current_a, *, idle_current_c: float = 0.01) -> np.ndarray:
     """Seconds until the cut-off SOC at the mean current (inf when not discharging)."""
     s, z, q, i = (np.asarray(a, dtype=float) for a in (soc, cut_soc, capacity_ah, mean_current_a))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # a mean current decayed to a subnormal (a long rest) overflows here; it is idle, and masked below
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t = 3600.0 * q * np.maximum(s - z, 0.0) / (-i)
     return np.where(i < -idle_current_c * q, t, np.inf)
 
@@ -110,6 +111,6 @@ def time_to_empty_s(soc, cut_soc, capacity_ah, mean_current_a, *, idle_current_c
 def time_to_full_s(soc, capacity_ah, mean_current_a, *, soc_max: float = 1.0, idle_current_c: float = 0.01) -> np.ndarray:
     """Seconds until ``soc_max`` at the mean charge current (inf when not charging)."""
     s, q, i = (np.asarray(a, dtype=float) for a in (soc, capacity_ah, mean_current_a))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # as in time_to_empty_s
         t = 3600.0 * q * np.maximum(soc_max - s, 0.0) / i
     return np.where(i > idle_current_c * q, t, np.inf)
