@@ -35,6 +35,21 @@ from the last OCV correction, ``soc = soc_fix + (q_ah - q_fix) / Q``, and
 ``"line"`` moves to the line's SOC; either moves the OCV difference out of the
 model as in step 6.
 
+At a bound.  A capacity estimate that runs into ``capacity_bounds`` and stays
+there says the stated capacity is wrong for the cell (a misconfigured pack, or
+a cell far outside its rating): every SOC counted with it is unreliable.
+:attr:`SocEstimator.capacity_at_bound` says so per cell: -1 at the low bound,
++1 at the high one, 0 inside.  The EKF clips its capacity to the bounds, so
+there it is the capacity in use within ``CAPACITY_BOUND_TOL`` of a bound
+(``Q <= lo Q_stated (1 + tol)`` or ``Q >= hi Q_stated (1 - tol)``).  The c0
+method never takes a capacity outside the bounds: there it is the anchor
+line's capacity ``1 / slope`` that sits at or beyond a bound, once the line
+is a good fit (RMS residual below ``capacity_max_rmse``) and its anchors span
+``capacity_min_span`` of the capacity the line implies (of the stated one a
+cell 5x smaller than stated never spans enough).  For both, a capacity in use
+outside the bounds from the start (the OCV table's capacity, far from the
+stated one) counts as at that bound.
+
 Hysteresis.  By default the OCV the cell shows is the mean curve plus
 ``h * H(soc)``, with ``H`` the OCV table's half charge-discharge gap and ``h``
 in [-1, 1] Plett's one-state hysteresis (:mod:`bms_estimator.core.hysteresis`),
@@ -63,7 +78,7 @@ from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
 from .soc_ekf import SocEkf, SocEkfConfig
 
-__all__ = ["SocConfig", "SocEstimator", "CAPACITY_SOC_UPDATES", "REST_SOC_READINGS", "SOC_METHODS"]
+__all__ = ["SocConfig", "SocEstimator", "CAPACITY_BOUND_TOL", "CAPACITY_SOC_UPDATES", "REST_SOC_READINGS", "SOC_METHODS"]
 
 #: How the OCV evidence corrects the counted SOC (``SocConfig.soc_method``).
 SocMethod = Literal["ekf", "c0"]
@@ -72,6 +87,10 @@ SOC_METHODS = get_args(SocMethod)
 #: What a new capacity estimate may do to the SOC now (``SocConfig.capacity_soc_update``).
 CapacitySocUpdate = Literal["none", "recount", "line"]
 CAPACITY_SOC_UPDATES = get_args(CapacitySocUpdate)
+
+#: A capacity within this fraction of a ``capacity_bounds`` bound is at it (``SocEstimator.capacity_at_bound``):
+#: the EKF's step takes in at most 1 % a sample, so a capacity held at a bound stays within it.
+CAPACITY_BOUND_TOL = 0.01
 
 #: How a relaxed cell's voltage after a long rest meets the count (``SocConfig.rest_soc_reading``).
 RestSocReading = Literal["ocv", "fused"]
@@ -165,6 +184,11 @@ class SocEstimator:
     temperature: a charge moves it by ``dq / Q(T)``; a temperature change alone
     moves the OCV under it, not the SOC.
 
+    Capacity at a bound.  ``capacity_at_bound`` (int8 per cell): -1 when the capacity
+    estimate sits at ``capacity_bounds[0]`` x the stated capacity, +1 at
+    ``capacity_bounds[1]`` x, 0 inside (module docstring, "At a bound"): the stated
+    capacity is wrong for that cell and its SOC unreliable.
+
     Starting hysteresis.  A cell started full came off a charge (the charge branch,
     h = +1), one started empty off a discharge (h = -1); anywhere else the branch is
     unknown and the mean curve (h = 0) is the least-error guess.
@@ -204,6 +228,8 @@ class SocEstimator:
         self._capacity_lo_ah, self._capacity_hi_ah = lo * self.capacity_stated_ah, hi * self.capacity_stated_ah
         self._rel_q = np.ones(self.n_cells)
         self.capacity_estimated = np.zeros(self.n_cells, dtype=bool)
+        # -1 / +1: the capacity estimate sits at its low / high bound (the stated capacity is wrong), 0: inside
+        self.capacity_at_bound = self._bound_side(self.capacity_ah)
         self.identifier: Identifier = make_identifier(self.n_cells, self.dt_s, self.capacity_stated_ah, config.identifier)
         self.soc = np.full(self.n_cells, np.nan)
         if initial_soc is not None:
@@ -543,6 +569,7 @@ class SocEstimator:
                                       rho * np.abs(overpotential), overpotential)
         if self.config.estimate_capacity:
             self.capacity_ah = clip(self.capacity_ah * (1.0 + d_q), self._capacity_lo_ah, self._capacity_hi_ah)
+            self.capacity_at_bound = self._bound_side(self.capacity_ah)
             self.capacity_estimated |= self.ekf.capacity_variance < (0.5 * self.config.ekf.capacity_sigma) ** 2
         self.soc = clip(self.soc + d_soc, 0.0, 1.0)
         # The OCV the identifier saw moves with the SOC, as in a c0 compensation: its history and
@@ -618,26 +645,21 @@ class SocEstimator:
         self._q_max = np.where(sel, np.maximum(self._q_max, q), self._q_max)
         span = self._q_max - self._q_min
         cand = sel & (span >= cfg.capacity_min_span * self.capacity_stated_ah)
+        slope, q_est, fits = self._capacity_line()
         if not any_cell(cand):
+            self.capacity_at_bound = self._capacity_side_c0(q_est, fits)
             return
-        n, sq, ss, sqq, sqs, sss = self._cap.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            var_q = sqq / n - (sq / n) ** 2
-            cov = sqs / n - (sq / n) * (ss / n)
-            var_s = sss / n - (ss / n) ** 2
-            slope = cov / var_q
-            resid_var = np.maximum(var_s - slope * cov, 0.0)
-            q_est = 1.0 / slope
+        n, sq, ss = self._cap[:, 0], self._cap[:, 1], self._cap[:, 2]
         lo, hi = cfg.capacity_bounds
         good = (
             cand
-            & np.isfinite(q_est)
+            & fits
             & (q_est > lo * self.capacity_stated_ah)
             & (q_est < hi * self.capacity_stated_ah)
-            & (np.sqrt(resid_var) < cfg.capacity_max_rmse)
         )
         self.capacity_ah = np.where(good, q_est, self.capacity_ah)
         self.capacity_estimated |= good
+        self.capacity_at_bound = self._capacity_side_c0(q_est, fits)
         if cfg.capacity_soc_update == "recount":
             target = self._soc_fix + (q - self._q_fix) / self.capacity_ah
         elif cfg.capacity_soc_update == "line":
@@ -654,6 +676,36 @@ class SocEstimator:
             self.soc = np.where(move, target, self.soc)
             self.identifier.shift_bias(dv, move)
             self._shift_c0_window(dv)
+
+    def _capacity_line(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The anchor line ``s = s_0 + q / Q`` by least squares over all anchors: ``(slope, Q = 1 / slope,
+        fits)``; ``fits`` where ``Q`` is finite and positive and the RMS residual is below ``capacity_max_rmse``."""
+        n, sq, ss, sqq, sqs, sss = self._cap.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            var_q = sqq / n - (sq / n) ** 2
+            cov = sqs / n - (sq / n) * (ss / n)
+            var_s = sss / n - (ss / n) ** 2
+            slope = cov / var_q
+            resid_var = np.maximum(var_s - slope * cov, 0.0)
+            q_est = 1.0 / slope
+            fits = np.isfinite(q_est) & (q_est > 0) & (np.sqrt(resid_var) < self.config.capacity_max_rmse)
+        return slope, q_est, fits
+
+    def _bound_side(self, q_ah: np.ndarray) -> np.ndarray:
+        """-1 where ``q_ah`` is at or below the low bound (within ``CAPACITY_BOUND_TOL``), +1 at or above the
+        high one, 0 inside (int8 per cell)."""
+        low = q_ah <= self._capacity_lo_ah * (1.0 + CAPACITY_BOUND_TOL)
+        high = q_ah >= self._capacity_hi_ah * (1.0 - CAPACITY_BOUND_TOL)
+        return high.astype(np.int8) - low.astype(np.int8)
+
+    def _capacity_side_c0(self, q_est: np.ndarray, fits: np.ndarray) -> np.ndarray:
+        """The c0 method's :attr:`capacity_at_bound`: the capacity in use outside the bounds, else the anchor
+        line's capacity at a bound where the line fits and its anchors span ``capacity_min_span`` of it."""
+        in_use = self._bound_side(self.capacity_ah)
+        with np.errstate(invalid="ignore"):
+            evidence = fits & (self._q_max - self._q_min >= self.config.capacity_min_span * q_est)
+        line = np.where(evidence, self._bound_side(np.where(evidence, q_est, self.capacity_ah)), 0).astype(np.int8)
+        return np.where(in_use != 0, in_use, line).astype(np.int8)
 
     # ------------------------------------------------------------------
     @property
@@ -736,6 +788,9 @@ class SocEstimator:
         self._cap = np.asarray(s["cap"], dtype=float).copy()
         self._q_min = np.asarray(s["q_min"], dtype=float).copy()
         self._q_max = np.asarray(s["q_max"], dtype=float).copy()
+        # derived, not saved: from the capacity (EKF) and the anchor line (c0) just restored
+        self.capacity_at_bound = (self._bound_side(self.capacity_ah) if self.ekf is not None
+                                  else self._capacity_side_c0(*self._capacity_line()[1:]))
         self.samples = int(s["samples"])
         # states saved before it existed: no reading due
         due = np.asarray(s.get("rest_due", np.zeros(n, dtype=bool)), dtype=bool)

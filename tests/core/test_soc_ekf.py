@@ -419,3 +419,62 @@ def test_the_identifiers_prior_follows_the_start_temperature_once():
                         config=SocConfig(identifier=IdentifierConfig(prior_activation_k=0.0)))
     flat.update(0.0, np.array([4.0]), temperature_c=-20.0)
     np.testing.assert_allclose(flat.identifier.params.r0_ohm, icfg.prior_r0_ohm_ah / STATED_AH, rtol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def one_cell_3ah():
+    """One 3 Ah cell's drive cycle to about 10 % SOC (the module's synthetic cell)."""
+    return _cells([3.0], [11])
+
+
+def _bound_flags(cur, vol, stated_ah, ocv, method):
+    est = SocEstimator(1, ocv, stated_ah, 1.0, initial_soc=None, config=SocConfig(soc_method=method))
+    flags = np.empty(cur.shape[0], dtype=int)
+    for k in range(cur.shape[0]):
+        est.update(cur[k], vol[k])
+        flags[k] = est.capacity_at_bound[0]
+    return flags, est
+
+
+def test_ekf_capacity_runs_to_its_low_bound_when_the_stated_capacity_is_5x_the_cells(one_cell_3ah):
+    """Stated 15 Ah for a 3 Ah cell: the EKF's capacity runs down to 0.6 x 15 = 9 Ah and stays; the flag
+    turns on once (measured: after 7238 s of the 3 h drive) and stays on. Stated right: never on."""
+    cur, vol = one_cell_3ah
+    lo, _ = SocConfig().capacity_bounds
+    flags, est = _bound_flags(cur, vol, 5 * STATED_AH, _ocv(), "ekf")
+    assert est.capacity_ah[0] == pytest.approx(lo * 5 * STATED_AH)
+    assert flags[-1] == -1 and flags[0] == 0
+    assert np.count_nonzero(np.diff(flags)) == 1  # one transition: off -> low, no flicker
+    assert est.capacity_at_bound.dtype == np.int8
+    flags, est = _bound_flags(cur, vol, STATED_AH, _ocv(), "ekf")
+    assert not np.any(flags), est.capacity_ah
+
+
+@pytest.mark.parametrize("method", SOC_METHODS)
+def test_capacity_at_bound_when_the_table_capacity_is_far_from_the_stated_one(one_cell_3ah, method):
+    """An OCV table that carries the cell's 3 Ah (counted with by default) and a stated 15 Ah: the capacity
+    in use is below 0.6 x 15 from the start in both methods (the EKF clips it up to 9 Ah, where it stays):
+    flagged low at every sample. The same table with the stated 3 Ah: never flagged."""
+    cur, vol = one_cell_3ah
+    base = _ocv()
+    ocv = OcvCurve(base.soc, base.ocv_v, capacity_discharge_ah=3.0)
+    flags, _ = _bound_flags(cur[:1800], vol[:1800], 5 * STATED_AH, ocv, method)
+    assert np.all(flags == -1)
+    flags, _ = _bound_flags(cur, vol, STATED_AH, ocv, method)
+    assert not np.any(flags)
+
+
+def test_c0_anchor_line_at_a_bound_sets_the_flag_and_survives_a_state_round_trip():
+    """The c0 method takes no capacity outside the bounds; its anchor line at 3 Ah against a stated 15 Ah
+    (a good fit spanning 2 Ah, 2/3 of the line's capacity) sets the low flag; a line at 15 Ah does not.
+    The flag is derived, so a restored state gives it back."""
+    for q_line, expect in ((3.0, -1), (15.0, 0)):
+        est = SocEstimator(1, _ocv(), 15.0, 1.0, initial_soc=0.9, config=SocConfig(soc_method="c0"))
+        for q in np.linspace(0.0, -2.0, 21):  # discharged 2 Ah, the OCV-implied SOC on the line
+            est._charge_ref_ah = np.array([q])
+            est._capacity_anchor(np.array([True]), np.array([0.9 + q / q_line]))
+        assert est.capacity_ah[0] == 15.0  # never taken outside the bounds
+        assert est.capacity_at_bound[0] == expect
+        again = SocEstimator(1, _ocv(), 15.0, 1.0, initial_soc=0.9, config=SocConfig(soc_method="c0"))
+        again.load_state_dict(est.state_dict())
+        assert again.capacity_at_bound[0] == expect
