@@ -20,7 +20,8 @@ Families (``bms_`` prefix; counters end in ``_total``):
   (gaps without samples rested over: a time jump, a restart), ``state_restored``, ``tick_seconds``
   (histogram), ``last_sample_time_seconds``
 * battery: ``pack_soc{stat=min|mean|max}``, ``pack_current_amperes``, ``pack_voltage_volts``,
-  ``pack_capacity_ah``, ``cells_stale``; SOP/SOE/SOH: ``pack_current_limit_amperes`` and
+  ``pack_capacity_ah``, ``cells_stale``, ``cells_capacity_at_bound`` (cells whose capacity estimate sits at a
+  bound: ``pack.capacity_ah`` is wrong for them); SOP/SOE/SOH: ``pack_current_limit_amperes`` and
   ``pack_power_limit_watts{direction=discharge|charge,horizon=2s|10s|30s}``, ``pack_energy_left_wh``,
   ``pack_energy_delivered_wh``, ``pack_energy_discharged_wh``, ``pack_time_to_empty_seconds``,
   ``pack_time_to_full_seconds``, ``pack_soh_ratio{kind=capacity|resistance}``; and with ``health.cell_metrics``
@@ -251,6 +252,8 @@ class _ServiceCollector(Collector):
         yield _gauge("bms_pack_voltage_volts", "pack voltage (NaN when unknown)", snap.pack_voltage_v)
         yield _gauge("bms_pack_capacity_ah", "mean estimated cell capacity", snap.capacity_ah_mean)
         yield _gauge("bms_cells_stale", "cells whose inputs are stale", snap.n_cells - snap.cells_valid)
+        yield _gauge("bms_cells_capacity_at_bound", "cells whose capacity estimate sits at a bound (the stated "
+                     "pack.capacity_ah is wrong for them)", snap.cells_capacity_at_bound)
         yield from self._sox(snap)
         if self.cell_metrics:
             cells = [str(i) for i in range(snap.n_cells)]

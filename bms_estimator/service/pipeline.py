@@ -21,6 +21,12 @@ hooks with :meth:`Pipeline.add_hook` instead of subclassing the daemon.
 Time: everything here runs on the frames' time base (``msg.timestamp``); the clocks passed
 in are read only for the snapshot's ``wall_time`` (state files) and the uptime counter.
 
+A wrong stated capacity: when a cell's capacity estimate comes to sit at one of its bounds
+(:attr:`~bms_estimator.core.soc.SocEstimator.capacity_at_bound`: ``pack.capacity_ah`` is wrong for
+it, its SOC unreliable), one WARNING line names the cells, the bound and the stated capacity, once
+per transition (as the MQTT publisher re-sends a cell when its stale flag changes, not every sample);
+an INFO line when they are back inside. The snapshot counts them (``cells_capacity_at_bound``).
+
 Gaps: a sample that does not follow the previous one (the sampler re-anchored its grid on a
 time jump: the bus was silent, the gateway asleep) has ``t_s - period_s - t_prev`` seconds
 without samples before its period; the estimator rests over them
@@ -97,6 +103,12 @@ class Snapshot:
     def cells_valid(self) -> int:
         return int(np.count_nonzero(self.valid))
 
+    @property
+    def cells_capacity_at_bound(self) -> int:
+        """Cells whose capacity estimate sits at a bound (``cells["capacity_at_bound"]`` nonzero; 0 without it)."""
+        flags = self.cells.get("capacity_at_bound")
+        return 0 if flags is None else int(np.count_nonzero(flags))
+
 
 @dataclass
 class PipelineCounters:
@@ -141,6 +153,7 @@ class Pipeline:
         self._started = clock()
         self._errors_logged = 0
         self._last_t_s: float | None = None  # the previous sample's end
+        self._at_bound = np.zeros(self.n_cells, dtype=np.int8)  # capacity_at_bound last logged, per cell
 
     def add_hook(self, hook: Callable[[Snapshot], None]) -> None:
         self.hooks.append(hook)
@@ -177,6 +190,7 @@ class Pipeline:
                     self.sox.update(est, sample.current_a, sample.cell_voltage_v, sample.valid)
             else:
                 c.samples_current_invalid += 1
+            self._log_capacity_bounds()
             snap = self._snapshot(sample)
             self.last = snap
             for hook in self.hooks:
@@ -191,6 +205,28 @@ class Pipeline:
             if self.observe_tick is not None:
                 self.observe_tick(dt)
         return snap
+
+    def _log_capacity_bounds(self) -> None:
+        """One WARNING per bound for the cells whose capacity estimate newly sits at it, one INFO for those back
+        inside; nothing while no cell changes (module docstring)."""
+        est = self.estimator
+        side = getattr(est, "capacity_at_bound", None)
+        if side is None or np.array_equal(side, self._at_bound):
+            return
+        changed = side != self._at_bound
+        self._at_bound = np.array(side, dtype=np.int8, copy=True)
+        lo, hi = est.config.capacity_bounds
+        for flag, name, factor in ((-1, "low", lo), (1, "high", hi)):
+            cells = np.flatnonzero(changed & (side == flag))
+            if cells.size:
+                stated = float(est.capacity_stated_ah[cells[0]])
+                log.warning(f"capacity estimate at its {name} bound: the stated capacity is wrong for these cells "
+                            "and their SOC is unreliable; check pack.capacity_ah",
+                            cells=cells[:20].tolist(), n_cells=int(cells.size), bound=name,
+                            bound_ah=round(factor * stated, 6), stated_ah=stated, config_key="pack.capacity_ah")
+        back = np.flatnonzero(changed & (side == 0))
+        if back.size:
+            log.info("capacity estimate back inside its bounds", cells=back[:20].tolist(), n_cells=int(back.size))
 
     def rest(self, gap_s: float, why: str) -> None:
         """The estimator (and the SOP/SOE/SOH part, when given) rests over ``gap_s`` seconds without

@@ -104,6 +104,9 @@ CELL_FIELDS: tuple[CellField, ...] = (
               "temperature"),
     CellField("capacity_ah", "capacity", {**_DIAG, "unit_of_measurement": "Ah", "icon": "mdi:battery-high"}, 1.0, 3,
               "capacity"),
+    # -1 / +1: the capacity estimate sits at its low / high bound (the stated pack.capacity_ah is wrong for the
+    # cell, its SOC unreliable), 0 inside (core.soc.SocEstimator.capacity_at_bound); the pack counts them
+    CellField("capacity_at_bound", "capacity at bound", estimator="capacity_at_bound"),
 )
 
 #: SOP horizons whose keys the schema names (core.sop.SopConfig's defaults); other configured
@@ -175,6 +178,7 @@ PACK_FIELDS: tuple[PackField, ...] = (
     PackField("current_a", "Current", {"device_class": "current", "unit_of_measurement": "A",
                                        "state_class": "measurement"}, 1.0, 2, "current"),
     PackField("cells_stale", "Stale cells", _DIAG),
+    PackField("cells_capacity_at_bound", "Cells at a capacity bound", _DIAG),
     PackField("pack_voltage_v", "Voltage", {"device_class": "voltage", "unit_of_measurement": "V",
                                             "state_class": "measurement"}, 1.0, 2, "voltage"),
     PackField("current_valid", "Current valid"),
@@ -394,6 +398,7 @@ def pack_payload(snap: Snapshot) -> dict[str, Any]:
         "soc_max": json_number(st.soc_max),
         "current_a": json_number(snap.current_a),
         "cells_stale": snap.n_cells - snap.cells_valid,
+        "cells_capacity_at_bound": snap.cells_capacity_at_bound,
         "pack_voltage_v": json_number(snap.pack_voltage_v),
         "current_valid": bool(snap.current_valid),
         "cells_valid": snap.cells_valid,
