@@ -101,6 +101,9 @@ class SocRun:
     corrections: int
     rejections: int
     soc_sigma: np.ndarray | None = None  # the EKF's 1-sigma SOC uncertainty (NaN for the c0 method)
+    # at the end, -1 / +1: the capacity estimate at its low / high bound (the stated capacity is wrong for the
+    # cell: SocEstimator.capacity_at_bound), 0 inside
+    capacity_at_bound: int = 0
 
 
 #: coulomb counting from a known start (the data's drive cycles start full), read at mid-sample
@@ -270,7 +273,7 @@ def run_soc(
         cap[k] = est.capacity_ah[0]
         _record(traj, k, est.params)
     return SocRun(np.arange(n) * dt_s, soc, cap, traj, int(est.corrections[0]), int(est.identifier.rejections[0]),
-                  sigma)
+                  sigma, int(est.capacity_at_bound[0]))
 
 
 def _ecm_params(p: dict[str, np.ndarray]) -> EcmParams:

@@ -34,7 +34,10 @@ def add_parser(sub) -> None:
                     "c2_f, tau1_s, tau2_s, c0_v, capacity_ah, temperature_c, voltage_v, valid). A single-cell recording "
                     "(.csv/.csv.gz, time_s,current_a,voltage_v[,temperature_c]) is a one-cell drive. OUT/summary.csv and "
                     ".parquet (per vehicle, drive and cell) and OUT/errors.csv (every skipped log and why). A corrupt, "
-                    "empty, foreign-DBC or rewinding log is reported and skipped. Details: bms_estimator/fleet/.",
+                    "empty, foreign-DBC or rewinding log is reported and skipped. The summary's "
+                    "capacity_at_bound_final is -1 / +1 where a cell's capacity estimate ended at its low / high "
+                    "bound (0.6 / 1.4 x pack.capacity_ah): the stated capacity is wrong for that cell and its SOC "
+                    "unreliable; the last line counts them. Details: bms_estimator/fleet/.",
     )
     p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB",
                    help="log files, globs (quote them; ** recurses) or directories (their logs, recursively)")
@@ -143,6 +146,12 @@ def run(args: argparse.Namespace) -> int:
     if no_data:
         print(f"  {len(no_data)} cell-drive(s) without a valid sample (status 'no data' in summary.csv), e.g. "
               f"{no_data[0]['drive']}: {no_data[0]['error']}")
+    at_bound = [r for r in rows if r["status"] == "ok" and r.get("capacity_at_bound_final")]
+    if at_bound:
+        print(f"  warning: {len(at_bound)} cell-drive(s) ended with the capacity estimate at a bound "
+              f"(capacity_at_bound_final in summary.csv), e.g. {at_bound[0]['drive']} cell {at_bound[0]['cell']} at "
+              f"{at_bound[0]['capacity_ah_final']:.3f} Ah: the stated pack.capacity_ah is likely wrong for these "
+              "cells and their SOC unreliable")
     if not ok:
         raise DataError("no drive could be estimated:", [d.error for d in failed] or ["no input"])
     return 0

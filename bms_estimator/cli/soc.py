@@ -170,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
         capacity_ah_estimated=float(run_.capacity_ah[-1]),
         capacity_ah_stated=args.capacity_ah,
         capacity_ah_reference=q_ref,
+        capacity_at_bound=run_.capacity_at_bound,
         reference=why,
         reference_scored=relaxed,
         soc_sigma_end=float(run_.soc_sigma[-1]) if run_.soc_sigma is not None else None,
@@ -180,6 +181,13 @@ def run(args: argparse.Namespace) -> int:
                       "rested_s": float(plan.rest_before_s[k0 + 1:].sum()),
                       "samples_not_fed": int(np.count_nonzero(~plan.fed[k0:]))},
     )
+    if run_.capacity_at_bound:
+        side = "low" if run_.capacity_at_bound < 0 else "high"
+        factor = cfg.capacity_bounds[0 if run_.capacity_at_bound < 0 else 1]
+        print(f"bms-estimator soc: warning: the capacity estimate ended at its {side} bound, {factor:g} x "
+              f"--capacity-ah {args.capacity_ah:g} = {factor * args.capacity_ah:.3f} Ah (the reference says "
+              f"{q_ref:.3f} Ah): --capacity-ah is likely wrong for this cell and the SOC is unreliable",
+              file=sys.stderr)
     if args.trace is not None:
         _write_trace(args.trace, rec, run_, soc_ref, counted, plan.fed)
     if args.plot:

@@ -178,6 +178,8 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
     out["soc_final"] = est.cells["soc"][-1].tolist()
     out["valid_samples"] = np.count_nonzero(est.valid, axis=0).tolist() if n else []
     out["capacity_ah_final"] = est.cells["capacity_ah"][-1].tolist()
+    if "capacity_at_bound" in est.cells:  # -1 / +1: the capacity ended at its low / high bound (a wrong stated one)
+        out["capacity_at_bound_final"] = [int(x) if np.isfinite(x) else None for x in est.cells["capacity_at_bound"][-1]]
     out["r0_ohm_final"] = est.cells["r0_ohm"][-1].tolist()
     with warnings.catch_warnings():  # an all-NaN column (a cell never valid) is NaN, not a warning
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -398,7 +398,7 @@ def pack_payload(snap: Snapshot) -> dict[str, Any]:
         "soc_max": json_number(st.soc_max),
         "current_a": json_number(snap.current_a),
         "cells_stale": snap.n_cells - snap.cells_valid,
-        "cells_capacity_at_bound": snap.cells_capacity_at_bound,
+        "cells_capacity_at_bound": getattr(snap, "cells_capacity_at_bound", 0),  # a wrong stated capacity
         "pack_voltage_v": json_number(snap.pack_voltage_v),
         "current_valid": bool(snap.current_valid),
         "cells_valid": snap.cells_valid,

@@ -135,9 +135,9 @@ def test_states_arrive_as_json_with_availability(mosquitto, qos):
 def test_home_assistant_discovery_retained_and_resent(mosquitto):
     port = mosquitto.port
     n = 2
-    # pack: SOC min/mean/max, current, stale cells, voltage, capacity, state; per cell: SOC, R0, voltage,
-    # temperature, capacity
-    n_configs = 8 + 6 * n  # per cell: SOC, its uncertainty, R0, voltage, temperature, capacity
+    # pack: SOC min/mean/max, current, stale cells, cells at a capacity bound, voltage, capacity, state; per
+    # cell: SOC, R0, voltage, temperature, capacity
+    n_configs = 9 + 6 * n  # per cell: SOC, its uncertainty, R0, voltage, temperature, capacity
     # SOP/SOE/SOH (issue 14): pack 10 s current limits (2), power limits at 2/10/30 s (6), energy left,
     # delivered, discharged, time to empty and full, capacity and resistance SOH (7); per cell the 10 s
     # power limits, the energy left and both SOH figures
@@ -245,11 +245,11 @@ def test_orphan_entities_are_removed(mosquitto):
         ours = {t for t in after if "/bms_hapack_" in t and "/bms_hapack_x_" not in t}
         assert not any(f"_cell{i}_" in t for t in ours for i in (2, 3))
         assert "homeassistant/sensor/bms_hapack_cell1_soc/config" in ours
-        assert len(ours) == 8 + 15 + (6 + 5) * 2  # with the SOP/SOE/SOH entities (issue 14)
+        assert len(ours) == 9 + 15 + (6 + 5) * 2  # with the SOP/SOE/SOH entities (issue 14)
         await publish_once("hapack", 2, discovery=False)
         after = await _retained_configs(port)
         assert not any("/bms_hapack_" in t and "/bms_hapack_x_" not in t for t in after)
-        assert len([t for t in after if "/bms_hapack_x_" in t]) == 8 + 15 + 6 + 5  # the other pack kept
+        assert len([t for t in after if "/bms_hapack_x_" in t]) == 9 + 15 + 6 + 5  # the other pack kept
 
     run_async(main())
 
