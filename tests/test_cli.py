@@ -371,3 +371,21 @@ def test_a_file_that_does_not_start_at_initial_soc_is_warned_about(tmp_path, cap
     assert main(["fit", str(drive_cycle("lg-hg2", "la92")), "--ocv", lg_ocv, "--capacity-ah", "3",
                  "--method", "arx"]) == 0
     assert "first voltage" not in capsys.readouterr().err
+
+
+def test_soc_warns_when_the_capacity_ends_at_its_bound(tmp_path, capsys):
+    """--capacity-ah 5.8 for the 2.9 Ah Panasonic cell (shipped sample, Kollmeyer, CC BY 4.0; twice the table's
+    capacity, the most the command accepts): the capacity estimate ends at its low bound, 0.6 x 5.8 Ah, and the
+    run says so on stderr and in its JSON; with 2.9 Ah it does not."""
+    data = str(drive_cycle("panasonic-18650pf", "cycle_1"))
+    wrong, right = tmp_path / "wrong.json", tmp_path / "right.json"
+    assert main(["soc", data, "--ocv", PAN_OCV, "--capacity-ah", "5.8", "--start-soc", "ocv", "--json", str(wrong)]) == 0
+    err = capsys.readouterr().err
+    assert ("bms-estimator soc: warning: the capacity estimate ended at its low bound, 0.6 x --capacity-ah 5.8 = "
+            "3.480 Ah") in err and "--capacity-ah is likely wrong for this cell" in err, err
+    assert err.count("capacity estimate ended at its") == 1
+    s = json.loads(wrong.read_text())
+    assert s["capacity_at_bound"] == -1 and s["capacity_ah_estimated"] == pytest.approx(0.6 * 5.8)
+    assert main(["soc", data, "--ocv", PAN_OCV, "--capacity-ah", "2.9", "--start-soc", "ocv", "--json", str(right)]) == 0
+    assert "capacity estimate ended" not in capsys.readouterr().err
+    assert json.loads(right.read_text())["capacity_at_bound"] == 0
