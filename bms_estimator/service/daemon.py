@@ -374,7 +374,14 @@ class Service:
     # ------------------------------------------------------------------- run
     def _health_status(self) -> str:
         bus = self.bus.describe() if self.bus is not None else "not started"
-        return f"state {self.pipeline.state.label}; CAN {bus}; MQTT {'connected' if self.publisher.connected else 'not connected'}"
+        return (f"state {self.pipeline.state.label}; CAN {bus}; MQTT {'connected' if self.publisher.connected else 'not connected'}"
+                + self._capacity_note("; "))
+
+    def _capacity_note(self, sep: str) -> str:
+        """``sep`` + how many cells' capacity estimates sit at a bound (a wrong pack.capacity_ah), or nothing."""
+        snap = self.pipeline.last
+        n = snap.cells_capacity_at_bound if snap is not None else 0
+        return f"{sep}{n} cell(s) with the capacity at a bound: check pack.capacity_ah" if n else ""
 
     @property
     def health_port(self) -> int | None:
@@ -436,7 +443,8 @@ class Service:
         bus = self.bus.describe() if self.bus is not None else "not started"
         return (f"{self.pipeline.counters.samples} samples, SOC mean "
                 + (f"{100 * float(np.nanmean(soc)):.1f} %" if np.isfinite(soc).any() else "n/a")
-                + f", CAN {bus}, MQTT {'connected' if self.publisher.connected else 'not connected'}")
+                + f", CAN {bus}, MQTT {'connected' if self.publisher.connected else 'not connected'}"
+                + self._capacity_note(", "))
 
     async def _ready_when_open(self) -> None:
         """``ready`` (in-process users) once the bus is first open; READY=1 went out before."""

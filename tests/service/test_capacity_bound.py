@@ -1,6 +1,6 @@
 """A stated capacity far from the cell's (pack.capacity_ah 5x the Panasonic cell's 2.9 Ah), through the
 service's own pipeline (frames handed to it directly): one warning naming the cells, the bound and the
-config key, once; the Prometheus gauge and the pack payload count the cells."""
+config key, once; the Prometheus gauge, the pack payload and the /healthz and systemctl status texts count the cells."""
 
 from __future__ import annotations
 
@@ -44,6 +44,9 @@ def test_a_5x_stated_capacity_warns_once_and_the_gauge_counts_every_cell(tmp_pat
     snap = svc.pipeline.last
     assert schema.pack_payload(snap)["cells_capacity_at_bound"] == N
     np.testing.assert_array_equal(snap.cells["capacity_at_bound"], -1.0)  # each cell's MQTT payload says which bound
+    # /healthz's body and the systemctl status line say it too
+    assert svc._health_status().endswith(f"; {N} cell(s) with the capacity at a bound: check pack.capacity_ah")
+    assert svc._status_line().endswith(f", {N} cell(s) with the capacity at a bound: check pack.capacity_ah")
     # the EKF's capacity sits at 0.6 x 14.5 Ah: the count runs 3x too slow and the SOC is not to be trusted
     np.testing.assert_allclose(svc.estimator.capacity_ah, 0.6 * 5 * CAPACITY_AH)
 
@@ -53,3 +56,4 @@ def test_the_right_capacity_never_warns(tmp_path):
     assert not _bound_warnings(logs)
     assert len(gauge) == SAMPLES and all(g == 0 for g in gauge)
     assert schema.pack_payload(svc.pipeline.last)["cells_capacity_at_bound"] == 0
+    assert "capacity" not in svc._health_status() and "capacity" not in svc._status_line()
