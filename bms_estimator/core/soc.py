@@ -45,10 +45,13 @@ there it is the capacity in use within ``CAPACITY_BOUND_TOL`` of a bound
 method never takes a capacity outside the bounds: there it is the anchor
 line's capacity ``1 / slope`` that sits at or beyond a bound, once the line
 is a good fit (RMS residual below ``capacity_max_rmse``) and its anchors span
-``capacity_min_span`` of the capacity the line implies (of the stated one a
-cell 5x smaller than stated never spans enough).  For both, a capacity in use
-outside the bounds from the start (the OCV table's capacity, far from the
-stated one) counts as at that bound.
+``capacity_min_span`` of the capacity the line implies (not of the stated one,
+which a cell 5x smaller than stated can never span).  For both, a capacity in
+use outside the bounds from the start (the OCV table's capacity, far from the
+stated one) counts as at that bound.  Limitation, measured on a synthetic 3 Ah
+cell stated as 15 Ah: the c0 method's anchors follow its count and the line
+stays near 13 Ah, so only the EKF sees that one (its capacity reaches 9 Ah,
+the low bound, after 2 h of a 3 h drive).
 
 Hysteresis.  By default the OCV the cell shows is the mean curve plus
 ``h * H(soc)``, with ``H`` the OCV table's half charge-discharge gap and ``h``
