@@ -36,7 +36,7 @@ def add_parser(sub) -> None:
                     ".parquet (per vehicle, drive and cell) and OUT/errors.csv (every skipped log and why). A corrupt, "
                     "empty, foreign-DBC or rewinding log is reported and skipped. The summary's "
                     "capacity_at_bound_final is -1 / +1 where a cell's capacity estimate ended at its low / high "
-                    "bound (0.6 / 1.4 x pack.capacity_ah): the stated capacity is wrong for that cell and its SOC "
+                    "bound (estimator.core.capacity_bounds x pack.capacity_ah, 0.6 / 1.4 by default): the stated capacity is wrong for that cell and its SOC "
                     "unreliable; the last line counts them. Details: bms_estimator/fleet/.",
     )
     p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB",
