@@ -14,7 +14,7 @@ import numpy as np
 from ..gaps import MAX_GAP_S
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
-from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
+from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocConfig
 from ..data import CellRecording, check_charge_span, load_recording
 from ..errors import DataError, UsageError
@@ -23,8 +23,6 @@ from ..jsonsafe import to_jsonable
 _ID = IdentifierConfig()
 _SOC = SocConfig()
 
-#: --capacity-ah this many times the OCV tables' C/20 capacity, or below its inverse, is not that cell's
-STATED_CAPACITY_RATIO_MAX = 2.0
 #: a first sample below this C-rate is read on the OCV table as the file's start SOC ...
 START_REST_C = 0.05
 #: ... and one this far from --initial-soc is warned about (at rest the data set's files read 0.993-1.001)
@@ -166,7 +164,7 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
     temperature when ``rec`` logs one, else at 25 degC: the commands that
     identify on a whole file (fit, compare, diagnose) use one OCV per file.
     With ``capacity_ah`` (the stated ``--capacity-ah``), a capacity more than
-    ``STATED_CAPACITY_RATIO_MAX`` times away from the tables' C/20 capacity is a
+    ``core.ocv_surface.STATED_CAPACITY_RATIO_MAX`` times away from the tables' C/20 capacity is a
     usage error: it is not the capacity of the cell the tables were measured on.
     """
     t = median_temperature_c(rec.temperature_c) if rec is not None else None
@@ -175,14 +173,12 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
         surface = OcvSurface.from_csvs(path_list, default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
     except ValueError as exc:  # a malformed table is a data error (exit 3); the message names the file
         raise DataError(f"OCV table: {exc}") from None
-    tables = [c.capacity_discharge_ah for c in surface.curves if c.capacity_discharge_ah]
-    if capacity_ah and tables:
-        q_table = float(np.median(tables))
-        ratio = capacity_ah / q_table
-        if not 1.0 / STATED_CAPACITY_RATIO_MAX <= ratio <= STATED_CAPACITY_RATIO_MAX:
-            raise UsageError(
-                f"--capacity-ah {capacity_ah:g} is {ratio:.3g} times the C/20 capacity {q_table:.3f} Ah of the "
-                f"--ocv table(s) ({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah")
+    ratio = stated_capacity_ratio(capacity_ah, surface) if capacity_ah else None
+    if ratio is not None:
+        raise UsageError(
+            f"--capacity-ah {capacity_ah:g} is {ratio:.3g} times the C/20 capacity "
+            f"{float(np.median(table_capacities_ah(surface))):.3f} Ah of the --ocv table(s) "
+            f"({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah")
     return surface
 
 

@@ -84,7 +84,31 @@ import numpy as np
 
 from .ocv import GRID_POINTS, MIN_SLOPE_V, OcvCurve, _as_float_array, _strictly_increasing
 
-__all__ = ["OcvSurface", "OcvAtTemperatures", "REFERENCE_TEMPERATURE_C"]
+__all__ = ["OcvSurface", "OcvAtTemperatures", "REFERENCE_TEMPERATURE_C", "STATED_CAPACITY_RATIO_MAX",
+           "stated_capacity_ratio", "table_capacities_ah"]
+
+#: A stated capacity more than this many times away from the OCV tables' C/20 capacity is not the
+#: capacity of the cell the tables were measured on (a pack's or a module's, mA h, another cell's table)
+STATED_CAPACITY_RATIO_MAX = 2.0
+
+
+def table_capacities_ah(ocv: Any) -> list[float]:
+    """The C/20 capacities the OCV table(s) carry (``capacity_ah`` column): one per table of an
+    :class:`OcvSurface`, the one of an :class:`~bms_estimator.core.ocv.OcvCurve`; empty when none does."""
+    curves = getattr(ocv, "curves", None) or [ocv]
+    out = [getattr(c, "capacity_discharge_ah", None) for c in curves]
+    return [float(q) for q in out if q is not None and math.isfinite(q) and q > 0]
+
+
+def stated_capacity_ratio(stated_ah: float, ocv: Any) -> float | None:
+    """``stated / median table capacity`` when it is outside ``[1 / STATED_CAPACITY_RATIO_MAX,
+    STATED_CAPACITY_RATIO_MAX]`` (the stated capacity is not the tables' cell's), else None (within, or
+    the tables carry no capacity)."""
+    tables = table_capacities_ah(ocv)
+    if not tables:
+        return None
+    ratio = float(stated_ah) / float(np.median(tables))
+    return None if 1.0 / STATED_CAPACITY_RATIO_MAX <= ratio <= STATED_CAPACITY_RATIO_MAX else ratio
 
 #: ``relative_capacity`` is relative to the capacity of the table nearest this temperature [degC].
 REFERENCE_TEMPERATURE_C = 25.0

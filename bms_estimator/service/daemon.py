@@ -49,6 +49,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +65,7 @@ from ..can.encoder import StateEncoder
 from ..can.mapping import MappingError
 from ..can.sampler import SampleAssembler
 from ..core.ocv import OcvCurve
-from ..core.ocv_surface import OcvSurface
+from ..core.ocv_surface import OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
 from ..errors import DataError
@@ -142,6 +143,7 @@ class Service:
             for err in exc.errors(include_url=False):
                 loc = ".".join(str(p) for p in err.get("loc", ()))
                 problems.append(f"can.bus.{loc}: {err.get('msg', 'invalid')}")
+        self.ocv: OcvCurve | OcvSurface | None = None
         try:
             if cfg.pack.ocv_csv is None:
                 from ..samples import ocv_table
@@ -159,6 +161,22 @@ class Service:
         except (OSError, ValueError) as exc:  # the table itself: a data error, not the configuration's
             data_problems.append(f"pack.ocv_csv: {exc}")
         self.soc_config = cfg.estimator.soc_config
+        # Counting starts on the tables' C/20 capacity (the scale SOC is defined on), except where it is
+        # not this pack's cells': the built-in curve stands in for the OCV's shape only (its 3.0 Ah is the
+        # sample cell's), and a table more than 2x from pack.capacity_ah was measured on another cell (one
+        # cell of a parallel group, say).  Counting with it, the EKF's first step would clip it into
+        # capacity_bounds x stated, a wrong capacity with nothing to say so.
+        self.capacity_note: str | None = None
+        if self.ocv is not None and self.soc_config.capacity_from_ocv:
+            ratio = stated_capacity_ratio(cfg.pack.capacity_ah, self.ocv)
+            if cfg.pack.ocv_csv is None or ratio is not None:
+                self.soc_config = replace(self.soc_config, capacity_from_ocv=False)
+            if cfg.pack.ocv_csv is not None and ratio is not None:
+                self.capacity_note = (
+                    f"pack.capacity_ah {cfg.pack.capacity_ah:g} Ah is {ratio:.3g} times the C/20 capacity "
+                    f"{float(np.median(table_capacities_ah(self.ocv))):.3f} Ah of pack.ocv_csv: counting with "
+                    "pack.capacity_ah (a table of one cell of a parallel group: scale its capacity_ah column; "
+                    "another cell's table, or a wrong pack.capacity_ah: fix it)")
         try:
             self.sampler = SampleAssembler(
                 n, period_s=self.period_s, staleness_s=cfg.estimator.staleness_s,
@@ -177,6 +195,8 @@ class Service:
             raise ConfigError("invalid configuration:", [f"estimator.core: {exc}"]) from None
         if cfg.pack.ocv_csv is None:
             log.warning("pack.ocv_csv not set: using the built-in sample OCV curve", cell=DEFAULT_OCV_CELL)
+        if self.capacity_note is not None:
+            log.warning(self.capacity_note, stated_ah=cfg.pack.capacity_ah, config_key="pack.capacity_ah")
 
         assert self.decoder is not None
         self.pipeline = Pipeline(self.decoder, self.sampler, estimator, sox=self._new_sox())

@@ -1,6 +1,7 @@
-"""A stated capacity far from the cell's (pack.capacity_ah 5x the Panasonic cell's 2.9 Ah), through the
-service's own pipeline (frames handed to it directly): one warning naming the cells, the bound and the
-config key, once; the Prometheus gauge, the pack payload and the /healthz and systemctl status texts count the cells."""
+"""A capacity estimate at its bound, through the service's own pipeline (frames handed to it directly): one
+warning naming the cells, the bound and the config key, once; the Prometheus gauge, the pack payload and the
+/healthz and systemctl status texts count the cells.  A stated capacity far from the one the cell's OCV table
+carries is refused at start, and the built-in sample curve's capacity is never counted with."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import pytest
 from structlog.testing import capture_logs
 
 from bms_estimator.service import schema
+from bms_estimator.service.config import ConfigError
 from bms_estimator.service.daemon import Service
 
 from test_daemon import CAPACITY_AH, N, cached_rows, channel, make_cfg
@@ -16,8 +18,8 @@ from test_daemon import CAPACITY_AH, N, cached_rows, channel, make_cfg
 SAMPLES = 120
 
 
-def _run(tmp_path, capacity_ah: float):
-    svc = Service(make_cfg(tmp_path, channel(), pack={"capacity_ah": capacity_ah}))
+def _run(tmp_path, capacity_ah: float, **over):
+    svc = Service(make_cfg(tmp_path, channel(), pack={"capacity_ah": capacity_ah}, **over))
     svc.pipeline.hooks.clear()  # the daemon's outputs (MQTT, CAN, state saves) need its event loop
     gauge = []
     svc.pipeline.add_hook(lambda snap: gauge.append(svc.metrics.registry.get_sample_value("bms_cells_capacity_at_bound")))
@@ -32,14 +34,17 @@ def _bound_warnings(logs):
     return [r for r in logs if r["log_level"] == "warning" and "capacity estimate at its" in r["event"]]
 
 
-def test_a_5x_stated_capacity_warns_once_and_the_gauge_counts_every_cell(tmp_path):
-    svc, logs, gauge = _run(tmp_path, 5 * CAPACITY_AH)
+def test_a_capacity_at_its_bound_warns_once_and_the_gauge_counts_every_cell(tmp_path):
+    """The plumbing, on a low bound above the table's 2.997 Ah (``capacity_bounds = [1.05, 1.4]`` x 2.9 Ah):
+    the EKF's first step clips the count up to it, and it stays there, as a capacity learnt down to its bound
+    over hours would."""
+    svc, logs, gauge = _run(tmp_path, CAPACITY_AH, estimator={"core": {"capacity_bounds": [1.05, 1.4]}})
     warned = _bound_warnings(logs)
     assert len(warned) == 1, warned  # once per transition, not once per sample
     w = warned[0]
     assert w["cells"] == list(range(N)) and w["n_cells"] == N and w["bound"] == "low"
     assert w["config_key"] == "pack.capacity_ah" and "pack.capacity_ah" in w["event"]
-    assert w["stated_ah"] == pytest.approx(5 * CAPACITY_AH) and w["bound_ah"] == pytest.approx(0.6 * 5 * CAPACITY_AH)
+    assert w["stated_ah"] == pytest.approx(CAPACITY_AH) and w["bound_ah"] == pytest.approx(1.05 * CAPACITY_AH)
     assert len(gauge) == SAMPLES and all(g == N for g in gauge)
     snap = svc.pipeline.last
     assert schema.pack_payload(snap)["cells_capacity_at_bound"] == N
@@ -47,8 +52,35 @@ def test_a_5x_stated_capacity_warns_once_and_the_gauge_counts_every_cell(tmp_pat
     # /healthz's body and the systemctl status line say it too
     assert svc._health_status().endswith(f"; {N} cell(s) with the capacity at a bound: check pack.capacity_ah")
     assert svc._status_line().endswith(f", {N} cell(s) with the capacity at a bound: check pack.capacity_ah")
-    # the EKF's capacity sits at 0.6 x 14.5 Ah: the count runs 3x too slow and the SOC is not to be trusted
-    np.testing.assert_allclose(svc.estimator.capacity_ah, 0.6 * 5 * CAPACITY_AH)
+    np.testing.assert_allclose(svc.estimator.capacity_ah, 1.05 * CAPACITY_AH)
+
+
+def test_a_stated_capacity_far_from_the_tables_counts_with_the_stated_one_and_says_so(tmp_path):
+    """pack.capacity_ah 5x the C/20 capacity of the Panasonic table it names (2.997 Ah): not that table's cell
+    (one cell of a parallel group, or a wrong setting). Before, the count started on the table's 2.997 Ah and
+    the EKF's first step clipped it to 0.6 x 14.5 Ah, a capacity nobody stated; now it counts with the stated
+    14.5 Ah and says so once at start, naming both capacities and the key."""
+    with capture_logs() as logs:
+        svc = Service(make_cfg(tmp_path, channel(), pack={"capacity_ah": 5 * CAPACITY_AH}))
+    notes = [r for r in logs if r["log_level"] == "warning" and "times the C/20 capacity" in r["event"]]
+    assert len(notes) == 1, logs
+    assert "pack.capacity_ah 14.5 Ah is 4.84 times the C/20 capacity 2.997 Ah of pack.ocv_csv" in notes[0]["event"]
+    np.testing.assert_array_equal(svc.estimator.capacity_ah, 5 * CAPACITY_AH)
+    # within 2x the table's capacity is counted with, as before (the scale SOC is defined on)
+    with capture_logs() as logs:
+        svc = Service(make_cfg(tmp_path, channel(), pack={"capacity_ah": 1.5 * CAPACITY_AH}))
+    assert not [r for r in logs if "times the C/20 capacity" in r["event"]]
+    np.testing.assert_allclose(svc.estimator.capacity_ah, 2.997, atol=5e-4)
+
+
+def test_the_built_in_curve_counts_with_the_stated_capacity(tmp_path):
+    """Without pack.ocv_csv the built-in sample curve gives the OCV's shape only: a 50 Ah pack counts with
+    50 Ah (it counted with the sample cell's 3.0 Ah clipped to 30 Ah before), and nothing is at a bound."""
+    cfg = make_cfg(tmp_path, channel(), pack={"capacity_ah": 50.0})
+    cfg.pack.ocv_csv = None
+    svc = Service(cfg)
+    np.testing.assert_array_equal(svc.estimator.capacity_ah, 50.0)
+    assert not svc.estimator.capacity_at_bound.any()
 
 
 def test_the_right_capacity_never_warns(tmp_path):
