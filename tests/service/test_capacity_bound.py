@@ -10,7 +10,6 @@ import pytest
 from structlog.testing import capture_logs
 
 from bms_estimator.service import schema
-from bms_estimator.service.config import ConfigError
 from bms_estimator.service.daemon import Service
 
 from test_daemon import CAPACITY_AH, N, cached_rows, channel, make_cfg
