@@ -11,13 +11,13 @@ from typing import Sequence
 
 import numpy as np
 
-from ..gaps import MAX_GAP_S
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocConfig
 from ..data import CellRecording, check_charge_span, load_recording
 from ..errors import DataError, UsageError
+from ..gaps import MAX_GAP_S
 from ..jsonsafe import to_jsonable
 
 _ID = IdentifierConfig()

@@ -9,11 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis import run_soc
-from ..gaps import MAX_GAP_S
 from ..core.identifier import IdentifierConfig
 from ..core.soc import SOC_METHODS, SocConfig
 from ..errors import DataError
-from ..gaps import recording_rest_plan
+from ..gaps import MAX_GAP_S, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
                      load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
