@@ -119,7 +119,7 @@ class GroupRun(NamedTuple):
 
 
 def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float, config: SocConfig,
-              rest_over_gaps: bool = True) -> GroupRun:
+              rest_over_gaps: bool = True, plans: list[RestPlan] | None = None) -> GroupRun:
     """One estimator, one cell per (recording, start), run over the samples of all of them.
 
     With ``rest_over_gaps`` a recording's logging gaps are rested over as the service rests over a
@@ -128,8 +128,10 @@ def run_group(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: float
     has begun rests over it (``SocEstimator.rest``).  A cell not fed must not be updated at all, so
     the starts of a recording with gaps run as the cells of an estimator of their own; the others
     share one.  A start must be on a fed sample (:func:`start_point` moves one in a gap to the next).
+    ``plans``: each recording's :func:`~bms_estimator.gaps.recording_rest_plan`, where the caller has them.
     """
-    plans = [recording_rest_plan(r, rest_over_gaps) for r in recs]
+    if plans is None:
+        plans = [recording_rest_plan(r, rest_over_gaps) for r in recs]
     parts: dict[int | None, list[int]] = {}
     for c, (r, plan) in enumerate(zip(recs, plans)):
         parts.setdefault(id(r) if plan.gaps or plan.not_fed else None, []).append(c)
@@ -285,7 +287,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
             for key, idx in groups.items():
                 tabs = [t for t in tables if t.ambient != key]
                 ocv = make_ocv(tabs)
-                recs, starts, meta = [], [], []
+                recs, starts, meta, rec_plans = [], [], [], []
                 for j in idx:
                     amb, name, rec = files[j]
                     ref = refs[j]
@@ -294,10 +296,12 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                     for start in start_names:
                         st = start_point(start, base, plans[j].fed)
                         recs.append(rec)
+                        rec_plans.append(plans[j])
                         starts.append(st)
                         meta.append((j, start))
                 t0 = time.time()
-                run = run_group(recs, starts, ocv, stated, estimator_config(method, overrides), rest_over_gaps)
+                run = run_group(recs, starts, ocv, stated, estimator_config(method, overrides), rest_over_gaps,
+                                rec_plans)
                 elapsed = time.time() - t0
                 for c, (j, start) in enumerate(meta):
                     amb, name, rec = files[j]

@@ -160,7 +160,6 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
     plan = rest_plan(n_all, dt_s, unlogged=unlogged, time_s=time_s, rest_over_gaps=rest_over_gaps)
     skip = ~plan.fed
     rest_before = plan.rest_before_s
-    gaps = np.flatnonzero(rest_before)
     pulses = find_pulses(i, dt_s, capacity_ah)
     use_pulses = mode == "hppc" or (mode == "auto" and len(pulses) >= 3)
     if use_pulses:
@@ -252,7 +251,7 @@ def run_backtest(current_a, voltage_v, temperature_c, dt_s: float, ocv, capacity
     tail = np.cumsum(e_out[::-1])[::-1]
     return BacktestResult("hppc" if use_pulses else "drive", d, within=w, exceeded=e, within_hppc=wh,
                           exceeded_hppc=eh, capacity_ah=float(est.capacity_ah[0]), energy_to_end_wh=tail[starts_k],
-                          by_v_min=by_v_min, logging_gaps=int(gaps.size), rested_s=float(rest_before.sum()),
+                          by_v_min=by_v_min, logging_gaps=plan.gaps, rested_s=plan.rested_s,
                           windows_across_gaps=len(across), **r)
 
 

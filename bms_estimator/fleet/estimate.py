@@ -48,9 +48,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import structlog
 
-from ..can.sampler import gap_before_s
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator, rest_estimators
+from ..gaps import gap_before_s
 from ..service.schema import CELL_FIELDS
 from ..service.state import estimator_state
 from .samples import SampleArrays
@@ -94,7 +94,7 @@ def carry_state(make_estimator: Callable[[], SocEstimator], state: dict[str, np.
 
 
 def sample_gaps(t_s: np.ndarray, period_s: float) -> np.ndarray:
-    """Seconds without samples before each sample (the sampler's :func:`~bms_estimator.can.sampler.gap_before_s`
+    """Seconds without samples before each sample (the sampler's :func:`~bms_estimator.gaps.gap_before_s`
     of its predecessor); 0 for the first."""
     gaps = np.zeros(t_s.shape[0])
     if t_s.shape[0] > 1:

@@ -46,9 +46,10 @@ import numpy as np
 import structlog
 
 from ..can.decoder import FrameDecoder
-from ..can.sampler import Sample, SampleAssembler, gap_before_s
+from ..can.sampler import Sample, SampleAssembler
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator, rest_estimators
+from ..gaps import gap_before_s
 from .schema import CELL_FIELDS, EstimatorState, SocStats, soc_stats
 
 __all__ = ["Pipeline", "PipelineCounters", "Snapshot", "StatusCounters"]
