@@ -10,9 +10,12 @@ training file is identified once per method and validated on every other file of
 ambient. Validation simulation RMSE over the 20-90 % SOC window.
 
 OCV: that ambient's own C/20 test; else its HPPC rests (``OcvCurve.from_hppc``, as
-``bms-estimator ocv --hppc-steps``); else the nearest ambient's C/20.
+``bms-estimator ocv --hppc-steps``); else the nearest ambient's C/20. ``--ocv-from AMBIENT`` takes
+every file's table from that ambient's C/20 test instead (what a recording at an ambient without a test
+of its own gets), ``--files cell/ambient`` (a glob) picks the groups.
 
     python scripts/compare_table.py --readme [--json figures.json] [--jobs 2]
+    python scripts/compare_table.py --files 'lg-hg2/0degC' --ocv-from 25degC
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import argparse
 import json
 import re
 import sys
+from fnmatch import fnmatch
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from statistics import median
@@ -41,8 +45,12 @@ LABEL = {"lif": "CT-LS", "lif-iv": "CT-IV", "lif-iv-bv": "CT-IV-BV", "lif-iv-ct"
 TABLE_METHODS = tuple(dict.fromkeys((*DEFAULT_METHODS[:1], "lif-iv-bv", *DEFAULT_METHODS[1:])))
 
 
-def ocv_for(cell_dir: Path, ambient: str) -> tuple[OcvCurve, str]:
-    """The ambient's own C/20, else its HPPC, else the nearest ambient's C/20."""
+def ocv_for(cell_dir: Path, ambient: str, ocv_from: str | None = None) -> tuple[OcvCurve, str]:
+    """The ambient's own C/20, else its HPPC, else the nearest ambient's C/20; ``ocv_from``: that ambient's C/20."""
+    if ocv_from is not None:
+        if not (cell_dir / ocv_from / "c20_ocv.csv.gz").exists():
+            raise FileNotFoundError(f"{cell_dir / ocv_from}: no C/20 test")
+        return ambient_table(cell_dir / ocv_from).curve, f"C/20 at {ocv_from}"
     table = ambient_table(cell_dir / ambient)
     if table is not None:
         return table.curve, "C/20" if table.kind == "c20" else "HPPC"
@@ -59,19 +67,21 @@ def drive_cycles(folder: Path) -> list[str]:
     return [n for n in names if n not in NOT_DRIVE]
 
 
-def jobs(data: Path) -> list[tuple[str, str, str, list[str]]]:
+def jobs(data: Path, files: str = "*/*", ocv_from: str | None = None) -> list[tuple]:
     out = []
     for cell in sorted(STATED_AH):
         for amb in sorted((d.name for d in (data / cell).iterdir() if d.is_dir()), key=ambient_c, reverse=True):
-            files = drive_cycles(data / cell / amb)
-            out += [(cell, amb, tr, [v for v in files if v != tr]) for tr in files if len(files) > 1]
+            if not fnmatch(f"{cell}/{amb}", files) or amb == ocv_from:
+                continue
+            names = drive_cycles(data / cell / amb)
+            out += [(cell, amb, tr, [v for v in names if v != tr], ocv_from) for tr in names if len(names) > 1]
     return out
 
 
 def one(job, methods=TABLE_METHODS) -> list[dict]:
-    cell, amb, train, vals = job
+    cell, amb, train, vals, ocv_from = job
     data = shared_data_dir()
-    ocv, ocv_source = ocv_for(data / cell, amb)
+    ocv, ocv_source = ocv_for(data / cell, amb, ocv_from)
     tr = load_recording(data / cell / amb / f"{train}.csv.gz")
     training = train_methods((tr.current_a, tr.voltage_v), ocv, STATED_AH[cell], dt_s=tr.dt_s, methods=methods,
                              name=train, temperature_c=tr.temperature_c)
@@ -152,7 +162,12 @@ def main() -> int:
     ap.add_argument("--json", type=Path, default=None, help="also write every figure as JSON")
     ap.add_argument("--from-json", type=Path, default=None, help="make the table from such a JSON (no runs)")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    ap.add_argument("--files", default="*/*", help="glob over cell/ambient, e.g. 'lg-hg2/0degC' (default: all)")
+    ap.add_argument("--ocv-from", default=None, metavar="AMBIENT",
+                    help="every file's OCV from this ambient's C/20 test (the ambient's own files are left out)")
     args = ap.parse_args()
+    if args.readme and (args.files != "*/*" or args.ocv_from is not None):
+        ap.error("--readme writes the README's table: every group, each with its own table")
     if args.from_json is not None:
         rows = json.loads(args.from_json.read_text())
     else:
@@ -161,7 +176,10 @@ def main() -> int:
             print("../shared/data not found (set BMS_SHARED_DATA)", file=sys.stderr)
             return 2
         with ProcessPoolExecutor(args.jobs) as pool:
-            rows = [r for rs in pool.map(one, jobs(data)) for r in rs]
+            rows = [r for rs in pool.map(one, jobs(data, args.files, args.ocv_from)) for r in rs]
+        if not rows:
+            print(f"no drive cycle pairs match --files {args.files!r}", file=sys.stderr)
+            return 2
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")
     text = table(rows, IDENTIFICATION_METHOD)
