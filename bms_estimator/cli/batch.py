@@ -60,7 +60,12 @@ def add_parser(sub) -> None:
                         "cell): the Parquet gets every per-cell SOX output (i_discharge_max_10s_a, energy_left_wh, "
                         "soh_capacity, soh_resistance, ...), the summary per cell soh_capacity_final (with "
                         "soh_capacity_sigma_final), soh_resistance_final, energy_left_wh_final and the drive's "
-                        "energy_discharged_wh and energy_charged_wh; with --chain the SOX state is carried like the "
+                        "energy_discharged_wh and energy_charged_wh; the pack figures the service publishes (its pack "
+                        "payload's keys) per sample in OUT/drives/<vehicle>/<log>.pack.parquet, and per drive the "
+                        "summary columns pack_energy_left_wh_final, pack_soh_capacity_min_final, "
+                        "pack_soh_resistance_max_final, pack_i_discharge_max_10s_a_min, "
+                        "pack_p_discharge_max_10s_w_min, pack_energy_discharged_wh, pack_energy_charged_wh; "
+                        "with --chain the SOX state is carried like the "
                         "SOC's. Its drives run one by one, not stacked (--stack only groups them per task): the SOX "
                         "part does not keep stacked drives apart; a drive takes about 2.2x as long as without "
                         "it (README, Fleet re-estimation)")

@@ -303,6 +303,23 @@ class SoxEstimator:
         return (*(k for keys in self._limit_keys for k in keys), *self._SLOW_KEYS, *self._ENERGY_KEYS,
                 *self._RESISTANCE_KEYS)
 
+    #: the pack figures of :meth:`pack_outputs` after the limits', in its order
+    _PACK_KEYS = ("energy_left_wh", "energy_delivered_wh", "energy_discharged_wh", "time_to_empty_s",
+                  "time_to_full_s", "soh_capacity_min", "soh_resistance_max")
+
+    @property
+    def pack_output_keys(self) -> tuple[str, ...]:
+        """The keys :meth:`pack_outputs` gives from the first :meth:`update` on, in its order (the
+        service's pack payload keys): per horizon the pack current and power limits, discharge then
+        charge, then the pack's energy, time and SOH figures."""
+        return (*(f"{u}_{k}_max_{d:g}s_{unit}" for d in self.config.sop.horizons_s
+                  for k in ("discharge", "charge") for u, unit in (("i", "a"), ("p", "w"))), *self._PACK_KEYS)
+
+    def pack_energy_wh(self, cells_wh) -> float:
+        """A pack energy from its cells' (Wh per cell): ``n_parallel * sum(cells_wh)`` (every cell of the
+        series string counted, each standing for its ``n_parallel`` equal cells)."""
+        return float(self.config.sop.n_parallel * np.sum(cells_wh))
+
     @property
     def v_margin(self) -> np.ndarray:
         """(H, N) volts the limits keep the prediction inside the bounds (module docstring of core.sop)."""
@@ -377,7 +394,8 @@ class SoxEstimator:
         return dict(zip(self._SLOW_KEYS, (e_left, tte, ttf, soh_q, soh_q_sigma)))
 
     def pack_outputs(self) -> dict[str, float]:
-        """Pack figures: the SOP per horizon, and the sums/extremes of the cell figures."""
+        """Pack figures: the SOP per horizon, and the sums/extremes of the cell figures (keys:
+        :attr:`pack_output_keys`; none before the first :meth:`update`)."""
         out: dict[str, float] = {}
         hz = self.config.sop.horizons_s
         for h, d in enumerate(hz):
@@ -392,8 +410,8 @@ class SoxEstimator:
             with np.errstate(all="ignore"):
                 e = o["energy_left_wh"]  # the weakest cell ends the series string's discharge
                 out["energy_left_wh"] = float(np_ * np.nanmin(e) * self.n_cells) if np.isfinite(e).any() else float("nan")
-                out["energy_delivered_wh"] = float(np_ * np.sum(o["energy_delivered_wh"]))
-                out["energy_discharged_wh"] = float(np_ * np.sum(o["energy_discharged_wh"]))
+                out["energy_delivered_wh"] = self.pack_energy_wh(o["energy_delivered_wh"])
+                out["energy_discharged_wh"] = self.pack_energy_wh(o["energy_discharged_wh"])
                 out["time_to_empty_s"] = float(np.min(o["time_to_empty_s"]))
                 out["time_to_full_s"] = float(np.max(o["time_to_full_s"]))
                 out["soh_capacity_min"] = float(np.nanmin(o["soh_capacity"])) if np.isfinite(o["soh_capacity"]).any() else float("nan")

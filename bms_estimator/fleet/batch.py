@@ -35,12 +35,12 @@ from typing import Any
 
 from ..errors import UsageError, one_line_error
 from ..service.logging import configure_logging
-from .drive import SOX_SUMMARY, DriveResult, run_drives, run_vehicle
+from .drive import PACK_SUMMARY, SOX_SUMMARY, DriveResult, run_drives, run_vehicle
 from .frames import FRAME_SUFFIXES
 from .memory import MALLOC_ENV
 
-__all__ = ["BatchResult", "DEFAULT_STACK", "expand_inputs", "run_batch", "stack_groups", "summary_columns",
-           "summary_rows", "vehicle_of"]
+__all__ = ["BatchResult", "DEFAULT_STACK", "PACK_SUMMARY_COLUMNS", "SOX_SUMMARY_COLUMNS", "expand_inputs",
+           "run_batch", "stack_groups", "summary_columns", "summary_rows", "vehicle_of"]
 
 
 def vehicle_of(path: str | Path) -> str:
@@ -210,24 +210,26 @@ SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final",
                    "capacity_at_bound_final", "r0_ohm_final",
                    "r0_ohm_median", "temperature_c_mean", "soc_error_final_pct", "soc_rmse_pct", "cause", "backward_frames",
                    "decode_errors", "rested_s", "chain", "error")
-#: with ``--sox`` (fleet/drive.py's SOX_SUMMARY), after SUMMARY_COLUMNS
+#: with ``--sox`` (fleet/drive.py's SOX_SUMMARY per cell, then its PACK_SUMMARY per drive), after SUMMARY_COLUMNS
 SOX_SUMMARY_COLUMNS = tuple(SOX_SUMMARY)
+PACK_SUMMARY_COLUMNS = tuple(PACK_SUMMARY)
 
 
 def summary_columns(sox: bool = False) -> tuple[str, ...]:
-    return SUMMARY_COLUMNS + (SOX_SUMMARY_COLUMNS if sox else ())
+    return SUMMARY_COLUMNS + (SOX_SUMMARY_COLUMNS + PACK_SUMMARY_COLUMNS if sox else ())
 
 
 def summary_rows(drives: list[DriveResult], sox: bool = False) -> list[dict[str, Any]]:
     """One row per drive and cell (one row per skipped drive, cell = -1, with its error); a cell without
     a valid sample in its drive has status ``no data``, not ``ok``. ``sox``: with the SOX columns
-    (:data:`SOX_SUMMARY_COLUMNS`; empty for a drive without them)."""
+    (:data:`SOX_SUMMARY_COLUMNS`, and the drive's pack figures :data:`PACK_SUMMARY_COLUMNS`, the same on
+    each of its cell rows; empty for a drive without them)."""
     columns = summary_columns(sox)
     rows: list[dict[str, Any]] = []
     for d in drives:
         base = {"vehicle": d.vehicle, "drive": Path(d.path).name, "status": d.status, "samples": d.samples,
                 "backward_frames": d.counters.get("backward_frames", 0), "decode_errors": d.counters.get("errors", 0),
-                "rested_s": d.rested_s, "chain": d.chain, "error": d.error}
+                "rested_s": d.rested_s, "chain": d.chain, "error": d.error, **d.pack}
         n = len(d.cells.get("soc_final", []))
         if d.status != "ok" or n == 0:
             rows.append({**base, "cell": -1})

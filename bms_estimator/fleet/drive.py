@@ -21,7 +21,10 @@ SOP/SOE/SOH (``sox=True``, ``batch --sox``): each drive also runs the service's
 own) after the estimator, sample by sample (:func:`.estimate.estimate_drive`); its per-cell
 outputs go to the Parquet (:attr:`SoxEstimator.output_keys`) and the summary gets per cell the
 final capacity and resistance SOH (the capacity SOH with its 1-sigma; the core has none for the
-resistance SOH), the final energy left (SOE) and the energy out and in during the drive. Chained,
+resistance SOH), the final energy left (SOE) and the energy out and in during the drive. The pack
+figures the service publishes (``SoxEstimator.pack_outputs``, the pack payload's keys) go per
+sample to ``<log>.pack.parquet`` beside the drive's Parquet (:func:`pack_parquet_path`), and the
+summary gets per drive :data:`PACK_SUMMARY` (the same values on each of the drive's cell rows). Chained,
 the SOX state is carried with the estimator's (the daemon's state file layout,
 :func:`~bms_estimator.service.state.resume_sox`) and rested over the time between drives. Drives
 with SOX run one by one, never stacked: the SOX part does not keep stacked drives apart (its
@@ -60,8 +63,8 @@ from .frames import read_frames
 from .samples import SampleArrays
 from .stack import StackError, estimate_stacked
 
-__all__ = ["DriveResult", "drive_order_key", "run_drive", "run_drives", "run_vehicle", "parquet_path",
-           "service_for"]
+__all__ = ["DriveResult", "PACK_SUMMARY", "drive_order_key", "run_drive", "run_drives", "run_vehicle",
+           "pack_parquet_path", "parquet_path", "service_for"]
 
 #: per-cell series written to each drive's Parquet (besides t_s, cell, valid, current_a)
 PARQUET_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "tau2_s", "c0_v", "capacity_ah",
@@ -72,6 +75,18 @@ PARQUET_KEYS = ("soc", "r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "tau1_s", "
 SOX_SUMMARY = {"soh_capacity_final": "soh_capacity", "soh_capacity_sigma_final": "soh_capacity_sigma",
                "soh_resistance_final": "soh_resistance", "energy_left_wh_final": "energy_left_wh",
                "energy_discharged_wh": "energy_discharged_wh", "energy_charged_wh": "energy_charged_wh"}
+
+#: per-drive pack summary values with SOX -> (the pack_outputs key, how a drive's series becomes one value:
+#: "final" its last sample's, "min" its least over the samples, NaN before the first update left out) or, for
+#: the energy in and out, the drive's pack_energy_wh key. The limit is the 10 s horizon's (sop.horizons_s;
+#: NaN where it is not configured).
+PACK_SUMMARY = {"pack_energy_left_wh_final": ("energy_left_wh", "final"),
+                "pack_soh_capacity_min_final": ("soh_capacity_min", "final"),
+                "pack_soh_resistance_max_final": ("soh_resistance_max", "final"),
+                "pack_i_discharge_max_10s_a_min": ("i_discharge_max_10s_a", "min"),
+                "pack_p_discharge_max_10s_w_min": ("p_discharge_max_10s_w", "min"),
+                "pack_energy_discharged_wh": ("energy_discharged_wh", "drive"),
+                "pack_energy_charged_wh": ("energy_charged_wh", "drive")}
 
 _SETUPS: dict[tuple[str, float], Any] = {}
 
@@ -87,6 +102,7 @@ class DriveResult:
     status: str  # "ok" or "skipped"
     error: str = ""
     parquet: str = ""
+    pack_parquet: str = ""  # with SOX: the pack figures per sample
     samples: int = 0
     frames: int = 0
     duration_s: float = 0.0  # of the log (sample grid)
@@ -95,6 +111,7 @@ class DriveResult:
     seconds: dict[str, float] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
     cells: dict[str, list[Any]] = field(default_factory=dict)  # per-cell summary values (and "cause")
+    pack: dict[str, float] = field(default_factory=dict)  # with SOX: the drive's PACK_SUMMARY values
     # chained: seconds rested since the previous drive (None: not rested) and what was done, in words
     rested_s: float | None = None
     chain: str = ""
@@ -137,6 +154,11 @@ def _recording_samples(log: Path, svc) -> SampleArrays:
 
 def parquet_path(out_dir: str | Path, vehicle: str, log: str | Path) -> Path:
     return Path(out_dir) / "drives" / vehicle / (Path(log).name + ".parquet")
+
+
+def pack_parquet_path(out_dir: str | Path, vehicle: str, log: str | Path) -> Path:
+    """With SOX, the drive's pack figures per sample: beside :func:`parquet_path`, ``<log>.pack.parquet``."""
+    return Path(out_dir) / "drives" / vehicle / (Path(log).name + ".pack.parquet")
 
 
 def drive_order_key(path: str | Path) -> tuple[float, str]:
@@ -202,6 +224,24 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
     return out
 
 
+def _pack_summary(est: DriveEstimate) -> dict[str, float]:
+    """:data:`PACK_SUMMARY` of a drive with SOX (empty without): finals, least values and the drive's energy."""
+    out = {}
+    for column, (key, how) in PACK_SUMMARY.items():
+        if how == "drive":
+            out[column] = float(est.pack_energy_wh.get(key, math.nan))
+            continue
+        series = est.pack.get(key)
+        if series is None or len(series) == 0:
+            out[column] = math.nan
+        elif how == "final":
+            out[column] = float(series[-1])
+        else:  # the least over the samples with a figure (NaN before the first update, or none at all)
+            seen = series[~np.isnan(series)]
+            out[column] = float(seen.min()) if seen.size else math.nan
+    return out
+
+
 def _longest_run(ok: np.ndarray) -> tuple[int, int]:
     """[start, stop) of the longest run of True in ``ok`` ((0, 0) if none)."""
     if not ok.any():
@@ -243,10 +283,18 @@ def _diagnose_cells(est: DriveEstimate, svc, period_s: float) -> list[str]:
     return out
 
 
-def _write_parquet(path: Path, est: DriveEstimate) -> None:
+def _write_table(path: Path, cols: dict[str, Any]) -> None:
+    """``cols`` as a zstd Parquet at ``path``, written to a temporary name and renamed (never half a file)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".parquet.tmp")
+    pq.write_table(pa.table(cols), tmp, compression="zstd")
+    tmp.replace(path)
+
+
+def _write_parquet(path: Path, est: DriveEstimate) -> None:
     k, n = est.valid.shape
     cols: dict[str, Any] = {
         "t_s": np.repeat(est.t_s, n),
@@ -257,10 +305,12 @@ def _write_parquet(path: Path, est: DriveEstimate) -> None:
     for key in PARQUET_KEYS + est.sox_keys:
         if key in est.cells:
             cols[key] = est.cells[key].reshape(-1)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".parquet.tmp")
-    pq.write_table(pa.table(cols), tmp, compression="zstd")
-    tmp.replace(path)
+    _write_table(path, cols)
+
+
+def _write_pack_parquet(path: Path, est: DriveEstimate) -> None:
+    """The pack figures per sample (one row each): ``t_s``, ``current_a`` and the pack_outputs keys."""
+    _write_table(path, {"t_s": est.t_s, "current_a": est.current_a, **est.pack})
 
 
 def _samples_of(log: Path, config: str | None, res: DriveResult):
@@ -427,6 +477,8 @@ def _finish(res: DriveResult, log: Path, svc, samples: SampleArrays, out: DriveE
     res.samples = len(samples)
     res.duration_s = len(samples) * samples.period_s
     res.cells = _summary(out, log, samples.period_s)
+    if out.pack:
+        res.pack = _pack_summary(out)
     if diagnose:
         t5 = time.perf_counter()
         res.cells["cause"] = _diagnose_cells(out, svc, samples.period_s)
@@ -436,6 +488,10 @@ def _finish(res: DriveResult, log: Path, svc, samples: SampleArrays, out: DriveE
         p = parquet_path(out_dir, vehicle, log)
         _write_parquet(p, out)
         res.parquet = str(p)
+        if out.pack:
+            pp = pack_parquet_path(out_dir, vehicle, log)
+            _write_pack_parquet(pp, out)
+            res.pack_parquet = str(pp)
     res.seconds["write"] = time.perf_counter() - t4
     res.status = "ok"
 

@@ -15,9 +15,13 @@ SOP/SOE/SOH (``batch --sox``): with a :class:`~bms_estimator.core.sox.SoxEstimat
 each update is followed by ``SoxEstimator.update(est, i, v, valid)``, as the pipeline's tick
 does, and row k also holds the per-cell values of ``SoxEstimator.outputs`` the snapshot carries
 (its keys: ``SoxEstimator.output_keys``, the service's MQTT cell keys); before the drive's first
-update they are NaN (the snapshot has none yet). The pack figures (``pack_outputs``) are not
-kept. The drive's energy in and out per cell (the SOX counters' change over the drive) is
-``DriveEstimate.energy_wh``.
+update they are NaN (the snapshot has none yet). The pack figures are the snapshot's ``pack_sox``,
+the same call: ``SoxEstimator.pack_outputs()`` once the SOX part has outputs, its keys
+(``SoxEstimator.pack_output_keys``, the service's pack payload keys) as ``(K,)`` series in
+``DriveEstimate.pack`` (NaN before the first update, where the snapshot's ``pack_sox`` is empty).
+The drive's energy in and out per cell (the SOX counters' change over the drive) is
+``DriveEstimate.energy_wh``; the pack's, ``SoxEstimator.pack_energy_wh`` of those (the rule of
+the pack payload's ``energy_discharged_wh``), ``DriveEstimate.pack_energy_wh``.
 
 A sample whose update raises is logged and counted (``tick_errors``) and its row stays
 NaN, as the service's tick does (logged, no snapshot).
@@ -80,6 +84,10 @@ class DriveEstimate:
     sox_keys: tuple[str, ...] = ()  # the SOX outputs among cells (batch --sox), in SoxEstimator.output_keys order
     # with SOX: (N,) Wh per cell that went out ("energy_discharged_wh") and in ("energy_charged_wh") in this drive
     energy_wh: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    # with SOX: (K,) per pack key of SoxEstimator.pack_outputs (the snapshot's pack_sox), in pack_output_keys order
+    pack: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    # with SOX: the pack's Wh out ("energy_discharged_wh") and in ("energy_charged_wh") in this drive
+    pack_energy_wh: dict[str, float] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -155,8 +163,9 @@ ENERGY_COUNTERS = ("energy_discharged_wh", "energy_charged_wh")
 
 
 def finish_estimate(samples: SampleArrays, cells: dict[str, np.ndarray], state: dict[str, np.ndarray],
-                    errors: int, sox_keys: tuple[str, ...] = (),
-                    energy_wh: dict[str, np.ndarray] | None = None) -> DriveEstimate:
+                    errors: int, sox_keys: tuple[str, ...] = (), energy_wh: dict[str, np.ndarray] | None = None,
+                    pack: dict[str, np.ndarray] | None = None,
+                    pack_energy_wh: dict[str, float] | None = None) -> DriveEstimate:
     """The drive's estimate from the per-step outputs ``cells`` ((K, N) each): the derived and input columns added."""
     with np.errstate(all="ignore"):
         cells["tau1_s"] = cells["r1_ohm"] * cells["c1_f"]
@@ -165,7 +174,7 @@ def finish_estimate(samples: SampleArrays, cells: dict[str, np.ndarray], state: 
     cells["temperature_c"] = np.array(samples.cell_temperature_c, dtype=float, copy=True)
     return DriveEstimate(t_s=samples.t_s.copy(), current_a=samples.current_a.copy(), valid=samples.valid.copy(),
                          cells=cells, state=state, tick_errors=errors, sox_keys=sox_keys,
-                         energy_wh=energy_wh or {})
+                         energy_wh=energy_wh or {}, pack=pack or {}, pack_energy_wh=pack_energy_wh or {})
 
 
 def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None, sampler=None,
@@ -186,6 +195,11 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
         energy0 = {key: np.array(getattr(sox, key), copy=True) for key in ENERGY_COUNTERS}
     store = {key: np.empty((k, samples.n_cells)) for key, _ in getters}  # every row is written below (NaN on error)
     targets = [(store[key], get) for key, get in getters]
+    pack: dict[str, np.ndarray] = {}
+    if sox is not None:  # the snapshot's pack_sox: pack_outputs() once the SOX part has outputs
+        pack = {key: np.full(k, np.nan) for key in sox.pack_output_keys}
+    pack_targets = list(pack.items())
+    nan = math.nan
     current = samples.current_a.tolist()  # Python floats, as Sample carries them
     current_valid = samples.current_valid.tolist()
     volts, temps, valid = samples.cell_voltage_v, samples.cell_temperature_c, samples.valid
@@ -203,14 +217,19 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
                     sox.update(est, c, volts[i], valid[i])
             for out, get in targets:
                 out[i] = get()
+            if pack_targets and sox.outputs:
+                figures = sox.pack_outputs()
+                for key, out in pack_targets:
+                    out[i] = figures.get(key, nan)
         except Exception as exc:  # noqa: BLE001 - the service's tick logs, counts and goes on; so does the batch
             errors += 1
-            for out in store.values():
+            for out in (*store.values(), *pack.values()):
                 out[i] = np.nan
             if errors <= 5:
                 log.error("estimator step failed", sample=i, t_s=float(samples.t_s[i]),
                           error=f"{type(exc).__name__}: {exc}", exc_info=exc)
-    energy = None
+    energy = pack_energy = None
     if sox is not None:
         energy = {key: np.asarray(getattr(sox, key), dtype=float) - energy0[key] for key in ENERGY_COUNTERS}
-    return finish_estimate(samples, store, estimator_state(est, sox), errors, sox_keys, energy)
+        pack_energy = {key: sox.pack_energy_wh(wh) for key, wh in energy.items()}
+    return finish_estimate(samples, store, estimator_state(est, sox), errors, sox_keys, energy, pack, pack_energy)

@@ -78,6 +78,8 @@ def test_cli_reports_bad_logs_and_does_the_rest(fleet, capsys):
     assert all(2.0 < float(r["capacity_ah_final"]) < 4.0 and 0 < float(r["r0_ohm_final"]) < 0.1 for r in ok)
     table = pq.read_table(out / "drives" / "car1" / "drive1.log.parquet")
     assert {"soc", "r0_ohm", "tau1_s", "capacity_ah", "temperature_c", "cell", "t_s"} <= set(table.column_names)
+    # without --sox: no pack figures (no pack Parquet, no pack columns in the summary)
+    assert not list((out / "drives").rglob("*.pack.parquet")) and not any(k.startswith("pack_") for k in rows[0])
 
 
 def test_cli_errors_name_the_problem(fleet, tmp_path, capsys):

@@ -14,7 +14,9 @@ file) and from the state batch carried (the same state_dict round trip).
 
 SOX (``batch --sox``): the service always runs its SoxEstimator; batch with ``sox=True`` gives
 its per-cell outputs (every key the snapshot carries) bit for bit too, chained through the
-state file's SOX part, and leaves the estimator's outputs as they are without it.
+state file's SOX part, and leaves the estimator's outputs as they are without it. Its pack
+figures (``DriveEstimate.pack``, the pack Parquet) are the snapshots' ``pack_sox`` (what the
+pack payload and the CAN pack frames carry), every key, sample by sample, also without tolerance.
 """
 
 from __future__ import annotations
@@ -53,13 +55,15 @@ def drives(tmp_path_factory):
     return logs, cfg
 
 
-async def _service_drive(cfg_path: Path, log: Path) -> list[tuple[float, dict[str, np.ndarray]]]:
+async def _service_drive(cfg_path: Path, log: Path) -> list[tuple[float, dict[str, np.ndarray], dict[str, float]]]:
+    """(t_s, per-cell outputs, pack SOX figures) of every snapshot of the daemon on ``log``."""
     from bms_estimator.service.daemon import Service
 
     cfg = load_config(cfg_path)
     svc = Service(cfg)
-    snaps: list[tuple[float, dict[str, np.ndarray]]] = []
-    svc.pipeline.add_hook(lambda s: snaps.append((s.t_s, {k: np.array(v, copy=True) for k, v in s.cells.items()})))
+    snaps: list[tuple[float, dict[str, np.ndarray], dict[str, float]]] = []
+    svc.pipeline.add_hook(lambda s: snaps.append((s.t_s, {k: np.array(v, copy=True) for k, v in s.cells.items()},
+                                                  dict(s.pack_sox))))
     stop = asyncio.Event()
     task = asyncio.create_task(svc.run(stop))
     await asyncio.wait_for(svc.ready.wait(), 20)
@@ -88,14 +92,26 @@ async def _service_drive(cfg_path: Path, log: Path) -> list[tuple[float, dict[st
 
 def _assert_equal(snaps, est, keys=KEYS) -> None:
     assert len(snaps) == len(est) > 100
-    assert np.array_equal([t for t, _ in snaps], est.t_s)
+    assert np.array_equal([t for t, *_ in snaps], est.t_s)
     for key in keys:
         # a SOX key is missing from the snapshots before the drive's first update: NaN in the batch
-        ref = np.stack([c.get(key, np.full(N_CELLS, np.nan)) for _, c in snaps])
+        ref = np.stack([c.get(key, np.full(N_CELLS, np.nan)) for _, c, _ in snaps])
         assert np.array_equal(ref, est.cells[key], equal_nan=True), key
         # a value somewhere (time to full is inf while discharging; the SOH figures are undefined in 7 min
         # from a full cell: test_fleet_sox.py has them)
         assert (np.isfinite(ref) if key in KEYS else ~np.isnan(ref)).any() or key in UNDEFINED_HERE, key
+
+
+def _assert_pack_equal(snaps, est) -> None:
+    """Every pack SOX key of the snapshots (``snap.pack_sox``) equals batch's pack series, sample by sample."""
+    keys = list(snaps[-1][2])
+    assert len(keys) >= 19 and list(est.pack) == keys
+    assert len(snaps) == len(est) and all(set(p) in (set(), set(keys)) for *_, p in snaps)
+    for key in keys:
+        ref = np.array([p.get(key, np.nan) for *_, p in snaps])  # none before the first update: NaN
+        assert np.array_equal(ref, est.pack[key], equal_nan=True), key
+        # a value somewhere (time to full is inf while discharging; the SOH figures are undefined here, as the cells')
+        assert (~np.isnan(ref)).any() or key in ("soh_capacity_min", "soh_resistance_max"), key
 
 
 def test_batch_equals_replay_through_the_service_chained(drives, tmp_path):
@@ -107,6 +123,7 @@ def test_batch_equals_replay_through_the_service_chained(drives, tmp_path):
     _assert_equal(service[0], est1)
     _assert_equal(service[1], est2)
     assert est1.sox_keys == () and "soh_resistance" not in est1.cells  # without sox: no SOX outputs
+    assert est1.pack == {} and est1.pack_energy_wh == {} and res1.pack_parquet == "" and res1.pack == {}
     # with SOX: the service's per-cell SOX outputs, sample by sample, chained through the state's SOX part
     res1s, state1s, sox1 = run_drive(logs[0], str(cfg), tmp_path, "car1", sox=True)
     res2s, _, sox2 = run_drive(logs[1], str(cfg), tmp_path, "car1", state1s, sox=True)
@@ -115,19 +132,29 @@ def test_batch_equals_replay_through_the_service_chained(drives, tmp_path):
     assert len(sox_keys) >= 20 and sox1.sox_keys == sox2.sox_keys == sox_keys
     _assert_equal(service[0], sox1, KEYS + sox_keys)
     _assert_equal(service[1], sox2, KEYS + sox_keys)
+    # and the pack figures the service publishes (pack payload, CAN), also chained
+    _assert_pack_equal(service[0], sox1)
+    _assert_pack_equal(service[1], sox2)
+    import pyarrow.parquet as pq
+
+    pack_table = pq.read_table(res2s.pack_parquet)
+    assert pack_table.column_names == ["t_s", "current_a", *sox2.pack]
+    for key in sox2.pack:
+        assert np.array_equal(pack_table.column(key).to_numpy(), sox2.pack[key], equal_nan=True), key
     for key in KEYS:  # the SOX part only reads the estimator
         assert np.array_equal(sox2.cells[key], est2.cells[key], equal_nan=True), key
     # the drive's energy out: the service's cumulative counter's change over drive 2
     out = service[1][-1][1]["energy_discharged_wh"] - service[0][-1][1]["energy_discharged_wh"]
     assert np.array_equal(res2s.cells["energy_discharged_wh"], out.tolist()) and (out > 0).all()
+    # the pack's: the change of the pack payload's counter over drive 2 (up to the sums' order: one rounding)
+    pack_out = service[1][-1][2]["energy_discharged_wh"] - service[0][-1][2]["energy_discharged_wh"]
+    assert res2s.pack["pack_energy_discharged_wh"] == pytest.approx(pack_out, rel=1e-12) and pack_out > 0
     # the chain matters: drive 2 from a fresh state differs from the service's restored run
     _, _, fresh = run_drive(logs[1], str(cfg), tmp_path, "car1", None)
     assert not np.array_equal(fresh.cells["soc"], est2.cells["soc"], equal_nan=True)
     # run_vehicle chains in time order (both logs start at t=0: by name) and writes the Parquet
     results = run_vehicle([str(p) for p in reversed(logs)], str(cfg), tmp_path / "v", "car1")
     assert [Path(r.path).name for r in results] == [p.name for p in logs]
-    import pyarrow.parquet as pq
-
     table = pq.read_table(results[1].parquet)
     soc = table.column("soc").to_numpy().reshape(-1, N_CELLS)
     assert np.array_equal(soc, est2.cells["soc"], equal_nan=True)

@@ -4,7 +4,8 @@ Drives: slices of the shipped LG HG2 UDDS recording (one-cell CSV recordings, as
 reads them), cut where the cell is inside the resistance SOH's SOC band (0.3..0.8), so that
 the resistance SOH is defined within a drive; the whole 4.4 h recording for the capacity SOH
 (justified only once the capacity estimate's uncertainty has halved). That the per-cell SOX
-outputs are the service's, bit for bit, is tests/fleet/test_fleet_equivalence.py.
+outputs are the service's, bit for bit, is tests/fleet/test_fleet_equivalence.py; so are the
+pack figures (``pack_outputs``, the pack payload's) checked there, here their summary and files.
 """
 
 from __future__ import annotations
@@ -23,9 +24,9 @@ import pytest
 
 from bms_estimator.core.sox import SoxEstimator
 from bms_estimator.data import load_recording
-from bms_estimator.fleet.batch import SOX_SUMMARY_COLUMNS, summary_rows
-from bms_estimator.fleet.drive import run_drive, run_drives, run_vehicle, service_for
-from bms_estimator.fleet.estimate import carry_state, rest_between_drives
+from bms_estimator.fleet.batch import PACK_SUMMARY_COLUMNS, SOX_SUMMARY_COLUMNS, summary_rows
+from bms_estimator.fleet.drive import _pack_summary, run_drive, run_drives, run_vehicle, service_for
+from bms_estimator.fleet.estimate import carry_state, estimate_drive, rest_between_drives
 from bms_estimator.fleet.samples import SampleArrays
 from bms_estimator.service.state import load_state, resume_sox, save_state
 
@@ -126,6 +127,59 @@ def test_summary_has_the_soh_columns_finite_where_defined(slices, tmp_path):
     assert not set(SOX_SUMMARY_COLUMNS) & set(summary_rows([plain])[0])
 
 
+def test_pack_summary_is_the_pack_series_finite_where_defined(slices, tmp_path):
+    d, logs, cfg = slices
+    res, _, est = run_drive(logs[0], str(cfg), tmp_path, "car1", sox=True)  # 2500 s in the resistance SOH's band
+    rows = summary_rows([res], sox=True)
+    assert len(rows) == 1 and tuple(rows[0])[-len(PACK_SUMMARY_COLUMNS):] == PACK_SUMMARY_COLUMNS
+    row = rows[0]
+    for key in PACK_SUMMARY_COLUMNS:
+        # the capacity SOH is not justified within 42 min (as the cell's, NaN); every other figure is
+        assert math.isfinite(row[key]) == (key != "pack_soh_capacity_min_final"), key
+    # the finals are the pack series' last values, the least limit its minimum over the samples
+    assert row["pack_energy_left_wh_final"] == est.pack["energy_left_wh"][-1] > 0
+    assert row["pack_soh_resistance_max_final"] == est.pack["soh_resistance_max"][-1]
+    for key in ("i_discharge_max_10s_a", "p_discharge_max_10s_w"):
+        series = est.pack[key]
+        assert np.isfinite(series).all() and row[f"pack_{key}_min"] == series.min() > 0
+    # the current limit sits at the cell's discharge rating (25 degC: not derated) on this drive; the power
+    # limit moves with the SOC: its least is not its last
+    sop = service_for(str(cfg), n_cells=1).cfg.estimator.sox_config.sop
+    power = est.pack["p_discharge_max_10s_w"]
+    assert row["pack_p_discharge_max_10s_w_min"] < power[-1]
+    assert row["pack_i_discharge_max_10s_a_min"] == sop.i_discharge_max_a * sop.n_parallel
+    # one cell, one string: the pack's energy is the cell's; a fresh drive's counter is the drive's energy out
+    assert row["pack_energy_discharged_wh"] == res.cells["energy_discharged_wh"][0]
+    assert row["pack_energy_charged_wh"] == res.cells["energy_charged_wh"][0] > 0
+    assert row["pack_energy_discharged_wh"] == pytest.approx(est.pack["energy_discharged_wh"][-1], rel=1e-12)
+    table = pq.read_table(res.pack_parquet)
+    assert res.pack_parquet.endswith("drive0.csv.pack.parquet") and table.num_rows == len(est)
+    assert table.column_names == ["t_s", "current_a", *est.pack] and list(est.pack) == list(
+        service_for(str(cfg), n_cells=1)._new_sox().pack_output_keys)
+
+
+def test_pack_figures_are_nan_before_the_first_update(slices):
+    d, logs, cfg = slices
+    svc = service_for(str(cfg), n_cells=1)
+    samples = SampleArrays.from_recording(load_recording(logs[0]), 1.0)
+    late = np.ones(len(samples), dtype=bool)
+    late[:50] = False  # no valid current for the first 50 samples: the service does not update there
+    for current_valid in (late, np.zeros(len(samples), dtype=bool)):
+        drive = dataclasses.replace(samples, current_valid=current_valid)
+        est = estimate_drive(drive, svc._new_estimator(), sox=svc._new_sox())
+        first = int(np.argmax(current_valid)) if current_valid.any() else len(est)
+        for key, series in est.pack.items():
+            assert np.isnan(series[:first]).all(), key
+        assert np.isfinite(est.pack["i_discharge_max_10s_a"][first:]).all()
+        figures = _pack_summary(est)
+        if current_valid.any():
+            assert math.isfinite(figures["pack_i_discharge_max_10s_a_min"])
+            assert figures["pack_energy_discharged_wh"] > 0
+        else:  # never updated: no figure, and no energy moved
+            assert all(math.isnan(v) for k, v in figures.items() if "energy_d" not in k and "energy_c" not in k)
+            assert figures["pack_energy_discharged_wh"] == figures["pack_energy_charged_wh"] == 0.0
+
+
 def test_sox_drives_run_one_by_one_as_run_drive_runs_them(slices, tmp_path):
     d, logs, cfg = slices
     results = run_drives([(str(p), "car1") for p in logs], str(cfg), tmp_path / "group", sox=True)
@@ -158,13 +212,30 @@ def test_cli_batch_sox_writes_the_soh_columns(slices, tmp_path):
     parquet = out / "drives" / "car1" / "drive1.csv.parquet"
     assert {"i_discharge_max_10s_a", "i_charge_max_10s_a", "energy_left_wh", "soh_capacity",
             "soh_resistance"} <= set(pq.read_table(parquet).column_names)
+    # the pack figures: per drive in the summary, per sample beside each drive's Parquet
+    for r in rows:
+        for key in PACK_SUMMARY_COLUMNS:
+            assert math.isfinite(float(r[key])) == (key != "pack_soh_capacity_min_final"), key
+    pack = pq.read_table(out / "drives" / "car1" / "drive1.csv.pack.parquet")
+    assert float(rows[1]["pack_energy_left_wh_final"]) == pack.column("energy_left_wh").to_numpy()[-1]
+    assert {"t_s", "i_discharge_max_10s_a", "p_charge_max_2s_w", "energy_left_wh", "soh_capacity_min",
+            "soh_resistance_max", "time_to_empty_s"} <= set(pack.column_names)
+    assert sorted(p.name for p in (out / "drives" / "car1").glob("*.pack.parquet")) == [
+        "drive0.csv.pack.parquet", "drive1.csv.pack.parquet"]
+    assert pq.read_table(out / "summary.parquet").column_names[-len(PACK_SUMMARY_COLUMNS):] == list(
+        PACK_SUMMARY_COLUMNS)
 
 
 def test_output_keys_are_the_outputs_after_the_first_update(slices):
     svc = service_for(str(slices[2]), n_cells=3)
     est, sox = svc._new_estimator(), svc._new_sox()
-    assert isinstance(sox, SoxEstimator) and sox.outputs == {}
+    assert isinstance(sox, SoxEstimator) and sox.outputs == {} and sox.pack_outputs() == {}
     est.update(-1.0, np.full(3, 3.9), np.ones(3, bool), temperature_c=np.full(3, 25.0))
     sox.update(est, -1.0, np.full(3, 3.9), np.ones(3, bool))
     assert tuple(sox.outputs) == sox.output_keys
+    # the pack's keys (batch's pack Parquet columns), in pack_outputs' order; its energy counts every cell
+    assert tuple(sox.pack_outputs()) == sox.pack_output_keys and len(sox.pack_output_keys) == 3 * 4 + 7
+    pack = sox.pack_outputs()
+    assert pack["energy_discharged_wh"] == sox.pack_energy_wh(sox.outputs["energy_discharged_wh"]) > 0
+    assert sox.pack_energy_wh(np.array([1.0, 2.0, 3.5])) == 6.5 * sox.config.sop.n_parallel
     assert "energy_charged_wh" in sox.state_dict() and "energy_charged_wh" not in sox.outputs
