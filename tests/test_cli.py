@@ -317,6 +317,25 @@ def test_ocv_command_refuses_a_file_that_is_not_a_c20_test(tmp_path, capsys):
     assert "--hppc-steps" in err
 
 
+def test_ocv_command_refuses_what_is_not_an_hppc_test_and_a_temperature_off_the_cells_range(tmp_path, capsys):
+    """A drive cycle given with --hppc-steps ended in an IndexError traceback (exit 1); --temperature-c 500
+    (kelvin?) wrote a table filed at 500 degC with exit 0."""
+    out = tmp_path / "ocv.csv"
+    t = np.arange(0.0, 4 * 3600.0, 60.0)
+    steps = save_recording(CellRecording(t, np.where((t // 1800) % 2 == 0, -0.5, 0.0), 3.9 - 1e-5 * t, None, "s"),
+                           tmp_path / "steps.csv")
+    assert main(["ocv", str(drive_cycle("lg-hg2", "la92")), "--hppc-steps", str(steps), "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "la92_1s.csv.gz with --hppc-steps" in err and "only 0 usable rest point(s)" in err, err
+    assert not out.exists()
+    for value in ("500", "-300", "nan"):
+        with pytest.raises(SystemExit) as exc:
+            main(["ocv", str(drive_cycle("lg-hg2", "la92")), "-o", str(out), "--temperature-c", value])
+        assert exc.value.code == 2
+        assert f"argument --temperature-c: '{value}' is not a cell temperature in degC (-60..150)" in \
+            capsys.readouterr().err
+
+
 def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_plainly(tmp_path, capsys):
     """The message read 'the recording's 2.011000000013155 degC'."""
     from bms_estimator.data import load_recording

@@ -309,6 +309,30 @@ def test_from_hppc_without_steps_warns_about_gaps() -> None:
     assert c.soc.size == 10
 
 
+def test_from_hppc_refuses_a_test_without_rest_points() -> None:
+    """A drive cycle given as the HPPC file (under load from its first sample, no logging gaps) has no rest
+    point: an IndexError from the de-duplication of no points at all; now the ValueError that names it."""
+    h, s, _ = make_hppc()
+    t = np.arange(0.0, 3000.0, 0.1)
+    drive = (t, -1.0 - 0.5 * np.sin(t / 30.0), 3.9 - 1e-5 * t)
+    with pytest.raises(ValueError, match=r"only 0 usable rest point\(s\) .* not an HPPC test"):
+        OcvCurve.from_hppc(drive, s)
+
+
+def test_from_hppc_refuses_steps_that_leave_most_gaps_empty() -> None:
+    """Another test's steps (here only the first discharge step of this one) line up with one gap of nine:
+    that wrote a table whose SOC axis missed eight steps' charge, with a warning only. One gap without its
+    step still warns and builds the table."""
+    h, s, _ = make_hppc()
+    first = s[0] <= s[0][np.flatnonzero(s[1] == 0)[0]]  # up to the first rest record after the first step
+    with pytest.raises(ValueError, match="8 of the 9 hppc logging gaps hold no discharge step"):
+        OcvCurve.from_hppc(h, tuple(x[first] for x in s))
+    t_gap2 = s[0][np.flatnonzero(np.diff(s[1]) < 0)[1] + 1]  # the second discharge step's first record
+    second = (s[0] >= t_gap2 - 1) & (s[0] < t_gap2 + 2000)
+    with pytest.warns(UserWarning, match="1 of 9 hppc gaps have no discharge step"):
+        OcvCurve.from_hppc(h, tuple(x[~second] for x in s))
+
+
 def test_from_hppc_naive_integration_would_be_wrong() -> None:
     """The sparse steps file cannot be integrated naively (the reason for the alignment)."""
     _, s, _ = make_hppc()

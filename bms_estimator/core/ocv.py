@@ -489,7 +489,9 @@ class OcvCurve:
            ``hppc`` (the final discharge to cut-off), within 2 s.  Runs inside gap
            ``j`` are charged to gap ``j``, a run starting at the end of ``hppc`` to
            the total; runs elsewhere (later tests in the same file) are ignored.
-           A gap without a step gives a ``UserWarning``.
+           A gap without a step gives a ``UserWarning``; more than half of them
+           without one is a ``ValueError`` (the steps of another test: one of a
+           drive cycle's runs lines up with a gap by chance).
         5. SOC by coulomb counting from full (``soc = 1`` at the first block)::
 
                soc_k = 1 + Q_k / C,    Q_k = sum of pulse and step charges before block k
@@ -507,7 +509,7 @@ class OcvCurve:
 
         Raises:
             ValueError: fewer than 2 usable rest points, steps that cannot be
-                aligned with the ``hppc`` gaps.
+                aligned with the ``hppc`` gaps or that leave most of them empty.
         """
         t, i, v = _check_arrays(*_unpack(hppc, "hppc"))
         gaps, gap_s = _hppc_gaps(t)  # gap between sample g and g+1
@@ -562,13 +564,13 @@ class OcvCurve:
         soc, ocv = np.clip(soc[keep], 0.0, 1.0), ocv[keep]
         order = np.argsort(soc, kind="stable")
         soc, ocv = soc[order], ocv[order]
-        uniq = np.r_[True, np.diff(soc) > 1e-9]
+        uniq = np.diff(soc, prepend=-np.inf) > 1e-9  # (np.r_[True, ...] is one too long for no point at all)
         soc, ocv = soc[uniq], ocv[uniq]
         if soc.size < 2:
             raise ValueError(
-                f"from_hppc: only {soc.size} usable rest point(s) found in {block_starts.size} "
-                "logging block(s); pass hppc as logged (load_recording(..., resample_s=None)), "
-                "resampling fills the gaps that separate the pulse sets"
+                f"from_hppc: only {soc.size} usable rest point(s) (a rest before a pulse set) found in "
+                f"{block_starts.size} logging block(s): not an HPPC test, or one resampled (pass hppc as logged, "
+                "load_recording(..., resample_s=None): resampling fills the gaps that separate the pulse sets)"
             )
         ocv = _strictly_increasing(ocv, _EPS_V)
         return cls(soc, ocv, None, capacity_discharge_ah=capacity, temperature_c=median_temperature_c(temperature_c))
@@ -966,6 +968,10 @@ def _steps_charge(
         gap_q[j] = q[inside].sum()
     tail = np.abs(a_m - t_end) <= tol_s
     empty = np.flatnonzero(gap_q == 0)
+    if 2 * empty.size > gap_start.size:  # a step falls into a gap by chance: these are not this test's steps
+        raise ValueError(
+            f"from_hppc: {empty.size} of the {gap_start.size} hppc logging gaps hold no discharge step of the steps "
+            "data: not the hppc_steps file of this HPPC test")
     if empty.size:
         warnings.warn(
             f"from_hppc: {empty.size} of {gap_start.size} hppc gaps have no discharge step "
