@@ -112,6 +112,10 @@ SIGN_MIN_STEPS = 30
 #: seconds, or a stated capacity that is not the cell's (the data set's drive-cycle, C/20 and HPPC files span
 #: 0.19-1.03 of their nominal capacity at 1 s; its hppc_steps files, logged every minute, go to `ocv` only).
 CHARGE_SPAN_MAX = 1.5
+#: Most samples a recording may resample to (58 days at 1 s; the data set's longest file, 27 h of HPPC, has
+#: 97,600): a logging gap of years (a clock jump, a time in ms) made millions of empty bins and ended in a
+#: MemoryError, before the charge check could name the file.
+RESAMPLED_SAMPLES_MAX = 5_000_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -363,6 +367,7 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
 
     native_dt = float(np.median(np.diff(time_s)))
     if resample_s is not None and native_dt < resample_s:
+        _check_resampled_size(path, text, header_line, time_s, float(resample_s))
         cols = [current_a, voltage_v] + ([temperature_c] if temperature_c is not None else [])
         t_new, values, empty = _resample_bins(
             time_s, np.column_stack(cols), float(resample_s), (False,) + (True,) * (len(cols) - 1)
@@ -380,6 +385,19 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
         rec = CellRecording(time_s, current_a, voltage_v, temperature_c, str(path), 0)
     _check_current_sign(path, rec.current_a, rec.voltage_v)
     return rec
+
+
+def _check_resampled_size(path: Path, text: str, header_line: int, time_s: np.ndarray, resample_s: float) -> None:
+    """Refuse a time base that resamples to more than ``RESAMPLED_SAMPLES_MAX`` bins, naming its longest gap."""
+    bins = math.floor(time_s[-1] / resample_s) - math.floor(time_s[0] / resample_s) + 1
+    if bins <= RESAMPLED_SAMPLES_MAX:
+        return
+    k = int(np.argmax(np.diff(time_s))) + 1
+    lineno = int(_data_line_numbers(text, header_line)[k])
+    raise DataError(
+        f"{path}: its time base spans {time_s[-1] - time_s[0]:.4g} s, {bins:,} samples at {resample_s:g} s (at most "
+        f"{RESAMPLED_SAMPLES_MAX:,}); its longest logging gap ends at line {lineno} ({time_s[k - 1]:.6g} -> "
+        f"{time_s[k]:.6g} s): is time_s in seconds? split the recording at the gap")
 
 
 def check_charge_span(rec: CellRecording, capacity_ah: float, what: str = "capacity") -> None:

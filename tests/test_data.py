@@ -146,6 +146,25 @@ def test_resampling_fills_gaps_and_counts_them(tmp_path: Path) -> None:
     assert _zoh_charge(res.time_s, res.current_a) == pytest.approx(_zoh_charge(t, i), abs=1e-9)
 
 
+def test_a_gap_of_years_is_refused_before_resampling(tmp_path: Path) -> None:
+    """A 0.1 s file with a 3e8 s jump made 3e8 one-second bins: a MemoryError traceback (2.2 GiB for one
+    array of it); a 1e10 s jump wanted 75 GiB. Now the file and the gap's line are named; the grid's bound
+    leaves 58 days at 1 s."""
+    t = np.round(np.arange(0.0, 20.0, 0.1), 6)
+    t[100:] += 3e8
+    path = save_recording(CellRecording(t, np.full(t.size, -1.0), np.full(t.size, 3.7), None, "jump"),
+                          tmp_path / "jump.csv")
+    with pytest.raises(DataError, match=r"jump.csv: its time base spans 3e\+08 s, 300,000,020 samples at 1 s "
+                                        r"\(at most 5,000,000\); its longest logging gap ends at line 102 "
+                                        r"\(9.9 -> 3e\+08 s\)"):
+        load_recording(path, resample_s=1.0)
+    assert len(load_recording(path, resample_s=None)) == 200  # not resampled: nothing to allocate
+    t[100:] -= 3e8 - 4e6  # 46 days: resampled as before, its 4 M empty bins marked
+    path = save_recording(CellRecording(t, np.full(t.size, -1.0), np.full(t.size, 3.7), None, "long"),
+                          tmp_path / "long.csv")
+    assert load_recording(path, resample_s=1.0).gaps_filled > 3_900_000
+
+
 def test_no_resampling_when_native_step_is_coarser_or_disabled(tmp_path: Path) -> None:
     t = np.arange(0.0, 600.0, 60.0)
     rec = CellRecording(t, np.full(t.size, -0.145), np.linspace(4.1, 4.0, t.size), None, "c20")
