@@ -336,6 +336,45 @@ def test_ocv_command_refuses_what_is_not_an_hppc_test_and_a_temperature_off_the_
             capsys.readouterr().err
 
 
+def test_commands_that_identify_the_model_refuse_a_file_whose_current_never_moves(tmp_path, capsys):
+    """An all-rest file ran through fit, compare, diagnose and sop-backtest with exit 0: diagnose named causes
+    'significant' at t = 7.9e14 (a zero noise), sop-backtest printed 'median nan mV'; a constant current gave
+    the identifier's prior as the fit. Now exit 3 naming the file; soc still reads a rest file on the OCV."""
+    t = np.arange(600.0)
+    rest = save_recording(CellRecording(t, np.zeros(t.size), np.full(t.size, 4.1), None, "r"), tmp_path / "rest.csv")
+    cc = save_recording(CellRecording(t, np.full(t.size, -1.5), 4.15 - 1e-4 * t, None, "c"), tmp_path / "cc.csv")
+    drive = str(drive_cycle("lg-hg2", "la92"))
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    for argv, named in ((["fit", str(rest)], rest), (["sop-backtest", str(rest)], rest),
+                        (["diagnose", drive, "--validate", str(rest)], rest),
+                        (["compare", "--train", drive, "--validate", str(cc)], cc), (["fit", str(cc)], cc)):
+        assert main([*argv, *cell]) == 3, argv
+        err = capsys.readouterr().err
+        what = "at rest throughout (|current| at most 0 A" if named is rest else \
+            "at one constant current (within -1.5..-1.5 A"
+        assert f"{named}: {what}; the model needs steps of C/20 = 0.15 A of --capacity-ah 3): {argv[0]} " \
+            "identifies it from the voltage's response to changes of the current" in err, err
+    assert main(["soc", str(rest), *cell, "--reference-capacity-ah", "3", "--start-soc", "ocv"]) == 0
+
+
+def test_diagnose_on_too_few_samples_names_the_file(tmp_path, capsys):
+    """It read 'only 60 samples inside the SOC window -1..2' (exit 2), naming neither the file nor a window
+    anyone gave."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    short = save_recording(CellRecording(rec.time_s[:60], rec.current_a[:60], rec.voltage_v[:60], None, "s"),
+                           tmp_path / "short.csv")
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    assert main(["diagnose", str(short), *cell]) == 3
+    assert f"{short}: only 60 samples; a diagnosis needs 100" in capsys.readouterr().err
+    assert main(["diagnose", str(drive_cycle("lg-hg2", "la92")), "--validate", str(short), *cell]) == 3
+    assert f"{short}: only 60 samples; a diagnosis needs 100" in capsys.readouterr().err
+    assert main(["diagnose", str(drive_cycle("lg-hg2", "la92")), *cell, "--soc-max", "0.05", "--soc-min", "0.01"]) == 3
+    assert "la92_1s.csv.gz: only 0 samples with the counted SOC at least 0.01 and at most 0.05; a diagnosis " \
+        "needs 100" in capsys.readouterr().err
+
+
 def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_plainly(tmp_path, capsys):
     """The message read 'the recording's 2.011000000013155 degC'."""
     from bms_estimator.data import load_recording

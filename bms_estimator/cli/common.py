@@ -144,16 +144,40 @@ def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig
     )
 
 
-def load(path: Path, args: argparse.Namespace) -> CellRecording:
+def load(path: Path, args: argparse.Namespace, *, identifies: bool = True) -> CellRecording:
     """The recording at ``--resample-s``; with ``--capacity-ah``, one whose charge fits that capacity
-    (:func:`~bms_estimator.data.check_charge_span`)."""
+    (:func:`~bms_estimator.data.check_charge_span`) and, for a command that ``identifies`` the model from
+    the file, one with a current that moves (:func:`check_excitation`)."""
     rec = load_recording(path, resample_s=args.resample_s)
     if len(rec) < 10:
         raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
     capacity_ah = getattr(args, "capacity_ah", None)
     if capacity_ah:
         check_charge_span(rec, capacity_ah, "--capacity-ah")
+        if identifies:
+            check_excitation(rec, capacity_ah, args.command)
     return rec
+
+
+def check_excitation(rec: CellRecording, capacity_ah: float, command: str) -> None:
+    """Refuse a recording whose current never moves by ``START_REST_C`` x ``capacity_ah`` (C/20).
+
+    The model is identified from the voltage's response to the current (``dv = R0 di`` and the RC
+    branches' relaxation after a step): a file at rest throughout, or at one constant current, gives
+    the identifier's prior back as "identified" parameters and, on a rest file, a diagnosis whose
+    t-statistics divide by a zero noise (1e14). ``max |i|`` and ``max i - min i`` must both reach C/20.
+    """
+    i = rec.current_a
+    step_a = START_REST_C * capacity_ah
+    peak, spread = float(np.max(np.abs(i))), float(np.ptp(i))
+    if peak < step_a:
+        what = f"at rest throughout (|current| at most {peak:.3g} A"
+    elif spread < step_a:
+        what = f"at one constant current (within {float(np.min(i)):.4g}..{float(np.max(i)):.4g} A"
+    else:
+        return
+    raise DataError(f"{rec.source}: {what}; the model needs steps of C/20 = {step_a:.3g} A of --capacity-ah "
+                    f"{capacity_ah:g}): {command} identifies it from the voltage's response to changes of the current")
 
 
 def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,

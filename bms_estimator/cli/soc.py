@@ -133,7 +133,7 @@ def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray
 
 
 def run(args: argparse.Namespace) -> int:
-    rec = load(args.data, args)
+    rec = load(args.data, args, identifies=False)  # a rest file: the SOC read on the OCV, counted
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     dt = rec.dt_s
     t = rec.time_s - rec.time_s[0]
