@@ -375,6 +375,43 @@ def test_diagnose_on_too_few_samples_names_the_file(tmp_path, capsys):
         "needs 100" in capsys.readouterr().err
 
 
+def test_short_files_and_late_starts_print_figures_not_nan(tmp_path, capsys):
+    """5 min of the LG drive (shipped sample, Kollmeyer, CC BY 4.0) never enters 20-90 % SOC: fit printed no
+    parameters and 'simulation RMSE nan mV', compare a table of 'nan', both with the capacity at the low end of
+    its search (0.8 x 3 Ah) as if estimated; soc from the last minute printed 'SOC RMSE nan %'. Now the
+    figures are over the whole file (said so), the capacity's search end is warned about, and the JSON keeps
+    null for the figures that do not exist."""
+    from bms_estimator.data import load_recording
+
+    la92 = str(drive_cycle("lg-hg2", "la92"))
+    rec = load_recording(la92)
+    short = save_recording(CellRecording(rec.time_s[:300], rec.current_a[:300], rec.voltage_v[:300],
+                                         rec.temperature_c[:300], "s"), tmp_path / "short.csv")
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    end = (f"{short}: the effective capacity 2.400 Ah is the low end of its search (0.8..1.1 x --capacity-ah 3): "
+           "the file does not identify it")
+    assert main(["fit", str(short), *cell, "--json", str(tmp_path / "fit.json")]) == 0
+    res = capsys.readouterr()
+    assert end in res.err and "nan" not in res.out, res
+    assert "(final values: the counted SOC, 0.98..1.00, has no identified sample in 20-90 %)" in res.out
+    assert " mV over the whole file; capacity 2.400 Ah" in res.out
+    fit = json.loads((tmp_path / "fit.json").read_text())
+    assert fit["sim_rmse_mv"] is None and fit["sim_rmse_mv_full_range"] > 0
+    assert main(["compare", "--train", str(short), "--validate", str(short), *cell, "--method", "arx"]) == 0
+    res = capsys.readouterr()
+    assert end in res.err and "nan" not in res.out, res
+    assert res.out.count("(whole file: its counted SOC never enters the window)") == 2
+    assert main(["fit", la92, *cell]) == 0  # a whole drive: its capacity inside the search, no warning
+    assert "end of its search" not in capsys.readouterr().err
+    last = tmp_path / "last.json"
+    assert main(["soc", la92, *cell, "--start-s", str(rec.time_s[-40]), "--json", str(last)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("SOC RMSE ") and "% from the start (the recording ends 39 s after it" in out, out
+    assert "nan" not in out
+    figs = json.loads(last.read_text())
+    assert figs["rmse_30min_pct"] is None and figs["rmse_all_pct"] >= 0
+
+
 def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_plainly(tmp_path, capsys):
     """The message read 'the recording's 2.011000000013155 degC'."""
     from bms_estimator.data import load_recording

@@ -223,6 +223,25 @@ def warn_if_start_is_not_initial_soc(rec: CellRecording, ocv: OcvSurface, args: 
                       UserWarning, stacklevel=2)
 
 
+def warn_if_capacity_at_search_end(capacity_ah: float, searched_ah, source: str, stated_ah: float) -> None:
+    """Warn when the output-error capacity is an end of the grid it was searched on.
+
+    :func:`~bms_estimator.analysis.output_error_capacity` returns the grid point with the least
+    simulation error; at an end of the grid (0.8 or 1.1 x the stated capacity) the minimum was not
+    found, and the capacity, the SOC path and every figure along it are the grid's, not the file's:
+    a file too short to move its SOC, or one the model does not fit (the LG cell's -10 degC US06:
+    175 mV).
+    """
+    lo, hi = float(searched_ah[0]), float(searched_ah[-1])
+    if lo + 1e-9 < capacity_ah < hi - 1e-9:
+        return
+    side = "low" if capacity_ah <= lo + 1e-9 else "high"
+    warnings.warn(f"{source}: the effective capacity {capacity_ah:.3f} Ah is the {side} end of its search "
+                  f"({lo / stated_ah:.2g}..{hi / stated_ah:.2g} x --capacity-ah {stated_ah:g}): the file does not "
+                  "identify it (too short, or a model that does not fit it), and its parameters and figures are "
+                  "along that end's SOC path", UserWarning, stacklevel=2)
+
+
 def write_json(data: dict, path: Path | None) -> None:
     text = json.dumps(to_jsonable(data), indent=2)
     if path is None or str(path) == "-":

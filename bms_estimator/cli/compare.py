@@ -9,7 +9,8 @@ from ..analysis import DEFAULT_METHODS, compare_methods
 from ..core.arrhenius import RESISTANCE_ACTIVATION_K
 from ..core.identifier import METHODS
 from .common import (METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
-                     non_negative_float, soc_config, warn_if_start_is_not_initial_soc, write_json)
+                     non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc,
+                     write_json)
 
 
 def add_parser(sub) -> None:
@@ -57,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
         temperatures_c=(tr.temperature_c, va.temperature_c), activation_k=args.activation_k,
     )
     m = res.metrics
+    warn_if_capacity_at_search_end(res.capacity_ah, m["capacity_profile"]["capacity_ah"], tr.source, args.capacity_ah)
     m["files"] = {"train": str(args.train), "validate": str(args.validate)}
     if args.plots:
         _plots(res, tr, va, args.plots, window)
@@ -67,9 +69,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"effective capacity {res.capacity_ah:.3f} Ah (stated {args.capacity_ah:g}); "
               f"RMSE in SOC {window[0]:.0%}-{window[1]:.0%}, simulation / one-step-ahead [mV]:")
         for part in ("train", "validate"):
-            row = "  ".join(f"{meth.upper()} {m[part][meth]['sim_rmse_mv']:6.1f} / {m[part][meth]['osa_rmse_mv']:5.1f}"
-                            for meth in m[part])
-            print(f"  {part:9s} {row}")
+            figs, note = m[part], ""
+            if all(f["sim_rmse_mv"] != f["sim_rmse_mv"] for f in figs.values()):  # NaN: no sample in the window
+                figs, note = m["full_range"][part], "  (whole file: its counted SOC never enters the window)"
+            row = "  ".join(f"{meth.upper()} {f['sim_rmse_mv']:6.1f} / {f['osa_rmse_mv']:5.1f}"
+                            for meth, f in figs.items())
+            print(f"  {part:9s} {row}{note}")
     return 0
 
 
