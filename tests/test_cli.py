@@ -412,6 +412,25 @@ def test_short_files_and_late_starts_print_figures_not_nan(tmp_path, capsys):
     assert figs["rmse_30min_pct"] is None and figs["rmse_all_pct"] >= 0
 
 
+def test_a_recording_far_from_the_tables_temperatures_is_warned_about(tmp_path, capsys):
+    """The OCV surface holds its end tables outside their temperatures: the LG 0 degC drives read on the
+    25 degC table alone ran to SOC RMSE 2.5-3.0 % (0.2-2.7 % on their own table) with exit 0 and no word.
+    The shipped sample at its own ambient (24 degC, table 23.9) is not warned about."""
+    from bms_estimator.data import load_recording
+
+    la92 = str(drive_cycle("lg-hg2", "la92"))
+    rec = load_recording(la92)
+    cold = save_recording(CellRecording(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c - 30.0, "c"),
+                          tmp_path / "cold.csv.gz")
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    assert main(["soc", str(cold), *cell, "--reference-capacity-ah", "2.8"]) == 0
+    err = capsys.readouterr().err
+    assert (f"bms-estimator soc: warning: {cold}: its median cell temperature -5.8 degC is 30 K outside the --ocv "
+            "table(s) at 23.9 degC, read there (held, not extrapolated): give a table measured near -6 degC") in err
+    assert main(["soc", la92, *cell]) == 0
+    assert "outside the --ocv table" not in capsys.readouterr().err
+
+
 def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_plainly(tmp_path, capsys):
     """The message read 'the recording's 2.011000000013155 degC'."""
     from bms_estimator.data import load_recording

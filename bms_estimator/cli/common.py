@@ -27,6 +27,9 @@ _SOC = SocConfig()
 START_REST_C = 0.05
 #: ... and one this far from --initial-soc is warned about (at rest the data set's files read 0.993-1.001)
 START_SOC_TOLERANCE = 0.1
+#: An --ocv table within this of a recording's median cell temperature is "the same ambient"; a recording
+#: further than this outside the tables' temperatures is read on the nearest table, and warned about.
+SAME_AMBIENT_K = 5.0
 
 
 def _number(text: str, *, allow_zero: bool) -> float:
@@ -197,6 +200,8 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
         surface = OcvSurface.from_csvs(path_list, default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
     except ValueError as exc:  # a malformed table is a data error (exit 3); the message names the file
         raise DataError(f"OCV table: {exc}") from None
+    if t is not None:
+        _warn_if_outside_the_tables(rec, t, surface)
     ratio = stated_capacity_ratio(capacity_ah, surface) if capacity_ah else None
     if ratio is not None:
         raise UsageError(
@@ -204,6 +209,26 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
             f"{float(np.median(table_capacities_ah(surface))):.3f} Ah of the --ocv table(s) "
             f"({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah")
     return surface
+
+
+def _warn_if_outside_the_tables(rec: CellRecording, median_c: float, surface: OcvSurface) -> None:
+    """Warn when the recording's median cell temperature is more than ``SAME_AMBIENT_K`` outside the tables'.
+
+    The surface holds the end tables outside their temperatures (``core.ocv_surface``, 1.): the LG
+    cell's four 0 degC drives read on its 25 degC table alone ran without a word to an SOC RMSE of
+    2.5-3.0 % (``soc``, default method), against 0.2-2.7 % on their own ambient's table.
+    """
+    temps = np.asarray(surface.temperatures_c, dtype=float)
+    temps = temps[np.isfinite(temps)]
+    if temps.size == 0 or not math.isfinite(median_c):
+        return
+    lo, hi = float(temps.min()), float(temps.max())
+    off = max(lo - median_c, median_c - hi)
+    if off > SAME_AMBIENT_K:
+        span = f"{lo:.1f}" if hi - lo < 0.05 else f"{lo:.1f}..{hi:.1f}"
+        warnings.warn(f"{rec.source}: its median cell temperature {median_c:.1f} degC is {off:.0f} K outside the "
+                      f"--ocv table(s) at {span} degC, read there (held, not extrapolated): give a table measured "
+                      f"near {median_c:.0f} degC", UserWarning, stacklevel=3)
 
 
 def warn_if_start_is_not_initial_soc(rec: CellRecording, ocv: OcvSurface, args: argparse.Namespace) -> None:

@@ -14,11 +14,9 @@ from ..core.soc import SOC_METHODS, SocConfig
 from ..errors import DataError
 from ..gaps import MAX_GAP_S, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
-from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
-                     load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
+from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
+                     load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
 
-#: A C/20 table within this of the recording's median temperature is "the same ambient".
-SAME_AMBIENT_K = 5.0
 
 
 def _start_soc(text: str) -> str | float:
