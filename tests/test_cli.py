@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -375,12 +376,12 @@ def test_diagnose_on_too_few_samples_names_the_file(tmp_path, capsys):
         "needs 100" in capsys.readouterr().err
 
 
-def test_short_files_and_late_starts_print_figures_not_nan(tmp_path, capsys):
+def test_short_files_and_late_starts_print_figures_not_nan(tmp_path, capsys, monkeypatch):
     """5 min of the LG drive (shipped sample, Kollmeyer, CC BY 4.0) never enters 20-90 % SOC: fit printed no
     parameters and 'simulation RMSE nan mV', compare a table of 'nan', both with the capacity at the low end of
     its search (0.8 x 3 Ah) as if estimated; soc from the last minute printed 'SOC RMSE nan %'. Now the
-    figures are over the whole file (said so), the capacity's search end is warned about, and the JSON keeps
-    null for the figures that do not exist."""
+    figures are over the whole file (said so, in the plot's error panel too, which was empty), the capacity's
+    search end is warned about, and the JSON keeps null for the figures that do not exist."""
     from bms_estimator.data import load_recording
 
     la92 = str(drive_cycle("lg-hg2", "la92"))
@@ -390,7 +391,21 @@ def test_short_files_and_late_starts_print_figures_not_nan(tmp_path, capsys):
     cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
     end = (f"{short}: the effective capacity 2.400 Ah is the low end of its search (0.8..1.1 x --capacity-ah 3): "
            "the file does not identify it")
-    assert main(["fit", str(short), *cell, "--json", str(tmp_path / "fit.json")]) == 0
+    import bms_estimator.plots as plots
+
+    shown = {}
+    real_save = plots.save_figure
+
+    def save(fig, path, note=None, **kw):  # what the error panel plots, per figure
+        shown[Path(path).name] = (fig._suptitle.get_text(), [np.isfinite(line.get_ydata()).sum()
+                                                              for line in fig.axes[1].get_lines()])
+        return real_save(fig, path, note, **kw)
+
+    monkeypatch.setattr(plots, "save_figure", save)
+    assert main(["fit", str(short), *cell, "--json", str(tmp_path / "fit.json"), "--plot", str(tmp_path / "fit.png")]) == 0
+    monkeypatch.undo()
+    title, finite = shown["fit_simulation.png"]  # the error panel was empty (every sample masked out)
+    assert title.endswith("(whole file: none of it in the SOC window)") and finite == [300], shown
     res = capsys.readouterr()
     assert end in res.err and "nan" not in res.out, res
     assert "(final values: the counted SOC, 0.98..1.00, has no identified sample in 20-90 %)" in res.out
