@@ -84,6 +84,7 @@ from pathlib import Path
 import numpy as np
 
 from .core.ecm import soc_from_current
+from .core.ocv import CELL_TEMPERATURE_RANGE_C  # (the tables' temperature_c is held to it too)
 from .errors import DataError
 
 __all__ = [
@@ -100,9 +101,6 @@ OPTIONAL_COLUMNS = ("temperature_c",)
 
 #: a single cell's terminal voltage lies in this range [V]; outside it the column is in mV or a pack's
 CELL_VOLTAGE_RANGE_V = (-1.0, 10.0)
-#: a cell's temperature lies in this range [degC]; outside it the column is in kelvin or Fahrenheit, or a
-#: sensor's fault code (the estimator reads the OCV tables and its priors at the cell temperature)
-CELL_TEMPERATURE_RANGE_C = (-60.0, 150.0)
 #: correlation of the current's and the voltage's 1-sample steps below which the current is discharge-positive
 SIGN_CORRELATION_MIN = -0.2
 #: steps with a current change needed before the sign is judged

@@ -397,6 +397,9 @@ def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
         ("soc,ocv_v,temperature_c\n0,3,25\n1,4,0\n", r"column 'temperature_c' must hold one value .* line 3 has 0$"),
         ("soc,ocv_v,capacity_ah\n0,3,0\n1,4,0\n", r"capacity_ah must be positive"),
         ("soc,ocv_v,temperature_c\n0,3,25\n1,4,\n", r"line 3: non-numeric value '' in column 'temperature_c'"),
+        # a table in kelvin was filed at 298 degC (held there: every recording read on it as at its end table)
+        ("soc,ocv_v,temperature_c\n0,3,298.15\n1,4,298.15\n",
+         r"temperature_c 298.15 is not a cell temperature \(expected -60..150 degC; is the column in kelvin\?\)$"),
     ],
 )
 def test_csv_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: str) -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..core.ocv import OcvCurve
-from ..data import CELL_TEMPERATURE_RANGE_C, load_recording
+from ..core.ocv import CELL_TEMPERATURE_RANGE_C, OcvCurve
+from ..data import load_recording
 from ..errors import DataError
 
 
@@ -29,7 +29,7 @@ def add_parser(sub) -> None:
 
 def _cell_temperature(text: str) -> float:
     """A cell temperature in degC, within the range the recordings' temperature_c is held to
-    (``data.CELL_TEMPERATURE_RANGE_C``): the table is read at it, so 500 (kelvin?) would file it far off."""
+    (``core.ocv.CELL_TEMPERATURE_RANGE_C``): the table is read at it, so 500 (kelvin?) would file it far off."""
     lo, hi = CELL_TEMPERATURE_RANGE_C
     try:
         value = float(text)

@@ -64,6 +64,10 @@ INVERSE_GRID_POINTS = 8001
 MAX_OCV_DIP_V = 5e-3
 #: A table's ocv_v must lie in this range [V] (a single cell's open-circuit voltage).
 OCV_RANGE_V = (0.0, 10.0)
+#: A cell's temperature lies in this range [degC]; outside it a value is in kelvin or Fahrenheit, or a
+#: sensor's fault code (the recordings' temperature_c and the tables' are held to it: the estimator reads
+#: the OCV tables and its priors at the cell temperature)
+CELL_TEMPERATURE_RANGE_C = (-60.0, 150.0)
 #: A C/20 test's discharge branch holds at least this share of all the charge its file discharges.
 C20_BRANCH_SHARE_MIN = 0.5
 #: Step of the strictly-increasing repair [V].
@@ -658,6 +662,10 @@ class OcvCurve:
             const[name] = float(col[0])
         if const.get("capacity_ah", 1.0) <= 0:
             raise ValueError(f"{path}: capacity_ah must be positive, got {const['capacity_ah']:g}")
+        t_lo, t_hi = CELL_TEMPERATURE_RANGE_C
+        if not t_lo <= const.get("temperature_c", 25.0) <= t_hi:  # (a table at 298.15 was filed at 298 degC)
+            raise ValueError(f"{path}: temperature_c {const['temperature_c']:g} is not a cell temperature "
+                             f"(expected {t_lo:g}..{t_hi:g} degC; is the column in kelvin?)")
         data = data[:, :len(wanted) - len(constants)]
         s, v = data[:, 0], data[:, 1]
         h = data[:, 2] if data.shape[1] > 2 else None
