@@ -410,6 +410,14 @@ def test_csv_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: st
     assert str(p) in str(exc.value)
 
 
+def test_csv_that_is_not_text_names_the_file(tmp_path: Path) -> None:
+    """A binary file given as the table read "OCV table: 'utf-8' codec can't decode byte 0xff ...", no file."""
+    p = tmp_path / "binary.csv"
+    p.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ValueError, match=r"binary.csv: not UTF-8 text \(invalid start byte at byte 0\)$"):
+        OcvCurve.from_csv(p)
+
+
 def test_csv_small_dip_is_repaired_with_warning(tmp_path: Path) -> None:
     p = tmp_path / "dip.csv"
     p.write_text("soc,ocv_v\n0,3.0\n0.4,3.6\n0.5,3.599\n0.6,3.6\n1,4.2\n")

@@ -618,7 +618,10 @@ class OcvCurve:
                 non-numeric value with its line, NaN, non-monotone soc, ...).
         """
         path = Path(path)
-        text = path.read_text(encoding="utf-8-sig")
+        try:
+            text = path.read_text(encoding="utf-8-sig")
+        except UnicodeDecodeError as exc:  # (a binary file's error named no file)
+            raise ValueError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
         lines = [(n, ln) for n, ln in enumerate(text.splitlines(), start=1)
                  if ln.strip() and not ln.lstrip().startswith("#")]
         if not lines:
