@@ -353,7 +353,7 @@ def test_commands_that_identify_the_model_refuse_a_file_whose_current_never_move
         err = capsys.readouterr().err
         what = "at rest throughout (|current| at most 0 A" if named is rest else \
             "at one constant current (within -1.5..-1.5 A"
-        assert f"{named}: {what}; the model needs steps of C/20 = 0.15 A of --capacity-ah 3): {argv[0]} " \
+        assert f"{named}: {what}; the model needs steps of C/100 = 0.03 A of --capacity-ah 3): {argv[0]} " \
             "identifies it from the voltage's response to changes of the current" in err, err
     assert main(["soc", str(rest), *cell, "--reference-capacity-ah", "3", "--start-soc", "ocv"]) == 0
 
@@ -444,6 +444,17 @@ def test_a_recording_far_from_the_tables_temperatures_is_warned_about(tmp_path, 
             "table(s) at 23.9 degC, read there (held, not extrapolated): give a table measured near -6 degC") in err
     assert main(["soc", la92, *cell]) == 0
     assert "outside the --ocv table" not in capsys.readouterr().err
+
+
+def test_compare_of_files_at_different_periods_names_them_and_the_way_out(tmp_path, nmc_like_ocv, capsys):
+    """It read 'training and validation files have different sample periods (60.0 vs 1.0 s)'."""
+    c20 = tmp_path / "c20.csv"
+    _c20_file(c20, nmc_like_ocv)  # logged every 60 s
+    la92 = str(drive_cycle("lg-hg2", "la92"))
+    assert main(["compare", "--train", str(c20), "--validate", la92, "--ocv", str(ocv_table("lg-hg2")),
+                 "--capacity-ah", "3"]) == 2
+    assert (f"--train {c20} is sampled every 60 s, --validate {la92} every 1 s: give --resample-s 60 to average "
+            "both to one period") in capsys.readouterr().err
 
 
 def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_plainly(tmp_path, capsys):

@@ -27,6 +27,9 @@ _SOC = SocConfig()
 START_REST_C = 0.05
 #: ... and one this far from --initial-soc is warned about (at rest the data set's files read 0.993-1.001)
 START_SOC_TOLERANCE = 0.1
+#: a current that never moves by this C-rate (peak, or max - min) excites no model to identify; well below a
+#: C/20 test's (the slowest load of the data set) and above a rest's sensor noise (mA)
+EXCITATION_C = 0.01
 #: An --ocv table within this of a recording's median cell temperature is "the same ambient"; a recording
 #: further than this outside the tables' temperatures is read on the nearest table, and warned about.
 SAME_AMBIENT_K = 5.0
@@ -163,15 +166,15 @@ def load(path: Path, args: argparse.Namespace, *, identifies: bool = True) -> Ce
 
 
 def check_excitation(rec: CellRecording, capacity_ah: float, command: str) -> None:
-    """Refuse a recording whose current never moves by ``START_REST_C`` x ``capacity_ah`` (C/20).
+    """Refuse a recording whose current never moves by ``EXCITATION_C`` x ``capacity_ah`` (C/100).
 
     The model is identified from the voltage's response to the current (``dv = R0 di`` and the RC
     branches' relaxation after a step): a file at rest throughout, or at one constant current, gives
     the identifier's prior back as "identified" parameters and, on a rest file, a diagnosis whose
-    t-statistics divide by a zero noise (1e14). ``max |i|`` and ``max i - min i`` must both reach C/20.
+    t-statistics divide by a zero noise (1e14). ``max |i|`` and ``max i - min i`` must both reach C/100.
     """
     i = rec.current_a
-    step_a = START_REST_C * capacity_ah
+    step_a = EXCITATION_C * capacity_ah
     peak, spread = float(np.max(np.abs(i))), float(np.ptp(i))
     if peak < step_a:
         what = f"at rest throughout (|current| at most {peak:.3g} A"
@@ -179,7 +182,7 @@ def check_excitation(rec: CellRecording, capacity_ah: float, command: str) -> No
         what = f"at one constant current (within {float(np.min(i)):.4g}..{float(np.max(i)):.4g} A"
     else:
         return
-    raise DataError(f"{rec.source}: {what}; the model needs steps of C/20 = {step_a:.3g} A of --capacity-ah "
+    raise DataError(f"{rec.source}: {what}; the model needs steps of C/100 = {step_a:.3g} A of --capacity-ah "
                     f"{capacity_ah:g}): {command} identifies it from the voltage's response to changes of the current")
 
 

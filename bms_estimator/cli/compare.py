@@ -8,6 +8,7 @@ from pathlib import Path
 from ..analysis import DEFAULT_METHODS, compare_methods
 from ..core.arrhenius import RESISTANCE_ACTIVATION_K
 from ..core.identifier import METHODS
+from ..errors import UsageError
 from .common import (METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
                      non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc,
                      write_json)
@@ -42,8 +43,9 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     tr, va = load(args.train, args), load(args.validate, args)
-    if abs(tr.dt_s - va.dt_s) > 1e-9:
-        raise ValueError(f"training and validation files have different sample periods ({tr.dt_s} vs {va.dt_s} s)")
+    if abs(tr.dt_s - va.dt_s) > 1e-9:  # (it named neither file nor the way out)
+        raise UsageError(f"--train {args.train} is sampled every {tr.dt_s:g} s, --validate {args.validate} every "
+                         f"{va.dt_s:g} s: give --resample-s {max(tr.dt_s, va.dt_s):g} to average both to one period")
     ocv = load_ocv(args.ocv, tr, capacity_ah=args.capacity_ah)
     for rec in (tr, va):
         warn_if_start_is_not_initial_soc(rec, ocv, args)
