@@ -84,6 +84,7 @@ from pathlib import Path
 import numpy as np
 
 from .core.ecm import soc_from_current
+from .core.ocv import CELL_TEMPERATURE_RANGE_C  # (the tables' temperature_c is held to it too)
 from .errors import DataError
 
 __all__ = [
@@ -100,9 +101,6 @@ OPTIONAL_COLUMNS = ("temperature_c",)
 
 #: a single cell's terminal voltage lies in this range [V]; outside it the column is in mV or a pack's
 CELL_VOLTAGE_RANGE_V = (-1.0, 10.0)
-#: a cell's temperature lies in this range [degC]; outside it the column is in kelvin or Fahrenheit, or a
-#: sensor's fault code (the estimator reads the OCV tables and its priors at the cell temperature)
-CELL_TEMPERATURE_RANGE_C = (-60.0, 150.0)
 #: correlation of the current's and the voltage's 1-sample steps below which the current is discharge-positive
 SIGN_CORRELATION_MIN = -0.2
 #: steps with a current change needed before the sign is judged
@@ -112,6 +110,10 @@ SIGN_MIN_STEPS = 30
 #: seconds, or a stated capacity that is not the cell's (the data set's drive-cycle, C/20 and HPPC files span
 #: 0.19-1.03 of their nominal capacity at 1 s; its hppc_steps files, logged every minute, go to `ocv` only).
 CHARGE_SPAN_MAX = 1.5
+#: Most samples a recording may resample to (58 days at 1 s; the data set's longest file, 27 h of HPPC, has
+#: 97,600): a logging gap of years (a clock jump, a time in ms) made millions of empty bins and ended in a
+#: MemoryError, before the charge check could name the file.
+RESAMPLED_SAMPLES_MAX = 5_000_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -363,6 +365,7 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
 
     native_dt = float(np.median(np.diff(time_s)))
     if resample_s is not None and native_dt < resample_s:
+        _check_resampled_size(path, text, header_line, time_s, float(resample_s))
         cols = [current_a, voltage_v] + ([temperature_c] if temperature_c is not None else [])
         t_new, values, empty = _resample_bins(
             time_s, np.column_stack(cols), float(resample_s), (False,) + (True,) * (len(cols) - 1)
@@ -382,6 +385,19 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     return rec
 
 
+def _check_resampled_size(path: Path, text: str, header_line: int, time_s: np.ndarray, resample_s: float) -> None:
+    """Refuse a time base that resamples to more than ``RESAMPLED_SAMPLES_MAX`` bins, naming its longest gap."""
+    bins = math.floor(time_s[-1] / resample_s) - math.floor(time_s[0] / resample_s) + 1
+    if bins <= RESAMPLED_SAMPLES_MAX:
+        return
+    k = int(np.argmax(np.diff(time_s))) + 1
+    lineno = int(_data_line_numbers(text, header_line)[k])
+    raise DataError(
+        f"{path}: its time base spans {time_s[-1] - time_s[0]:.4g} s, {bins:,} samples at {resample_s:g} s (at most "
+        f"{RESAMPLED_SAMPLES_MAX:,}); its longest logging gap ends at line {lineno} ({time_s[k - 1]:.6g} -> "
+        f"{time_s[k]:.6g} s): is time_s in seconds? split the recording at the gap")
+
+
 def check_charge_span(rec: CellRecording, capacity_ah: float, what: str = "capacity") -> None:
     """Refuse a recording whose charge does not fit one cell of ``capacity_ah``.
 
@@ -392,6 +408,21 @@ def check_charge_span(rec: CellRecording, capacity_ah: float, what: str = "capac
     if len(rec) < 2:
         return
     span = float(np.ptp(soc_from_current(rec.current_a, rec.dt_s, capacity_ah, 1.0)))
+    if span > CHARGE_SPAN_MAX and rec.filled.any():
+        # the resampled grid holds the current across a logging gap ("Resampling", 4.): when that charge
+        # alone breaks the bound, the gap is named, not the units (a 2 h gap under 5 A: 10 Ah of it)
+        unlogged = np.where(rec.filled, 0.0, rec.current_a)
+        if float(np.ptp(soc_from_current(unlogged, rec.dt_s, capacity_ah, 1.0))) <= CHARGE_SPAN_MAX:
+            edges = np.flatnonzero(np.diff(np.r_[0, rec.filled.astype(np.int8), 0]))
+            starts, ends = edges[::2], edges[1::2]
+            j = int(np.argmax(ends - starts))
+            held_ah = float(np.sum(np.abs(rec.current_a[rec.filled]))) * rec.dt_s / 3600.0
+            raise DataError(
+                f"{rec.source}: its coulomb count spans {span * capacity_ah:.4g} Ah, {span:.1f} times {what} = "
+                f"{capacity_ah:g} Ah, {held_ah:.4g} Ah of it the current held across its logging gaps (the longest "
+                f"{(ends[j] - starts[j]) * rec.dt_s:.0f} s from t = {rec.time_s[starts[j]]:.0f} s, under "
+                f"{abs(float(rec.current_a[starts[j]])):.3g} A): the file does not say what flowed there; cut it "
+                "at the gap")
     if span > CHARGE_SPAN_MAX:
         raise DataError(
             f"{rec.source}: its coulomb count spans {span * capacity_ah:.4g} Ah, {span:.1f} times {what} = "

@@ -51,8 +51,12 @@ def plot_parameters(time_s: np.ndarray, params: dict[str, dict[str, np.ndarray]]
 
 def plot_errors(time_s, voltage_v, predicted: dict[str, np.ndarray], path: Path, title: str, ylabel: str,
                 mask: np.ndarray | None = None) -> Path:
-    """Voltage error against time (the paper's Figs 8-9: OSA or simulation error)."""
+    """Voltage error against time (the paper's Figs 8-9: OSA or simulation error), where ``mask`` is True; a
+    mask without a True sample (a file that never enters the SOC window) shows the whole file, and says so
+    (the panel was left empty)."""
     t = np.asarray(time_s) / 3600.0
+    if mask is not None and not np.any(mask):
+        mask, title = None, f"{title} (whole file: none of it in the SOC window)"
     fig, axes = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
     axes[0].plot(t, voltage_v, color="black", lw=0.8, label="measured")
     for method, v in predicted.items():

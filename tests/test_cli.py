@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -315,6 +316,145 @@ def test_ocv_command_refuses_a_file_that_is_not_a_c20_test(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "hppc.csv: the current is zero in 90 % of the samples or more: not a C/20 test" in err
     assert "--hppc-steps" in err
+
+
+def test_ocv_command_refuses_what_is_not_an_hppc_test_and_a_temperature_off_the_cells_range(tmp_path, capsys):
+    """A drive cycle given with --hppc-steps ended in an IndexError traceback (exit 1); --temperature-c 500
+    (kelvin?) wrote a table filed at 500 degC with exit 0."""
+    out = tmp_path / "ocv.csv"
+    t = np.arange(0.0, 4 * 3600.0, 60.0)
+    steps = save_recording(CellRecording(t, np.where((t // 1800) % 2 == 0, -0.5, 0.0), 3.9 - 1e-5 * t, None, "s"),
+                           tmp_path / "steps.csv")
+    assert main(["ocv", str(drive_cycle("lg-hg2", "la92")), "--hppc-steps", str(steps), "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "la92_1s.csv.gz with --hppc-steps" in err and "only 0 usable rest point(s)" in err, err
+    assert not out.exists()
+    for value in ("500", "-300", "nan"):
+        with pytest.raises(SystemExit) as exc:
+            main(["ocv", str(drive_cycle("lg-hg2", "la92")), "-o", str(out), "--temperature-c", value])
+        assert exc.value.code == 2
+        assert f"argument --temperature-c: '{value}' is not a cell temperature in degC (-60..150)" in \
+            capsys.readouterr().err
+
+
+def test_commands_that_identify_the_model_refuse_a_file_whose_current_never_moves(tmp_path, capsys):
+    """An all-rest file ran through fit, compare, diagnose and sop-backtest with exit 0: diagnose named causes
+    'significant' at t = 7.9e14 (a zero noise), sop-backtest printed 'median nan mV'; a constant current gave
+    the identifier's prior as the fit. Now exit 3 naming the file; soc still reads a rest file on the OCV."""
+    t = np.arange(600.0)
+    rest = save_recording(CellRecording(t, np.zeros(t.size), np.full(t.size, 4.1), None, "r"), tmp_path / "rest.csv")
+    cc = save_recording(CellRecording(t, np.full(t.size, -1.5), 4.15 - 1e-4 * t, None, "c"), tmp_path / "cc.csv")
+    drive = str(drive_cycle("lg-hg2", "la92"))
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    for argv, named in ((["fit", str(rest)], rest), (["sop-backtest", str(rest)], rest),
+                        (["diagnose", drive, "--validate", str(rest)], rest),
+                        (["compare", "--train", drive, "--validate", str(cc)], cc), (["fit", str(cc)], cc)):
+        assert main([*argv, *cell]) == 3, argv
+        err = capsys.readouterr().err
+        what = "at rest throughout (|current| at most 0 A" if named is rest else \
+            "at one constant current (within -1.5..-1.5 A"
+        assert f"{named}: {what}; the model needs steps of C/100 = 0.03 A of --capacity-ah 3): {argv[0]} " \
+            "identifies it from the voltage's response to changes of the current" in err, err
+    assert main(["soc", str(rest), *cell, "--reference-capacity-ah", "3", "--start-soc", "ocv"]) == 0
+
+
+def test_diagnose_on_too_few_samples_names_the_file(tmp_path, capsys):
+    """It read 'only 60 samples inside the SOC window -1..2' (exit 2), naming neither the file nor a window
+    anyone gave."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    short = save_recording(CellRecording(rec.time_s[:60], rec.current_a[:60], rec.voltage_v[:60], None, "s"),
+                           tmp_path / "short.csv")
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    assert main(["diagnose", str(short), *cell]) == 3
+    assert f"{short}: only 60 samples; a diagnosis needs 100" in capsys.readouterr().err
+    assert main(["diagnose", str(drive_cycle("lg-hg2", "la92")), "--validate", str(short), *cell]) == 3
+    assert f"{short}: only 60 samples; a diagnosis needs 100" in capsys.readouterr().err
+    assert main(["diagnose", str(drive_cycle("lg-hg2", "la92")), *cell, "--soc-max", "0.05", "--soc-min", "0.01"]) == 3
+    assert "la92_1s.csv.gz: only 0 samples with the counted SOC at least 0.01 and at most 0.05; a diagnosis " \
+        "needs 100" in capsys.readouterr().err
+
+
+def test_short_files_and_late_starts_print_figures_not_nan(tmp_path, capsys, monkeypatch):
+    """5 min of the LG drive (shipped sample, Kollmeyer, CC BY 4.0) never enters 20-90 % SOC: fit printed no
+    parameters and 'simulation RMSE nan mV', compare a table of 'nan', both with the capacity at the low end of
+    its search (0.8 x 3 Ah) as if estimated; soc from the last minute printed 'SOC RMSE nan %'. Now the
+    figures are over the whole file (said so, in the plot's error panel too, which was empty), the capacity's
+    search end is warned about, and the JSON keeps null for the figures that do not exist."""
+    from bms_estimator.data import load_recording
+
+    la92 = str(drive_cycle("lg-hg2", "la92"))
+    rec = load_recording(la92)
+    short = save_recording(CellRecording(rec.time_s[:300], rec.current_a[:300], rec.voltage_v[:300],
+                                         rec.temperature_c[:300], "s"), tmp_path / "short.csv")
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    end = (f"{short}: the effective capacity 2.400 Ah is the low end of its search (0.8..1.1 x --capacity-ah 3): "
+           "the file does not identify it")
+    import bms_estimator.plots as plots
+
+    shown = {}
+    real_save = plots.save_figure
+
+    def save(fig, path, note=None, **kw):  # what the error panel plots, per figure
+        shown[Path(path).name] = (fig._suptitle.get_text(), [np.isfinite(line.get_ydata()).sum()
+                                                              for line in fig.axes[1].get_lines()])
+        return real_save(fig, path, note, **kw)
+
+    monkeypatch.setattr(plots, "save_figure", save)
+    assert main(["fit", str(short), *cell, "--json", str(tmp_path / "fit.json"), "--plot", str(tmp_path / "fit.png")]) == 0
+    monkeypatch.undo()
+    title, finite = shown["fit_simulation.png"]  # the error panel was empty (every sample masked out)
+    assert title.endswith("(whole file: none of it in the SOC window)") and finite == [300], shown
+    res = capsys.readouterr()
+    assert end in res.err and "nan" not in res.out, res
+    assert "(final values: the counted SOC, 0.98..1.00, has no identified sample in 20-90 %)" in res.out
+    assert " mV over the whole file; capacity 2.400 Ah" in res.out
+    fit = json.loads((tmp_path / "fit.json").read_text())
+    assert fit["sim_rmse_mv"] is None and fit["sim_rmse_mv_full_range"] > 0
+    assert main(["compare", "--train", str(short), "--validate", str(short), *cell, "--method", "arx"]) == 0
+    res = capsys.readouterr()
+    assert end in res.err and "nan" not in res.out, res
+    assert res.out.count("(whole file: its counted SOC never enters the window)") == 2
+    assert main(["fit", la92, *cell]) == 0  # a whole drive: its capacity inside the search, no warning
+    assert "end of its search" not in capsys.readouterr().err
+    last = tmp_path / "last.json"
+    assert main(["soc", la92, *cell, "--start-s", str(rec.time_s[-40]), "--json", str(last)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("SOC RMSE ") and "% from the start (the recording ends 39 s after it" in out, out
+    assert "nan" not in out
+    figs = json.loads(last.read_text())
+    assert figs["rmse_30min_pct"] is None and figs["rmse_all_pct"] >= 0
+
+
+def test_a_recording_far_from_the_tables_temperatures_is_warned_about(tmp_path, capsys):
+    """The OCV surface holds its end tables outside their temperatures: the LG 0 degC drives read on the
+    25 degC table alone ran to SOC RMSE 2.5-3.0 % (0.2-2.7 % on their own table) with exit 0 and no word.
+    The shipped sample at its own ambient (24 degC, table 23.9) is not warned about."""
+    from bms_estimator.data import load_recording
+
+    la92 = str(drive_cycle("lg-hg2", "la92"))
+    rec = load_recording(la92)
+    cold = save_recording(CellRecording(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c - 30.0, "c"),
+                          tmp_path / "cold.csv.gz")
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    assert main(["soc", str(cold), *cell, "--reference-capacity-ah", "2.8"]) == 0
+    err = capsys.readouterr().err
+    assert (f"bms-estimator soc: warning: {cold}: its median cell temperature -5.8 degC is 30 K outside the --ocv "
+            "table(s) at 23.9 degC, read there (held, not extrapolated): give a table measured near -6 degC") in err
+    assert main(["soc", la92, *cell]) == 0
+    assert "outside the --ocv table" not in capsys.readouterr().err
+
+
+def test_compare_of_files_at_different_periods_names_them_and_the_way_out(tmp_path, nmc_like_ocv, capsys):
+    """It read 'training and validation files have different sample periods (60.0 vs 1.0 s)'."""
+    c20 = tmp_path / "c20.csv"
+    _c20_file(c20, nmc_like_ocv)  # logged every 60 s
+    la92 = str(drive_cycle("lg-hg2", "la92"))
+    assert main(["compare", "--train", str(c20), "--validate", la92, "--ocv", str(ocv_table("lg-hg2")),
+                 "--capacity-ah", "3"]) == 2
+    assert (f"--train {c20} is sampled every 60 s, --validate {la92} every 1 s: give --resample-s 60 to average "
+            "both to one period") in capsys.readouterr().err
 
 
 def test_soc_without_a_table_at_the_recordings_ambient_names_its_temperature_plainly(tmp_path, capsys):

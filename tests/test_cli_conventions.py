@@ -99,6 +99,20 @@ def test_exit_codes_tell_usage_data_and_runtime_apart(tmp_path, capsys):
     assert "mqtt.port" in err and "Traceback" not in err
 
 
+def test_out_of_memory_is_one_line_and_a_runtime_error(monkeypatch, capsys):
+    """numpy's MemoryError (an input too large for the machine) went out as a traceback."""
+    import bms_estimator.cli.fit as fit
+
+    def too_large(args):
+        raise MemoryError("Unable to allocate 2.24 GiB for an array with shape (300004016,) and data type float64")
+
+    monkeypatch.setattr(fit, "run", too_large)
+    assert main(["fit", "x.csv", "--ocv", "x.csv", "--capacity-ah", "3"]) == EXIT_RUNTIME
+    err = capsys.readouterr().err
+    assert err == ("bms-estimator fit: error: out of memory: Unable to allocate 2.24 GiB for an array with shape "
+                   "(300004016,) and data type float64\n")
+
+
 def test_dashboard_that_never_connected_fails(tmp_path, capsys):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -146,6 +146,44 @@ def test_resampling_fills_gaps_and_counts_them(tmp_path: Path) -> None:
     assert _zoh_charge(res.time_s, res.current_a) == pytest.approx(_zoh_charge(t, i), abs=1e-9)
 
 
+def test_a_gap_of_years_is_refused_before_resampling(tmp_path: Path) -> None:
+    """A 0.1 s file with a 3e8 s jump made 3e8 one-second bins: a MemoryError traceback (2.2 GiB for one
+    array of it); a 1e10 s jump wanted 75 GiB. Now the file and the gap's line are named; the grid's bound
+    leaves 58 days at 1 s."""
+    t = np.round(np.arange(0.0, 20.0, 0.1), 6)
+    t[100:] += 3e8
+    path = save_recording(CellRecording(t, np.full(t.size, -1.0), np.full(t.size, 3.7), None, "jump"),
+                          tmp_path / "jump.csv")
+    with pytest.raises(DataError, match=r"jump.csv: its time base spans 3e\+08 s, 300,000,020 samples at 1 s "
+                                        r"\(at most 5,000,000\); its longest logging gap ends at line 102 "
+                                        r"\(9.9 -> 3e\+08 s\)"):
+        load_recording(path, resample_s=1.0)
+    assert len(load_recording(path, resample_s=None)) == 200  # not resampled: nothing to allocate
+    t[100:] -= 3e8 - 4e6  # 46 days: resampled as before, its 4 M empty bins marked
+    path = save_recording(CellRecording(t, np.full(t.size, -1.0), np.full(t.size, 3.7), None, "long"),
+                          tmp_path / "long.csv")
+    assert load_recording(path, resample_s=1.0).gaps_filled > 3_900_000
+
+
+def test_charge_held_across_a_logging_gap_is_named_not_the_units(tmp_path: Path) -> None:
+    """A 0.1 s drive with a 2 h hole under -3 A: the resampled grid holds the current across it (9 Ah of
+    a 3 Ah cell). It was refused as 'is current_a in mA, time_s not in seconds...?'; now the gap is named.
+    Without the held charge the file fits, so the gap, not the units, is at fault."""
+    from bms_estimator.data import check_charge_span
+
+    t = np.round(np.arange(0.0, 1200.0, 0.1), 6)
+    t[6000:] += 3 * 3600.0  # the hole: 600 s .. 11400 s
+    i = np.where((t // 30) % 2 == 1, -3.0, 0.0)  # under load when the logging stops
+    v = 3.9 + 0.02 * i
+    path = save_recording(CellRecording(t, i, v, None, "hole"), tmp_path / "hole.csv")
+    rec = load_recording(path, resample_s=1.0)
+    with pytest.raises(DataError, match=r"hole.csv: its coulomb count spans [\d.]+ Ah, [\d.]+ times --capacity-ah = "
+                                        r"3 Ah, 9 Ah of it the current held across its logging gaps \(the longest "
+                                        r"10800 s from t = 600 s, under 3 A\): the file does not say what flowed"):
+        check_charge_span(rec, 3.0, "--capacity-ah")
+    check_charge_span(load_recording(path, resample_s=None), 3.0, "--capacity-ah")  # as logged: no held charge
+
+
 def test_no_resampling_when_native_step_is_coarser_or_disabled(tmp_path: Path) -> None:
     t = np.arange(0.0, 600.0, 60.0)
     rec = CellRecording(t, np.full(t.size, -0.145), np.linspace(4.1, 4.0, t.size), None, "c20")

@@ -309,6 +309,30 @@ def test_from_hppc_without_steps_warns_about_gaps() -> None:
     assert c.soc.size == 10
 
 
+def test_from_hppc_refuses_a_test_without_rest_points() -> None:
+    """A drive cycle given as the HPPC file (under load from its first sample, no logging gaps) has no rest
+    point: an IndexError from the de-duplication of no points at all; now the ValueError that names it."""
+    h, s, _ = make_hppc()
+    t = np.arange(0.0, 3000.0, 0.1)
+    drive = (t, -1.0 - 0.5 * np.sin(t / 30.0), 3.9 - 1e-5 * t)
+    with pytest.raises(ValueError, match=r"only 0 usable rest point\(s\) .* not an HPPC test"):
+        OcvCurve.from_hppc(drive, s)
+
+
+def test_from_hppc_refuses_steps_that_leave_most_gaps_empty() -> None:
+    """Another test's steps (here only the first discharge step of this one) line up with one gap of nine:
+    that wrote a table whose SOC axis missed eight steps' charge, with a warning only. One gap without its
+    step still warns and builds the table."""
+    h, s, _ = make_hppc()
+    first = s[0] <= s[0][np.flatnonzero(s[1] == 0)[0]]  # up to the first rest record after the first step
+    with pytest.raises(ValueError, match="8 of the 9 hppc logging gaps hold no discharge step"):
+        OcvCurve.from_hppc(h, tuple(x[first] for x in s))
+    t_gap2 = s[0][np.flatnonzero(np.diff(s[1]) < 0)[1] + 1]  # the second discharge step's first record
+    second = (s[0] >= t_gap2 - 1) & (s[0] < t_gap2 + 2000)
+    with pytest.warns(UserWarning, match="1 of 9 hppc gaps have no discharge step"):
+        OcvCurve.from_hppc(h, tuple(x[~second] for x in s))
+
+
 def test_from_hppc_naive_integration_would_be_wrong() -> None:
     """The sparse steps file cannot be integrated naively (the reason for the alignment)."""
     _, s, _ = make_hppc()
@@ -373,6 +397,9 @@ def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
         ("soc,ocv_v,temperature_c\n0,3,25\n1,4,0\n", r"column 'temperature_c' must hold one value .* line 3 has 0$"),
         ("soc,ocv_v,capacity_ah\n0,3,0\n1,4,0\n", r"capacity_ah must be positive"),
         ("soc,ocv_v,temperature_c\n0,3,25\n1,4,\n", r"line 3: non-numeric value '' in column 'temperature_c'"),
+        # a table in kelvin was filed at 298 degC (held there: every recording read on it as at its end table)
+        ("soc,ocv_v,temperature_c\n0,3,298.15\n1,4,298.15\n",
+         r"temperature_c 298.15 is not a cell temperature \(expected -60..150 degC; is the column in kelvin\?\)$"),
     ],
 )
 def test_csv_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: str) -> None:
@@ -381,6 +408,14 @@ def test_csv_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: st
     with pytest.raises(ValueError, match=pattern) as exc:
         OcvCurve.from_csv(p)
     assert str(p) in str(exc.value)
+
+
+def test_csv_that_is_not_text_names_the_file(tmp_path: Path) -> None:
+    """A binary file given as the table read "OCV table: 'utf-8' codec can't decode byte 0xff ...", no file."""
+    p = tmp_path / "binary.csv"
+    p.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ValueError, match=r"binary.csv: not UTF-8 text \(invalid start byte at byte 0\)$"):
+        OcvCurve.from_csv(p)
 
 
 def test_csv_small_dip_is_repaired_with_warning(tmp_path: Path) -> None:

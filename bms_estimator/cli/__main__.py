@@ -79,6 +79,9 @@ def main(argv: list[str] | None = None) -> int:
         text = f"{exc.filename}: {exc.strerror}" if getattr(exc, "filename", None) and exc.strerror else exc
         print(f"{where}: error: {text}", file=sys.stderr)
         return EXIT_DATA
+    except MemoryError as exc:  # an input too large for this machine: one line, not numpy's traceback
+        print(f"{where}: error: out of memory{': ' + str(exc) if str(exc) else ''}", file=sys.stderr)
+        return EXIT_RUNTIME
     except ValueError as exc:  # an option value the commands or the core refuse
         print(f"{where}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -27,6 +27,12 @@ _SOC = SocConfig()
 START_REST_C = 0.05
 #: ... and one this far from --initial-soc is warned about (at rest the data set's files read 0.993-1.001)
 START_SOC_TOLERANCE = 0.1
+#: a current that never moves by this C-rate (peak, or max - min) excites no model to identify; well below a
+#: C/20 test's (the slowest load of the data set) and above a rest's sensor noise (mA)
+EXCITATION_C = 0.01
+#: An --ocv table within this of a recording's median cell temperature is "the same ambient"; a recording
+#: further than this outside the tables' temperatures is read on the nearest table, and warned about.
+SAME_AMBIENT_K = 5.0
 
 
 def _number(text: str, *, allow_zero: bool) -> float:
@@ -144,16 +150,40 @@ def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig
     )
 
 
-def load(path: Path, args: argparse.Namespace) -> CellRecording:
+def load(path: Path, args: argparse.Namespace, *, identifies: bool = True) -> CellRecording:
     """The recording at ``--resample-s``; with ``--capacity-ah``, one whose charge fits that capacity
-    (:func:`~bms_estimator.data.check_charge_span`)."""
+    (:func:`~bms_estimator.data.check_charge_span`) and, for a command that ``identifies`` the model from
+    the file, one with a current that moves (:func:`check_excitation`)."""
     rec = load_recording(path, resample_s=args.resample_s)
     if len(rec) < 10:
         raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
     capacity_ah = getattr(args, "capacity_ah", None)
     if capacity_ah:
         check_charge_span(rec, capacity_ah, "--capacity-ah")
+        if identifies:
+            check_excitation(rec, capacity_ah, args.command)
     return rec
+
+
+def check_excitation(rec: CellRecording, capacity_ah: float, command: str) -> None:
+    """Refuse a recording whose current never moves by ``EXCITATION_C`` x ``capacity_ah`` (C/100).
+
+    The model is identified from the voltage's response to the current (``dv = R0 di`` and the RC
+    branches' relaxation after a step): a file at rest throughout, or at one constant current, gives
+    the identifier's prior back as "identified" parameters and, on a rest file, a diagnosis whose
+    t-statistics divide by a zero noise (1e14). ``max |i|`` and ``max i - min i`` must both reach C/100.
+    """
+    i = rec.current_a
+    step_a = EXCITATION_C * capacity_ah
+    peak, spread = float(np.max(np.abs(i))), float(np.ptp(i))
+    if peak < step_a:
+        what = f"at rest throughout (|current| at most {peak:.3g} A"
+    elif spread < step_a:
+        what = f"at one constant current (within {float(np.min(i)):.4g}..{float(np.max(i)):.4g} A"
+    else:
+        return
+    raise DataError(f"{rec.source}: {what}; the model needs steps of C/100 = {step_a:.3g} A of --capacity-ah "
+                    f"{capacity_ah:g}): {command} identifies it from the voltage's response to changes of the current")
 
 
 def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
@@ -173,6 +203,8 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
         surface = OcvSurface.from_csvs(path_list, default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
     except ValueError as exc:  # a malformed table is a data error (exit 3); the message names the file
         raise DataError(f"OCV table: {exc}") from None
+    if t is not None:
+        _warn_if_outside_the_tables(rec, t, surface)
     ratio = stated_capacity_ratio(capacity_ah, surface) if capacity_ah else None
     if ratio is not None:
         raise UsageError(
@@ -180,6 +212,26 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
             f"{float(np.median(table_capacities_ah(surface))):.3f} Ah of the --ocv table(s) "
             f"({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah")
     return surface
+
+
+def _warn_if_outside_the_tables(rec: CellRecording, median_c: float, surface: OcvSurface) -> None:
+    """Warn when the recording's median cell temperature is more than ``SAME_AMBIENT_K`` outside the tables'.
+
+    The surface holds the end tables outside their temperatures (``core.ocv_surface``, 1.): the LG
+    cell's four 0 degC drives read on its 25 degC table alone ran without a word to an SOC RMSE of
+    2.5-3.0 % (``soc``, default method), against 0.2-2.7 % on their own ambient's table.
+    """
+    temps = np.asarray(surface.temperatures_c, dtype=float)
+    temps = temps[np.isfinite(temps)]
+    if temps.size == 0 or not math.isfinite(median_c):
+        return
+    lo, hi = float(temps.min()), float(temps.max())
+    off = max(lo - median_c, median_c - hi)
+    if off > SAME_AMBIENT_K:
+        span = f"{lo:.1f}" if hi - lo < 0.05 else f"{lo:.1f}..{hi:.1f}"
+        warnings.warn(f"{rec.source}: its median cell temperature {median_c:.1f} degC is {off:.0f} K outside the "
+                      f"--ocv table(s) at {span} degC, read there (held, not extrapolated): give a table measured "
+                      f"near {median_c:.0f} degC", UserWarning, stacklevel=3)
 
 
 def warn_if_start_is_not_initial_soc(rec: CellRecording, ocv: OcvSurface, args: argparse.Namespace) -> None:
@@ -197,6 +249,25 @@ def warn_if_start_is_not_initial_soc(rec: CellRecording, ocv: OcvSurface, args: 
         warnings.warn(f"{rec.source}: its first voltage {v0:.3f} V (at rest) reads SOC {s0:.2f} on the --ocv "
                       f"table, not --initial-soc {args.initial_soc:g}: give the file's start SOC with --initial-soc",
                       UserWarning, stacklevel=2)
+
+
+def warn_if_capacity_at_search_end(capacity_ah: float, searched_ah, source: str, stated_ah: float) -> None:
+    """Warn when the output-error capacity is an end of the grid it was searched on.
+
+    :func:`~bms_estimator.analysis.output_error_capacity` returns the grid point with the least
+    simulation error; at an end of the grid (0.8 or 1.1 x the stated capacity) the minimum was not
+    found, and the capacity, the SOC path and every figure along it are the grid's, not the file's:
+    a file too short to move its SOC, or one the model does not fit (the LG cell's -10 degC US06:
+    175 mV).
+    """
+    lo, hi = float(searched_ah[0]), float(searched_ah[-1])
+    if lo + 1e-9 < capacity_ah < hi - 1e-9:
+        return
+    side = "low" if capacity_ah <= lo + 1e-9 else "high"
+    warnings.warn(f"{source}: the effective capacity {capacity_ah:.3f} Ah is the {side} end of its search "
+                  f"({lo / stated_ah:.2g}..{hi / stated_ah:.2g} x --capacity-ah {stated_ah:g}): the file does not "
+                  "identify it (too short, or a model that does not fit it), and its parameters and figures are "
+                  "along that end's SOC path", UserWarning, stacklevel=2)
 
 
 def write_json(data: dict, path: Path | None) -> None:

@@ -8,8 +8,10 @@ from pathlib import Path
 from ..analysis import DEFAULT_METHODS, compare_methods
 from ..core.arrhenius import RESISTANCE_ACTIVATION_K
 from ..core.identifier import METHODS
+from ..errors import UsageError
 from .common import (METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
-                     non_negative_float, soc_config, warn_if_start_is_not_initial_soc, write_json)
+                     non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc,
+                     write_json)
 
 
 def add_parser(sub) -> None:
@@ -41,8 +43,9 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     tr, va = load(args.train, args), load(args.validate, args)
-    if abs(tr.dt_s - va.dt_s) > 1e-9:
-        raise ValueError(f"training and validation files have different sample periods ({tr.dt_s} vs {va.dt_s} s)")
+    if abs(tr.dt_s - va.dt_s) > 1e-9:  # (it named neither file nor the way out)
+        raise UsageError(f"--train {args.train} is sampled every {tr.dt_s:g} s, --validate {args.validate} every "
+                         f"{va.dt_s:g} s: give --resample-s {max(tr.dt_s, va.dt_s):g} to average both to one period")
     ocv = load_ocv(args.ocv, tr, capacity_ah=args.capacity_ah)
     for rec in (tr, va):
         warn_if_start_is_not_initial_soc(rec, ocv, args)
@@ -57,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         temperatures_c=(tr.temperature_c, va.temperature_c), activation_k=args.activation_k,
     )
     m = res.metrics
+    warn_if_capacity_at_search_end(res.capacity_ah, m["capacity_profile"]["capacity_ah"], tr.source, args.capacity_ah)
     m["files"] = {"train": str(args.train), "validate": str(args.validate)}
     if args.plots:
         _plots(res, tr, va, args.plots, window)
@@ -67,9 +71,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"effective capacity {res.capacity_ah:.3f} Ah (stated {args.capacity_ah:g}); "
               f"RMSE in SOC {window[0]:.0%}-{window[1]:.0%}, simulation / one-step-ahead [mV]:")
         for part in ("train", "validate"):
-            row = "  ".join(f"{meth.upper()} {m[part][meth]['sim_rmse_mv']:6.1f} / {m[part][meth]['osa_rmse_mv']:5.1f}"
-                            for meth in m[part])
-            print(f"  {part:9s} {row}")
+            figs, note = m[part], ""
+            if all(f["sim_rmse_mv"] != f["sim_rmse_mv"] for f in figs.values()):  # NaN: no sample in the window
+                figs, note = m["full_range"][part], "  (whole file: its counted SOC never enters the window)"
+            row = "  ".join(f"{meth.upper()} {f['sim_rmse_mv']:6.1f} / {f['osa_rmse_mv']:5.1f}"
+                            for meth, f in figs.items())
+            print(f"  {part:9s} {row}{note}")
     return 0
 
 

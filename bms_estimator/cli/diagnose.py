@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..errors import DataError
 from .common import (add_cell_options, add_method_option, load, load_ocv, positive_float,
                      warn_if_start_is_not_initial_soc, write_json)
 
@@ -47,6 +48,18 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _series(series_type, rec, ocv, args: argparse.Namespace, cfg):
+    """The file as the diagnosis reads it; too few samples in its SOC window is the file's fault (exit 3, named)."""
+    from ..diagnose.decide import window_mask
+
+    s = series_type.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
+    try:
+        window_mask(s, cfg)
+    except ValueError as exc:  # (it read "only 60 samples inside the SOC window -1..2", exit 2, no file)
+        raise DataError(f"{rec.source}: {exc}") from None
+    return s
+
+
 def run(args: argparse.Namespace) -> int:
     from ..diagnose import DiagnoseConfig, Series, diagnose, write_report
 
@@ -57,12 +70,12 @@ def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     warn_if_start_is_not_initial_soc(rec, ocv, args)
-    data = Series.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
+    data = _series(Series, rec, ocv, args, cfg)
     val = None
     if args.validate is not None:
         rv = load(args.validate, args)
         warn_if_start_is_not_initial_soc(rv, ocv, args)
-        val = Series.from_recording(rv, ocv, args.capacity_ah, args.initial_soc)
+        val = _series(Series, rv, ocv, args, cfg)
     d = diagnose(data, validate=val, config=cfg)
     out = d.to_json()
     out["data"] = str(args.data)

@@ -45,8 +45,9 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..replay.encode_log import encode_log, parse_spread
+    from ..replay.encode_log import check_cells, encode_log, parse_spread
 
+    check_cells(args.cells)  # before the file and the OCV table are read (it was said after them)
     spread = parse_spread(args.spread)
     show = sys.stderr.isatty() and not args.no_progress
     progress = None

@@ -12,7 +12,7 @@ from ..analysis import (
     simulate_with_params, soc_lookup_table,
 )
 from .common import (add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv,
-                     soc_config, warn_if_start_is_not_initial_soc, write_json)
+                     soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc, write_json)
 
 
 def add_parser(sub) -> None:
@@ -37,7 +37,9 @@ def run(args: argparse.Namespace) -> int:
     warn_if_start_is_not_initial_soc(rec, ocv, args)
     ident = soc_config(args).identifier.with_(c0_prior_weight=args.c0_prior)
     dt = rec.dt_s
-    q_eff, _ = output_error_capacity(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, args.initial_soc, dt, ident)
+    q_eff, profile = output_error_capacity(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, args.initial_soc, dt,
+                                           ident)
+    warn_if_capacity_at_search_end(q_eff, profile["capacity_ah"], rec.source, args.capacity_ah)
     soc = reference_soc(rec.current_a, dt, q_eff, args.initial_soc)
     run_ = run_identification(rec.current_a, rec.voltage_v, soc, ocv, args.capacity_ah, dt, ident)
     sim = simulate_with_params(rec.current_a, soc, ocv, run_.params, dt)
@@ -65,16 +67,21 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         write_json(out, args.json)
     if args.json is None or str(args.json) != "-":
-        f = out["median_soc_20_90"]
-        if f["r0_ohm"] is not None:
-            print(f"{args.method.upper()}: R0 {f['r0_ohm']*1e3:.1f} mOhm, R1 {f['r1_ohm']*1e3:.1f} mOhm tau1 "
-                  f"{f['tau1_s']:.1f} s, R2 {f['r2_ohm']*1e3:.1f} mOhm tau2 {f['tau2_s']:.0f} s (median over 20-90 % SOC)")
+        f, where = out["median_soc_20_90"], "median over 20-90 % SOC"
+        if f["r0_ohm"] is None:  # (it printed no parameters and 'simulation RMSE nan mV')
+            f, where = out["final"], (f"final values: the counted SOC, {soc.min():.2f}..{soc.max():.2f}, has no "
+                                      "identified sample in 20-90 %")
+        print(f"{args.method.upper()}: R0 {f['r0_ohm']*1e3:.1f} mOhm, R1 {f['r1_ohm']*1e3:.1f} mOhm tau1 "
+              f"{f['tau1_s']:.1f} s, R2 {f['r2_ohm']*1e3:.1f} mOhm tau2 {f['tau2_s']:.0f} s ({where})")
         if f.get("k1_ohm") is not None:
             print(f"kinetic term: K1 {f['k1_ohm']*1e3:.1f}, K2 {f['k2_ohm']*1e3:.1f} mOhm "
                   f"at i0 {f['i0_a']:.2f} A (a resistance R_j - K_j (1 - asinh(i/i0) / (i/i0)))")
         if f.get("ct_vt_v") is not None:
             print(f"charge-transfer fast branch: {f['ct_fraction']*100:.0f} % of R1 at V_T {f['ct_vt_v']*1e3:.1f} mV "
                   f"(its overpotential V_T asinh(i f R1 / V_T))")
-        print(f"simulation RMSE {out['sim_rmse_mv']:.1f} mV, one-step-ahead {out['osa_rmse_mv']:.1f} mV; "
+        sim_mv, osa_mv, over = out["sim_rmse_mv"], out["osa_rmse_mv"], ""
+        if not inside.any():
+            sim_mv, osa_mv, over = out["sim_rmse_mv_full_range"], rmse_mv(osa, rec.voltage_v), " over the whole file"
+        print(f"simulation RMSE {sim_mv:.1f} mV, one-step-ahead {osa_mv:.1f} mV{over}; "
               f"capacity {q_eff:.3f} Ah; {run_.rejections} non-physical updates rejected")
     return 0

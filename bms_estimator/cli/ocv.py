@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
-from ..core.ocv import OcvCurve
+from ..core.ocv import CELL_TEMPERATURE_RANGE_C, OcvCurve
 from ..data import load_recording
 from ..errors import DataError
 
@@ -22,19 +21,22 @@ def add_parser(sub) -> None:
     p.add_argument("data", type=Path, help="c20_ocv CSV (or hppc CSV with --hppc-steps)")
     p.add_argument("-o", "--output", type=Path, required=True, help="OCV CSV to write")
     p.add_argument("--hppc-steps", type=Path, default=None, help="the hppc_steps CSV that goes with an hppc file")
-    p.add_argument("--temperature-c", type=_finite_float, default=None,
+    p.add_argument("--temperature-c", type=_cell_temperature, default=None,
                    help="the table's temperature in degC, written to its temperature_c column (default: the test's "
                         "median cell temperature, from the data's temperature_c column)")
     p.set_defaults(func=run)
 
 
-def _finite_float(text: str) -> float:
+def _cell_temperature(text: str) -> float:
+    """A cell temperature in degC, within the range the recordings' temperature_c is held to
+    (``core.ocv.CELL_TEMPERATURE_RANGE_C``): the table is read at it, so 500 (kelvin?) would file it far off."""
+    lo, hi = CELL_TEMPERATURE_RANGE_C
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number")
+    if not lo <= value <= hi:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"{text!r} is not a cell temperature in degC ({lo:g}..{hi:g})")
     return value
 
 

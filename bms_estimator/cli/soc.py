@@ -14,11 +14,9 @@ from ..core.soc import SOC_METHODS, SocConfig
 from ..errors import DataError
 from ..gaps import MAX_GAP_S, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
-from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
-                     load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
+from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
+                     load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
 
-#: A C/20 table within this of the recording's median temperature is "the same ambient".
-SAME_AMBIENT_K = 5.0
 
 
 def _start_soc(text: str) -> str | float:
@@ -132,8 +130,20 @@ def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray
                comments="", fmt="%.6g")
 
 
+def _score_text(figs: dict, base: dict, after_start_s: float, capacity_ah: float) -> str:
+    """The scores' line; a recording that ends within 30 min (1 h) of the start has no figure from then
+    (null in the JSON): it is scored from the start instead (it printed 'SOC RMSE nan %')."""
+    if figs["rmse_30min_pct"] != figs["rmse_30min_pct"]:  # NaN
+        return (f"SOC RMSE {figs['rmse_all_pct']:.2f} % from the start (the recording ends {after_start_s:.0f} s "
+                f"after it, before the 30 min the other scores wait for); counting with the stated {capacity_ah:g} "
+                f"Ah {base['rmse_all_pct']:.2f} %")
+    one_h = f"after 1 h {figs['rmse_1h_pct']:.2f} %, " if figs["rmse_1h_pct"] == figs["rmse_1h_pct"] else ""
+    return (f"SOC RMSE {figs['rmse_30min_pct']:.2f} % from 30 min after the start ({one_h}max "
+            f"{figs['max_abs_pct']:.2f} %); counting with the stated {capacity_ah:g} Ah {base['rmse_30min_pct']:.2f} %")
+
+
 def run(args: argparse.Namespace) -> int:
-    rec = load(args.data, args)
+    rec = load(args.data, args, identifies=False)  # a rest file: the SOC read on the OCV, counted
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     dt = rec.dt_s
     t = rec.time_s - rec.time_s[0]
@@ -198,9 +208,7 @@ def run(args: argparse.Namespace) -> int:
         write_json(out, args.json)
     if args.json is None or str(args.json) != "-":
         note = "" if relaxed else " [reference not scored: " + why + "]"
-        print(f"SOC RMSE {figs['rmse_30min_pct']:.2f} % from 30 min after the start (after 1 h "
-              f"{figs['rmse_1h_pct']:.2f} %, max {figs['max_abs_pct']:.2f} %); counting with the stated "
-              f"{args.capacity_ah:g} Ah {base['rmse_30min_pct']:.2f} %; capacity estimated "
+        print(f"{_score_text(figs, base, t[-1] - t[k0], args.capacity_ah)}; capacity estimated "
               f"{out['capacity_ah_estimated']:.3f} Ah (reference {q_ref:.3f}){note}")
         gaps = out["logging_gaps"]
         if gaps["rested"]:

@@ -64,6 +64,10 @@ INVERSE_GRID_POINTS = 8001
 MAX_OCV_DIP_V = 5e-3
 #: A table's ocv_v must lie in this range [V] (a single cell's open-circuit voltage).
 OCV_RANGE_V = (0.0, 10.0)
+#: A cell's temperature lies in this range [degC]; outside it a value is in kelvin or Fahrenheit, or a
+#: sensor's fault code (the recordings' temperature_c and the tables' are held to it: the estimator reads
+#: the OCV tables and its priors at the cell temperature)
+CELL_TEMPERATURE_RANGE_C = (-60.0, 150.0)
 #: A C/20 test's discharge branch holds at least this share of all the charge its file discharges.
 C20_BRANCH_SHARE_MIN = 0.5
 #: Step of the strictly-increasing repair [V].
@@ -489,7 +493,9 @@ class OcvCurve:
            ``hppc`` (the final discharge to cut-off), within 2 s.  Runs inside gap
            ``j`` are charged to gap ``j``, a run starting at the end of ``hppc`` to
            the total; runs elsewhere (later tests in the same file) are ignored.
-           A gap without a step gives a ``UserWarning``.
+           A gap without a step gives a ``UserWarning``; more than half of them
+           without one is a ``ValueError`` (the steps of another test: one of a
+           drive cycle's runs lines up with a gap by chance).
         5. SOC by coulomb counting from full (``soc = 1`` at the first block)::
 
                soc_k = 1 + Q_k / C,    Q_k = sum of pulse and step charges before block k
@@ -507,7 +513,7 @@ class OcvCurve:
 
         Raises:
             ValueError: fewer than 2 usable rest points, steps that cannot be
-                aligned with the ``hppc`` gaps.
+                aligned with the ``hppc`` gaps or that leave most of them empty.
         """
         t, i, v = _check_arrays(*_unpack(hppc, "hppc"))
         gaps, gap_s = _hppc_gaps(t)  # gap between sample g and g+1
@@ -562,13 +568,13 @@ class OcvCurve:
         soc, ocv = np.clip(soc[keep], 0.0, 1.0), ocv[keep]
         order = np.argsort(soc, kind="stable")
         soc, ocv = soc[order], ocv[order]
-        uniq = np.r_[True, np.diff(soc) > 1e-9]
+        uniq = np.diff(soc, prepend=-np.inf) > 1e-9  # (np.r_[True, ...] is one too long for no point at all)
         soc, ocv = soc[uniq], ocv[uniq]
         if soc.size < 2:
             raise ValueError(
-                f"from_hppc: only {soc.size} usable rest point(s) found in {block_starts.size} "
-                "logging block(s); pass hppc as logged (load_recording(..., resample_s=None)), "
-                "resampling fills the gaps that separate the pulse sets"
+                f"from_hppc: only {soc.size} usable rest point(s) (a rest before a pulse set) found in "
+                f"{block_starts.size} logging block(s): not an HPPC test, or one resampled (pass hppc as logged, "
+                "load_recording(..., resample_s=None): resampling fills the gaps that separate the pulse sets)"
             )
         ocv = _strictly_increasing(ocv, _EPS_V)
         return cls(soc, ocv, None, capacity_discharge_ah=capacity, temperature_c=median_temperature_c(temperature_c))
@@ -612,7 +618,10 @@ class OcvCurve:
                 non-numeric value with its line, NaN, non-monotone soc, ...).
         """
         path = Path(path)
-        text = path.read_text(encoding="utf-8-sig")
+        try:
+            text = path.read_text(encoding="utf-8-sig")
+        except UnicodeDecodeError as exc:  # (a binary file's error named no file)
+            raise ValueError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
         lines = [(n, ln) for n, ln in enumerate(text.splitlines(), start=1)
                  if ln.strip() and not ln.lstrip().startswith("#")]
         if not lines:
@@ -656,6 +665,10 @@ class OcvCurve:
             const[name] = float(col[0])
         if const.get("capacity_ah", 1.0) <= 0:
             raise ValueError(f"{path}: capacity_ah must be positive, got {const['capacity_ah']:g}")
+        t_lo, t_hi = CELL_TEMPERATURE_RANGE_C
+        if not t_lo <= const.get("temperature_c", 25.0) <= t_hi:  # (a table at 298.15 was filed at 298 degC)
+            raise ValueError(f"{path}: temperature_c {const['temperature_c']:g} is not a cell temperature "
+                             f"(expected {t_lo:g}..{t_hi:g} degC; is the column in kelvin?)")
         data = data[:, :len(wanted) - len(constants)]
         s, v = data[:, 0], data[:, 1]
         h = data[:, 2] if data.shape[1] > 2 else None
@@ -966,6 +979,10 @@ def _steps_charge(
         gap_q[j] = q[inside].sum()
     tail = np.abs(a_m - t_end) <= tol_s
     empty = np.flatnonzero(gap_q == 0)
+    if 2 * empty.size > gap_start.size:  # a step falls into a gap by chance: these are not this test's steps
+        raise ValueError(
+            f"from_hppc: {empty.size} of the {gap_start.size} hppc logging gaps hold no discharge step of the steps "
+            "data: not the hppc_steps file of this HPPC test")
     if empty.size:
         warnings.warn(
             f"from_hppc: {empty.size} of {gap_start.size} hppc gaps have no discharge step "

@@ -210,12 +210,19 @@ def fold_blocks(n: int, dt_s: float, cfg: DiagnoseConfig) -> tuple[np.ndarray, n
     return blocks, np.where(blocks == 0, -1, (blocks - 1) % cfg.folds)
 
 
+#: fewest samples inside the SOC window that a diagnosis is fitted and scored on
+WINDOW_SAMPLES_MIN = 100
+
+
 def window_mask(s: Series, cfg: DiagnoseConfig) -> np.ndarray:
-    """Samples whose counted SOC lies inside ``cfg.soc_window`` (all of them by default)."""
+    """Samples whose counted SOC lies inside ``cfg.soc_window`` (all of them by default); fewer than
+    ``WINDOW_SAMPLES_MIN`` is a ``ValueError``."""
     lo, hi = cfg.soc_window
     m = (s.soc >= lo) & (s.soc <= hi)
-    if m.sum() < 100:
-        raise ValueError(f"only {int(m.sum())} samples inside the SOC window {lo:g}..{hi:g}")
+    if m.sum() < WINDOW_SAMPLES_MIN:
+        bounds = [f"at least {lo:g}"] * (lo > 0.0) + [f"at most {hi:g}"] * (hi < 1.0)
+        where = f" with the counted SOC {' and '.join(bounds)}" if bounds else ""
+        raise ValueError(f"only {int(m.sum())} samples{where}; a diagnosis needs {WINDOW_SAMPLES_MIN}")
     return m
 
 

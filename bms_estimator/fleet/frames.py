@@ -107,6 +107,7 @@ def read_frames(path: str | Path) -> FrameTable:
         raise DataError(f"{path}: unknown log format {kind or '(no suffix)'!r}; "
                         f"batch reads {', '.join(FRAME_SUFFIXES)}")
     try:
+        check_log_complete(path, kind)
         if kind == ".log":
             table = _read_candump_bulk(path)
             if table is not None:
@@ -115,8 +116,6 @@ def read_frames(path: str | Path) -> FrameTable:
             return _read_mf4(path)
         import can
 
-        if not path.name.lower().endswith(".gz"):
-            check_log_complete(path, kind)
         reader = can.LogReader(str(path))
         try:
             return FrameTable.from_messages(reader)
@@ -132,12 +131,25 @@ def read_frames(path: str | Path) -> FrameTable:
 
 
 def check_log_complete(path: Path, kind: str) -> None:
-    """A truncated ``.blf`` or ``.asc`` reads without an error in python-can (it stops at the cut): refuse it.
+    """A truncated ``.blf``, ``.asc`` or candump ``.log`` reads up to the cut, or fails on its cut line: refuse it.
 
     BLF: the header states the file size its writer closed it with; ASC: writers close the
-    file with ``End TriggerBlock``.
+    file with ``End TriggerBlock``; candump: every writer ends each line with a line end, so a
+    last byte that is not one is a cut line (python-can read it as a shortened frame, or failed
+    with "not enough values to unpack"). A ``.gz`` file is not checked (its own CRC finds a cut).
     """
-    if kind == ".blf":
+    if path.name.lower().endswith(".gz"):
+        return
+    if kind == ".log":
+        size = path.stat().st_size
+        if size:
+            with open(path, "rb") as fh:
+                first = fh.read(1)
+                fh.seek(size - 1)
+                last = fh.read(1)
+            if first == b"(" and last not in (b"\n", b"\r"):  # (not a candump line at all: the reader says so)
+                raise DataError(f"{path}: its last line has no line end: the log is truncated")
+    elif kind == ".blf":
         from can.io.blf import BLFReader
 
         reader = BLFReader(str(path))

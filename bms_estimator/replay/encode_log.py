@@ -107,6 +107,7 @@ from ..can.e2e import E2EStamper
 from ..can.signals import SignalCodec
 from ..core.ocv import OcvCurve
 from ..data import CellRecording, check_charge_span, load_recording
+from ..errors import DataError, UsageError
 from ..jsonsafe import to_jsonable
 from ..samples import CELLS, ocv_table
 
@@ -271,18 +272,30 @@ class CellModel:
         return float(1e3 * np.sqrt(np.mean(self.residual_v**2)))
 
 
+#: most cells in series the project DBC's cell multiplexer addresses
+MAX_CELLS = 2000
+
+
+def check_cells(n_cells: int) -> None:
+    """``--cells`` within 1..``MAX_CELLS`` (a usage error otherwise)."""
+    if not 1 <= n_cells <= MAX_CELLS:
+        raise UsageError(f"--cells must be 1..{MAX_CELLS} (the DBC's multiplexer range), got {n_cells}")
+
+
 def _check_uniform(rec: CellRecording) -> float:
+    """The recording's sample step; a file too short, unevenly sampled or finer than the 10 ms frames is a
+    :class:`DataError` (exit 3: the file's fault, not the command line's)."""
     t = rec.time_s
     if len(t) < 10:
-        raise ValueError(f"{rec.source}: only {len(t)} samples; too short")
+        raise DataError(f"{rec.source}: only {len(t)} samples; encode-log needs at least 10")
     d = np.diff(t)
     dt = float(np.median(d))
     if not np.allclose(d, dt, rtol=0, atol=1e-6 * max(1.0, dt)):
         k = int(np.flatnonzero(np.abs(d - dt) > 1e-6 * max(1.0, dt))[0])
-        raise ValueError(f"{rec.source}: encode-log needs uniformly sampled data; step {d[k]!r} s at t={t[k]!r} s "
-                         f"(median {dt!r} s)")
+        raise DataError(f"{rec.source}: encode-log needs uniformly sampled data; a step of {float(d[k]):.6g} s at "
+                        f"t = {float(t[k]):.6g} s (median {dt:.6g} s)")
     if dt < 0.01 - 1e-12:
-        raise ValueError(f"{rec.source}: sample step {dt} s is finer than the 10 ms current frames")
+        raise DataError(f"{rec.source}: sample step {dt:g} s is finer than the 10 ms current frames")
     return dt
 
 
@@ -398,8 +411,7 @@ def build_pack(
 ) -> PackTrace:
     """Identify the measured cell on the whole ``rec`` (more data, a better model), cut
     everything to ``duration_s`` from the start, draw the spread and simulate the pack."""
-    if n_cells < 1 or n_cells > 2000:
-        raise ValueError(f"--cells must be 1..2000 (the DBC's multiplexer range), got {n_cells}")
+    check_cells(n_cells)
     dt = _check_uniform(rec)
     model = identify_cell_model(
         rec, ocv, capacity_ah, initial_soc=initial_soc, reference_capacity_ah=reference_capacity_ah

@@ -99,8 +99,8 @@ def _log_suffix(path: Path) -> str:
 def read_log(path: str | Path) -> Iterator[can.Message]:
     """Messages of a candump ``.log``, ``.asc`` or ``.blf`` file (``can.LogReader``), lazily.
 
-    A truncated ``.blf`` or ``.asc`` raises :class:`DataError` at once (the checks of
-    ``batch``); a file the reader cannot parse, or one without a frame, when the iteration
+    A truncated ``.blf``, ``.asc`` or candump ``.log`` raises :class:`DataError` at once (the
+    checks of ``batch``); a file the reader cannot parse, or one without a frame, when the iteration
     reaches the fault, naming the file and how many frames came before it.
     """
     path = Path(path)
@@ -108,10 +108,9 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
         raise FileNotFoundError(f"{path}: no such log file")
     if _log_suffix(path) not in LOG_SUFFIXES:
         raise ValueError(f"{path}: replay reads {', '.join(LOG_SUFFIXES)} logs (by suffix)")
-    if path.suffix.lower() == ".log" and _cut_last_line(path):  # python-can sends a cut line's frame, shortened
-        raise DataError(f"{path}: its last line has no line end: the log is truncated (a cut frame would be sent)")
     try:
-        check_log_complete(path, _log_suffix(path))  # python-can stops quietly at the cut of a truncated .blf/.asc
+        # python-can stops quietly at the cut of a truncated .blf/.asc and sends a cut .log line's frame, shortened
+        check_log_complete(path, _log_suffix(path))
         reader = can.LogReader(str(path))
     except DataError:
         raise
@@ -134,16 +133,6 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
             raise DataError(f"{path}: no CAN frame in the log")
 
     return gen()
-
-
-def _cut_last_line(path: Path) -> bool:
-    """A candump log whose last byte is not a line end: every writer ends each line with one."""
-    size = path.stat().st_size
-    if size == 0:
-        return False
-    with open(path, "rb") as fh:
-        fh.seek(size - 1)
-        return fh.read(1) not in (b"\n", b"\r")
 
 
 def _tail_lines(path: Path, nbytes: int = 8192) -> list[str]:

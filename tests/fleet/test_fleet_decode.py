@@ -304,10 +304,16 @@ def test_can_fd_messages_wider_than_8_bytes_decode_like_the_service(tmp_path):
     assert dc.short_frame > 0 and dc.out_of_range > 0
 
 
-@pytest.mark.parametrize("suffix", [".blf", ".asc"])
-def test_truncated_blf_and_asc_are_data_errors(tmp_path, suffix):
-    """python-can reads a cut BLF or ASC file up to the cut without an error; batch must not take half a drive."""
+@pytest.mark.parametrize("suffix", [".blf", ".asc", ".log"])
+def test_truncated_logs_are_data_errors(tmp_path, suffix):
+    """python-can reads a cut BLF or ASC file up to the cut without an error; batch must not take half a drive.
+    A candump log cut mid-line was skipped as 'ValueError: not enough values to unpack (expected 3, got 1)'.
+    Their gzipped copies are read whole (replay refused every .asc.gz as truncated: it looked for the
+    closing line in the compressed bytes)."""
+    import gzip
+
     from bms_estimator.errors import DataError
+    from bms_estimator.replay.replay import read_log
 
     path = tmp_path / f"x{suffix}"
     with can.Logger(str(path)) as w:
@@ -315,6 +321,10 @@ def test_truncated_blf_and_asc_are_data_errors(tmp_path, suffix):
             w(can.Message(timestamp=1.0 + 0.01 * k, arbitration_id=0x100, data=bytes(8)))
     assert len(read_frames(path)) == 3000
     raw = path.read_bytes()
+    if suffix != ".blf":  # (python-can does not read a gzipped BLF)
+        packed = tmp_path / f"x{suffix}.gz"
+        packed.write_bytes(gzip.compress(raw))
+        assert len(read_frames(packed)) == 3000 and len(list(read_log(packed))) == 3000
     path.write_bytes(raw[: len(raw) // 2 + 3])
     with pytest.raises(DataError, match="truncated"):
         read_frames(path)

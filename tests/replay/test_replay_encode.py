@@ -260,3 +260,27 @@ def test_a_recording_in_milliamps_is_refused_not_encoded(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "lg-hg2_mA.csv: its coulomb count spans" in err and "times the shipped cell's capacity = 3 Ah" in err, err
     assert not out.exists()
+
+
+def test_cells_out_of_range_and_a_file_it_cannot_encode_have_their_exit_codes(tmp_path, capsys):
+    """--cells 0 with an unshipped cell was answered with 'give --ocv and --capacity-ah' (the count was checked
+    after the file); a 3-sample file or one with a logging gap gave exit 2, as if the command line were wrong,
+    the gap's step as 'np.float64(300000001.0)'."""
+    rec = load_recording(drive_cycle("lg-hg2", "udds"))
+    src = save_recording(CellRecording(rec.time_s[:100], rec.current_a[:100], rec.voltage_v[:100]),
+                         tmp_path / "mycell.csv")
+    out = tmp_path / "x.log"
+    for cells in ("0", "-3", "100000"):
+        assert main(["encode-log", str(src), "--cells", cells, "-o", str(out), "--no-progress"]) == 2
+        assert f"--cells must be 1..2000 (the DBC's multiplexer range), got {cells}" in capsys.readouterr().err
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3", "--cells", "2", "-o", str(out), "--no-progress"]
+    short = save_recording(CellRecording(rec.time_s[:3], rec.current_a[:3], rec.voltage_v[:3]), tmp_path / "s.csv")
+    assert main(["encode-log", str(short), *cell]) == 3
+    assert "s.csv: only 3 samples; encode-log needs at least 10" in capsys.readouterr().err
+    t = rec.time_s[:100].copy()
+    t[50:] += 3e8
+    gap = save_recording(CellRecording(t, rec.current_a[:100], rec.voltage_v[:100]), tmp_path / "gap.csv")
+    assert main(["encode-log", str(gap), *cell]) == 3
+    assert ("gap.csv: encode-log needs uniformly sampled data; a step of 3e+08 s at t = 49 s (median 1 s)"
+            in capsys.readouterr().err)
+    assert not out.exists()
