@@ -67,7 +67,6 @@ def capacity_soh(capacity_ah, nominal_ah, capacity_sigma_ah, justified) -> tuple
 def r0_at_reference(r0_ohm, temperature_c, config: SohConfig = SohConfig()) -> np.ndarray:
     """R0 brought to the reference temperature (Arrhenius, module docstring)."""
     t = np.asarray(temperature_c, dtype=float) + KELVIN
-    t_ref = config.reference_temperature_c + KELVIN
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         # exp(-B (1/T - 1/T_ref)), NaN where T is not (the SOH skips those samples)
         f = arrhenius_factor(config.reference_temperature_c, temperature_c, config.r0_activation_k)
