@@ -529,3 +529,25 @@ def test_soc_warns_when_the_capacity_ends_at_its_bound(tmp_path, capsys):
     assert main(["soc", data, "--ocv", PAN_OCV, "--capacity-ah", "2.9", "--start-soc", "ocv", "--json", str(right)]) == 0
     assert "capacity estimate ended" not in capsys.readouterr().err
     assert json.loads(right.read_text())["capacity_at_bound"] == 0
+
+
+def test_sop_backtest_refuses_voltage_limits_outside_the_cells_range(capsys):
+    """--v-min 5 ran to a back-test in which every window broke a limit no cell can keep."""
+    drive = str(drive_cycle("panasonic-18650pf", "cycle_1"))
+    cell = ["--ocv", str(ocv_table("panasonic-18650pf")), "--capacity-ah", "2.9"]
+    assert main(["sop-backtest", drive, *cell, "--v-min", "5", "--v-max", "6"]) == 2
+    err = capsys.readouterr().err
+    assert "--v-min 5 V / --v-max 6 V leave no room inside the --ocv tables' OCV range" in err, err
+    assert main(["sop-backtest", drive, *cell, "--v-min", "1", "--v-max", "2"]) == 2
+    assert "leave no room" in capsys.readouterr().err
+
+
+def test_replay_and_batch_name_a_directory_given_as_a_log(tmp_path, capsys):
+    """A directory read 'no such log file'."""
+    from bms_estimator.errors import DataError
+    from bms_estimator.fleet.frames import read_frames
+
+    assert main(["replay", str(tmp_path), "--interface", "virtual", "--channel", "x"]) == 2
+    assert f"{tmp_path}: a directory, not a log file" in capsys.readouterr().err
+    with pytest.raises(DataError, match="a directory, not a log file"):
+        read_frames(tmp_path)

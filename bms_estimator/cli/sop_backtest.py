@@ -6,8 +6,12 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from ..core.identifier import IdentifierConfig
+from ..core.ocv_surface import REFERENCE_TEMPERATURE_C
 from ..core.sop import SopConfig
+from ..errors import UsageError
 from ..sop_backtest import run_backtest, summary
 from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
                      load_ocv, positive_float, soc_config, warn_if_start_is_not_initial_soc, write_json)
@@ -44,11 +48,21 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def check_voltage_limits(v_min: float, v_max: float, ocv) -> None:
+    """Refuse --v-min / --v-max that leave no room inside the cell's OCV range (0..100 % SOC at 25 degC):
+    every window would break them, and the back-test would score a limit no cell can keep."""
+    lo, hi = (float(v) for v in np.asarray(ocv.ocv(np.array([0.0, 1.0]), REFERENCE_TEMPERATURE_C), dtype=float))
+    if v_min >= hi or v_max <= lo:
+        raise UsageError(f"--v-min {v_min:g} V / --v-max {v_max:g} V leave no room inside the --ocv tables' "
+                         f"OCV range {lo:.3f}..{hi:.3f} V: give the cell's cut-off voltages")
+
+
 def run(args: argparse.Namespace) -> int:
     if not args.v_min < args.v_max:
         raise ValueError(f"--v-min {args.v_min:g} must be below --v-max {args.v_max:g}")
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
+    check_voltage_limits(args.v_min, args.v_max, ocv)
     warn_if_start_is_not_initial_soc(rec, ocv, args)
     if len(rec) >= LONG_RUN_SAMPLES:  # minutes of silence otherwise (27 h of HPPC: 2 min 18 s on 2 shared cores)
         print(f"bms-estimator sop-backtest: {len(rec):,} samples ({rec.duration_s / 3600:.1f} h) through the "

@@ -100,6 +100,8 @@ def read_frames(path: str | Path) -> FrameTable:
     Raises :class:`DataError` for a missing, unreadable or malformed file.
     """
     path = Path(path)
+    if path.is_dir():
+        raise DataError(f"{path}: a directory, not a log file")
     if not path.is_file():
         raise DataError(f"{path}: no such log file")
     kind = _suffix(path)

@@ -104,6 +104,8 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
     reaches the fault, naming the file and how many frames came before it.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: a directory, not a log file")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such log file")
     if _log_suffix(path) not in LOG_SUFFIXES:
