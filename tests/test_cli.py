@@ -551,3 +551,14 @@ def test_replay_and_batch_name_a_directory_given_as_a_log(tmp_path, capsys):
     assert f"{tmp_path}: a directory, not a log file" in capsys.readouterr().err
     with pytest.raises(DataError, match="a directory, not a log file"):
         read_frames(tmp_path)
+
+
+def test_a_tuning_option_out_of_bounds_is_named_as_the_option(capsys):
+    """The config's bound named its field ('forgetting must be ...'), not the option the user typed."""
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    drive = str(drive_cycle("lg-hg2", "la92"))
+    for option, value, said in (("--forgetting", "1.5", "--forgetting must be a finite number >= 0.9 and <= 1, got 1.5"),
+                                ("--tau-max-s", "-3", "--tau-max-s must be a finite number > 0, got -3"),
+                                ("--error-on-mv", "-5", "--error-on-mv must be a finite number >= 0, got -5")):
+        assert main(["soc", drive, *cell, option, value]) == 2
+        assert said in capsys.readouterr().err

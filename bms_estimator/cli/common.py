@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import warnings
 from pathlib import Path
 from typing import Sequence
@@ -131,23 +132,40 @@ def add_tuning_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--resample-s", type=positive_float, default=1.0, help="sample period; finer data is averaged (default 1 s)")
 
 
+#: the tuning options' config fields, so that a bound a field states is reported under the option's name
+_TUNING_OPTION = {"window": ("--window", 1.0), "forgetting": ("--forgetting", 1.0),
+                  "error_on_v": ("--error-on-mv", 1e3), "error_off_v": ("--error-off-mv", 1e3),
+                  "tau_max_s": ("--tau-max-s", 1.0), "soc_error_threshold": ("--soc-error-threshold", 1.0)}
+
+
 def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig:
     if args.window < 1:  # (IdentifierConfig refuses it too, but by its field's name, not the option's)
         raise ValueError(f"--window must be at least 1 sample, got {args.window}")
-    ident = IdentifierConfig(
-        method=method or getattr(args, "method", None) or _ID.method,
-        window=args.window,
-        forgetting=args.forgetting,
-        error_on_v=args.error_on_mv / 1e3,
-        error_off_v=min(args.error_off_mv, args.error_on_mv) / 1e3,
-        tau_max_s=args.tau_max_s,
-    )
-    return SocConfig(
-        identifier=ident,
-        soc_error_threshold=args.soc_error_threshold,
-        estimate_capacity=not args.no_capacity_estimation,
-        hysteresis=not args.no_hysteresis,
-    )
+    try:
+        ident = IdentifierConfig(
+            method=method or getattr(args, "method", None) or _ID.method,
+            window=args.window,
+            forgetting=args.forgetting,
+            error_on_v=args.error_on_mv / 1e3,
+            error_off_v=min(args.error_off_mv, args.error_on_mv) / 1e3,
+            tau_max_s=args.tau_max_s,
+        )
+        return SocConfig(
+            identifier=ident,
+            soc_error_threshold=args.soc_error_threshold,
+            estimate_capacity=not args.no_capacity_estimation,
+            hysteresis=not args.no_hysteresis,
+        )
+    except ValueError as exc:  # the config's bounds name its fields: say the option the user gave
+        field = str(exc).split(" ", 1)[0]
+        if field not in _TUNING_OPTION:
+            raise
+        option, scale = _TUNING_OPTION[field]
+        value = getattr(args, option[2:].replace("-", "_"))
+        rest = str(exc).split(" must ", 1)[1].rsplit(", got", 1)[0] if " must " in str(exc) else str(exc)
+        if scale != 1.0:  # a bound in volts, the option in mV
+            rest = re.sub(r"(-?\d+(?:\.\d+)?(?:e-?\d+)?)", lambda m: f"{float(m.group(1)) * scale:g}", rest)
+        raise UsageError(f"{option} must {rest}, got {value:g}") from None
 
 
 def load(path: Path, args: argparse.Namespace, *, identifies: bool = True) -> CellRecording:
