@@ -169,12 +169,16 @@ def test_a_stacked_drive_carries_on_like_a_solo_one(svc):
     _assert_same(estimate_drive(nxt, est_a), estimate_drive(nxt, est_b))
 
 
+def _first_cell(d: SampleArrays) -> SampleArrays:
+    """``d`` as the drive of a one-cell pack (its first cell)."""
+    return dataclasses.replace(d, cell_voltage_v=d.cell_voltage_v[:, :1], cell_temperature_c=d.cell_temperature_c[:, :1],
+                               valid=d.valid[:, :1])
+
+
 def test_one_cell_drives_are_refused(svc):
     """One-cell drives run one by one (fleet/stack.py: stacked, their last bits moved)."""
     service, _ = svc
-    base = _pack(100)
-    one = dataclasses.replace(base, cell_voltage_v=base.cell_voltage_v[:, :1], cell_temperature_c=base.cell_temperature_c[:, :1],
-                              valid=base.valid[:, :1])
+    one = _first_cell(_pack(100))
     with pytest.raises(StackError, match="one-cell drives"):
         estimate_stacked([one, one], _stack_factory(service))
     assert len(estimate_stacked([one], _stack_factory(service))) == 1  # alone: nothing to keep apart
@@ -183,10 +187,8 @@ def test_one_cell_drives_are_refused(svc):
 def test_drives_of_other_packs_are_refused(svc):
     service, _ = svc
     base = _pack(100)
-    one = dataclasses.replace(base, cell_voltage_v=base.cell_voltage_v[:, :1], cell_temperature_c=base.cell_temperature_c[:, :1],
-                              valid=base.valid[:, :1])
     with pytest.raises(StackError, match="same cells"):
-        estimate_stacked([base, one], _stack_factory(service))
+        estimate_stacked([base, _first_cell(base)], _stack_factory(service))
 
 
 @pytest.mark.parametrize("sox", [False, True], ids=["plain", "sox"])
