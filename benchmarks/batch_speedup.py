@@ -36,9 +36,13 @@ Figures:
 
 ``batch_speedup_sox`` / ``batch_speedup_sox_cpu``
     ``batch_speedup`` / ``_cpu`` with ``batch --sox`` (the service's SOP/SOE/SOH part after the
-    estimator; drives with it run unstacked): :func:`bench_batch_sox`, the best of ``repeats``
+    estimator), one drive alone: :func:`bench_batch_sox`, the best of ``repeats``
     runs, each run with SOX right after one without on the same input, so that both figures (and
     their ratio, printed) are measured at the same load.
+``batch_speedup_sox_stack4`` / ``batch_speedup_sox_stack4_cpu``
+    ``batch_speedup_stack4`` / ``_cpu`` with ``batch --sox``: one task of 4 copies of the drive, their
+    estimation and SOX part stacked (``SoxEstimator.set_groups``), in the same :func:`bench_batch_sox`
+    run, right after the same task without SOX (both printed).
 
 This process's allocator is set as a batch worker's (:func:`bms_estimator.fleet.memory.keep_freed_memory`:
 freed memory kept for the next array, as ``batch``'s ``LocalCluster`` starts its workers), so the
@@ -147,12 +151,13 @@ def _one_worker(path: Path, cfg: Path, sox: bool = False) -> tuple[float, dict[s
     return res.duration_s / wall, secs
 
 
-def _stacked(path: Path, cfg: Path, stack: int) -> tuple[float, float, dict[str, float]]:
+def _stacked(path: Path, cfg: Path, stack: int, sox: bool = False) -> tuple[float, float, dict[str, float]]:
     """(log seconds / wall seconds, log seconds / CPU seconds, summed stage seconds) of ``stack`` copies of
-    ``path`` in one stacked task (:func:`~bms_estimator.fleet.drive.run_drives`, no Parquet)."""
+    ``path`` in one stacked task (:func:`~bms_estimator.fleet.drive.run_drives`, no Parquet; ``sox``: with
+    the SOP/SOE/SOH part)."""
     from bms_estimator.fleet.drive import run_drives
 
-    results = run_drives([(str(path), "bench")] * stack, str(cfg), path.parent, write=False)
+    results = run_drives([(str(path), "bench")] * stack, str(cfg), path.parent, write=False, sox=sox)
     bad = [r.error for r in results if r.status != "ok"]
     if bad or any(r.counters.get("stacked_with") != stack for r in results):
         raise RuntimeError(bad[0] if bad else "the drives did not run stacked")
@@ -251,17 +256,23 @@ class SoxBenchResult:
     estimate_s: float  # the estimate stage's seconds of the best run without SOX
     estimate_s_sox: float  # and with it
     runs: list[tuple[float, float]]  # (without, with) wall figure of every pair of runs
+    stack: int = 4
+    speedup_stack: float = 0.0  # one task of `stack` copies, stacked, without SOX (wall; CPU below)
+    speedup_stack_cpu: float = 0.0
+    speedup_stack_sox: float = 0.0  # and with SOX, right after it
+    speedup_stack_sox_cpu: float = 0.0
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
-def bench_batch_sox(hours: float = 4.0, n_cells: int = 96, repeats: int = 3) -> SoxBenchResult:
+def bench_batch_sox(hours: float = 4.0, n_cells: int = 96, repeats: int = 3, stack: int = 4) -> SoxBenchResult:
     """``batch --sox``'s cost on one drive (the ``.log`` of :func:`bench_batch`): pairs of runs, without
-    SOX then with it, the best of ``repeats`` of each (no Parquet)."""
+    SOX then with it, the best of ``repeats`` of each; then one task of ``stack`` copies stacked, without
+    SOX then with it (no Parquet)."""
     from bms_estimator.fleet.memory import keep_freed_memory
 
-    key = ("sox", hours, n_cells, repeats)
+    key = ("sox", hours, n_cells, repeats, stack)
     if key in _CACHE:
         return _CACHE[key]
     keep_freed_memory()
@@ -269,12 +280,13 @@ def bench_batch_sox(hours: float = 4.0, n_cells: int = 96, repeats: int = 3) -> 
         log, _mf4, cfg, _frames = _write_inputs(Path(tmpdir), hours, n_cells)
         _one_worker(log, cfg, sox=True)  # warm
         pairs = [(_one_worker(log, cfg), _one_worker(log, cfg, sox=True)) for _ in range(max(1, repeats))]
+        st_plain, st_sox = _stacked(log, cfg, stack), _stacked(log, cfg, stack, sox=True)
     log_s = hours * 3600.0
     plain = max((r for r, _ in pairs), key=lambda r: r[0])
     sox = max((r for _, r in pairs), key=lambda r: r[0])
     r = SoxBenchResult(hours, n_cells, plain[0], max(log_s / a[1]["cpu"] for a, _ in pairs), sox[0],
                        max(log_s / b[1]["cpu"] for _, b in pairs), plain[1]["estimate"], sox[1]["estimate"],
-                       [(a[0], b[0]) for a, b in pairs])
+                       [(a[0], b[0]) for a, b in pairs], stack, st_plain[0], st_plain[1], st_sox[0], st_sox[1])
     _CACHE[key] = r
     return r
 

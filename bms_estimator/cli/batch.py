@@ -66,9 +66,9 @@ def add_parser(sub) -> None:
                         "pack_soh_resistance_max_final, pack_i_discharge_max_10s_a_min, "
                         "pack_p_discharge_max_10s_w_min, pack_energy_discharged_wh, pack_energy_charged_wh; "
                         "with --chain the SOX state is carried like the "
-                        "SOC's. Its drives run one by one, not stacked (--stack only groups them per task): the SOX "
-                        "part does not keep stacked drives apart; a drive takes about 2.2x as long as without "
-                        "it (README, Fleet re-estimation)")
+                        "SOC's. Its drives are stacked like the others (--stack; the SOX part kept per drive, "
+                        "each drive's figures its own, bit for bit; one-cell drives run one by one); "
+                        "see README, Fleet re-estimation, for its cost")
     p.add_argument("--stack", type=_workers, default=DEFAULT_STACK, metavar="S",
                    help="unchained drives per task, estimated side by side as one vectorised estimator (each drive's "
                         f"results are its own, bit for bit; it shares the per-sample overhead; default {DEFAULT_STACK}, "

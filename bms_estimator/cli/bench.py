@@ -25,7 +25,9 @@ Figures (one core, this machine, one run):
   ``batch_speedup_stack4`` / ``batch_speedup_stack4_cpu``: one worker's throughput (times real
   time) when its task holds 4 such drives, their estimation stacked (``batch --stack 4``).
 * ``batch_speedup_sox`` / ``batch_speedup_sox_cpu``: ``batch_speedup`` / ``_cpu`` with ``batch --sox``
-  (SOP/SOE/SOH too; unstacked), measured in pairs with runs without it (the ratio on stderr).
+  (SOP/SOE/SOH too; one drive alone), measured in pairs with runs without it (the ratio on stderr);
+  ``batch_speedup_sox_stack4`` / ``_cpu``: ``batch_speedup_stack4`` / ``_cpu`` with ``batch --sox`` (4
+  drives stacked, SOX part included), right after the same task without SOX (on stderr).
 * ``batch_scaling_2_workers``: ``batch`` throughput on a 2-process Dask LocalCluster over
   1 process; ``batch_10k_drives_worker_h``: the measured cost of 10,000 such 4-hour drives
   in worker-hours (the estimate for N workers is printed on stderr).
@@ -203,7 +205,7 @@ def _batch(figure: str) -> float:
             "batch_scaling_2_workers": r.scaling_2_workers}[figure]
 
 
-def _batch_sox(cpu: bool) -> float:
+def _batch_sox(cpu: bool, stacked: bool = False) -> float:
     """``batch --sox`` on one drive, paired with runs without it: see benchmarks/batch_speedup.py."""
     import sys
 
@@ -215,7 +217,11 @@ def _batch_sox(cpu: bool) -> float:
           f"{r.speedup_sox:,.0f}x with SOX, {r.speedup:,.0f}x without (CPU {r.speedup_sox_cpu:,.0f}x / "
           f"{r.speedup_cpu:,.0f}x); estimate stage "
           f"{r.estimate_s_sox:.1f} s against {r.estimate_s:.1f} s; every pair (without / with): "
-          + ", ".join(f"{a:,.0f}x / {b:,.0f}x" for a, b in r.runs), file=sys.stderr)
+          + ", ".join(f"{a:,.0f}x / {b:,.0f}x" for a, b in r.runs)
+          + f"; {r.stack} drives stacked: {r.speedup_stack_sox:,.0f}x with SOX, {r.speedup_stack:,.0f}x without "
+          f"(CPU {r.speedup_stack_sox_cpu:,.0f}x / {r.speedup_stack_cpu:,.0f}x)", file=sys.stderr)
+    if stacked:
+        return r.speedup_stack_sox_cpu if cpu else r.speedup_stack_sox
     return r.speedup_sox_cpu if cpu else r.speedup_sox
 
 
@@ -242,6 +248,8 @@ FIGURES = {
     "batch_speedup_stack4_cpu": lambda args: _batch("batch_speedup_stack4_cpu"),
     "batch_speedup_sox": lambda args: _batch_sox(False),
     "batch_speedup_sox_cpu": lambda args: _batch_sox(True),
+    "batch_speedup_sox_stack4": lambda args: _batch_sox(False, stacked=True),
+    "batch_speedup_sox_stack4_cpu": lambda args: _batch_sox(True, stacked=True),
     "batch_scaling_2_workers": lambda args: _batch("batch_scaling_2_workers"),
     "batch_10k_drives_worker_h": lambda args: _batch("batch_10k_drives_worker_h"),
 }

@@ -265,14 +265,20 @@ def sop_limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv
                    tau_s=tau_s, x_v=x_v, config=config, method=method, v_margin=v_margin, ocv_slope=ocv_slope)[0]
 
 
-def sop_and_pack_limits(*, n_parallel: int = 1, valid=None, **kwargs) -> tuple[SopResult, dict[str, np.ndarray]]:
+def sop_and_pack_limits(*, n_parallel: int = 1, valid=None, groups=None,
+                        **kwargs) -> tuple[SopResult, dict[str, np.ndarray]]:
     """:func:`sop_limits` (model method) and :func:`pack_limits` of its result in one pass.
 
     The same numbers as the two calls (tests/core/test_sop_fast.py), with the OCV
     evaluated at the cells' limits (for the power) and at the pack's limit (for the pack
     power) in one stacked call: per sample this is the service's SOP.
+
+    ``groups`` (a :class:`~bms_estimator.core.groups.CellGroups`, optional): the cells are
+    independent packs side by side; each pack's limits are then those of its own cells
+    (weakest cell, power sum and "no valid cell" per group), ``(H, G)`` arrays, each column
+    bit for bit the pack's alone (tests/core/test_sox_groups.py).
     """
-    return _limits(pack=(int(n_parallel), valid), **kwargs)
+    return _limits(pack=(int(n_parallel), valid, groups), **kwargs)
 
 
 def _limits(*, voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv: OcvFn, docv_dsoc: OcvFn,
@@ -377,17 +383,22 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
     # the predicted voltage at each limit (a zero limit: at zero current) and, for the pack,
     # every cell's at the weakest cell's limit: one OCV call on both stacked
     if pack is not None:
-        n_par, valid = pack
+        n_par, valid, groups = pack
         use = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
         use_all = bool(use.all())
-        if not use_all and not use.any():
+        if groups is not None:  # per pack: its weakest valid cell, 0 where it has none
+            i_pack = groups.reduce(np.min, lim if use_all else np.where(use, lim, np.inf))
+            if not use_all:
+                i_pack = np.where(groups.reduce(np.any, use), i_pack, 0.0)
+        elif not use_all and not use.any():
             i_pack = np.zeros(2 * nh)
         else:  # the weakest cell's limit (a cell that cannot be predicted has 0)
             i_pack = lim.min(axis=1) if use_all else lim[:, use].min(axis=1)
         if not all_ok:
             use = use & ok
             use_all = False
-        i2 = sign * i_pack[:, None]  # (2H, 1) signed cell current
+        # (2H, 1) signed cell current; per pack (2H, N), each cell at its own pack's
+        i2 = sign * (i_pack[:, None] if groups is None else i_pack[:, groups.of])
         z = np.empty((4 * nh, n))
         np.multiply(sc, lim, out=z[:2 * nh])
         z[:2 * nh] += s
@@ -415,9 +426,12 @@ def _limits_body(voltage_v, current_now_a, soc, capacity_ah, temperature_c, ocv,
     v_pack = o_pack - ocv_s
     v_pack += base
     v_pack += r_d * i2
-    p_pack = v_pack.sum(axis=1)
-    if not (use_all and np.isfinite(p_pack).all()):
-        p_pack = np.sum(np.where(use & np.isfinite(v_pack), v_pack, 0.0), axis=1)
+    if groups is not None:  # each pack's sum as its own (module docstring of core.groups)
+        p_pack = groups.reduce(np.sum, np.where(use & np.isfinite(v_pack), v_pack, 0.0))
+    else:
+        p_pack = v_pack.sum(axis=1)
+        if not (use_all and np.isfinite(p_pack).all()):
+            p_pack = np.sum(np.where(use & np.isfinite(v_pack), v_pack, 0.0), axis=1)
     p_pack = i_pack * n_par * p_pack
     p_pack = np.maximum(p_pack, 0.0)
     return res, {"discharge_a": i_pack[:nh] * n_par, "charge_a": i_pack[nh:] * n_par,

@@ -95,6 +95,16 @@ class ResidualResistance:
         self._rest_n = np.zeros(self.n_cells)  # samples at rest before this one
         self._rest_need = round(config.rest_s / self.dt_s)
         self.windows_scored = 0
+        self.groups = None  # see set_groups
+        self.windows_scored_by_group: np.ndarray | None = None
+
+    def set_groups(self, groups) -> None:
+        """Cells in groups (a :class:`~bms_estimator.core.groups.CellGroups`), independent packs side by
+        side: the windows scored are then also counted per group (``windows_scored_by_group``), so that
+        the SOX part refreshes a group's correction when that group scored one, as it does alone.
+        Everything else here is per cell already."""
+        self.groups = groups
+        self.windows_scored_by_group = np.zeros(groups.n, dtype=np.int64)
 
     def sample(self, current_a, voltage_v, ocv_end_v, soc, capacity_ah, basis) -> None:
         """One sample (after the estimator's update with it).
@@ -151,6 +161,8 @@ class ResidualResistance:
             self.dr_soc[row] = np.where(m, s, self.dr_soc[row])
             self.dr_seen_k[row] = np.where(m, self._k, self.dr_seen_k[row])
         self.windows_scored += int(np.count_nonzero(use))
+        if self.groups is not None:
+            self.windows_scored_by_group += self.groups.reduce(np.sum, use.sum(axis=0))
 
     def rest(self, gap_s: float, cells: np.ndarray) -> None:
         """``gap_s`` seconds without samples at zero current for ``cells`` (a bool mask), as

@@ -57,6 +57,7 @@ from annotated_types import Ge
 
 from .bounds import check_bounds
 from .cells import rest_arguments
+from .groups import CellGroups
 from .soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from .soh import ResistanceSoh, SohConfig, capacity_soh
 from .ocv_surface import OcvAtTemperatures
@@ -125,6 +126,37 @@ class SoxEstimator:
         # the exponential averages' weights per sample (mean current; model-error margin)
         self._a_mean = 1.0 - np.exp(-self.dt_s / config.soe.mean_current_tau_s)
         self._a_margin = 1.0 - np.exp(-self.dt_s / config.sop.margin_tau_s)
+        self.groups: CellGroups | None = None  # see set_groups
+
+    def set_groups(self, sizes) -> None:
+        """Cells in consecutive groups of ``sizes``, independent packs side by side (the batch's
+        stacked drives), as ``Identifier.set_groups``: what this part shares across its cells is
+        then kept per group, so that each group's outputs and state are the ones it has alone, bit
+        for bit (tests/core/test_sox_groups.py, tests/fleet/test_fleet_stack.py).  On a fresh part.
+
+        What one pack shares, and how it goes per group:
+
+        * the learnt-resistance correction (``sop_residual``) is refreshed for every cell when any
+          cell scores a window (and on the slow cadence): per group, refreshed for the cells of a
+          group that scored one (its cells' ages and SOC bands read now), the others' held;
+        * the slow cadence (energy left, time to empty/full, SOH; restarted by :meth:`rest`) and
+          the resistance SOH's reading on it: a counter per group;
+        * the pack limits (the weakest valid cell, the power summed over the string, no valid
+          cell giving 0) and :meth:`pack_outputs_by_group` (weakest cell, sums, extremes): over
+          each group's cells, with the arithmetic of a pack of that size
+          (:class:`~bms_estimator.core.groups.CellGroups`);
+        * every other all-cells shortcut here (``ok.all()``, ``fresh.all()``, ``rested.any()``,
+          ``open_.any()``, ``known.all()``, the OCV table's ``inside``, ``use.any()``) only picks a
+          path whose per-cell values are those of the other path; no product of this part goes
+          through BLAS (whose kernels, and so the last bit, depend on the width).
+
+        The service's one pack (no groups) takes none of these paths."""
+        if self.outputs or self.residual.windows_scored:
+            raise ValueError("set_groups needs a fresh SOX part")
+        self.groups = g = CellGroups(sizes, self.n_cells)
+        self.residual.set_groups(g)
+        self._dr_seen = np.full(g.n, -1, dtype=np.int64)
+        self._slow_due = np.zeros(g.n, dtype=np.int64)
 
     # ---------------------------------------------------------------- OCV at the cells' temperatures
     @staticmethod
@@ -289,7 +321,10 @@ class SoxEstimator:
         if self._basis is not None:  # (v_base (H, N), R_D (H, N), OCV(s) (N,)) from before the gap
             base, r_d, ocv_s = self._basis
             self._basis = (np.where(sel, np.nan, base), r_d, ocv_s)
-        self._slow_due = 0
+        if self.groups is None:
+            self._slow_due = 0
+        else:  # the rested cells' packs
+            self._slow_due = np.where(self.groups.reduce(np.any, sel), 0, self._slow_due)
 
     #: the keys of :attr:`outputs` after the limits' (held slow outputs, energy counters, resistance SOH)
     _SLOW_KEYS = ("energy_left_wh", "time_to_empty_s", "time_to_full_s", "soh_capacity", "soh_capacity_sigma")
@@ -346,20 +381,24 @@ class SoxEstimator:
             kw = dict(voltage_v=self.v_anchor, current_now_a=self.i_anchor, soc=anchor[0], capacity_ah=m["q"],
                       r0_ohm=m["p"]["r0_ohm"], r_ohm=m["r"], tau_s=m["tau"], x_v=self.x_v)
             ocv_slope_s = anchor[1:]
-        slow = self._slow_due <= 0 or not self._slow
-        if slow or self.residual.windows_scored != self._dr_seen:  # a new dR, or its age/SOC checked on the slow cadence
-            self._dr = self.residual.correction(kw["soc"])
-            self._dr_seen = self.residual.windows_scored
+        if self.groups is not None:
+            slow = self._compute_grouped_dr(kw["soc"])
+        else:
+            slow = self._slow_due <= 0 or not self._slow
+            if slow or self.residual.windows_scored != self._dr_seen:  # a new dR, or its age/SOC checked on the slow cadence
+                self._dr = self.residual.correction(kw["soc"])
+                self._dr_seen = self.residual.windows_scored
         res, self.pack = sop_and_pack_limits(temperature_c=est.temperature_c, ocv=f.ocv, docv_dsoc=f.slope,
                                              ocv_slope=f.ocv_slope, config=cfg.sop, v_margin=self.v_margin,
                                              n_parallel=cfg.sop.n_parallel, valid=np.isfinite(self.v_anchor),
-                                             dr_ohm=self._dr, ocv_slope_s=ocv_slope_s, **kw)
+                                             dr_ohm=self._dr, ocv_slope_s=ocv_slope_s, groups=self.groups, **kw)
         self.sop = res
         self._basis = res.basis
-        if slow:
+        if self.groups is not None:
+            self._slow_grouped(est, f, m, kw, slow)
+        elif slow:
             self._slow = self._energy_and_capacity(est, f.ocv, kw)
-            identified = np.asarray(getattr(est.identifier, "identified", np.ones(self.n_cells, bool)), dtype=bool)
-            self.resistance.update(kw["r0_ohm"], est.temperature_c, m["soc"], identified & self._ok,
+            self.resistance.update(kw["r0_ohm"], est.temperature_c, m["soc"], self._identified(est) & self._ok,
                                    samples=self._slow_every)
             # the resistance SOH changes only here: its outputs are held like the slow ones
             self._slow_r = dict(zip(self._RESISTANCE_KEYS, (self.resistance.ratio, self.resistance.r0_ref_ohm.copy())))
@@ -376,6 +415,41 @@ class SoxEstimator:
             out[key] = getattr(self, key).copy()
         out.update(self._slow_r)
         self.outputs = out
+
+    def _identified(self, est) -> np.ndarray:
+        return np.asarray(getattr(est.identifier, "identified", np.ones(self.n_cells, bool)), dtype=bool)
+
+    def _compute_grouped_dr(self, soc) -> np.ndarray | None:
+        """With groups: the learnt correction refreshed for the cells of the groups that are on the slow
+        cadence or scored a window since their last refresh, the others' held (as each group alone holds
+        its own); returns the groups on the slow cadence per cell (None: none)."""
+        g = self.groups
+        slow_g = (self._slow_due <= 0) if self._slow else np.ones(g.n, dtype=bool)
+        renew = slow_g | (self.residual.windows_scored_by_group != self._dr_seen)
+        if renew.any():
+            new = self.residual.correction(soc)
+            if renew.all() or (new is None and self._dr is None):
+                self._dr = new
+            else:  # a group without a fresh dR has 0 (as None alone: R_D + 0, floored at R_D / 2, is R_D)
+                cells = renew[g.of]
+                old = np.zeros_like(new) if self._dr is None else self._dr
+                self._dr = np.where(cells, 0.0 if new is None else new, old)
+            self._dr_seen = np.where(renew, self.residual.windows_scored_by_group, self._dr_seen)
+        return slow_g[g.of] if slow_g.any() else None
+
+    def _slow_grouped(self, est, f, m, kw, slow) -> None:
+        """The slow outputs and the resistance SOH's reading, for the cells of the groups on the slow cadence
+        (``slow``, per cell, or None), the others' held."""
+        if slow is None:
+            return
+        new = self._energy_and_capacity(est, f.ocv, kw)
+        everyone = bool(slow.all())
+        self._slow = new if everyone or not self._slow else {k: np.where(slow, v, self._slow[k]) for k, v in new.items()}
+        # ResistanceSoh.update is per cell: the cells not read keep their values, as their groups alone do
+        self.resistance.update(kw["r0_ohm"], est.temperature_c, m["soc"], self._identified(est) & self._ok & slow,
+                               samples=self._slow_every)
+        self._slow_r = dict(zip(self._RESISTANCE_KEYS, (self.resistance.ratio, self.resistance.r0_ref_ohm.copy())))
+        self._slow_due = np.where(self.groups.reduce(np.any, slow), self._slow_every, self._slow_due)
 
     def _energy_and_capacity(self, est, ocv, kw) -> dict[str, np.ndarray]:
         """The slow outputs (every ``SoxConfig.slow_period_s``): energy left, time to empty/full, capacity SOH."""
@@ -416,6 +490,33 @@ class SoxEstimator:
                 out["time_to_full_s"] = float(np.max(o["time_to_full_s"]))
                 out["soh_capacity_min"] = float(np.nanmin(o["soh_capacity"])) if np.isfinite(o["soh_capacity"]).any() else float("nan")
                 out["soh_resistance_max"] = float(np.nanmax(o["soh_resistance"])) if np.isfinite(o["soh_resistance"]).any() else float("nan")
+        return out
+
+    def pack_outputs_by_group(self) -> dict[str, np.ndarray]:
+        """:meth:`pack_outputs` of each group (:meth:`set_groups`), one ``(G,)`` array per key: column ``g``
+        holds the floats group ``g``'s :meth:`pack_outputs` has alone, bit for bit (its weakest cell,
+        its cells' sums and extremes; the energy left times its own cell count)."""
+        g = self.groups
+        if g is None:
+            raise ValueError("pack_outputs_by_group needs cell groups (set_groups); one pack: pack_outputs")
+        out: dict[str, np.ndarray] = {}
+        for h, d in enumerate(self.config.sop.horizons_s):
+            tag = f"{d:g}s"
+            for k in ("discharge", "charge"):
+                if self.pack:
+                    out[f"i_{k}_max_{tag}_a"] = self.pack[f"{k}_a"][h]
+                    out[f"p_{k}_max_{tag}_w"] = self.pack[f"{k}_w"][h]
+        o = self.outputs
+        if o:
+            np_ = self.config.sop.n_parallel
+            with np.errstate(all="ignore"):
+                out["energy_left_wh"] = np_ * g.nanmin(o["energy_left_wh"]) * g.sizes
+                out["energy_delivered_wh"] = np_ * g.reduce(np.sum, o["energy_delivered_wh"])
+                out["energy_discharged_wh"] = np_ * g.reduce(np.sum, o["energy_discharged_wh"])
+                out["time_to_empty_s"] = g.reduce(np.min, o["time_to_empty_s"])
+                out["time_to_full_s"] = g.reduce(np.max, o["time_to_full_s"])
+                out["soh_capacity_min"] = g.nanmin(o["soh_capacity"])
+                out["soh_resistance_max"] = g.nanmax(o["soh_resistance"])
         return out
 
     def state_dict(self) -> dict[str, np.ndarray]:

@@ -129,8 +129,8 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
     """Every log through bulk decode and the estimator on Dask; never raises for a bad log.
 
     ``stack``: at most this many unchained drives per task, estimated side by side (1: one per task).
-    ``sox``: also the service's SOP/SOE/SOH part (:mod:`.drive`); its drives are grouped by ``stack``
-    all the same but estimated one by one.
+    ``sox``: also the service's SOP/SOE/SOH part (:mod:`.drive`), stacked with the estimator (its
+    cells grouped per drive, :meth:`~bms_estimator.core.sox.SoxEstimator.set_groups`).
 
     ``progress(done_drives, total_drives, last_result)`` is called as tasks finish.
     ``client``: an existing ``dask.distributed.Client`` (then ``scheduler``/``workers`` are unused).

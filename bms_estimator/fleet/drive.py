@@ -26,10 +26,10 @@ figures the service publishes (``SoxEstimator.pack_outputs``, the pack payload's
 sample to ``<log>.pack.parquet`` beside the drive's Parquet (:func:`pack_parquet_path`), and the
 summary gets per drive :data:`PACK_SUMMARY` (the same values on each of the drive's cell rows). Chained,
 the SOX state is carried with the estimator's (the daemon's state file layout,
-:func:`~bms_estimator.service.state.resume_sox`) and rested over the time between drives. Drives
-with SOX run one by one, never stacked: the SOX part does not keep stacked drives apart (its
-learnt-resistance correction is refreshed for every cell when any cell scores a window, so a
-drive's limits would depend on the drives beside it).
+:func:`~bms_estimator.service.state.resume_sox`) and rested over the time between drives.
+Unchained drives with SOX are stacked like those without (:func:`run_drives`): the stacked SOX
+part keeps them apart (:meth:`~bms_estimator.core.sox.SoxEstimator.set_groups`), so each drive's
+limits, energy, health and pack figures are those it has alone, bit for bit.
 
 A drive is reported and skipped (never fatal to the batch) when its log is unreadable or
 corrupt, empty, holds no frame the configured DBC and mapping decode (another DBC), or
@@ -52,6 +52,7 @@ import numpy as np
 import structlog
 
 from ..core.soc import SocEstimator
+from ..core.sox import SoxEstimator
 from ..data import check_charge_span, load_recording
 from ..errors import BmsEstimatorError, DataError, one_line_error
 from ..scoring import counted_soc, soc_error_figures
@@ -416,6 +417,16 @@ def _stack_factory(svc):
     return make
 
 
+def _stack_sox_factory(svc):
+    """``n`` -> a fresh SOX part of ``n`` cells made as the service makes its own (the service's for its ``n``)."""
+
+    def make(n: int):
+        if n == svc.n_cells:
+            return svc._new_sox()  # noqa: SLF001 - the service's own factory
+        return SoxEstimator(n, svc.period_s, svc.cfg.estimator.sox_config)
+    return make
+
+
 def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | Path, *, write: bool = True,
                diagnose: bool = False, sox: bool = False) -> list[DriveResult]:
     """Independent drives ((log, vehicle) each, every one from a fresh estimator), their estimation stacked.
@@ -425,8 +436,10 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
     drive's results are those it has alone, bit for bit), which shares the estimator's
     per-sample overhead among them. A drive's ``seconds["estimate"]`` and its CPU seconds hold
     its share (1/S) of the stacked run; ``counters["stacked_with"]`` says how many ran together.
-    If the drives cannot run stacked, they run one by one; with ``sox`` (the SOP/SOE/SOH part, see
-    the module docstring) they always do (``counters["stacked_with"]`` 1). Never raises for a bad log.
+    With ``sox`` (the SOP/SOE/SOH part, see the module docstring) it runs stacked too, its cells
+    grouped per drive (:meth:`~bms_estimator.core.sox.SoxEstimator.set_groups`: each drive's SOX
+    outputs, pack figures and state its own, bit for bit). If the drives cannot run stacked, they
+    run one by one. Never raises for a bad log.
     """
     results: list[DriveResult] = []
     ready: dict[int, list[tuple[DriveResult, Path, Any, SampleArrays]]] = {}
@@ -447,10 +460,10 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
         outs: list[DriveEstimate | None] = [None] * len(group)
         together = 1
         try:
-            if not sox:  # SOX keeps no stacked drives apart: one by one
-                outs = estimate_stacked([g[3] for g in group], _stack_factory(svc))
-                wall, cpu = (time.perf_counter() - t0) / len(group), (time.process_time() - c0) / len(group)
-                together = len(group)
+            outs = estimate_stacked([g[3] for g in group], _stack_factory(svc),
+                                    _stack_sox_factory(svc) if sox else None)
+            wall, cpu = (time.perf_counter() - t0) / len(group), (time.process_time() - c0) / len(group)
+            together = len(group)
         except (StackError, MemoryError) as exc:  # then one by one (each with the service's error handling)
             _log.warning("drives run one by one", reason=str(exc))
             outs = [None] * len(group)

@@ -29,6 +29,23 @@ same state (all fresh: chained drives of a vehicle stay sequential, see :mod:`.d
 and the stacked estimator's fresh state must be the solo one repeated ``S`` times, which
 is checked once per stack.
 
+SOP/SOE/SOH (``batch --sox``): with ``make_sox`` given, each step's update is followed by the
+stacked :class:`~bms_estimator.core.sox.SoxEstimator`'s, as in :func:`~.estimate.estimate_drive`,
+its cells grouped per drive (:meth:`SoxEstimator.set_groups
+<bms_estimator.core.sox.SoxEstimator.set_groups>`: the learnt-resistance refresh, the slow
+cadence and the pack figures kept per drive). A drive's per-cell SOX outputs map back as the
+estimator's (NaN before its first update, where the solo run has none), its pack figures are its
+group's column of ``pack_outputs_by_group`` (the floats of its solo ``pack_outputs``), its final
+state carries the SOX part under ``sox.`` (:func:`~bms_estimator.service.state.estimator_state`),
+and its energy in and out is the change of its cells' SOX counters from the fresh state.
+
+Drives of a one-cell pack (single-cell CSV recordings) are not stacked: they did not give their
+solo results (two 1-cell slices of the LG HG2 UDDS recording stacked, without SOX: the identified
+parameters, SOC and capacity moved in the last bits from their 164th-1340th sample on). One cause
+found: a reduction over the first axis of a ``(K, N)`` array (the SOE's sum over its SOC grid,
+``core.soe``) is numpy's pairwise sum for ``N = 1`` (one contiguous column) and a row-by-row sum
+for ``N >= 2``; the estimator's own was not traced. Packs of two or more cells are checked equal.
+
 Anything unusual (an update that raises, a state that does not split by cells, a drive with a
 time jump, where the estimator rests its cells alone) raises
 :class:`StackError`; the caller then runs the drives one by one (the service's per-sample
@@ -42,7 +59,9 @@ from collections.abc import Callable
 import numpy as np
 
 from ..core.soc import SocEstimator
-from .estimate import DriveEstimate, finish_estimate, output_getters, sample_gaps
+from ..core.sox import SoxEstimator
+from ..service.state import SOX_PREFIX, estimator_state
+from .estimate import ENERGY_COUNTERS, DriveEstimate, finish_estimate, output_getters, sample_gaps, sox_getters
 from .samples import SampleArrays
 
 __all__ = ["StackError", "estimate_stacked"]
@@ -97,12 +116,13 @@ def _slice_state(state: dict[str, np.ndarray], axes: dict[str, int | None], cols
 
 
 def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int], SocEstimator],
-                     ) -> list[DriveEstimate]:
-    """Each drive's :func:`~.estimate.estimate_drive` result from a fresh ``make_estimator(n)``, run stacked.
+                     make_sox: Callable[[int], SoxEstimator] | None = None) -> list[DriveEstimate]:
+    """Each drive's :func:`~.estimate.estimate_drive` result from a fresh ``make_estimator(n)`` (and a
+    fresh ``make_sox(n)`` after it, when given), run stacked.
 
     ``make_estimator(n_cells)`` builds a fresh estimator of ``n_cells`` cells (the same
-    configuration for every size). All drives must have the same number of cells and
-    sample period. Raises :class:`StackError` when they cannot run stacked.
+    configuration for every size), ``make_sox`` likewise. All drives must have the same number of
+    cells and sample period. Raises :class:`StackError` when they cannot run stacked.
     """
     if not drives:
         return []
@@ -111,16 +131,23 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
         raise StackError("stacked drives must have the same cells and sample period")
     if any(sample_gaps(d.t_s, d.period_s).any() for d in drives):  # rested over at its own step: run alone
         raise StackError("a drive has a time jump in its samples")
+    if n == 1 and len(drives) > 1:  # numpy sums one column pairwise, several row by row (see the docstring)
+        raise StackError("one-cell drives run one by one (their last bits would depend on the drives beside them)")
     s = len(drives)
     big = n * s
     solo = make_estimator(n)
     est = make_estimator(big)
+    solo_sox = sox = None
+    if make_sox is not None:
+        solo_sox, sox = make_sox(n), make_sox(big)
     if s > 1:
         if not hasattr(est.identifier, "set_groups"):
             raise StackError("the identifier cannot keep the drives apart")
         est.identifier.set_groups([n] * s)  # what the cells share is kept per drive, as in each drive alone
-    axes = _cell_axes(solo.state_dict(), est.state_dict(), s)
-    fresh_state = {k: np.array(v, copy=True) for k, v in solo.state_dict().items()}
+        if sox is not None:
+            sox.set_groups([n] * s)  # likewise the SOX part's
+    axes = _cell_axes(estimator_state(solo, solo_sox), estimator_state(est, sox), s)
+    fresh_state = estimator_state(solo, solo_sox)
 
     steps = [np.flatnonzero(d.current_valid & np.isfinite(d.current_a)) for d in drives]
     counts = [int(u.size) for u in steps]
@@ -138,14 +165,21 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
         valid[:m, cols] = dr.valid[u]
 
     getters = output_getters(est)
+    sox_keys: tuple[str, ...] = ()
+    if sox is not None:
+        more = sox_getters(sox)
+        sox_keys = tuple(key for key, _ in more)
+        getters += more
     # drive-major: store[key][d, 0] the fresh estimator's values, store[key][d, j + 1] the outputs after
     # update j. A drive whose every sample is an update (the usual drive) then has its rows as one
     # contiguous block, taken as it is; otherwise one fancy index picks them. (Rows the stacked
     # estimator writes as (S n,) vectors go in as (S, n); the values are the same.)
     store = {key: np.empty((s, length + 1, n)) for key, _ in getters}
-    for key, get in getters:
-        store[key][:, 0] = np.asarray(get(), dtype=float).reshape(s, n)
+    for key, get in getters:  # (the SOX outputs: NaN before the first update, as a scalar)
+        store[key][:, 0] = np.broadcast_to(np.asarray(get(), dtype=float), (big,)).reshape(s, n)
     targets = [(store[key][:, 1:].transpose(1, 0, 2), get) for key, get in getters]  # (length, S, n) views
+    # the pack figures: pack[key][d, 0] NaN (none before the first update), pack[key][d, j + 1] after update j
+    pack = {key: np.full((s, length + 1), np.nan) for key in (sox.pack_output_keys if sox is not None else ())}
     ends: dict[int, list[int]] = {}
     for d, m in enumerate(counts):
         ends.setdefault(m, []).append(d)
@@ -156,11 +190,15 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
     try:
         for j in range(length):
             update(current[j], volts[j], valid[j], temperature_c=temps[j])
+            if sox is not None:
+                sox.update(est, current[j], volts[j], valid[j])
+                for key, figures in sox.pack_outputs_by_group().items():
+                    pack[key][:, j + 1] = figures
             for out, get in targets:
                 out[j] = get().reshape(s, n)
             done = ends.get(j + 1)
             if done:
-                full = est.state_dict()
+                full = estimator_state(est, sox)
                 for d in done:
                     states[d] = _slice_state(full, axes, slice(d * n, (d + 1) * n))
     except Exception as exc:  # noqa: BLE001 - one by one, the service's per-sample error handling applies
@@ -174,6 +212,12 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
         c = np.cumsum(c)
         every = counts[d] == len(dr)  # c_k = k + 1: rows 1..m as they are
         cells = {key: arr[d, 1:counts[d] + 1] if every else arr[d, :counts[d] + 1][c] for key, arr in store.items()}
-        results.append(finish_estimate(dr, cells, states[d], 0))
+        if sox is None:
+            results.append(finish_estimate(dr, cells, states[d], 0))
+            continue
+        figures = {key: arr[d, 1:counts[d] + 1] if every else arr[d, :counts[d] + 1][c] for key, arr in pack.items()}
+        energy = {key: states[d][SOX_PREFIX + key] - fresh_state[SOX_PREFIX + key] for key in ENERGY_COUNTERS}
+        pack_energy = {key: solo_sox.pack_energy_wh(wh) for key, wh in energy.items()}
+        results.append(finish_estimate(dr, cells, states[d], 0, sox_keys, energy, figures, pack_energy))
     return results
 

@@ -31,6 +31,7 @@ from bms_estimator.fleet.samples import SampleArrays
 from bms_estimator.service.state import load_state, resume_sox, save_state
 
 from .fleet_helpers import write_batch_config
+from .test_fleet_stack import _assert_same_table
 
 ROOT = Path(__file__).parents[2]
 SAMPLE = ROOT / "bms_estimator" / "samples" / "lg-hg2_25degC_udds_1s.csv.gz"
@@ -180,19 +181,26 @@ def test_pack_figures_are_nan_before_the_first_update(slices):
             assert figures["pack_energy_discharged_wh"] == figures["pack_energy_charged_wh"] == 0.0
 
 
-def test_sox_drives_run_one_by_one_as_run_drive_runs_them(slices, tmp_path):
+def test_one_cell_sox_drives_run_one_by_one_as_run_drive_runs_them(slices, tmp_path):
+    """batch --sox's task on single-cell recordings: one-cell drives are not stacked (fleet/stack.py: they
+    would not give their solo results), so each drive's Parquet, pack Parquet, summary and pack summary are
+    those run_drive writes for it, no tolerance. (Drives of several cells run stacked with SOX too:
+    tests/fleet/test_fleet_stack.py.)"""
     d, logs, cfg = slices
     results = run_drives([(str(p), "car1") for p in logs], str(cfg), tmp_path / "group", sox=True)
     assert [r.counters.get("stacked_with") for r in results] == [1, 1]
     for log, res in zip(logs, results):
         solo, _, est = run_drive(log, str(cfg), tmp_path / "solo", "car1", sox=True)
         table = pq.read_table(res.parquet)
-        assert table.column_names == pq.read_table(solo.parquet).column_names
-        for key in est.sox_keys:
-            assert np.array_equal(table.column(key).to_numpy(), est.cells[key].reshape(-1), equal_nan=True), key
+        _assert_same_table(table, pq.read_table(solo.parquet))
+        assert set(est.sox_keys) <= set(table.column_names)
+        _assert_same_table(pq.read_table(res.pack_parquet), pq.read_table(solo.pack_parquet))
         assert res.cells.keys() == solo.cells.keys()
         for key, values in solo.cells.items():
             assert np.array_equal(res.cells[key], values, equal_nan=True), key
+        assert res.pack.keys() == solo.pack.keys() and len(res.pack) == len(PACK_SUMMARY_COLUMNS)
+        for key, value in solo.pack.items():
+            assert np.array_equal(res.pack[key], value, equal_nan=True), key
 
 
 def test_cli_batch_sox_writes_the_soh_columns(slices, tmp_path):
