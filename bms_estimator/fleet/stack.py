@@ -187,12 +187,15 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
     for d in ends.get(0, []):
         states[d] = {k: np.array(v, copy=True) for k, v in fresh_state.items()}
     update = est.update
+    if sox is not None:  # one drive alone is one pack: its pack_outputs, as a group of one
+        pack_figures = sox.pack_outputs_by_group if s > 1 else (
+            lambda: {key: np.array([value]) for key, value in sox.pack_outputs().items()})
     try:
         for j in range(length):
             update(current[j], volts[j], valid[j], temperature_c=temps[j])
             if sox is not None:
                 sox.update(est, current[j], volts[j], valid[j])
-                for key, figures in sox.pack_outputs_by_group().items():
+                for key, figures in pack_figures().items():
                     pack[key][:, j + 1] = figures
             for out, get in targets:
                 out[j] = get().reshape(s, n)

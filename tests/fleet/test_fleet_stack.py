@@ -154,6 +154,21 @@ def test_stacked_sox_drives_give_each_drive_its_solo_results(svc):
     assert np.isnan(solo[4].pack["i_discharge_max_10s_a"]).all() and np.isnan(solo[4].cells["soh_resistance"]).all()
 
 
+def test_a_drive_alone_with_sox_runs_as_its_solo_run(svc):
+    """One drive with SOX (every batch of one log, and the last group of an uneven split) is a group of one:
+    it asked the SOX part for the pack figures of groups it never set, failed, and fell back to running 'one by
+    one' with a warning. Now its own pack figures, equal to the solo run, no tolerance; both packs, one and
+    several cells."""
+    service, _ = svc
+    base = _pulses(_drive(_pack(1500), 0, 1500, np.random.default_rng(3)), range(200, 1400, 170))
+    for d in (base, _first_cell(base)):
+        n = d.n_cells
+        solo = estimate_drive(d, _stack_factory(service)(n), sox=_stack_sox_factory(service)(n))
+        (alone,) = estimate_stacked([d], _stack_factory(service), _stack_sox_factory(service))
+        _assert_same_sox(solo, alone)
+        assert np.isfinite(alone.pack["p_discharge_max_10s_w"][-1])
+
+
 def test_a_stacked_drive_carries_on_like_a_solo_one(svc):
     """The state a stacked drive ends with resumes a next drive exactly as the solo state does (chaining)."""
     service, _ = svc
