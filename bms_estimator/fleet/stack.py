@@ -43,7 +43,7 @@ Drives of a one-cell pack (single-cell CSV recordings) are stacked too, as ``S``
 cell. A one-cell estimator's arithmetic is not a wider one's column: numpy sums a ``(K, 1)``
 array's contiguous column pairwise and a ``(K, N)`` one row by row, and its dot kernels for one
 cell add the products in another order than for several; each moved the last bits (two 1-cell
-slices of the LG HG2 UDDS recording: from their 161st update on). With groups of one cell the
+slices of the LG HG2 UDDS recording: from their 162nd update on). With groups of one cell the
 three places where that happened take the one-cell arithmetic per cell: the RLS's regressor made
 contiguous before ``phi' theta``, its ``P phi`` and ``phi' P phi`` cell-major
 (``core.rls._one_cell_gain_terms``), and the SOE's sum over its SOC grid cell-major

@@ -63,6 +63,22 @@ def _pack(seconds: int) -> SampleArrays:
                         valid=np.repeat(one.valid[:k], N_CELLS, axis=1), pack_voltage_v=volts.sum(axis=1), period_s=1.0)
 
 
+def _mixed_drives(base: SampleArrays, rng, pulses: bool = False) -> list[SampleArrays]:
+    """Five drives out of ``base``: the whole, two shorter ones with stale cells, lost readings and
+    current-invalid samples, a one-sample drive and one without a valid current; with ``pulses``,
+    steps out of rest (:func:`_pulses`) in the first three, at other times in each."""
+    k = len(base)
+    drives = [_drive(base, 0, k, rng),
+              _drive(base, 300, k - 700, rng, stale=0.05, bad_rows=5, nan_frac=0.003),
+              _drive(base, 900, 2600, rng, stale=0.15, bad_rows=20, nan_frac=0.01),
+              _drive(base, 50, 51, rng),
+              _drive(base, 10, 40, rng, bad_rows=200)]
+    if pulses:
+        starts = (range(400, k - 100, 170), (200, 500, 900), range(150, 1600, 230))
+        drives[:3] = [_pulses(d, at) for d, at in zip(drives[:3], starts)]
+    return drives
+
+
 def _assert_same(a, b) -> None:
     assert a.cells.keys() == b.cells.keys()
     for key in a.cells:
@@ -81,12 +97,7 @@ def test_stacked_drives_give_each_drive_its_solo_results(svc):
     service, _ = svc
     base = _pack(4000)
     rng = np.random.default_rng(7)
-    k = len(base)
-    drives = [_drive(base, 0, k, rng),
-              _drive(base, 300, k - 700, rng, stale=0.05, bad_rows=5, nan_frac=0.003),
-              _drive(base, 900, 2600, rng, stale=0.15, bad_rows=20, nan_frac=0.01),
-              _drive(base, 50, 51, rng),
-              _drive(base, 10, 40, rng, bad_rows=200)]
+    drives = _mixed_drives(base, rng)
     assert not (drives[4].current_valid.any())  # no update at all: the fresh estimator's values throughout
     solo = [estimate_drive(d, service._new_estimator()) for d in drives]
     stacked = estimate_stacked(drives, _stack_factory(service))
@@ -135,12 +146,7 @@ def test_stacked_sox_drives_give_each_drive_its_solo_results(svc):
     service, _ = svc
     base = _pack(4000)
     rng = np.random.default_rng(11)
-    k = len(base)
-    drives = [_pulses(_drive(base, 0, k, rng), range(400, k - 100, 170)),
-              _pulses(_drive(base, 300, k - 700, rng, stale=0.05, bad_rows=5, nan_frac=0.003), (200, 500, 900)),
-              _pulses(_drive(base, 900, 2600, rng, stale=0.15, bad_rows=20, nan_frac=0.01), range(150, 1600, 230)),
-              _drive(base, 50, 51, rng),
-              _drive(base, 10, 40, rng, bad_rows=200)]
+    drives = _mixed_drives(base, rng, pulses=True)
     solo = [estimate_drive(d, service._new_estimator(), sox=service._new_sox()) for d in drives]
     stacked = estimate_stacked(drives, _stack_factory(service), _stack_sox_factory(service))
     assert len(stacked) == len(drives)
@@ -185,16 +191,7 @@ def test_stacked_one_cell_drives_give_each_drive_its_solo_results(svc, sox):
     service, _ = svc
     base = _pack(4000)
     rng = np.random.default_rng(5)
-    k = len(base)
-    drives = [_drive(base, 0, k, rng),
-              _drive(base, 300, k - 700, rng, stale=0.05, bad_rows=5, nan_frac=0.003),
-              _drive(base, 900, 2600, rng, stale=0.15, bad_rows=20, nan_frac=0.01),
-              _drive(base, 50, 51, rng),
-              _drive(base, 10, 40, rng, bad_rows=200)]
-    if sox:
-        drives[:3] = [_pulses(d, starts) for d, starts in
-                      zip(drives[:3], (range(400, k - 100, 170), (200, 500, 900), range(150, 1600, 230)))]
-    drives = [_first_cell(d) for d in drives]
+    drives = [_first_cell(d) for d in _mixed_drives(base, rng, pulses=sox)]
     one = service_for(str(svc[1]), n_cells=1)
     make_sox = _stack_sox_factory(one) if sox else None
     solo = [estimate_drive(d, one._new_estimator(), sox=one._new_sox() if sox else None) for d in drives]
