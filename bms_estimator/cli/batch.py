@@ -67,7 +67,7 @@ def add_parser(sub) -> None:
                         "pack_p_discharge_max_10s_w_min, pack_energy_discharged_wh, pack_energy_charged_wh; "
                         "with --chain the SOX state is carried like the "
                         "SOC's. Its drives are stacked like the others (--stack; the SOX part kept per drive, "
-                        "each drive's figures its own, bit for bit; one-cell drives run one by one); "
+                        "each drive's figures its own, bit for bit, one-cell drives too); "
                         "see README, Fleet re-estimation, for its cost")
     p.add_argument("--stack", type=_workers, default=DEFAULT_STACK, metavar="S",
                    help="unchained drives per task, estimated side by side as one vectorised estimator (each drive's "

@@ -87,11 +87,15 @@ class WeightedRls:
         self._err_count = np.zeros(n, dtype=np.int64)
         self._eye = np.eye(p)
         self._group_starts: np.ndarray | None = None  # see set_groups
+        self._one_cell_groups = False  # see set_groups
 
     def set_groups(self, sizes) -> None:
         """Cells in consecutive groups of ``sizes`` (independent packs side by side, e.g. the batch's
         stacked drives): the error window's ring head, which advances when any cell learns, is
-        then kept per group, so that each group's results are those it has alone. On a fresh RLS."""
+        then kept per group, so that each group's results are those it has alone. Groups of one
+        cell (the batch's stacked one-cell drives) also take a one-cell RLS's arithmetic for the
+        products over the parameters, whose last bit numpy's kernels make depend on the width
+        (:func:`_one_cell_gain_terms`). On a fresh RLS."""
         sizes = np.asarray(sizes, dtype=np.int64)
         if sizes.sum() != self.n_cells or np.any(sizes < 1):
             raise ValueError(f"groups of {sizes.tolist()} cells do not make the {self.n_cells} cells")
@@ -99,6 +103,7 @@ class WeightedRls:
         self._group_of = np.repeat(np.arange(sizes.size), sizes)
         self._rows = np.arange(self.n_cells)
         self._err_head = np.full(sizes.size, int(self._err_head), dtype=np.int64)
+        self._one_cell_groups = bool(self.n_cells > 1 and np.all(sizes == 1))
 
     @property
     def P(self) -> np.ndarray:
@@ -120,6 +125,8 @@ class WeightedRls:
         lam = cfg.forgetting
         if mask is None:
             mask = np.ones(self.n_cells, dtype=bool)
+        if self._one_cell_groups:  # each cell's regressor one contiguous row, as in a one-cell RLS: the
+            phi = np.ascontiguousarray(phi)  # LIF's (N, p) is a transposed view, and a strided row sums otherwise
         e = y - np.einsum("np,np->n", phi, self.theta)
 
         every_init = all_cells(self.initialised)  # the usual sample: no cell in its block
@@ -179,8 +186,11 @@ class WeightedRls:
     def _rls_step_all(self, phi: np.ndarray, e: np.ndarray, w: np.ndarray, lam: float) -> None:
         P = self._pt  # (p, p, N)
         phi_t = phi.T
-        pphi = np.einsum("ijn,jn->in", P, phi_t)
-        denom = lam + (phi_t * pphi).sum(axis=0)
+        if self._one_cell_groups:
+            pphi, denom = _one_cell_gain_terms(P, phi, lam)
+        else:
+            pphi = np.einsum("ijn,jn->in", P, phi_t)
+            denom = lam + (phi_t * pphi).sum(axis=0)
         gain = pphi / denom
         every = all_cells(w)  # the usual case: no per-cell selects
         if not every:
@@ -293,3 +303,19 @@ class WeightedRls:
         self._err2 = np.array(s["err2"], dtype=float)
         self._err_head = int(s["err_head"])
         self._err_count = np.array(s["err_count"], dtype=np.int64)
+
+
+def _one_cell_gain_terms(pt: np.ndarray, phi: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
+    """``P phi`` (p, N) and ``lam + phi' P phi`` (N,) with each cell's arithmetic that of a one-cell RLS.
+
+    For ``N = 1`` numpy's ``einsum("ijn,jn->in")`` sums each row's ``p`` products as one contiguous
+    run (its dot kernel); for ``N >= 2`` the cells are the inner loop and the ``p`` products are
+    added in another order: a cell's last bit differs (in 1964 of 2000 random draws, numpy 2.4).
+    Cell-major, ``einsum("nij,nj->ni")`` sums each cell's products as the one-cell call does, and
+    ``phi' P phi`` is each cell's contiguous row summed, as the one-cell ``(p, 1)`` column is.
+    (Checked bit for bit: ``tests/fleet/test_fleet_stack.py``.)
+    """
+    phi = np.ascontiguousarray(phi)
+    pphi = np.einsum("nij,nj->ni", np.ascontiguousarray(np.moveaxis(pt, 2, 0)), phi)
+    denom = lam + (phi * pphi).sum(axis=1)
+    return np.ascontiguousarray(pphi.T), denom

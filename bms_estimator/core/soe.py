@@ -60,7 +60,7 @@ def _cells(a, shape) -> np.ndarray:
 
 
 def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_min: float = 0.0,
-                   config: SoeConfig = SoeConfig()) -> tuple[np.ndarray, np.ndarray]:
+                   config: SoeConfig = SoeConfig(), one_cell_sums: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(energy left in Wh, cut-off SOC) per cell at ``config.rate_c`` (module docstring).
 
     ``ocv`` maps a ``(K, N)`` SOC array to volts (each column at its cell's temperature).
@@ -70,6 +70,12 @@ def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_
     ``z_k = soc_min + (s - soc_min) k / (K - 1)``; the cut-off lies between the highest
     grid point below v_min and the next (linear there); the lowest grid SOC when no point
     is below, the top when the top already is.
+
+    ``one_cell_sums``: each cell's sum over its grid as a one-cell call sums it, for independent
+    one-cell packs side by side (the batch's stacked one-cell drives). numpy sums a ``(K, 1)``
+    array's one contiguous column pairwise (eight partial sums), a ``(K, N)`` one row by row: the
+    last bit differs. Summed cell-major (each cell's ``K`` values one contiguous row), every cell
+    gets the pairwise sum.
     """
     s = np.asarray(soc, dtype=float)
     q = _cells(capacity_ah, s.shape)
@@ -95,7 +101,8 @@ def energy_left_wh(soc, capacity_ah, r_ss_ohm, ocv: OcvFn, *, v_min: float, soc_
     width = np.maximum(z[1:] - np.maximum(z[:-1], z_cut), 0.0)
     vm = np.maximum(v, v_min)
     seg = 0.5 * (vm[1:] + vm[:-1]) * width
-    e = np.where(ok, q * seg.sum(axis=0), np.nan)
+    total = np.ascontiguousarray(seg.T).sum(axis=1) if one_cell_sums else seg.sum(axis=0)
+    e = np.where(ok, q * total, np.nan)
     return e, np.where(ok, z_cut, np.nan)
 
 

@@ -127,6 +127,7 @@ class SoxEstimator:
         self._a_mean = 1.0 - np.exp(-self.dt_s / config.soe.mean_current_tau_s)
         self._a_margin = 1.0 - np.exp(-self.dt_s / config.sop.margin_tau_s)
         self.groups: CellGroups | None = None  # see set_groups
+        self._one_cell_groups = False  # see set_groups
 
     def set_groups(self, sizes) -> None:
         """Cells in consecutive groups of ``sizes``, independent packs side by side (the batch's
@@ -148,12 +149,16 @@ class SoxEstimator:
         * every other all-cells shortcut here (``ok.all()``, ``fresh.all()``, ``rested.any()``,
           ``open_.any()``, ``known.all()``, the OCV table's ``inside``, ``use.any()``) only picks a
           path whose per-cell values are those of the other path; no product of this part goes
-          through BLAS (whose kernels, and so the last bit, depend on the width).
+          through BLAS (whose kernels, and so the last bit, depend on the width);
+        * groups of one cell (the batch's stacked one-cell drives): the energy left's sum over its
+          SOC grid cell-major (``core.soe.energy_left_wh``'s ``one_cell_sums``), the pairwise sum a
+          one-cell part's single column gets.
 
         The service's one pack (no groups) takes none of these paths."""
         if self.outputs or self.residual.windows_scored:
             raise ValueError("set_groups needs a fresh SOX part")
         self.groups = g = CellGroups(sizes, self.n_cells)
+        self._one_cell_groups = bool(g.n > 1 and (g.sizes == 1).all())
         self.residual.set_groups(g)
         self._dr_seen = np.full(g.n, -1, dtype=np.int64)
         self._slow_due = np.zeros(g.n, dtype=np.int64)
@@ -456,7 +461,8 @@ class SoxEstimator:
         cfg = self.config
         soc, q, r = kw["soc"], kw["capacity_ah"], kw["r_ohm"]
         r_ss = kw["r0_ohm"] + r[:, 0] + r[:, 1]
-        e_left, z_cut = energy_left_wh(soc, q, r_ss, ocv, v_min=cfg.sop.v_min, soc_min=cfg.sop.soc_min, config=cfg.soe)
+        e_left, z_cut = energy_left_wh(soc, q, r_ss, ocv, v_min=cfg.sop.v_min, soc_min=cfg.sop.soc_min, config=cfg.soe,
+                                       one_cell_sums=self._one_cell_groups)
         tte = time_to_empty_s(soc, z_cut, q, self.mean_current_a, idle_current_c=cfg.soe.idle_current_c)
         ttf = time_to_full_s(soc, q, self.mean_current_a, soc_max=cfg.sop.soc_max, idle_current_c=cfg.soe.idle_current_c)
         ekf = getattr(est, "ekf", None)

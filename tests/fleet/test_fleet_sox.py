@@ -181,14 +181,13 @@ def test_pack_figures_are_nan_before_the_first_update(slices):
             assert figures["pack_energy_discharged_wh"] == figures["pack_energy_charged_wh"] == 0.0
 
 
-def test_one_cell_sox_drives_run_one_by_one_as_run_drive_runs_them(slices, tmp_path):
-    """batch --sox's task on single-cell recordings: one-cell drives are not stacked (fleet/stack.py: they
-    would not give their solo results), so each drive's Parquet, pack Parquet, summary and pack summary are
-    those run_drive writes for it, no tolerance. (Drives of several cells run stacked with SOX too:
-    tests/fleet/test_fleet_stack.py.)"""
+def test_one_cell_sox_drives_stacked_write_what_run_drive_writes(slices, tmp_path):
+    """batch --sox's task on single-cell recordings: the one-cell drives run stacked (fleet/stack.py), and
+    each drive's Parquet, pack Parquet, summary and pack summary are those run_drive writes for it alone,
+    no tolerance. (The stacked arithmetic itself: tests/fleet/test_fleet_stack.py.)"""
     d, logs, cfg = slices
     results = run_drives([(str(p), "car1") for p in logs], str(cfg), tmp_path / "group", sox=True)
-    assert [r.counters.get("stacked_with") for r in results] == [1, 1]
+    assert [r.counters.get("stacked_with") for r in results] == [2, 2]
     for log, res in zip(logs, results):
         solo, _, est = run_drive(log, str(cfg), tmp_path / "solo", "car1", sox=True)
         table = pq.read_table(res.parquet)

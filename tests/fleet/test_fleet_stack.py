@@ -63,6 +63,22 @@ def _pack(seconds: int) -> SampleArrays:
                         valid=np.repeat(one.valid[:k], N_CELLS, axis=1), pack_voltage_v=volts.sum(axis=1), period_s=1.0)
 
 
+def _mixed_drives(base: SampleArrays, rng, pulses: bool = False) -> list[SampleArrays]:
+    """Five drives out of ``base``: the whole, two shorter ones with stale cells, lost readings and
+    current-invalid samples, a one-sample drive and one without a valid current; with ``pulses``,
+    steps out of rest (:func:`_pulses`) in the first three, at other times in each."""
+    k = len(base)
+    drives = [_drive(base, 0, k, rng),
+              _drive(base, 300, k - 700, rng, stale=0.05, bad_rows=5, nan_frac=0.003),
+              _drive(base, 900, 2600, rng, stale=0.15, bad_rows=20, nan_frac=0.01),
+              _drive(base, 50, 51, rng),
+              _drive(base, 10, 40, rng, bad_rows=200)]
+    if pulses:
+        starts = (range(400, k - 100, 170), (200, 500, 900), range(150, 1600, 230))
+        drives[:3] = [_pulses(d, at) for d, at in zip(drives[:3], starts)]
+    return drives
+
+
 def _assert_same(a, b) -> None:
     assert a.cells.keys() == b.cells.keys()
     for key in a.cells:
@@ -81,12 +97,7 @@ def test_stacked_drives_give_each_drive_its_solo_results(svc):
     service, _ = svc
     base = _pack(4000)
     rng = np.random.default_rng(7)
-    k = len(base)
-    drives = [_drive(base, 0, k, rng),
-              _drive(base, 300, k - 700, rng, stale=0.05, bad_rows=5, nan_frac=0.003),
-              _drive(base, 900, 2600, rng, stale=0.15, bad_rows=20, nan_frac=0.01),
-              _drive(base, 50, 51, rng),
-              _drive(base, 10, 40, rng, bad_rows=200)]
+    drives = _mixed_drives(base, rng)
     assert not (drives[4].current_valid.any())  # no update at all: the fresh estimator's values throughout
     solo = [estimate_drive(d, service._new_estimator()) for d in drives]
     stacked = estimate_stacked(drives, _stack_factory(service))
@@ -135,12 +146,7 @@ def test_stacked_sox_drives_give_each_drive_its_solo_results(svc):
     service, _ = svc
     base = _pack(4000)
     rng = np.random.default_rng(11)
-    k = len(base)
-    drives = [_pulses(_drive(base, 0, k, rng), range(400, k - 100, 170)),
-              _pulses(_drive(base, 300, k - 700, rng, stale=0.05, bad_rows=5, nan_frac=0.003), (200, 500, 900)),
-              _pulses(_drive(base, 900, 2600, rng, stale=0.15, bad_rows=20, nan_frac=0.01), range(150, 1600, 230)),
-              _drive(base, 50, 51, rng),
-              _drive(base, 10, 40, rng, bad_rows=200)]
+    drives = _mixed_drives(base, rng, pulses=True)
     solo = [estimate_drive(d, service._new_estimator(), sox=service._new_sox()) for d in drives]
     stacked = estimate_stacked(drives, _stack_factory(service), _stack_sox_factory(service))
     assert len(stacked) == len(drives)
@@ -190,13 +196,27 @@ def _first_cell(d: SampleArrays) -> SampleArrays:
                                valid=d.valid[:, :1])
 
 
-def test_one_cell_drives_are_refused(svc):
-    """One-cell drives run one by one (fleet/stack.py: stacked, their last bits moved)."""
+@pytest.mark.parametrize("sox", [False, True], ids=["plain", "sox"])
+def test_stacked_one_cell_drives_give_each_drive_its_solo_results(svc, sox):
+    """Drives of a one-cell pack (single-cell recordings) stacked as the cells of one estimator: the
+    width-1 arithmetic a one-cell estimator gets alone (numpy's dot and sum kernels for one contiguous
+    column, core/rls.py, core/soe.py) kept per cell. Different lengths, current-invalid samples, stale
+    and lost readings, pulses out of rest (the SOX part's learnt resistance), a one-sample drive and one
+    without an update: every output, pack figure, the drive energy and the final state equal, no tolerance."""
     service, _ = svc
-    one = _first_cell(_pack(100))
-    with pytest.raises(StackError, match="one-cell drives"):
-        estimate_stacked([one, one], _stack_factory(service))
-    assert len(estimate_stacked([one], _stack_factory(service))) == 1  # alone: nothing to keep apart
+    base = _pack(4000)
+    rng = np.random.default_rng(5)
+    drives = [_first_cell(d) for d in _mixed_drives(base, rng, pulses=sox)]
+    one = service_for(str(svc[1]), n_cells=1)
+    make_sox = _stack_sox_factory(one) if sox else None
+    solo = [estimate_drive(d, one._new_estimator(), sox=one._new_sox() if sox else None) for d in drives]
+    stacked = estimate_stacked(drives, _stack_factory(one), make_sox)
+    assert len(stacked) == len(drives)
+    for a, b in zip(solo, stacked):
+        (_assert_same_sox if sox else _assert_same)(a, b)
+    # not a trivial equality: the drives differ from each other, and the identifier ran
+    assert not np.array_equal(solo[0].cells["soc"][-1], solo[1].cells["soc"][-1])
+    assert np.isfinite(solo[2].cells["r0_ohm"][-1]).all() and solo[0].state["id.rls.initialised"].all()
 
 
 def test_drives_of_other_packs_are_refused(svc):
