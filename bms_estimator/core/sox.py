@@ -127,6 +127,7 @@ class SoxEstimator:
         self._a_mean = 1.0 - np.exp(-self.dt_s / config.soe.mean_current_tau_s)
         self._a_margin = 1.0 - np.exp(-self.dt_s / config.sop.margin_tau_s)
         self.groups: CellGroups | None = None  # see set_groups
+        self._one_pack = CellGroups([self.n_cells], self.n_cells)  # pack_outputs: all the cells as one group
         self._one_cell_groups = False  # see set_groups
 
     def set_groups(self, sizes) -> None:
@@ -475,43 +476,28 @@ class SoxEstimator:
 
     def pack_outputs(self) -> dict[str, float]:
         """Pack figures: the SOP per horizon, and the sums/extremes of the cell figures (keys:
-        :attr:`pack_output_keys`; none before the first :meth:`update`)."""
-        out: dict[str, float] = {}
-        hz = self.config.sop.horizons_s
-        for h, d in enumerate(hz):
-            tag = f"{d:g}s"
-            for k in ("discharge", "charge"):
-                if self.pack:
-                    out[f"i_{k}_max_{tag}_a"] = float(self.pack[f"{k}_a"][h])
-                    out[f"p_{k}_max_{tag}_w"] = float(self.pack[f"{k}_w"][h])
-        o = self.outputs
-        if o:
-            np_ = self.config.sop.n_parallel
-            with np.errstate(all="ignore"):
-                e = o["energy_left_wh"]  # the weakest cell ends the series string's discharge
-                out["energy_left_wh"] = float(np_ * np.nanmin(e) * self.n_cells) if np.isfinite(e).any() else float("nan")
-                out["energy_delivered_wh"] = self.pack_energy_wh(o["energy_delivered_wh"])
-                out["energy_discharged_wh"] = self.pack_energy_wh(o["energy_discharged_wh"])
-                out["time_to_empty_s"] = float(np.min(o["time_to_empty_s"]))
-                out["time_to_full_s"] = float(np.max(o["time_to_full_s"]))
-                out["soh_capacity_min"] = float(np.nanmin(o["soh_capacity"])) if np.isfinite(o["soh_capacity"]).any() else float("nan")
-                out["soh_resistance_max"] = float(np.nanmax(o["soh_resistance"])) if np.isfinite(o["soh_resistance"]).any() else float("nan")
-        return out
+        :attr:`pack_output_keys`; none before the first :meth:`update`): the one pack of all the
+        cells, as floats."""
+        return {key: float(v[0]) for key, v in self._pack_figures(self._one_pack).items()}
 
     def pack_outputs_by_group(self) -> dict[str, np.ndarray]:
         """:meth:`pack_outputs` of each group (:meth:`set_groups`), one ``(G,)`` array per key: column ``g``
-        holds the floats group ``g``'s :meth:`pack_outputs` has alone, bit for bit (its weakest cell,
-        its cells' sums and extremes; the energy left times its own cell count)."""
-        g = self.groups
-        if g is None:
+        holds the floats group ``g``'s :meth:`pack_outputs` has alone, bit for bit."""
+        if self.groups is None:
             raise ValueError("pack_outputs_by_group needs cell groups (set_groups); one pack: pack_outputs")
+        return self._pack_figures(self.groups)
+
+    def _pack_figures(self, g: CellGroups) -> dict[str, np.ndarray]:
+        """The pack figures of each group of ``g``, ``(G,)`` per key: the limits (``(H,)`` of one pack, or
+        ``(H, G)``), the weakest cell's energy left times the group's cells (the weakest cell ends the series
+        string's discharge), its cells' energy sums, the extremes of time and SOH."""
         out: dict[str, np.ndarray] = {}
         for h, d in enumerate(self.config.sop.horizons_s):
             tag = f"{d:g}s"
             for k in ("discharge", "charge"):
                 if self.pack:
-                    out[f"i_{k}_max_{tag}_a"] = self.pack[f"{k}_a"][h]
-                    out[f"p_{k}_max_{tag}_w"] = self.pack[f"{k}_w"][h]
+                    out[f"i_{k}_max_{tag}_a"] = np.reshape(self.pack[f"{k}_a"][h], -1)
+                    out[f"p_{k}_max_{tag}_w"] = np.reshape(self.pack[f"{k}_w"][h], -1)
         o = self.outputs
         if o:
             np_ = self.config.sop.n_parallel
