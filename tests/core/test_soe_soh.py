@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
-from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.core.soc import SocEstimator
 from bms_estimator.core.soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from bms_estimator.core.soh import ResistanceSoh, SohConfig, capacity_soh, r0_at_reference
