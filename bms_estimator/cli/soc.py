@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import numpy as np
 
 from ..analysis import run_soc
 from ..core.identifier import IdentifierConfig
-from ..core.soc import SOC_METHODS, SocConfig
+from ..core.soc import SOC_METHODS, VOLTAGE_LINE_RATIO_MAX, SocConfig
 from ..errors import DataError
 from ..gaps import MAX_GAP_S, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
@@ -170,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
     counted[k0:] = counted_soc(rec.current_a[k0:], dt, args.capacity_ah, s_count0)
     figs = soc_error_figures(run_.soc, soc_ref, t, t[k0])
     base = soc_error_figures(counted, soc_ref, t, t[k0])
+    q_v = run_.capacity_voltage_ah  # the c0 method's voltage-line capacity (NaN: none)
     out = dict(figs)
     out.update(
         counting_stated_capacity=base,
@@ -180,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
         capacity_ah_stated=args.capacity_ah,
         capacity_ah_reference=q_ref,
         capacity_at_bound=run_.capacity_at_bound,
+        capacity_ah_voltage_line=q_v if math.isfinite(q_v) else None,
         reference=why,
         reference_scored=relaxed,
         soc_sigma_end=float(run_.soc_sigma[-1]) if run_.soc_sigma is not None else None,
@@ -190,7 +193,12 @@ def run(args: argparse.Namespace) -> int:
                       "rested_s": float(plan.rest_before_s[k0 + 1:].sum()),
                       "samples_not_fed": int(np.count_nonzero(~plan.fed[k0:]))},
     )
-    if run_.capacity_at_bound:
+    ratio = args.capacity_ah / q_v if math.isfinite(q_v) else None
+    if ratio is not None and not 1 / VOLTAGE_LINE_RATIO_MAX <= ratio <= VOLTAGE_LINE_RATIO_MAX:
+        print(f"bms-estimator soc: warning: {args.data.name}: the voltage says this cell's capacity is about "
+              f"{q_v:.2f} Ah (the c0 method's voltage line), --capacity-ah {args.capacity_ah:g} is {ratio:.1f} x "
+              "that: --capacity-ah is likely wrong for this cell and the SOC is unreliable", file=sys.stderr)
+    elif run_.capacity_at_bound:
         side = "low" if run_.capacity_at_bound < 0 else "high"
         factor = cfg.capacity_bounds[0 if run_.capacity_at_bound < 0 else 1]
         print(f"bms-estimator soc: warning: the capacity estimate ended at its {side} bound, {factor:g} x "
