@@ -13,7 +13,7 @@ from ..analysis import run_soc
 from ..core.identifier import IdentifierConfig
 from ..core.soc import SOC_METHODS, VOLTAGE_LINE_RATIO_MAX, SocConfig
 from ..errors import DataError
-from ..gaps import MAX_GAP_S, recording_rest_plan
+from ..gaps import MAX_GAP_S, held_charge_in_gaps, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
                      load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
@@ -131,6 +131,25 @@ def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray
                comments="", fmt="%.6g")
 
 
+#: a logging gap whose held current counts less than this SOC (a fraction) in the reference is not worth a word
+HELD_SOC_NOTED = 1e-4
+
+
+def _warn_held_charge(args: argparse.Namespace, rec, plan, q_ref: float, k0: int, out: dict) -> None:
+    """The reference counts the current held over a logging gap rested over (gaps.py): say how much, once,
+    naming the largest gap; the JSON's ``logging_gaps.reference_held_ah`` is their sum."""
+    held = [g for g in held_charge_in_gaps(rec, plan) if g[0] >= rec.time_s[k0]]
+    out["logging_gaps"]["reference_held_ah"] = float(sum(g[2] for g in held))
+    noted = [g for g in held if abs(g[2]) >= HELD_SOC_NOTED * q_ref]
+    if not noted:
+        return
+    t0, length, ah = max(noted, key=lambda g: abs(g[2]))
+    print(f"bms-estimator soc: warning: {args.data.name}: the reference cannot know the charge inside "
+          f"{len(noted)} logging gap(s) the estimator rests over (as parked, zero current); it counts the current "
+          f"held from before each, {sum(g[2] for g in noted):+.4f} Ah in all, the largest {ah:+.4f} Ah "
+          f"({100 * ah / q_ref:+.2f} % SOC) over the {length:.0f} s gap at {t0:.0f} s", file=sys.stderr)
+
+
 def _score_text(figs: dict, base: dict, after_start_s: float, capacity_ah: float) -> str:
     """The scores' line; a recording that ends within 30 min (1 h) of the start has no figure from then
     (null in the JSON): it is scored from the start instead (it printed 'SOC RMSE nan %')."""
@@ -205,6 +224,7 @@ def run(args: argparse.Namespace) -> int:
               f"--capacity-ah {args.capacity_ah:g} = {factor * args.capacity_ah:.3f} Ah (the reference says "
               f"{q_ref:.3f} Ah): --capacity-ah is likely wrong for this cell and the SOC is unreliable",
               file=sys.stderr)
+    _warn_held_charge(args, rec, plan, q_ref, k0, out)
     if args.trace is not None:
         _write_trace(args.trace, rec, run_, soc_ref, counted, plan.fed)
     if args.plot:
