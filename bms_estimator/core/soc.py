@@ -293,7 +293,11 @@ class SocEstimator:
         self._i_mean = np.zeros(self.n_cells)
         self._q_mean = np.zeros(self.n_cells)
         self._v_warm = np.zeros(self.n_cells, dtype=np.int64)  # samples averaged since the start or a rest
-        self._a_vline = 1.0 - float(np.exp(-self.dt_s / VOLTAGE_LINE_TAU_S))
+        self._log_keep = -self.dt_s / VOLTAGE_LINE_TAU_S  # log(1 - a) per sample
+        self._v_sum = np.zeros(self.n_cells)  # the period's used samples: sums and counts
+        self._i_sum = np.zeros(self.n_cells)
+        self._n_sum = np.zeros(self.n_cells, dtype=np.int64)
+        self._n_all = 0
         self._vline_every = max(int(round(VOLTAGE_LINE_EVERY_S / self.dt_s)), 1)
         self._vline_warm = int(round(VOLTAGE_LINE_TAU_S / self.dt_s))
         #: the voltage line's capacity [Ah at the tables' reference temperature] (c0 method; NaN until its
@@ -469,7 +473,7 @@ class SocEstimator:
             self._ekf_step(i_prev, i_use, dz, slope_mid, use if read_now is None else use & ~read_now)
         self._compensate(use)
         if self.ekf is None:
-            self._voltage_line(i_use, v, use)
+            self._voltage_line(i_use, v, use, every_use)
         self.samples += 1
 
     def _take_temperature(self, t: np.ndarray) -> None:
@@ -543,6 +547,10 @@ class SocEstimator:
         self.identifier.rest(gap, sel)
         self._c0_count = np.where(sel, 0, self._c0_count)
         self._v_warm = np.where(sel, 0, self._v_warm)  # the voltage line's averages restart
+        self._v_sum = np.where(sel, 0.0, self._v_sum)
+        self._i_sum = np.where(sel, 0.0, self._i_sum)
+        self._n_sum = np.where(sel, 0, self._n_sum + self._n_all)
+        self._n_all = 0
         if gap >= self.config.rest_relaxation_s:
             self._rest_due = self._rest_due | live
             self._any_rest_due = any_cell(self._rest_due)
@@ -725,18 +733,32 @@ class SocEstimator:
             self.identifier.shift_bias(dv, move)
             self._shift_c0_window(dv)
 
-    def _voltage_line(self, i: np.ndarray, v: np.ndarray, use: np.ndarray) -> None:
-        """The c0 method's voltage line (module docstring, "At a bound"): the averages, a point every
-        ``VOLTAGE_LINE_EVERY_S`` for the identified cells averaged ``VOLTAGE_LINE_TAU_S``, its capacity and the flag."""
-        a = self._a_vline
-        first = use & (self._v_warm == 0)  # an average starts at its first sample
-        g = np.where(first, 1.0, np.where(use, a, 0.0))
-        self._v_mean += g * (np.where(use, v, 0.0) - self._v_mean)
-        self._i_mean += g * (i - self._i_mean)
-        self._q_mean += g * (self._charge_ref_ah - self._q_mean)
-        self._v_warm = np.where(use, self._v_warm + 1, self._v_warm)
+    def _voltage_line(self, i: np.ndarray, v: np.ndarray, use: np.ndarray, every_use: bool) -> None:
+        """The c0 method's voltage line (module docstring, "At a bound"): a point every ``VOLTAGE_LINE_EVERY_S``
+        for the identified cells averaged ``VOLTAGE_LINE_TAU_S``, its capacity and the flag.
+
+        The averages take the period's ``n`` used samples at once: their mean ``y_b`` with the gain of ``n``
+        samples, ``y_m += (1 - (1 - a)^n) (y_b - y_m)`` (``a = 1 - exp(-Ts / tau)``; the first period after a
+        start or rest: ``y_m = y_b``), two sums a sample instead of three averages."""
+        if every_use:
+            self._v_sum += v
+            self._i_sum += i
+            self._n_all += 1
+        else:
+            self._v_sum += np.where(use, v, 0.0)
+            self._i_sum += np.where(use, i, 0.0)
+            self._n_sum += use
         if self.samples % self._vline_every:
             return
+        n = self._n_sum + self._n_all
+        seen = n > 0
+        nn = np.maximum(n, 1)
+        g = np.where(seen, np.where(self._v_warm == 0, 1.0, -np.expm1(n * self._log_keep)), 0.0)  # 1 - (1 - a)^n
+        self._v_mean += g * (self._v_sum / nn - self._v_mean)
+        self._i_mean += g * (self._i_sum / nn - self._i_mean)
+        self._q_mean += g * (self._charge_ref_ah - self._q_mean)
+        self._v_warm += n
+        self._v_sum[:], self._i_sum[:], self._n_sum[:], self._n_all = 0.0, 0.0, 0, 0
         sel = (self._v_warm >= self._vline_warm) & self.identifier.identified & np.isfinite(self.soc)
         if not any_cell(sel):
             return
@@ -887,6 +909,7 @@ class SocEstimator:
             raise ValueError(f"state field 'vline' or 'vline_q_range' has the wrong shape for {n} cells")
         self._vq_min, self._vq_max = q_range[:, 0].copy(), q_range[:, 1].copy()
         self._v_warm = np.zeros(n, dtype=np.int64)
+        self._v_sum, self._i_sum, self._n_sum, self._n_all = np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64), 0
         self.capacity_voltage_ah = self._voltage_capacity()
         # derived, not saved: from the capacity (EKF) and the anchor line (c0) just restored
         self.capacity_at_bound = (self._bound_side(self.capacity_ah) if self.ekf is not None
