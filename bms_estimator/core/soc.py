@@ -101,7 +101,7 @@ from .ocv_surface import STATED_CAPACITY_RATIO_MAX
 from .soc_ekf import SocEkf, SocEkfConfig
 
 __all__ = ["SocConfig", "SocEstimator", "CAPACITY_BOUND_TOL", "CAPACITY_SOC_UPDATES", "REST_SOC_READINGS", "SOC_METHODS",
-           "VOLTAGE_LINE_RATIO_MAX"]
+           "VOLTAGE_LINE_RATIO_MAX", "voltage_line_capacity_ah"]
 
 #: How the OCV evidence corrects the counted SOC (``SocConfig.soc_method``).
 SocMethod = Literal["ekf", "c0"]
@@ -774,11 +774,8 @@ class SocEstimator:
         self.capacity_at_bound = self._capacity_side_c0(*self._capacity_line()[1:])
 
     def _voltage_capacity(self) -> np.ndarray:
-        """The voltage line's capacity where its points moved ``VOLTAGE_LINE_MIN_MOVE`` of SOC along it, else NaN."""
-        q_v = self._line(self._vline)[1]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            moved = (self._vq_max - self._vq_min) / q_v
-        return np.where(np.isfinite(q_v) & (q_v > 0) & (moved >= VOLTAGE_LINE_MIN_MOVE), q_v, np.nan)
+        """:func:`voltage_line_capacity_ah` of this estimator's voltage line."""
+        return voltage_line_capacity_ah(self._vline, np.stack([self._vq_min, self._vq_max], axis=1))
 
     def _capacity_line(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The anchor line ``s = s_0 + q / Q`` by least squares over all anchors: ``(slope, Q = 1 / slope,
@@ -787,14 +784,8 @@ class SocEstimator:
 
     def _line(self, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`_capacity_line` of the weighted sums ``sums`` (n, sq, ss, sqq, sqs, sss per cell)."""
-        n, sq, ss, sqq, sqs, sss = sums.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            var_q = sqq / n - (sq / n) ** 2
-            cov = sqs / n - (sq / n) * (ss / n)
-            var_s = sss / n - (ss / n) ** 2
-            slope = cov / var_q
-            resid_var = np.maximum(var_s - slope * cov, 0.0)
-            q_est = 1.0 / slope
+        slope, q_est, resid_var = _line_fit(sums)
+        with np.errstate(invalid="ignore"):
             fits = np.isfinite(q_est) & (q_est > 0) & (np.sqrt(resid_var) < self.config.capacity_max_rmse)
         return slope, q_est, fits
 
@@ -937,3 +928,26 @@ class SocEstimator:
             pending = np.asarray(s.get("ekf.shift_v", np.zeros(n)), dtype=float)
             if pending.shape == (n,) and np.all(np.isfinite(pending)) and any_cell(pending):
                 self.identifier.shift_bias(pending)
+
+
+def _line_fit(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The least-squares line ``s = s_0 + q / Q`` of weighted sums (n, sq, ss, sqq, sqs, sss per cell):
+    ``(slope, Q = 1 / slope, residual variance)``."""
+    n, sq, ss, sqq, sqs, sss = np.asarray(sums, dtype=float).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var_q = sqq / n - (sq / n) ** 2
+        cov = sqs / n - (sq / n) * (ss / n)
+        var_s = sss / n - (ss / n) ** 2
+        slope = cov / var_q
+        return slope, 1.0 / slope, np.maximum(var_s - slope * cov, 0.0)
+
+
+def voltage_line_capacity_ah(vline, q_range) -> np.ndarray:
+    """The c0 method's voltage-line capacity (module docstring, "At a bound") per cell from its sums and charge
+    range (a state's ``vline``, ``vline_q_range``): where its points moved ``VOLTAGE_LINE_MIN_MOVE`` of SOC
+    along it, else NaN (an EKF estimator's state: none)."""
+    q_v = _line_fit(vline)[1]
+    q_range = np.asarray(q_range, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        moved = (q_range[:, 1] - q_range[:, 0]) / q_v
+        return np.where(np.isfinite(q_v) & (q_v > 0) & (moved >= VOLTAGE_LINE_MIN_MOVE), q_v, np.nan)
