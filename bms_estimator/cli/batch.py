@@ -39,7 +39,7 @@ def add_parser(sub) -> None:
                     "capacity_at_bound_final is -1 / +1 where a cell's capacity estimate ended at its low / high "
                     "bound (estimator.core.capacity_bounds x pack.capacity_ah, 0.6 / 1.4 by default): the stated capacity is wrong for that cell and its SOC "
                     "unreliable; the last line counts them. capacity_voltage_ah_final: on the c0 SOC method, the "
-                    "capacity its voltage line reads (nan: none yet, or ekf). Details: bms_estimator/fleet/.",
+                    "capacity its voltage line reads (empty: none yet, or ekf). Details: bms_estimator/fleet/.",
     )
     p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB",
                    help="log files, globs (quote them; ** recurses) or directories (their logs, recursively)")

@@ -205,7 +205,8 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
         out["capacity_at_bound_final"] = [int(x) if np.isfinite(x) else None for x in est.cells["capacity_at_bound"][-1]]
     if "vline" in est.state and "vline_q_range" in est.state:  # the c0 method's voltage-line capacity (NaN: none)
         q_v = voltage_line_capacity_ah(est.state["vline"], est.state["vline_q_range"])
-        out["capacity_voltage_ah_final"] = q_v.tolist()
+        if np.isfinite(q_v).any():  # none (ekf, or not yet): no value, an empty column
+            out["capacity_voltage_ah_final"] = q_v.tolist()
     out["r0_ohm_final"] = est.cells["r0_ohm"][-1].tolist()
     with warnings.catch_warnings():  # an all-NaN column (a cell never valid) is NaN, not a warning
         warnings.simplefilter("ignore", RuntimeWarning)
