@@ -104,6 +104,8 @@ class SocRun:
     # at the end, -1 / +1: the capacity estimate at its low / high bound (the stated capacity is wrong for the
     # cell: SocEstimator.capacity_at_bound), 0 inside
     capacity_at_bound: int = 0
+    # at the end, the c0 method's voltage-line capacity (SocEstimator.capacity_voltage_ah; NaN: none yet, or ekf)
+    capacity_voltage_ah: float = float("nan")
 
 
 #: coulomb counting from a known start (the data's drive cycles start full), read at mid-sample
@@ -273,7 +275,7 @@ def run_soc(
         cap[k] = est.capacity_ah[0]
         _record(traj, k, est.params)
     return SocRun(np.arange(n) * dt_s, soc, cap, traj, int(est.corrections[0]), int(est.identifier.rejections[0]),
-                  sigma, int(est.capacity_at_bound[0]))
+                  sigma, int(est.capacity_at_bound[0]), float(est.capacity_voltage_ah[0]))
 
 
 def _ecm_params(p: dict[str, np.ndarray]) -> EcmParams:

@@ -69,6 +69,14 @@ under which the coulomb count is ``Q = sum_k I[k] (t_{k+1} - t_k)``.  With bins
    files have 1.2 s gaps at pulse edges) would invent charge that was never
    logged.  Hence ``sum_j I_j (b_j - a_j) == sum_k I[k] (t_{k+1} - t_k)``
    holds exactly for every file, gaps included.
+5. A file logged at the grid's own step (median step ``Ts``) whose time axis has
+   a hole (a step over ``1.5 Ts``) goes through the same bins: each logged sample
+   is its own bin, and the hole becomes unlogged bins, as the same drive logged
+   at 0.1 s gives.  Before, its hole was one step of the time axis: the coulomb
+   count and the reference (``sum I Ts`` per sample) skipped the hole's held
+   charge, a short hole (up to the sampler's 5 s, fed as stale samples) was not
+   fed at all, and ``soc --trace`` had no rows there, where the 0.1 s file's had.
+   A file without holes, or coarser than the grid, is read as logged.
 """
 
 from __future__ import annotations
@@ -364,7 +372,11 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     temperature_c = data[:, 3] if data.shape[1] > 3 else None
 
     native_dt = float(np.median(np.diff(time_s)))
-    if resample_s is not None and native_dt < resample_s:
+    # a file logged at the grid's own step with holes in its time axis is put on the grid too ("Resampling",
+    # 5.): its holes become the unlogged bins a finer file's would
+    on_grid_with_holes = (resample_s is not None and abs(native_dt - resample_s) <= 1e-6 * resample_s
+                          and float(np.max(np.diff(time_s))) > 1.5 * resample_s)
+    if resample_s is not None and (native_dt < resample_s or on_grid_with_holes):
         _check_resampled_size(path, text, header_line, time_s, float(resample_s))
         cols = [current_a, voltage_v] + ([temperature_c] if temperature_c is not None else [])
         t_new, values, empty = _resample_bins(

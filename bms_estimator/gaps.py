@@ -23,6 +23,14 @@ from one :class:`RestPlan`:
 
 ``rest_over_gaps=False`` feeds every sample and rests nowhere (the gaps as if
 contiguous samples, as before the offline paths rested).
+
+The same drive logged at 0.1 s and at 1 s gives one plan: ``load_recording`` puts
+a 1 s file with holes in its time axis on the grid too (its holes become unlogged
+bins), so both are fed, rested and traced alike.  What a file cannot say is the
+charge inside a gap: the recording holds the last logged current there (its
+coulomb count, and the reference counted from it), the estimator rests (parked,
+zero current).  :func:`held_charge_in_gaps` gives that charge per gap rested
+over, for the commands to say so.
 """
 
 from __future__ import annotations
@@ -31,7 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MAX_GAP_S", "RestPlan", "gap_before_s", "logging_gaps", "recording_rest_plan", "rest_plan"]
+__all__ = ["MAX_GAP_S", "RestPlan", "gap_before_s", "held_charge_in_gaps", "logging_gaps", "recording_rest_plan",
+           "rest_plan"]
 
 #: the default ``max_gap_s``: a stretch without frames up to this long is bridged with stale samples,
 #: a longer one is a time jump (the estimator rests over it); the service's is max(this, staleness_s,
@@ -114,3 +123,13 @@ def rest_plan(n: int, dt_s: float, *, unlogged=None, time_s=None, rest_over_gaps
 def recording_rest_plan(rec, rest_over_gaps: bool = True) -> RestPlan:
     """:func:`rest_plan` of a :class:`~bms_estimator.data.CellRecording` (its ``filled`` bins, times, step)."""
     return rest_plan(len(rec), rec.dt_s, unlogged=rec.filled, time_s=rec.time_s, rest_over_gaps=rest_over_gaps)
+
+
+def held_charge_in_gaps(rec, plan: RestPlan) -> list[tuple[float, float, float]]:
+    """Per run of samples ``plan`` does not feed (the gaps rested over): ``(start time s, length s, Ah)``,
+    the charge the recording's held current counts there (positive = charge), which the estimator,
+    resting, does not: the file does not say what flowed."""
+    d = np.diff(np.r_[0, (~plan.fed).astype(np.int8), 0])
+    dt = rec.dt_s
+    return [(float(rec.time_s[a]), (b - a) * dt, float(np.sum(rec.current_a[a:b])) * dt / 3600.0)
+            for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]

@@ -562,3 +562,44 @@ def test_a_tuning_option_out_of_bounds_is_named_as_the_option(capsys):
                                 ("--error-on-mv", "-5", "--error-on-mv must be a finite number >= 0, got -5")):
         assert main(["soc", drive, *cell, option, value]) == 2
         assert said in capsys.readouterr().err
+
+
+def test_soc_c0_warns_when_the_voltage_says_the_stated_capacity_is_5x_the_cells(tmp_path, capsys):
+    """--soc-method c0 with an OCV table without capacity_ah (nothing to compare --capacity-ah with up front) and
+    --capacity-ah 5x the LG HG2 cell's (shipped udds sample, Kollmeyer et al., CC BY 4.0): the c0 voltage line reads
+    about 2.6 Ah, and the run says so once on stderr (the file, the figure) and in its JSON; stated right it does not."""
+    table = tmp_path / "no_capacity.csv"
+    ocv_csv = Path(str(ocv_table("lg-hg2")))
+    lines = ocv_csv.read_text().splitlines()
+    cols = lines[0].split(",")
+    keep = [k for k, c in enumerate(cols) if c != "capacity_ah"]
+    table.write_text("\n".join(",".join(r.split(",")[k] for k in keep) for r in lines) + "\n")
+    data = str(drive_cycle("lg-hg2", "udds"))
+    wrong, right = tmp_path / "wrong.json", tmp_path / "right.json"
+    assert main(["soc", data, "--ocv", str(table), "--capacity-ah", "14", "--soc-method", "c0",
+                 "--json", str(wrong)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("warning:") == 1, err
+    assert "the voltage says this cell's capacity is about 2." in err and "--capacity-ah 14 is" in err, err
+    assert Path(data).name in err
+    s = json.loads(wrong.read_text())
+    assert s["capacity_at_bound"] == -1 and 2.3 < s["capacity_ah_voltage_line"] < 3.0
+    assert main(["soc", data, "--ocv", str(table), "--capacity-ah", "2.8", "--soc-method", "c0",
+                 "--json", str(right)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    s = json.loads(right.read_text())
+    assert s["capacity_at_bound"] == 0 and 2.3 < s["capacity_ah_voltage_line"] < 3.0
+
+
+def test_ocv_tables_of_two_cells_are_a_usage_error(tmp_path, capsys):
+    """--ocv given the LG HG2 table and the Panasonic 18650PF one labelled 20 degC (shipped samples, Kollmeyer,
+    CC BY 4.0): the surface would blend two cells; exit 2 with one line naming both files, their temperatures
+    and the figure."""
+    pan = OcvCurve.from_csv(PAN_OCV)
+    pan20 = OcvCurve(pan.soc, pan.ocv_v, pan.hysteresis_v, temperature_c=20.0).to_csv(tmp_path / "pan20.csv")
+    data = str(drive_cycle("lg-hg2", "udds"))
+    assert main(["soc", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(pan20), "--capacity-ah", "2.8"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    assert err.startswith("bms-estimator soc: error: --ocv: ") and "pan20.csv (20 degC) and " in err, err
+    assert "lg-hg2_25degC_ocv.csv (23.871 degC) differ by 4" in err and "not tables of one cell" in err, err

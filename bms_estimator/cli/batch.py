@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import sys
 import time
 from pathlib import Path
@@ -37,7 +38,8 @@ def add_parser(sub) -> None:
                     "empty, foreign-DBC or rewinding log is reported and skipped. The summary's "
                     "capacity_at_bound_final is -1 / +1 where a cell's capacity estimate ended at its low / high "
                     "bound (estimator.core.capacity_bounds x pack.capacity_ah, 0.6 / 1.4 by default): the stated capacity is wrong for that cell and its SOC "
-                    "unreliable; the last line counts them. Details: bms_estimator/fleet/.",
+                    "unreliable; the last line counts them. capacity_voltage_ah_final: on the c0 SOC method, the "
+                    "capacity its voltage line reads (empty: none yet, or ekf). Details: bms_estimator/fleet/.",
     )
     p.add_argument("logs", nargs="+", metavar="LOG_OR_GLOB",
                    help="log files, globs (quote them; ** recurses) or directories (their logs, recursively)")
@@ -153,9 +155,11 @@ def run(args: argparse.Namespace) -> int:
               f"{no_data[0]['drive']}: {no_data[0]['error']}")
     at_bound = [r for r in rows if r["status"] == "ok" and r.get("capacity_at_bound_final")]
     if at_bound:
+        q_v = at_bound[0].get("capacity_voltage_ah_final")  # the c0 method's voltage line: what the voltage says
+        says = f", its voltage saying {q_v:.3f} Ah" if q_v is not None and math.isfinite(q_v) else ""
         print(f"  warning: {len(at_bound)} cell-drive(s) ended with the capacity estimate at a bound "
               f"(capacity_at_bound_final in summary.csv), e.g. {at_bound[0]['drive']} cell {at_bound[0]['cell']} at "
-              f"{at_bound[0]['capacity_ah_final']:.3f} Ah: the stated pack.capacity_ah is likely wrong for these "
+              f"{at_bound[0]['capacity_ah_final']:.3f} Ah{says}: the stated pack.capacity_ah is likely wrong for these "
               "cells and their SOC unreliable")
     if not ok:
         raise DataError("no drive could be estimated:", [d.error for d in failed] or ["no input"])

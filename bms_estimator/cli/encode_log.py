@@ -60,8 +60,10 @@ def run(args: argparse.Namespace) -> int:
                        TimeRemainingColumn(), console=Console(stderr=True), transient=True)
         task = bar.add_task(args.output.name, total=None)
 
-        def progress(done: int, total: int) -> None:
+        def advance(done: int, total: int) -> None:
             bar.update(task, completed=done, total=total)
+
+        progress = advance
 
         bar.start()
     try:

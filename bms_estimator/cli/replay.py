@@ -55,8 +55,10 @@ def run(args: argparse.Namespace) -> int:
         )
         task = bar.add_task(f"replay {args.log.name} x{args.speed}", total=total, frames=0)
 
-        def progress(sent: int, log_s: float) -> None:
+        def advance(sent: int, log_s: float) -> None:
             bar.update(task, completed=log_s, frames=sent)
+
+        progress = advance
 
         bar.start()
     try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -10,9 +11,9 @@ import numpy as np
 
 from ..analysis import run_soc
 from ..core.identifier import IdentifierConfig
-from ..core.soc import SOC_METHODS, SocConfig
+from ..core.soc import SOC_METHODS, VOLTAGE_LINE_RATIO_MAX, SocConfig
 from ..errors import DataError
-from ..gaps import MAX_GAP_S, recording_rest_plan
+from ..gaps import MAX_GAP_S, held_charge_in_gaps, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
                      load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
@@ -130,6 +131,25 @@ def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray
                comments="", fmt="%.6g")
 
 
+#: a logging gap whose held current counts less than this SOC (a fraction) in the reference is not worth a word
+HELD_SOC_NOTED = 1e-4
+
+
+def _warn_held_charge(args: argparse.Namespace, rec, plan, q_ref: float, k0: int, out: dict) -> None:
+    """The reference counts the current held over a logging gap rested over (gaps.py): say how much, once,
+    naming the largest gap; the JSON's ``logging_gaps.reference_held_ah`` is their sum."""
+    held = [g for g in held_charge_in_gaps(rec, plan) if g[0] >= rec.time_s[k0]]
+    out["logging_gaps"]["reference_held_ah"] = float(sum(g[2] for g in held))
+    noted = [g for g in held if abs(g[2]) >= HELD_SOC_NOTED * q_ref]
+    if not noted:
+        return
+    t0, length, ah = max(noted, key=lambda g: abs(g[2]))
+    print(f"bms-estimator soc: warning: {args.data.name}: the reference cannot know the charge inside "
+          f"{len(noted)} logging gap(s) the estimator rests over (as parked, zero current); it counts the current "
+          f"held from before each, {sum(g[2] for g in noted):+.4f} Ah in all, the largest {ah:+.4f} Ah "
+          f"({100 * ah / q_ref:+.2f} % SOC) over the {length:.0f} s gap at {t0:.0f} s", file=sys.stderr)
+
+
 def _score_text(figs: dict, base: dict, after_start_s: float, capacity_ah: float) -> str:
     """The scores' line; a recording that ends within 30 min (1 h) of the start has no figure from then
     (null in the JSON): it is scored from the start instead (it printed 'SOC RMSE nan %')."""
@@ -170,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
     counted[k0:] = counted_soc(rec.current_a[k0:], dt, args.capacity_ah, s_count0)
     figs = soc_error_figures(run_.soc, soc_ref, t, t[k0])
     base = soc_error_figures(counted, soc_ref, t, t[k0])
+    q_v = run_.capacity_voltage_ah  # the c0 method's voltage-line capacity (NaN: none)
     out = dict(figs)
     out.update(
         counting_stated_capacity=base,
@@ -180,6 +201,7 @@ def run(args: argparse.Namespace) -> int:
         capacity_ah_stated=args.capacity_ah,
         capacity_ah_reference=q_ref,
         capacity_at_bound=run_.capacity_at_bound,
+        capacity_ah_voltage_line=q_v if math.isfinite(q_v) else None,
         reference=why,
         reference_scored=relaxed,
         soc_sigma_end=float(run_.soc_sigma[-1]) if run_.soc_sigma is not None else None,
@@ -190,13 +212,19 @@ def run(args: argparse.Namespace) -> int:
                       "rested_s": float(plan.rest_before_s[k0 + 1:].sum()),
                       "samples_not_fed": int(np.count_nonzero(~plan.fed[k0:]))},
     )
-    if run_.capacity_at_bound:
+    ratio = args.capacity_ah / q_v if math.isfinite(q_v) else None
+    if ratio is not None and not 1 / VOLTAGE_LINE_RATIO_MAX <= ratio <= VOLTAGE_LINE_RATIO_MAX:
+        print(f"bms-estimator soc: warning: {args.data.name}: the voltage says this cell's capacity is about "
+              f"{q_v:.2f} Ah (the c0 method's voltage line), --capacity-ah {args.capacity_ah:g} is {ratio:.1f} x "
+              "that: --capacity-ah is likely wrong for this cell and the SOC is unreliable", file=sys.stderr)
+    elif run_.capacity_at_bound:
         side = "low" if run_.capacity_at_bound < 0 else "high"
         factor = cfg.capacity_bounds[0 if run_.capacity_at_bound < 0 else 1]
         print(f"bms-estimator soc: warning: the capacity estimate ended at its {side} bound, {factor:g} x "
               f"--capacity-ah {args.capacity_ah:g} = {factor * args.capacity_ah:.3f} Ah (the reference says "
               f"{q_ref:.3f} Ah): --capacity-ah is likely wrong for this cell and the SOC is unreliable",
               file=sys.stderr)
+    _warn_held_charge(args, rec, plan, q_ref, k0, out)
     if args.trace is not None:
         _write_trace(args.trace, rec, run_, soc_ref, counted, plan.fed)
     if args.plot:

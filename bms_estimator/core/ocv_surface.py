@@ -72,6 +72,33 @@ measured at one temperature ``T_j`` (``T_0 < T_1 < ... < T_{m-1}``).
    The temperature location (``j``, ``w``) of an array is kept for the next
    call with equal temperatures, as the estimator's calls in one step are;
    with one table every call is the OcvCurve's own.
+
+9. One cell.  The blend is only meaningful between tables of one cell.  Every
+   pair of neighbouring tables (the pairs blended, ``T_j`` and ``T_{j+1}``, ``dT``
+   apart) is compared at equal SOC over 10-90 % (81 points, mean curves)::
+
+       d = RMS_s (OCV_j(s) - OCV_{j+1}(s))      refused (:class:`MixedCellsError`) when
+       d > min(ONE_CELL_RMS_V + ONE_CELL_RMS_PER_K_V dT, ONE_CELL_RMS_MAX_V)
+         = min(15 mV + 1 mV/K x dT, 45 mV)
+
+   Measured on every table the shared data gives (LG HG2 C/20 at 23.9, -0.5 and
+   -10.0 degC; Panasonic 18650PF C/20 at 25.2 and HPPC rests at 25.8, 10.8, 0.6
+   and -9.7 degC; each built with ``bms-estimator ocv``), over all 13
+   pairs of one cell (any two of them can be neighbours in a set): d = 3.7-40.9 mV,
+   0.39-1.49 mV/K for the pairs >= 9.5 K apart (9.1 mV for the Panasonic C/20 and
+   HPPC tables 0.6 K apart: the two methods, 15 mV/K), at most 0.91 x the limit
+   (Panasonic 25.8 / -9.7 degC HPPC, 40.9 mV against 45; 0.85 x below 30 K apart).
+   The 15 pairs of the two cells: d = 46.3-76.3 mV whatever dT (0.3-35.8 K),
+   1.79-3.6 x the limit up to 21 K apart, at least 1.27 x up to 26 K and 1.14 x
+   beyond (LG 23.9 degC against Panasonic -9.7 degC, 51.1 mV against 45).  The two
+   meet near 35 K apart (one cell's tables differ more the further apart they are,
+   two cells' do not): the 45 mV cap sits between them there.  The C/20 capacity is no criterion:
+   one cell's tables differ by 1.3-26 % (0.14-0.92 %/K; 10 %/K for the C/20 and
+   HPPC tables 0.6 K apart), two cells' by 1.8-17 %.  Nor is equal charge instead
+   of equal SOC (the LG tables agree to 5-14 mV there, but the Panasonic C/20
+   against HPPC tables differ by 36-64 mV).  A refusal, not a warning: a blend of
+   two cells is a wrong OCV at every temperature between them, and no legitimate
+   set in the data comes within 9 % of the limit (15 % below 30 K apart).
 """
 
 from __future__ import annotations
@@ -84,8 +111,37 @@ import numpy as np
 
 from .ocv import GRID_POINTS, MIN_SLOPE_V, OcvCurve, _as_float_array, _strictly_increasing
 
-__all__ = ["OcvSurface", "OcvAtTemperatures", "REFERENCE_TEMPERATURE_C", "STATED_CAPACITY_RATIO_MAX",
-           "stated_capacity_ratio", "table_capacities_ah"]
+__all__ = ["OcvSurface", "OcvAtTemperatures", "MixedCellsError", "ONE_CELL_RMS_MAX_V", "ONE_CELL_RMS_PER_K_V",
+           "ONE_CELL_RMS_V",
+           "REFERENCE_TEMPERATURE_C", "STATED_CAPACITY_RATIO_MAX", "one_cell_mismatch", "stated_capacity_ratio",
+           "table_capacities_ah"]
+
+#: Neighbouring tables of one cell differ by at most this RMS OCV at equal SOC over 10-90 % [V], plus
+#: ``ONE_CELL_RMS_PER_K_V`` per kelvin between them (module docstring, item 9: the measured margins)
+ONE_CELL_RMS_V = 0.015
+ONE_CELL_RMS_PER_K_V = 0.001
+ONE_CELL_RMS_MAX_V = 0.045  # and never more than this
+_ONE_CELL_SOC = np.linspace(0.1, 0.9, 81)
+
+
+class MixedCellsError(ValueError):
+    """Two neighbouring OCV tables differ more than one cell's tables do (module docstring, item 9): a
+    usage error (the tables given), not a malformed file."""
+
+
+def one_cell_mismatch(curves: Sequence[OcvCurve], temperatures_c: Sequence[float]) -> tuple[int, float, float] | None:
+    """The first neighbouring pair (index ``k`` of the lower of ``k``, ``k + 1`` in the order given, which
+    must be by temperature) whose RMS OCV difference at equal SOC over 10-90 % exceeds
+    ``min(ONE_CELL_RMS_V + ONE_CELL_RMS_PER_K_V dT, ONE_CELL_RMS_MAX_V)``: ``(k, rms_v, limit_v)``; None when
+    every pair is within."""
+    for k in range(len(curves) - 1):
+        d = np.asarray(curves[k].ocv(_ONE_CELL_SOC)) - np.asarray(curves[k + 1].ocv(_ONE_CELL_SOC))
+        rms = float(np.sqrt(np.mean(d * d)))
+        limit = min(ONE_CELL_RMS_V + ONE_CELL_RMS_PER_K_V * abs(temperatures_c[k + 1] - temperatures_c[k]),
+                    ONE_CELL_RMS_MAX_V)
+        if rms > limit:
+            return k, rms, limit
+    return None
 
 #: A stated capacity more than this many times away from the OCV tables' C/20 capacity is not the
 #: capacity of the cell the tables were measured on (a pack's or a module's, mA h, another cell's table)
@@ -242,10 +298,15 @@ class OcvSurface:
             several; ignored (may be unknown) with one.
         default_temperature_c: the temperature read when a call gives ``None``
             or NaN.
+        names: a label per table (its file), for the messages.
+        check_one_cell: refuse neighbouring tables that are not of one cell
+            (module docstring, item 9); off only for tables derived from a
+            checked surface.
 
     Raises:
         ValueError: no table, a table without a temperature when there are
-            several, two tables at the same temperature, non-finite values.
+            several, two tables at the same temperature, non-finite values;
+            :class:`MixedCellsError` for neighbouring tables of two cells.
     """
 
     def __init__(
@@ -254,6 +315,8 @@ class OcvSurface:
         temperatures_c: Sequence[float] | None = None,
         *,
         default_temperature_c: float = REFERENCE_TEMPERATURE_C,
+        names: Sequence[str] | None = None,
+        check_one_cell: bool = True,
     ) -> None:
         curves = list(curves)
         if not curves:
@@ -285,6 +348,18 @@ class OcvSurface:
                 raise ValueError(
                     f"two OCV tables at the same temperature {temps[same[0]]:g} degC; give one table per "
                     "temperature (merge or drop one)"
+                )
+            bad = one_cell_mismatch(curves, temps) if check_one_cell else None
+            if bad is not None:
+                k, rms, limit = bad
+                label = [f"{names[j]} ({temps[i]:g} degC)" if names is not None else f"the table at {temps[i]:g} degC"
+                         for i, j in ((k, order[k]), (k + 1, order[k + 1]))]
+                raise MixedCellsError(
+                    f"{label[0]} and {label[1]} differ by {rms * 1e3:.0f} mV RMS at equal SOC (10-90 %), more "
+                    f"than one cell's tables {temps[k + 1] - temps[k]:.1f} K apart do ({limit * 1e3:.0f} mV: "
+                    f"{ONE_CELL_RMS_V * 1e3:g} mV + {ONE_CELL_RMS_PER_K_V * 1e3:g} mV/K, at most "
+                    f"{ONE_CELL_RMS_MAX_V * 1e3:g} mV): they are not tables of one cell; give the OCV tables of the "
+                    "cell being estimated only"
                 )
         self.curves: tuple[OcvCurve, ...] = tuple(curves)
         t_arr = np.array([math.nan if t is None else t for t in temps], dtype=np.float64)
@@ -354,7 +429,9 @@ class OcvSurface:
         Raises:
             ValueError: naming the file: unreadable table, no ``temperature_c``
                 column while there are several tables, two files at the same
-                temperature.
+                temperature; :class:`MixedCellsError` (a ValueError) naming both
+                files, their temperatures and the figure: neighbouring tables
+                that are not of one cell (module docstring, item 9).
         """
         if isinstance(paths, (str, Path)):
             paths = [paths]
@@ -381,7 +458,7 @@ class OcvSurface:
                     raise ValueError(f"{seen[t]} and {p} are both at {t:g} degC; give one OCV table per temperature")
                 seen[t] = p
         return cls(curves, temps if len(paths) > 1 or temperatures_c is not None else None,
-                   default_temperature_c=default_temperature_c)
+                   default_temperature_c=default_temperature_c, names=[str(p) for p in paths])
 
     # ------------------------------------------------------------- properties
     @property
@@ -400,7 +477,7 @@ class OcvSurface:
         if all(a is b for a, b in zip(curves, self.curves)):
             return self
         return OcvSurface(curves, None if self._single is not None else list(self._temps),
-                          default_temperature_c=self.default_temperature_c)
+                          default_temperature_c=self.default_temperature_c, check_one_cell=False)  # checked once
 
     def __repr__(self) -> str:
         temps = ", ".join("?" if math.isnan(t) else f"{t:g}" for t in self._temps)

@@ -50,8 +50,26 @@ which a cell 5x smaller than stated can never span).  For both, a capacity in
 use outside the bounds from the start (the OCV table's capacity, far from the
 stated one) counts as at that bound.  Limitation, measured on a synthetic 3 Ah
 cell stated as 15 Ah: the c0 method's anchors follow its count and the line
-stays near 13 Ah, so only the EKF sees that one (its capacity reaches 9 Ah,
-the low bound, after 2 h of a 3 h drive).
+stays near 13 Ah, so its anchor line does not see that one (the EKF's capacity
+reaches 9 Ah, the low bound, after 2 h of a 3 h drive).  The c0 method's
+second signal does (its **voltage line**): every ``VOLTAGE_LINE_EVERY_S`` the
+OCV the voltage implies, averaged over ``VOLTAGE_LINE_TAU_S`` with the current and
+the counted charge (``v_m``, ``i_m``, ``q_m``: exponential averages, restarted by a
+rest), ``s_v = OCV^-1(v_m - (R0 + R1 + R2) i_m)`` (the identified resistances,
+not c0: with a wrong capacity the identifier folds the drift into c0 and the
+resistances), is a point ``(q_m, s_v)`` of a second least-squares line whose
+capacity ``capacity_voltage_ah`` is reported once the SOC the voltage moved
+along it, ``(q_max - q_min) / Q_v``, reaches ``VOLTAGE_LINE_MIN_MOVE``.  That line
+needs no stable c0 and no fit bound; it flags (``capacity_at_bound``) where the
+stated capacity is more than ``STATED_CAPACITY_RATIO_MAX`` (2) times ``Q_v`` or
+less than half of it, a wider rule than the bounds (0.6 / 1.4) because its
+``Q_v`` reads the model's error under load as capacity too.  Measured with the
+tables' capacities removed (counted with the stated one), ``Q_v / stated``: with
+the cell's own capacity stated 0.70-0.97 (LG HG2 udds at 25, 0, -10 degC, 0 degC
+us06, 25 degC mixed1, -10 degC la92; Panasonic 18650PF 25 degC us06 and la92;
+lowest LG 0 degC udds), never flagged, stated 5x
+the cell's 0.19-0.29 (flagged 2630-8990 s into the drives); synthetic 3 Ah cell
+above: 2.92 Ah stated right, 2.71 Ah stated 15 Ah (flagged at 3710 s).
 
 Hysteresis.  By default the OCV the cell shows is the mean curve plus
 ``h * H(soc)``, with ``H`` the OCV table's half charge-discharge gap and ``h``
@@ -79,9 +97,11 @@ from .cells import all_cells, any_cell, cell_vector, clip, rest_arguments
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
+from .ocv_surface import STATED_CAPACITY_RATIO_MAX
 from .soc_ekf import SocEkf, SocEkfConfig
 
-__all__ = ["SocConfig", "SocEstimator", "CAPACITY_BOUND_TOL", "CAPACITY_SOC_UPDATES", "REST_SOC_READINGS", "SOC_METHODS"]
+__all__ = ["SocConfig", "SocEstimator", "CAPACITY_BOUND_TOL", "CAPACITY_SOC_UPDATES", "REST_SOC_READINGS", "SOC_METHODS",
+           "VOLTAGE_LINE_RATIO_MAX", "voltage_line_capacity_ah"]
 
 #: How the OCV evidence corrects the counted SOC (``SocConfig.soc_method``).
 SocMethod = Literal["ekf", "c0"]
@@ -94,6 +114,14 @@ CAPACITY_SOC_UPDATES = get_args(CapacitySocUpdate)
 #: A capacity within this fraction of a ``capacity_bounds`` bound is at it (``SocEstimator.capacity_at_bound``):
 #: the EKF's step takes in at most 1 % a sample, so a capacity held at a bound stays within it.
 CAPACITY_BOUND_TOL = 0.01
+
+#: The c0 method's voltage line (module docstring, "At a bound"): averaging time constant [s], the period of
+#: its points [s], the SOC its points must move along it before its capacity counts, and the ratio of stated to
+#: voltage-line capacity beyond which the stated capacity is flagged (the tables' check's, core.ocv_surface)
+VOLTAGE_LINE_TAU_S = 600.0
+VOLTAGE_LINE_EVERY_S = 10.0
+VOLTAGE_LINE_MIN_MOVE = 0.3
+VOLTAGE_LINE_RATIO_MAX = STATED_CAPACITY_RATIO_MAX
 
 #: How a relaxed cell's voltage after a long rest meets the count (``SocConfig.rest_soc_reading``).
 RestSocReading = Literal["ocv", "fused"]
@@ -257,6 +285,24 @@ class SocEstimator:
         self._cap = np.zeros((self.n_cells, 6))  # n, sq, ss, sqq, sqs, sss
         self._q_min = np.full(self.n_cells, np.inf)
         self._q_max = np.full(self.n_cells, -np.inf)
+        # the c0 method's voltage line: its sums as _cap's, its charge span, the averages behind its points
+        self._vline = np.zeros((self.n_cells, 6))
+        self._vq_min = np.full(self.n_cells, np.inf)
+        self._vq_max = np.full(self.n_cells, -np.inf)
+        self._v_mean = np.zeros(self.n_cells)
+        self._i_mean = np.zeros(self.n_cells)
+        self._q_mean = np.zeros(self.n_cells)
+        self._v_warm = np.zeros(self.n_cells, dtype=np.int64)  # samples averaged since the start or a rest
+        self._log_keep = -self.dt_s / VOLTAGE_LINE_TAU_S  # log(1 - a) per sample
+        self._v_sum = np.zeros(self.n_cells)  # the period's used samples: sums and counts
+        self._i_sum = np.zeros(self.n_cells)
+        self._n_sum = np.zeros(self.n_cells, dtype=np.int64)
+        self._n_all = 0
+        self._vline_every = max(int(round(VOLTAGE_LINE_EVERY_S / self.dt_s)), 1)
+        self._vline_warm = int(round(VOLTAGE_LINE_TAU_S / self.dt_s))
+        #: the voltage line's capacity [Ah at the tables' reference temperature] (c0 method; NaN until its
+        #: points moved VOLTAGE_LINE_MIN_MOVE of SOC along it)
+        self.capacity_voltage_ah = np.full(self.n_cells, np.nan)
         self.samples = 0
         # hysteresis state in [-1, 1]: -1 on the discharge branch, +1 on the charge branch.
         # The state recursion is core.hysteresis's (unit amplitude); the amplitude here is the
@@ -426,6 +472,8 @@ class SocEstimator:
             # (no cell read now: the mask is use's, which holds have_soc where some cell has none)
             self._ekf_step(i_prev, i_use, dz, slope_mid, use if read_now is None else use & ~read_now)
         self._compensate(use)
+        if self.ekf is None:
+            self._voltage_line(i_use, v, use, every_use)
         self.samples += 1
 
     def _take_temperature(self, t: np.ndarray) -> None:
@@ -498,6 +546,11 @@ class SocEstimator:
         self._i_prev = np.where(sel, 0.0, self._i_prev)
         self.identifier.rest(gap, sel)
         self._c0_count = np.where(sel, 0, self._c0_count)
+        self._v_warm = np.where(sel, 0, self._v_warm)  # the voltage line's averages restart
+        self._v_sum = np.where(sel, 0.0, self._v_sum)
+        self._i_sum = np.where(sel, 0.0, self._i_sum)
+        self._n_sum = np.where(sel, 0, self._n_sum + self._n_all)
+        self._n_all = 0
         if gap >= self.config.rest_relaxation_s:
             self._rest_due = self._rest_due | live
             self._any_rest_due = any_cell(self._rest_due)
@@ -680,17 +733,59 @@ class SocEstimator:
             self.identifier.shift_bias(dv, move)
             self._shift_c0_window(dv)
 
+    def _voltage_line(self, i: np.ndarray, v: np.ndarray, use: np.ndarray, every_use: bool) -> None:
+        """The c0 method's voltage line (module docstring, "At a bound"): a point every ``VOLTAGE_LINE_EVERY_S``
+        for the identified cells averaged ``VOLTAGE_LINE_TAU_S``, its capacity and the flag.
+
+        The averages take the period's ``n`` used samples at once: their mean ``y_b`` with the gain of ``n``
+        samples, ``y_m += (1 - (1 - a)^n) (y_b - y_m)`` (``a = 1 - exp(-Ts / tau)``; the first period after a
+        start or rest: ``y_m = y_b``), two sums a sample instead of three averages."""
+        if every_use:
+            self._v_sum += v
+            self._i_sum += i
+            self._n_all += 1
+        else:
+            self._v_sum += np.where(use, v, 0.0)
+            self._i_sum += np.where(use, i, 0.0)
+            self._n_sum += use
+        if self.samples % self._vline_every:
+            return
+        n = self._n_sum + self._n_all
+        seen = n > 0
+        nn = np.maximum(n, 1)
+        g = np.where(seen, np.where(self._v_warm == 0, 1.0, -np.expm1(n * self._log_keep)), 0.0)  # 1 - (1 - a)^n
+        self._v_mean += g * (self._v_sum / nn - self._v_mean)
+        self._i_mean += g * (self._i_sum / nn - self._i_mean)
+        self._q_mean += g * (self._charge_ref_ah - self._q_mean)
+        self._v_warm += n
+        self._v_sum[:], self._i_sum[:], self._n_sum[:], self._n_all = 0.0, 0.0, 0, 0
+        sel = (self._v_warm >= self._vline_warm) & self.identifier.identified & np.isfinite(self.soc)
+        if not any_cell(sel):
+            return
+        p = self.identifier.params
+        s = self._soc_at(self._v_mean - (p.r0_ohm + p.r1_ohm + p.r2_ohm) * self._i_mean)
+        sel &= np.isfinite(s)
+        q = self._q_mean
+        add = np.stack([np.ones_like(q), q, s, q * q, q * s, s * s], axis=1)
+        self._vline += np.where(sel[:, None], add, 0.0)
+        self._vq_min = np.where(sel, np.minimum(self._vq_min, q), self._vq_min)
+        self._vq_max = np.where(sel, np.maximum(self._vq_max, q), self._vq_max)
+        self.capacity_voltage_ah = self._voltage_capacity()
+        self.capacity_at_bound = self._capacity_side_c0(*self._capacity_line()[1:])
+
+    def _voltage_capacity(self) -> np.ndarray:
+        """:func:`voltage_line_capacity_ah` of this estimator's voltage line."""
+        return voltage_line_capacity_ah(self._vline, np.stack([self._vq_min, self._vq_max], axis=1))
+
     def _capacity_line(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The anchor line ``s = s_0 + q / Q`` by least squares over all anchors: ``(slope, Q = 1 / slope,
         fits)``; ``fits`` where ``Q`` is finite and positive and the RMS residual is below ``capacity_max_rmse``."""
-        n, sq, ss, sqq, sqs, sss = self._cap.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            var_q = sqq / n - (sq / n) ** 2
-            cov = sqs / n - (sq / n) * (ss / n)
-            var_s = sss / n - (ss / n) ** 2
-            slope = cov / var_q
-            resid_var = np.maximum(var_s - slope * cov, 0.0)
-            q_est = 1.0 / slope
+        return self._line(self._cap)
+
+    def _line(self, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_capacity_line` of the weighted sums ``sums`` (n, sq, ss, sqq, sqs, sss per cell)."""
+        slope, q_est, resid_var = _line_fit(sums)
+        with np.errstate(invalid="ignore"):
             fits = np.isfinite(q_est) & (q_est > 0) & (np.sqrt(resid_var) < self.config.capacity_max_rmse)
         return slope, q_est, fits
 
@@ -708,6 +803,11 @@ class SocEstimator:
         with np.errstate(invalid="ignore"):
             evidence = fits & (self._q_max - self._q_min >= self.config.capacity_min_span * q_est)
         line = np.where(evidence, self._bound_side(np.where(evidence, q_est, self.capacity_ah)), 0).astype(np.int8)
+        with np.errstate(invalid="ignore"):  # the voltage line: stated more than 2x its capacity, or under half
+            ratio = self.capacity_stated_ah / self.capacity_voltage_ah  # NaN (no flag) until it counts
+        volt = ((ratio < 1.0 / VOLTAGE_LINE_RATIO_MAX).astype(np.int8)
+                - (ratio > VOLTAGE_LINE_RATIO_MAX).astype(np.int8))
+        line = np.where(line != 0, line, volt)
         return np.where(in_use != 0, in_use, line).astype(np.int8)
 
     # ------------------------------------------------------------------
@@ -734,6 +834,8 @@ class SocEstimator:
             cap=self._cap.copy(),
             q_min=self._q_min.copy(),
             q_max=self._q_max.copy(),
+            vline=self._vline.copy(),
+            vline_q_range=np.stack([self._vq_min, self._vq_max], axis=1),
             samples=np.array(self.samples),
             rest_due=self._rest_due.copy(),  # a rest's OCV reading still to be taken (rest())
         )
@@ -791,6 +893,15 @@ class SocEstimator:
         self._cap = np.asarray(s["cap"], dtype=float).copy()
         self._q_min = np.asarray(s["q_min"], dtype=float).copy()
         self._q_max = np.asarray(s["q_max"], dtype=float).copy()
+        # states saved before the voltage line existed: it starts afresh (its averages always do)
+        self._vline = np.asarray(s.get("vline", np.zeros((n, 6))), dtype=float).copy()
+        q_range = np.asarray(s.get("vline_q_range", np.tile([np.inf, -np.inf], (n, 1))), dtype=float)
+        if self._vline.shape != (n, 6) or q_range.shape != (n, 2):
+            raise ValueError(f"state field 'vline' or 'vline_q_range' has the wrong shape for {n} cells")
+        self._vq_min, self._vq_max = q_range[:, 0].copy(), q_range[:, 1].copy()
+        self._v_warm = np.zeros(n, dtype=np.int64)
+        self._v_sum, self._i_sum, self._n_sum, self._n_all = np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64), 0
+        self.capacity_voltage_ah = self._voltage_capacity()
         # derived, not saved: from the capacity (EKF) and the anchor line (c0) just restored
         self.capacity_at_bound = (self._bound_side(self.capacity_ah) if self.ekf is not None
                                   else self._capacity_side_c0(*self._capacity_line()[1:]))
@@ -817,3 +928,26 @@ class SocEstimator:
             pending = np.asarray(s.get("ekf.shift_v", np.zeros(n)), dtype=float)
             if pending.shape == (n,) and np.all(np.isfinite(pending)) and any_cell(pending):
                 self.identifier.shift_bias(pending)
+
+
+def _line_fit(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The least-squares line ``s = s_0 + q / Q`` of weighted sums (n, sq, ss, sqq, sqs, sss per cell):
+    ``(slope, Q = 1 / slope, residual variance)``."""
+    n, sq, ss, sqq, sqs, sss = np.asarray(sums, dtype=float).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var_q = sqq / n - (sq / n) ** 2
+        cov = sqs / n - (sq / n) * (ss / n)
+        var_s = sss / n - (ss / n) ** 2
+        slope = cov / var_q
+        return slope, 1.0 / slope, np.maximum(var_s - slope * cov, 0.0)
+
+
+def voltage_line_capacity_ah(vline, q_range) -> np.ndarray:
+    """The c0 method's voltage-line capacity (module docstring, "At a bound") per cell from its sums and charge
+    range (a state's ``vline``, ``vline_q_range``): where its points moved ``VOLTAGE_LINE_MIN_MOVE`` of SOC
+    along it, else NaN (an EKF estimator's state: none)."""
+    q_v = _line_fit(vline)[1]
+    q_range = np.asarray(q_range, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        moved = (q_range[:, 1] - q_range[:, 0]) / q_v
+        return np.where(np.isfinite(q_v) & (q_v > 0) & (moved >= VOLTAGE_LINE_MIN_MOVE), q_v, np.nan)

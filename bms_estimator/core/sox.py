@@ -17,7 +17,8 @@ Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``s
     margin        b = v - OCV(s) - R0 i - sum_j x_j; rms_D^2 += a (b_k - b_{k-D/Ts})^2 - ...: the model's
                   D-second error, which moves the SOP bounds inward (core.sop, "Model-error margin")
     rest          T s parked without samples (SoxEstimator.rest): x_j *= exp(-T/tau_j), i_m *= exp(-T/tau_m),
-                  the residual history restarts; the margin's rms_D, SOH and energy kept
+                  the residual history restarts; the margin's rms_D, SOH and energy kept, the margin's
+                  weight aged by exp(-T/margin_tau_s) (the errors after a long park replace it fast)
 
 The RC voltages are tracked here from the identified parameters (the same ZOH recursion
 as core.ecm), so this module does not depend on how the SOC filter keeps its own.
@@ -111,6 +112,10 @@ class SoxEstimator:
         self._b_hist = np.full((int(self._lag.max()) + 1, self.n_cells), np.nan)
         self._b_head = 0
         self.error_ms_v2 = np.zeros((len(hz), self.n_cells))  # mean square n-step error per horizon
+        # the weight of the evidence behind it (1 = a full margin_tau_s of samples, the steady state);
+        # a park ages it (rest), the samples after it rebuild it
+        self.margin_weight = np.ones((len(hz), self.n_cells))
+        self._margin_aged = False
         self._slow_due = 0
         self._slow: dict[str, np.ndarray] = {}
         self._slow_r: dict[str, np.ndarray] = {}
@@ -272,11 +277,27 @@ class SoxEstimator:
         e = b[None, :] - past
         a = self._a_margin
         fresh = np.isfinite(e)
-        if fresh.all():
+        if self._margin_aged:
+            self._age_margin_update(e, fresh, a)
+        elif fresh.all():
             self.error_ms_v2 = self.error_ms_v2 + a * (e ** 2 - self.error_ms_v2)
         else:
             self.error_ms_v2 = np.where(fresh, self.error_ms_v2 + a * (np.where(fresh, e, 0.0) ** 2
                                                                        - self.error_ms_v2), self.error_ms_v2)
+
+    def _age_margin_update(self, e, fresh, a) -> None:
+        """The margin's update while the evidence behind it is aged by a park (:meth:`rest`): the
+        weighted average of the kept mean square (weight ``W``) and the errors seen since,
+        ``W_k = (1 - a) W_{k-1} + a`` and ``rms^2 += (a / W_k) (e^2 - rms^2)`` per horizon where
+        ``e`` is fresh.  ``W = 1`` is the usual update (gain ``a``); once every weight is back within
+        1e-9 of 1 the usual path resumes."""
+        w = np.where(fresh, self.margin_weight + a * (1.0 - self.margin_weight), self.margin_weight)
+        e2 = np.where(fresh, e, 0.0) ** 2
+        self.error_ms_v2 = np.where(fresh, self.error_ms_v2 + (a / w) * (e2 - self.error_ms_v2), self.error_ms_v2)
+        if w.min() > 1.0 - 1e-9:
+            w = np.ones_like(w)
+            self._margin_aged = False
+        self.margin_weight = w
 
     def rest(self, gap_s: float, cells: np.ndarray | None = None, *, est) -> None:
         """``gap_s`` = T seconds without samples, the pack parked (zero current), as
@@ -298,7 +319,17 @@ class SoxEstimator:
           load, and a park is no evidence that the model fits better.  (Fed the parked samples,
           it would decay toward the error at rest, measurement noise included: on the synthetic
           cell of tests/core/test_sox_rest.py, 1 mV noise: 1.40-1.47 mV RMS over the 2-30 s horizons
-          after 2 h, against 1.44-1.70 mV kept; the limits 0.2 % apart.)
+          after 2 h, against 1.44-1.70 mV kept; the limits 0.2 % apart.)  But the evidence behind it
+          ages: it describes the model at the temperature and state of before the park, and the
+          cell after a park of hours (cooled or warmed, relaxed) may miss by more or by less.  Its
+          weight, a full ``margin_tau_s`` of samples in the steady state, decays over the park with
+          that same time constant, ``W <- max(W exp(-T / margin_tau_s), W_min)`` (a 10 s park: 0.98;
+          2 h: the floor), ``W_min = min(1, n_max a)`` the weight of the longest horizon's ``n_max``
+          samples (``a = 1 - exp(-Ts / margin_tau_s)``: 0.05 at 1 s with the 30 s horizon), and the
+          errors after the park are averaged with it (:meth:`_age_margin_update`).  So the park
+          itself moves the margin not at all, and after a park of hours the errors of the first
+          horizon or two after it replace it, where after a park of seconds they take the usual
+          ``margin_tau_s``.
         * The learnt D-second resistance's open windows close unscored, its dRs age by ``T`` and
           the cells count ``T / Ts`` samples at rest (:meth:`ResidualResistance.rest`); the last
           SOP's prediction basis is dropped for them (a window it would open is not scored).
@@ -323,6 +354,10 @@ class SoxEstimator:
         self.mean_current_a = np.where(sel, math.exp(-gap / cfg.soe.mean_current_tau_s) * self.mean_current_a,
                                        self.mean_current_a)
         self._b_hist[:, sel] = np.nan
+        w_min = min(1.0, float(self._lag.max()) * self._a_margin)  # the longest horizon's samples
+        self.margin_weight = np.where(sel, np.maximum(math.exp(-gap / cfg.sop.margin_tau_s) * self.margin_weight,
+                                                      w_min), self.margin_weight)
+        self._margin_aged = True
         self.residual.rest(gap, sel)
         if self._basis is not None:  # (v_base (H, N), R_D (H, N), OCV(s) (N,)) from before the gap
             base, r_d, ocv_s = self._basis
@@ -515,7 +550,7 @@ class SoxEstimator:
         s = {f"soh.{k}": v for k, v in self.resistance.state_dict().items()}
         s.update({f"residual.{k}": v for k, v in self.residual.state_dict().items()})
         s.update({"x_v": self.x_v.copy(), "mean_current_a": self.mean_current_a.copy(),
-                  "error_ms_v2": self.error_ms_v2.copy(),
+                  "error_ms_v2": self.error_ms_v2.copy(), "margin_weight": self.margin_weight.copy(),
                   "energy_discharged_wh": self.energy_discharged_wh.copy(),
                   "energy_delivered_wh": self.energy_delivered_wh.copy(),
                   "energy_charged_wh": self.energy_charged_wh.copy()})
@@ -532,6 +567,12 @@ class SoxEstimator:
             if a.shape != getattr(self, k).shape:
                 raise ValueError(f"sox state {k!r} has shape {a.shape}, expected {getattr(self, k).shape}")
             setattr(self, k, a.copy())
+        # states saved before the margin's weight was kept: full weight (the margin as it was)
+        w = np.asarray(s.get("margin_weight", np.ones(self.margin_weight.shape)), dtype=float)
+        if w.shape != self.margin_weight.shape:
+            raise ValueError(f"sox state 'margin_weight' has shape {w.shape}, expected {self.margin_weight.shape}")
+        self.margin_weight = w.copy()
+        self._margin_aged = bool((w < 1.0).any())
         # states saved before it was counted: the energy charged counts from the restore
         a = np.asarray(s.get("energy_charged_wh", np.zeros(self.n_cells)), dtype=float)
         if a.shape != (self.n_cells,):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
 import logging
 import os
 import select
@@ -185,8 +186,11 @@ class _EmbeddedBroker:
 
 
 def embedded_available() -> bool:
+    """True when ``amqtt.broker`` imports.  It is imported, not only found
+    (``importlib.util.find_spec``): a broken install (a dependency missing or of the wrong
+    version) is found but fails in the broker's child process, where it would be a traceback."""
     try:
-        import amqtt.broker  # noqa: F401
+        importlib.import_module("amqtt.broker")
     except Exception:  # noqa: BLE001 - ImportError or a broken install
         return False
     return True

@@ -207,7 +207,7 @@ def _vehicle_task(logs: list[str], config: str | None, out_dir: str, vehicle: st
 
 
 SUMMARY_COLUMNS = ("vehicle", "drive", "cell", "status", "samples", "soc_final", "capacity_ah_final",
-                   "capacity_at_bound_final", "r0_ohm_final",
+                   "capacity_at_bound_final", "capacity_voltage_ah_final", "r0_ohm_final",
                    "r0_ohm_median", "temperature_c_mean", "soc_error_final_pct", "soc_rmse_pct", "cause", "backward_frames",
                    "decode_errors", "rested_s", "chain", "error")
 #: with ``--sox`` (fleet/drive.py's SOX_SUMMARY per cell, then its PACK_SUMMARY per drive), after SUMMARY_COLUMNS

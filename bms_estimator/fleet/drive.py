@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from ..core.soc import SocEstimator
+from ..core.soc import SocEstimator, voltage_line_capacity_ah
 from ..core.sox import SoxEstimator
 from ..data import check_charge_span, load_recording
 from ..errors import BmsEstimatorError, DataError, one_line_error
@@ -203,6 +203,10 @@ def _summary(est: DriveEstimate, log: Path, period_s: float) -> dict[str, list[f
     out["capacity_ah_final"] = est.cells["capacity_ah"][-1].tolist()
     if "capacity_at_bound" in est.cells:  # -1 / +1: the capacity ended at its low / high bound (a wrong stated one)
         out["capacity_at_bound_final"] = [int(x) if np.isfinite(x) else None for x in est.cells["capacity_at_bound"][-1]]
+    if "vline" in est.state and "vline_q_range" in est.state:  # the c0 method's voltage-line capacity (NaN: none)
+        q_v = voltage_line_capacity_ah(est.state["vline"], est.state["vline_q_range"])
+        if np.isfinite(q_v).any():  # none (ekf, or not yet): no value, an empty column
+            out["capacity_voltage_ah_final"] = q_v.tolist()
     out["r0_ohm_final"] = est.cells["r0_ohm"][-1].tolist()
     with warnings.catch_warnings():  # an all-NaN column (a cell never valid) is NaN, not a warning
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -23,8 +23,8 @@ in are read only for the snapshot's ``wall_time`` (state files) and the uptime c
 
 A wrong stated capacity: when a cell's capacity estimate comes to sit at one of its bounds
 (:attr:`~bms_estimator.core.soc.SocEstimator.capacity_at_bound`: ``pack.capacity_ah`` is wrong for
-it, its SOC unreliable), one WARNING line names the cells, the bound and the stated capacity, once
-per transition (as the MQTT publisher re-sends a cell when its stale flag changes, not every sample);
+it, its SOC unreliable), one WARNING line names the cells, the bound and the stated capacity (and, on
+the c0 method, the capacity its voltage line reads, ``voltage_line_ah``), once per transition (as the MQTT publisher re-sends a cell when its stale flag changes, not every sample);
 an INFO line when they are back inside. The snapshot counts them (``cells_capacity_at_bound``).
 
 Gaps: a sample that does not follow the previous one (the sampler re-anchored its grid on a
@@ -221,10 +221,15 @@ class Pipeline:
             cells = np.flatnonzero(changed & (side == flag))
             if cells.size:
                 stated = float(est.capacity_stated_ah[cells[0]])
+                # the c0 method's voltage line, where it has a capacity: what the voltage says the cell holds
+                q_v = getattr(est, "capacity_voltage_ah", None)
+                extra = ({"voltage_line_ah": round(float(q_v[cells[0]]), 6)}
+                         if q_v is not None and np.isfinite(q_v[cells[0]]) else {})
                 log.warning(f"capacity estimate at its {name} bound: the stated capacity is wrong for these cells "
                             "and their SOC is unreliable; check pack.capacity_ah",
                             cells=cells[:20].tolist(), n_cells=int(cells.size), bound=name,
-                            bound_ah=round(factor * stated, 6), stated_ah=stated, config_key="pack.capacity_ah")
+                            bound_ah=round(factor * stated, 6), stated_ah=stated, config_key="pack.capacity_ah",
+                            **extra)
         back = np.flatnonzero(changed & (side == 0))
         if back.size:
             log.info("capacity estimate back inside its bounds", cells=back[:20].tolist(), n_cells=int(back.size))

@@ -18,8 +18,11 @@ KNOTS = np.linspace(0.0, 1.0, 41)
 
 def _curve(offset: float, hyst: float | None, temperature_c: float | None, capacity: float | None = None,
            knots: np.ndarray = KNOTS) -> OcvCurve:
-    """A cold table sits lower and is steeper at low SOC than a warm one (as measured cells do)."""
+    """A cold table sits lower and is steeper at low SOC than a warm one (as measured cells do).  ``offset``
+    in units of 0.2 V (0.1: 20 mV), so that the module's tables 10-35 K apart stay within one cell's spread
+    (core.ocv_surface, item 9: 15 mV + 1 mV/K)."""
     s = knots
+    offset = 0.2 * offset
     v = 3.0 + offset + 1.15 * s - 0.12 * np.sin(3 * s) - (0.25 - offset) * np.exp(-20 * s)
     h = None if hyst is None else hyst * (1.5 - s)
     return OcvCurve(s, v, h, temperature_c=temperature_c, capacity_discharge_ah=capacity)
@@ -189,7 +192,8 @@ def test_from_csvs_reads_each_files_temperature(tmp_path, tables):
                                          r"build it with `bms-estimator ocv`"):
         OcvSurface.from_csvs([paths[0], bare])
     assert OcvSurface.from_csvs([bare]).ocv(0.5) == pytest.approx(3.7)  # one table needs none
-    assert OcvSurface.from_csvs([paths[0], bare], [25.0, 5.0]).temperatures_c.tolist() == [5.0, 25.0]
+    bare_like = _curve(0.05, None, None).to_csv(tmp_path / "bare_like.csv")  # one cell's, no temperature column
+    assert OcvSurface.from_csvs([paths[0], bare_like], [25.0, 5.0]).temperatures_c.tolist() == [5.0, 25.0]
     same = _curve(0.2, None, 25.0).to_csv(tmp_path / "same.csv")
     with pytest.raises(ValueError, match=r"t0.csv and .*same.csv are both at 25 degC"):
         OcvSurface.from_csvs([paths[0], same])
@@ -212,3 +216,28 @@ def test_property_no_nan_and_round_trip(surface, soc, temperature):
     if abs(soc) < 1e3:
         assert back == pytest.approx(soc, abs=1e-9)
         assert arr[0] == pytest.approx(soc, abs=1e-9)
+
+
+def test_tables_of_two_cells_are_refused_naming_both_files_and_the_figure(tmp_path):
+    """The measured data's tables (core.ocv_surface, item 9): the LG HG2 C/20 table at 23.9 degC and a Panasonic
+    18650PF C/20 table labelled 20 degC are 46 mV RMS apart at equal SOC (10-90 %), over the 19 mV one cell's
+    tables 3.9 K apart may be: refused (MixedCellsError, a ValueError), naming both files and temperatures. A
+    cold table of the LG cell's shape 20-40 mV lower 24 K away (the measured 0 degC table is 26.6 mV RMS from it,
+    the limit there 39 mV) is built, and so is a surface derived from it (with_half_gap_cap)."""
+    from bms_estimator.core.ocv_surface import MixedCellsError, one_cell_mismatch
+
+    lg = OcvCurve.from_csv(ocv_table("lg-hg2"))
+    pan = OcvCurve.from_csv(ocv_table("panasonic-18650pf"))
+    lg_path = lg.to_csv(tmp_path / "lg.csv")
+    pan_path = pan.to_csv(tmp_path / "pan20.csv")
+    with pytest.raises(MixedCellsError, match=r"pan20.csv \(20 degC\) and .*lg.csv \(23.87\d* degC\) differ by "
+                                              r"4\d mV RMS at equal SOC \(10-90 %\), more than one cell's tables 3.9 K "
+                                              r"apart do \(19 mV: 15 mV \+ 1 mV/K, at most 45 mV\)"):
+        OcvSurface.from_csvs([lg_path, pan_path], [lg.temperature_c, 20.0])
+    with pytest.raises(MixedCellsError, match=r"the table at 20 degC and the table at 23.87"):
+        OcvSurface([lg, pan], [lg.temperature_c, 20.0])
+    # one cell: the LG table and the same cell's 0 degC one (the shared data's, as `bms-estimator ocv` builds it)
+    cold = OcvCurve(lg.soc, lg.ocv_v - 0.02 - 0.02 * (1 - lg.soc), temperature_c=-0.5)  # 20-40 mV lower when cold
+    assert one_cell_mismatch([cold, lg], [-0.5, lg.temperature_c]) is None
+    surf = OcvSurface([lg, cold])
+    assert surf.with_half_gap_cap(0.01).temperatures_c.tolist() == surf.temperatures_c.tolist()

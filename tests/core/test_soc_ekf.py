@@ -185,7 +185,8 @@ def test_a_temperature_that_moves_20_k_during_a_drive_is_followed_by_the_ocv_tab
     cold = OcvCurve(s, 3.34 + 0.65 * s + 0.25 * s**2, 0.01 + 0 * s, capacity_discharge_ah=2.76)
     from bms_estimator.core.ocv_surface import OcvSurface
 
-    surface = OcvSurface([warm, cold], [25.0, 5.0])
+    # 2 mV/K, twice the measured cells' (core.ocv_surface, item 9): not a check of one cell's tables here
+    surface = OcvSurface([warm, cold], [25.0, 5.0], check_one_cell=False)
     n = N
     temp = 25.0 - 20.0 * np.clip(np.arange(n) / (0.5 * n), 0.0, 1.0)  # 25 -> 5 degC over the first 1.5 h
     i = pulse_current(n, 21, amp_a=4.0)
@@ -478,3 +479,23 @@ def test_c0_anchor_line_at_a_bound_sets_the_flag_and_survives_a_state_round_trip
         again = SocEstimator(1, _ocv(), 15.0, 1.0, initial_soc=0.9, config=SocConfig(soc_method="c0"))
         again.load_state_dict(est.state_dict())
         assert again.capacity_at_bound[0] == expect
+
+
+def test_c0_voltage_line_flags_a_stated_capacity_5x_the_cells_without_table_capacities(one_cell_3ah):
+    """The c0 method on a table without capacity_ah, a 3 Ah cell stated as 15 Ah: its anchor line stays near
+    13 Ah (the anchors follow the count), but the voltage line reads 2.71 Ah and the low flag turns on once
+    and stays (measured: at 3710 s of the 3 h drive). Stated right: 2.92 Ah, never flagged. A restored state
+    gives the voltage line's capacity and the flag back."""
+    cur, vol = one_cell_3ah
+    flags, est = _bound_flags(cur, vol, 5 * STATED_AH, _ocv(), "c0")
+    assert est.capacity_voltage_ah[0] == pytest.approx(2.71, abs=0.05)
+    assert flags[-1] == -1 and flags[0] == 0
+    assert np.count_nonzero(np.diff(flags)) == 1  # off -> low once, no flicker
+    assert est._capacity_line()[1][0] > 0.6 * 5 * STATED_AH  # the anchor line alone says nothing
+    again = SocEstimator(1, _ocv(), 5 * STATED_AH, 1.0, config=SocConfig(soc_method="c0"))
+    again.load_state_dict(est.state_dict())
+    assert again.capacity_at_bound[0] == -1
+    assert again.capacity_voltage_ah[0] == pytest.approx(est.capacity_voltage_ah[0], rel=1e-12)
+    flags, est = _bound_flags(cur, vol, STATED_AH, _ocv(), "c0")
+    assert not np.any(flags)
+    assert est.capacity_voltage_ah[0] == pytest.approx(2.92, abs=0.05)

@@ -14,9 +14,10 @@ from hypothesis import strategies as st
 
 from bms_estimator.core.soc import SocEstimator
 from bms_estimator.core.sop import SopConfig
-from bms_estimator.core.sox import SoxConfig, SoxEstimator
+from bms_estimator.core.ecm import simulate_ecm
+from bms_estimator.core.sox import SoxConfig, SoxEstimator, rest_estimators
 from tests.conftest import pulse_current
-from tests.core.test_rest import AWAKE_S, DRIVE_S, PARK_S, Q_AH, _ocv, _park_trip
+from tests.core.test_rest import AWAKE_S, DRIVE_S, PARAMS, PARK_S, Q_AH, _drive, _ocv, _park_trip
 
 FIRST = DRIVE_S + PARK_S - AWAKE_S  # the first sample after the hole
 # the design current limits out of the way: the limits shown are the voltage-bound ones the RC state moves
@@ -203,3 +204,42 @@ def test_the_learnt_resistance_is_in_the_sox_state_and_older_states_still_load()
     fresh.load_state_dict(old)
     assert fresh.residual.correction(soc) is None
     np.testing.assert_array_equal(fresh.x_v, sox.x_v)
+
+
+def _margin_after_park(park_s: float, after_s: int = 90, noise_after_v: float = 0.01):
+    """(RMS margin per horizon before the park, right after the rest, ``after_s`` into the next drive, the
+    weight after the rest): a 1 h drive (1 mV noise), a park of ``park_s``, then a drive whose model error
+    is ten times larger (10 mV noise: a cell that misses more after the park)."""
+    i = _drive(1)
+    sim = simulate_ecm(i, 1.0, PARAMS, _ocv().ocv, soc0=0.95, capacity_ah=Q_AH, output="mean")
+    v = sim.voltage_v + 1e-3 * np.random.default_rng(5).standard_normal(i.size)
+    est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.95)
+    sox = SoxEstimator(1, 1.0, CONFIGS["margin"])
+    for k in range(i.size):
+        est.update(i[k], np.array([v[k]]))
+        sox.update(est, i[k], np.array([v[k]]))
+    before = np.sqrt(sox.error_ms_v2[:, 0])
+    rest_estimators(est, sox, park_s)
+    rested, weight = np.sqrt(sox.error_ms_v2[:, 0]), sox.margin_weight[:, 0].copy()
+    i2 = _drive(2)[:after_s]
+    v2 = v[-1] + 0.02 * i2 + noise_after_v * np.random.default_rng(6).standard_normal(after_s)
+    for k in range(after_s):
+        est.update(i2[k], np.array([v2[k]]))
+        sox.update(est, i2[k], np.array([v2[k]]))
+    return before, rested, np.sqrt(sox.error_ms_v2[:, 0]), weight
+
+
+def test_a_park_of_hours_lets_the_errors_after_it_replace_the_margin_a_park_of_seconds_does_not():
+    """The margin's evidence ages over a park (SoxEstimator.rest): its weight decays by exp(-T / 600 s) to at
+    least the longest horizon's 30 samples' (0.05).  The rest itself never moves the margin; after 2 h the errors
+    of the next 90 s (10x the drive's noise) take it from 1.4-1.7 mV to 10.5-11.3 mV RMS over the 2-30 s
+    horizons, against 4.5-5.0 mV after a 10 s park (the usual 600 s pace); before the weight was kept, both
+    parks gave 4.5-5.0 mV."""
+    b_short, r_short, a_short, w_short = _margin_after_park(10.0)
+    b_long, r_long, a_long, w_long = _margin_after_park(7200.0)
+    np.testing.assert_array_equal(r_short, b_short)  # a park moves no margin by itself
+    np.testing.assert_array_equal(r_long, b_long)
+    np.testing.assert_allclose(w_short, np.exp(-10.0 / 600.0), rtol=1e-12)
+    np.testing.assert_allclose(w_long, 30 * (1 - np.exp(-1.0 / 600.0)), rtol=1e-12)
+    assert np.all(a_short > 2.0 * b_short)  # the larger error is seen after either park
+    assert np.all(a_long > 2.0 * a_short)  # but after 2 h it replaces the old margin

@@ -73,3 +73,30 @@ def test_the_example_configs_50_ah_on_a_2_9_ah_cells_table_is_said(drive, tmp_pa
     with (out / "summary.csv").open() as fh:
         (row,) = list(csv.DictReader(fh))
     assert row["status"] == "ok" and 40.0 < float(row["capacity_ah_final"]) <= 50.0
+
+
+def test_c0_voltage_line_flags_a_stated_capacity_5x_the_cells_in_the_batch(tmp_path, capsys):
+    """The c0 SOC method, an LG HG2 table without capacity_ah and pack.capacity_ah 14 for the 2.8 Ah cell (the
+    shipped 25 degC udds sample, Kollmeyer et al., CC BY 4.0): the summary flags the cell-drive, gives the
+    capacity the voltage line reads, and the last line names the drive, the cell and that figure."""
+    lines = (SAMPLES / "lg-hg2_25degC_ocv.csv").read_text().splitlines()
+    cols = lines[0].split(",")
+    keep = [k for k, c in enumerate(cols) if c != "capacity_ah"]
+    table = tmp_path / "lg_no_capacity.csv"
+    table.write_text("\n".join(",".join(r.split(",")[k] for k in keep) for r in lines) + "\n")
+    drive = tmp_path / "car" / "udds.csv.gz"
+    drive.parent.mkdir()
+    drive.write_bytes((SAMPLES / "lg-hg2_25degC_udds_1s.csv.gz").read_bytes())
+    cfg = tmp_path / "c0.toml"
+    cfg.write_text(f'[pack]\nn_cells = 1\ncapacity_ah = 14\nocv_csv = "{table}"\n[can]\ninterface = "virtual"\n'
+                   '[mqtt]\nenabled = false\n[estimator.core]\nsoc_method = "c0"\n')
+    out = tmp_path / "out"
+    assert main(["batch", str(drive), "--config", str(cfg), "--out", str(out), "--workers", "1", "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    with (out / "summary.csv").open() as fh:
+        (row,) = list(csv.DictReader(fh))
+    assert row["status"] == "ok" and row["capacity_at_bound_final"] == "-1", row
+    q_v = float(row["capacity_voltage_ah_final"])
+    assert 2.4 < q_v < 3.0, q_v
+    assert (f"e.g. udds.csv.gz cell 0 at 14.000 Ah, its voltage saying {q_v:.3f} Ah: the stated pack.capacity_ah "
+            "is likely wrong") in text, text

@@ -88,3 +88,19 @@ def test_the_right_capacity_never_warns(tmp_path):
     assert len(gauge) == SAMPLES and all(g == 0 for g in gauge)
     assert schema.pack_payload(svc.pipeline.last)["cells_capacity_at_bound"] == 0
     assert "capacity" not in svc._health_status() and "capacity" not in svc._status_line()
+
+
+def test_the_c0_voltage_lines_capacity_is_named_in_the_warning(tmp_path):
+    """On the c0 method the flag can come from its voltage line (core.soc, "At a bound": a stated capacity 5x the
+    cell's with tables that carry none); the one warning then names the capacity that line reads."""
+    svc, logs, _ = _run(tmp_path, CAPACITY_AH, estimator={"core": {"soc_method": "c0"}})
+    assert not _bound_warnings(logs)
+    est = svc.estimator
+    est.capacity_voltage_ah = np.full(N, 0.58)  # as the line would read with 5x the cell's capacity stated
+    est.capacity_at_bound = est._capacity_side_c0(*est._capacity_line()[1:])
+    with capture_logs() as logs:
+        svc.pipeline._log_capacity_bounds()
+        svc.pipeline._log_capacity_bounds()  # nothing new: nothing said
+    warned = _bound_warnings(logs)
+    assert len(warned) == 1 and warned[0]["cells"] == list(range(N)) and warned[0]["bound"] == "low"
+    assert warned[0]["voltage_line_ah"] == pytest.approx(0.58)

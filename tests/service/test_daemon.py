@@ -491,6 +491,15 @@ def test_ocv_tables_at_several_temperatures_are_read_at_each_cells_temperature(t
     bad = config_data(tmp_path, channel(), pack={"ocv_csv": [paths[0], str(tmp_path / "missing.csv")]})
     with pytest.raises(DataError, match="pack.ocv_csv"):  # the file, not the configuration, is at fault
         Service(ServiceConfig(**bad))
+    # a table of another cell (the LG HG2 sample's, labelled 20 degC, beside the Panasonic one): each file is fine,
+    # the list is the configuration's mistake, said in one line naming both files
+    other = OcvCurve.from_csv(ocv_table("lg-hg2"))
+    other_path = str(OcvCurve(other.soc, other.ocv_v, temperature_c=20.0).to_csv(tmp_path / "other20.csv"))
+    mixed = config_data(tmp_path, channel(), pack={"ocv_csv": [paths[0], other_path]})
+    with pytest.raises(ConfigError, match=r"pack.ocv_csv: .*other20.csv \(20 degC\) and .*warm.csv .* differ by \d+ mV "
+                                          r"RMS .*not tables of one cell") as info:
+        Service(ServiceConfig(**mixed))
+    assert "\n" not in str(info.value).split("pack.ocv_csv: ", 1)[1]
 
 
 def test_unknown_ids_are_ignored_and_counted(tmp_path):
