@@ -14,8 +14,7 @@ import numpy as np
 
 from ..core.identifier import METHODS, IdentifierConfig
 from ..core.ocv import median_temperature_c
-from ..core.ocv_surface import (REFERENCE_TEMPERATURE_C, MixedCellsError, OcvSurface, stated_capacity_ratio,
-                                table_capacities_ah)
+from ..core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocConfig
 from ..data import CellRecording, check_charge_span, load_recording
 from ..errors import DataError, UsageError
@@ -220,10 +219,10 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
     path_list = [paths] if isinstance(paths, (str, Path)) else list(paths)
     try:
         surface = OcvSurface.from_csvs(path_list, default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
-    except MixedCellsError as exc:  # each table fine, the set wrong: the tables given are the mistake (exit 2)
-        raise UsageError(f"--ocv: {exc}") from None
     except ValueError as exc:  # a malformed table is a data error (exit 3); the message names the file
         raise DataError(f"OCV table: {exc}") from None
+    if surface.mixed_cells:  # each table fine, the set doubtful (core.ocv_surface, item 9)
+        warnings.warn(f"--ocv: {surface.mixed_cells}", stacklevel=2)
     if t is not None:
         _warn_if_outside_the_tables(rec, t, surface)
     ratio = stated_capacity_ratio(capacity_ah, surface) if capacity_ah else None

@@ -77,7 +77,7 @@ measured at one temperature ``T_j`` (``T_0 < T_1 < ... < T_{m-1}``).
    pair of neighbouring tables (the pairs blended, ``T_j`` and ``T_{j+1}``, ``dT``
    apart) is compared at equal SOC over 10-90 % (81 points, mean curves)::
 
-       d = RMS_s (OCV_j(s) - OCV_{j+1}(s))      refused (:class:`MixedCellsError`) when
+       d = RMS_s (OCV_j(s) - OCV_{j+1}(s))      flagged (:attr:`OcvSurface.mixed_cells`) when
        d > min(ONE_CELL_RMS_V + ONE_CELL_RMS_PER_K_V dT, ONE_CELL_RMS_MAX_V)
          = min(15 mV + 1 mV/K x dT, 45 mV)
 
@@ -96,9 +96,12 @@ measured at one temperature ``T_j`` (``T_0 < T_1 < ... < T_{m-1}``).
    one cell's tables differ by 1.3-26 % (0.14-0.92 %/K; 10 %/K for the C/20 and
    HPPC tables 0.6 K apart), two cells' by 1.8-17 %.  Nor is equal charge instead
    of equal SOC (the LG tables agree to 5-14 mV there, but the Panasonic C/20
-   against HPPC tables differ by 36-64 mV).  A refusal, not a warning: a blend of
-   two cells is a wrong OCV at every temperature between them, and no legitimate
-   set in the data comes within 9 % of the limit (15 % below 30 K apart).
+   against HPPC tables differ by 36-64 mV).  Flagged, not refused: a
+   blend of two cells is a wrong OCV at every temperature between them, so the
+   edges warn, naming both files and the figure; but the margins rest on two cells
+   only (one cell's pairs come within 9 % of the limit 35 K apart), and a cell whose
+   tables move more with temperature (colder than -10 degC, another chemistry) must
+   still run.
 """
 
 from __future__ import annotations
@@ -111,7 +114,7 @@ import numpy as np
 
 from .ocv import GRID_POINTS, MIN_SLOPE_V, OcvCurve, _as_float_array, _strictly_increasing
 
-__all__ = ["OcvSurface", "OcvAtTemperatures", "MixedCellsError", "ONE_CELL_RMS_MAX_V", "ONE_CELL_RMS_PER_K_V",
+__all__ = ["OcvSurface", "OcvAtTemperatures", "ONE_CELL_RMS_MAX_V", "ONE_CELL_RMS_PER_K_V",
            "ONE_CELL_RMS_V",
            "REFERENCE_TEMPERATURE_C", "STATED_CAPACITY_RATIO_MAX", "one_cell_mismatch", "stated_capacity_ratio",
            "table_capacities_ah"]
@@ -122,11 +125,6 @@ ONE_CELL_RMS_V = 0.015
 ONE_CELL_RMS_PER_K_V = 0.001
 ONE_CELL_RMS_MAX_V = 0.045  # and never more than this
 _ONE_CELL_SOC = np.linspace(0.1, 0.9, 81)
-
-
-class MixedCellsError(ValueError):
-    """Two neighbouring OCV tables differ more than one cell's tables do (module docstring, item 9): a
-    usage error (the tables given), not a malformed file."""
 
 
 def one_cell_mismatch(curves: Sequence[OcvCurve], temperatures_c: Sequence[float]) -> tuple[int, float, float] | None:
@@ -299,14 +297,13 @@ class OcvSurface:
         default_temperature_c: the temperature read when a call gives ``None``
             or NaN.
         names: a label per table (its file), for the messages.
-        check_one_cell: refuse neighbouring tables that are not of one cell
+        check_one_cell: flag neighbouring tables that are not of one cell
             (module docstring, item 9); off only for tables derived from a
             checked surface.
 
     Raises:
         ValueError: no table, a table without a temperature when there are
-            several, two tables at the same temperature, non-finite values;
-            :class:`MixedCellsError` for neighbouring tables of two cells.
+            several, two tables at the same temperature, non-finite values.
     """
 
     def __init__(
@@ -319,6 +316,7 @@ class OcvSurface:
         check_one_cell: bool = True,
     ) -> None:
         curves = list(curves)
+        mixed_cells = None
         if not curves:
             raise ValueError("an OCV surface needs at least one OCV table")
         for c in curves:
@@ -354,13 +352,16 @@ class OcvSurface:
                 k, rms, limit = bad
                 label = [f"{names[j]} ({temps[i]:g} degC)" if names is not None else f"the table at {temps[i]:g} degC"
                          for i, j in ((k, order[k]), (k + 1, order[k + 1]))]
-                raise MixedCellsError(
+                mixed_cells = (
                     f"{label[0]} and {label[1]} differ by {rms * 1e3:.0f} mV RMS at equal SOC (10-90 %), more "
                     f"than one cell's tables {temps[k + 1] - temps[k]:.1f} K apart do ({limit * 1e3:.0f} mV: "
                     f"{ONE_CELL_RMS_V * 1e3:g} mV + {ONE_CELL_RMS_PER_K_V * 1e3:g} mV/K, at most "
-                    f"{ONE_CELL_RMS_MAX_V * 1e3:g} mV): they are not tables of one cell; give the OCV tables of the "
-                    "cell being estimated only"
+                    f"{ONE_CELL_RMS_MAX_V * 1e3:g} mV): are they tables of one cell? The OCV between them is "
+                    "their blend; give the OCV tables of the cell being estimated only"
                 )
+        #: None, or why the neighbouring tables look like two cells' (module docstring, item 9): the
+        #: edges (the CLI's ``--ocv``, the service's ``pack.ocv_csv``) warn with it
+        self.mixed_cells: str | None = mixed_cells
         self.curves: tuple[OcvCurve, ...] = tuple(curves)
         t_arr = np.array([math.nan if t is None else t for t in temps], dtype=np.float64)
         t_arr.setflags(write=False)
@@ -429,9 +430,9 @@ class OcvSurface:
         Raises:
             ValueError: naming the file: unreadable table, no ``temperature_c``
                 column while there are several tables, two files at the same
-                temperature; :class:`MixedCellsError` (a ValueError) naming both
-                files, their temperatures and the figure: neighbouring tables
-                that are not of one cell (module docstring, item 9).
+                temperature.  Neighbouring tables that are not of one cell
+                (module docstring, item 9) are not an error: :attr:`mixed_cells`
+                names both files, their temperatures and the figure.
         """
         if isinstance(paths, (str, Path)):
             paths = [paths]
@@ -476,8 +477,10 @@ class OcvSurface:
         curves = [c.with_half_gap_cap(cap_v) for c in self.curves]
         if all(a is b for a, b in zip(curves, self.curves)):
             return self
-        return OcvSurface(curves, None if self._single is not None else list(self._temps),
-                          default_temperature_c=self.default_temperature_c, check_one_cell=False)  # checked once
+        capped = OcvSurface(curves, None if self._single is not None else list(self._temps),
+                            default_temperature_c=self.default_temperature_c, check_one_cell=False)  # checked once
+        capped.mixed_cells = self.mixed_cells
+        return capped
 
     def __repr__(self) -> str:
         temps = ", ".join("?" if math.isnan(t) else f"{t:g}" for t in self._temps)

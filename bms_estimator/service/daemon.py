@@ -65,7 +65,7 @@ from ..can.encoder import StateEncoder
 from ..can.mapping import MappingError
 from ..can.sampler import SampleAssembler
 from ..core.ocv import OcvCurve
-from ..core.ocv_surface import MixedCellsError, OcvSurface, stated_capacity_ratio, table_capacities_ah
+from ..core.ocv_surface import OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
 from ..errors import DataError
@@ -158,8 +158,6 @@ class Service:
                     self.ocv_source = ", ".join(str(p) for p in paths)
                     # several tables: OCV(soc, T), read at each cell's temperature from CAN
                     self.ocv = OcvCurve.from_csv(paths[0]) if len(paths) == 1 else OcvSurface.from_csvs(paths)
-        except MixedCellsError as exc:  # every table fine, the list wrong: the configuration's error
-            problems.append(f"pack.ocv_csv: {exc}")
         except (OSError, ValueError) as exc:  # the table itself: a data error, not the configuration's
             data_problems.append(f"pack.ocv_csv: {exc}")
         self.soc_config = cfg.estimator.soc_config
@@ -199,6 +197,8 @@ class Service:
             log.warning("pack.ocv_csv not set: using the built-in sample OCV curve", cell=DEFAULT_OCV_CELL)
         if self.capacity_note is not None:
             log.warning(self.capacity_note, stated_ah=cfg.pack.capacity_ah, config_key="pack.capacity_ah")
+        if getattr(self.ocv, "mixed_cells", None):  # tables of two cells? (core.ocv_surface, item 9)
+            log.warning(self.ocv.mixed_cells, config_key="pack.ocv_csv")
 
         assert self.decoder is not None
         self.pipeline = Pipeline(self.decoder, self.sampler, estimator, sox=self._new_sox())
