@@ -32,9 +32,10 @@ nearly collinear columns, e.g. c0 and a slow RC branch under a steady current,
 move together).  Kulhavy and Zarrop's regularised forgetting (Int. J. Control
 58, 1993) forgets toward a prior theta_ref ~ N(theta_ref, Pi) instead::
 
-    P_t^-1          = lambda P_{t-1}^-1 + (1 - lambda) Pi^-1 + w_t zeta_t phi_t'
-    P_t^-1 theta_t  = lambda P_{t-1}^-1 theta_{t-1} + (1 - lambda) Pi^-1 theta_ref + w_t zeta_t y_t
+    P_t^-1          = lambda P_{t-1}^-1 + (1 - lambda) Pi^-1 + w_t phi_t phi_t'
+    P_t^-1 theta_t  = lambda P_{t-1}^-1 theta_{t-1} + (1 - lambda) Pi^-1 theta_ref + w_t phi_t y_t
 
+(the recursive IV's instrument zeta in place of phi: :mod:`~bms_estimator.core.riv`),
 so with no data the information settles at Pi^-1 and theta at theta_ref, and
 with data every direction keeps at least the prior's information.  The prior
 term is added every ``prior_every`` (M) learning samples of a cell, as the M
@@ -50,9 +51,13 @@ A^-1; no inverse of P).  Pi is diagonal and set per cell from its block start:
 memory of data of that energy carries ``e_j / (1 - lambda)`` in column j, so
 ``prior_share`` is the prior's information relative to the data's, per column:
 scale-free, the same for any cell size, window or column scaling.  Well
-excited directions hardly move (their information is many columns' worth);
+excited directions move least (their information is many columns' worth);
 collinear ones, whose information is far below any single column's, are held
-near the prior.  The trace limit still applies (the step only lowers P).
+near the prior.  A prior far from the cell still pulls every direction some:
+in the SOC path it cost the cold LG runs more than it won on Panasonic
+(docs/soc_experiments.md), so it is off by default.  The trace limit still
+applies (the step only lowers P); the identifier's admissibility guard sees
+the pulled theta like any other.
 
 Every array carries the cell axis first; one call updates every cell.
 """
