@@ -88,6 +88,11 @@ class IdentifierConfig:
     # trading off against the slow branch.  Off in the SOC estimator, where c0 carries
     # the SOC error the compensation needs.
     c0_prior_weight: Annotated[float, Ge(0)] = 0.0
+    # Stabilised forgetting (core/rls.py): forgetting toward the prior model below, which keeps in each
+    # column this share of the information a full memory of data holds (0 = off, plain forgetting).
+    # What stops c0 and the slow branch drifting together under a steady current
+    stabilised_forgetting: Annotated[float, Ge(0)] = 0.0
+    stabilised_every: Annotated[int, Ge(1)] = 30  # its step every this many learning samples
     c0_max_v: Annotated[float, Gt(0)] = 0.5  # admissible |c0|: an OCV bias beyond this is not an SOC error but a broken fit
     # lif-iv: the auxiliary model that makes the instruments takes the last admissible
     # parameters every this many samples
@@ -127,6 +132,8 @@ class IdentifierConfig:
             error_window=self.error_window,
             trace_max=self.trace_max,
             init_samples=self.init_samples,
+            prior_share=self.stabilised_forgetting,
+            prior_every=self.stabilised_every,
         )
 
     def with_(self, **changes) -> "IdentifierConfig":

@@ -29,7 +29,9 @@ against every seed within 3 % with the symmetric gain.
 With zeta_t = phi_t this is exactly :class:`~bms_estimator.core.rls.WeightedRls`,
 whose machinery it inherits unchanged: the block least-squares start (no
 instruments exist before a first model; CONTSID's recursive IV methods start
-from an LS estimate too), turn-on/turn-off, the trace limit, restarts, state.
+from an LS estimate too), turn-on/turn-off, the trace limit, restarts, state,
+and the stabilised forgetting toward the prior (its step acts on P and theta
+alone, so on ``P^-1 = lambda P^-1 + zeta zeta'`` as on the RLS's).
 
 Every array carries the cell axis first; one call updates every cell.
 """

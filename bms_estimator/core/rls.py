@@ -25,6 +25,40 @@ column's energy, diag(R)) keeps P0 finite; in directions the block does not
 excite it leaves theta0 at ``theta_ref`` (a prior the caller sets, zero by
 default) rather than at 0.
 
+Stabilised forgetting (``prior_share`` > 0; off by default).  Exponential
+forgetting discounts the old information in every direction, also in those the
+new data do not renew: there P^-1 decays towards 0 and theta drifts freely (two
+nearly collinear columns, e.g. c0 and a slow RC branch under a steady current,
+move together).  Kulhavy and Zarrop's regularised forgetting (Int. J. Control
+58, 1993) forgets toward a prior theta_ref ~ N(theta_ref, Pi) instead::
+
+    P_t^-1          = lambda P_{t-1}^-1 + (1 - lambda) Pi^-1 + w_t phi_t phi_t'
+    P_t^-1 theta_t  = lambda P_{t-1}^-1 theta_{t-1} + (1 - lambda) Pi^-1 theta_ref + w_t phi_t y_t
+
+(the recursive IV's instrument zeta in place of phi: :mod:`~bms_estimator.core.riv`),
+so with no data the information settles at Pi^-1 and theta at theta_ref, and
+with data every direction keeps at least the prior's information.  The prior
+term is added every ``prior_every`` (M) learning samples of a cell, as the M
+steps' sum ``a = (1 - lambda^M) Pi^-1`` (exact for the forgetting alone)::
+
+    P     <- (P^-1 + A)^-1 = (I + P A)^-1 P            A = diag(a)
+    theta <- theta + (I + P A)^-1 P A (theta_ref - theta)
+
+(a Kalman update with the pseudo-measurement theta = theta_ref of covariance
+A^-1; no inverse of P).  Pi is diagonal and set per cell from its block start:
+``Pi^-1 = prior_share / (1 - lambda) diag(e)``, with e_j the block's mean
+(forgetting-weighted) energy of column j, floored like the block ridge.  A full
+memory of data of that energy carries ``e_j / (1 - lambda)`` in column j, so
+``prior_share`` is the prior's information relative to the data's, per column:
+scale-free, the same for any cell size, window or column scaling.  Well
+excited directions move least (their information is many columns' worth);
+collinear ones, whose information is far below any single column's, are held
+near the prior.  A prior far from the cell still pulls every direction some:
+in the SOC path it cost the cold LG runs more than it won on Panasonic
+(docs/soc_experiments.md), so it is off by default.  The trace limit still
+applies (the step only lowers P); the identifier's admissibility guard sees
+the pulled theta like any other.
+
 Every array carries the cell axis first; one call updates every cell.
 """
 
@@ -52,6 +86,8 @@ class RlsConfig:
     trace_max: float = 1e4
     init_samples: int = 300
     init_delta: float = 1e-9
+    prior_share: float = 0.0  # stabilised forgetting: the prior's information relative to the data's (0 = off)
+    prior_every: int = 30  # ... added every this many learning samples of a cell
 
     def __post_init__(self) -> None:
         if not 0.9 <= self.forgetting <= 1.0:
@@ -62,6 +98,9 @@ class RlsConfig:
             raise ValueError("error_window and init_samples must be >= 1")
         if self.trace_max <= 0:
             raise ValueError("trace_max must be positive")
+        if not self.prior_share >= 0 or self.prior_every < 1:
+            raise ValueError(f"prior_share must be >= 0 and prior_every >= 1, got {self.prior_share}, "
+                             f"{self.prior_every}")
 
 
 class WeightedRls:
@@ -88,6 +127,7 @@ class WeightedRls:
         self._eye = np.eye(p)
         self._group_starts: np.ndarray | None = None  # see set_groups
         self._one_cell_groups = False  # see set_groups
+        self._since_prior = np.zeros(n, dtype=np.int64)  # learning samples since the last prior step
 
     def set_groups(self, sizes) -> None:
         """Cells in consecutive groups of ``sizes`` (independent packs side by side, e.g. the batch's
@@ -155,6 +195,11 @@ class WeightedRls:
             w = run & self.adapting
             if any_cell(w):
                 self._rls_step(phi, e, w, lam)
+                if cfg.prior_share > 0:
+                    self._since_prior += w
+                    due = self._since_prior >= cfg.prior_every
+                    if any_cell(due):
+                        self._prior_step(due)
         if all_cells(self.initialised):  # every cell running (the usual sample): no NaN to put in
             return e
         return np.where(self.initialised | init_now, e, np.nan) if init_now is not None else np.where(self.initialised, e, np.nan)
@@ -207,6 +252,34 @@ class WeightedRls:
         if any_cell(over):
             P *= np.where(over, self.config.trace_max / np.where(tr > 0, tr, 1.0), 1.0)
 
+    def prior_information(self, cells: np.ndarray) -> np.ndarray:
+        """``Pi^-1`` (its diagonal, (n, p)) of the selected cells (lambda < 1): ``prior_share / (1 -
+        lambda) e``, e the block start's mean column energy (module docstring), floored as the
+        block ridge is."""
+        cfg = self.config
+        lam = cfg.forgetting
+        n = self._init_count[cells].astype(float)
+        weight = (1.0 - lam ** n) / (1.0 - lam)  # sum_k lambda^(n-k) over the block: what diag(R) sums
+        energy = np.einsum("nii->ni", self._R[cells]) / np.maximum(weight, 1.0)[:, None]
+        floor = np.maximum(energy.sum(axis=1) / self.n_params, 1e-300)[:, None] * 1e-3
+        return cfg.prior_share / (1.0 - lam) * np.maximum(energy, floor)
+
+    def _prior_step(self, due: np.ndarray) -> None:
+        """The stabilised-forgetting step of the ``due`` cells (module docstring): the prior's
+        information of the last ``prior_every`` samples added, theta pulled toward ``theta_ref``.
+        Without forgetting (lambda = 1) the prior term ``(1 - lambda) Pi^-1`` is 0: nothing to do."""
+        cfg = self.config
+        idx = np.flatnonzero(due)
+        self._since_prior[idx] = 0
+        if cfg.forgetting >= 1.0:
+            return
+        a = (1.0 - cfg.forgetting ** cfg.prior_every) * self.prior_information(idx)  # diag of A
+        P = np.moveaxis(self._pt[:, :, idx], 2, 0)  # (n, p, p)
+        P_new = np.linalg.solve(self._eye + P * a[:, None, :], P)  # (I + P A)^-1 P
+        P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+        self.theta[idx] += np.einsum("nij,nj->ni", P_new, a * (self.theta_ref[idx] - self.theta[idx]))
+        self._pt[:, :, idx] = np.moveaxis(P_new, 0, 2)
+
     def pseudo_update(self, h: np.ndarray, y: np.ndarray, mask: np.ndarray) -> None:
         """A prior as a pseudo-measurement y = h' theta (no forgetting, no error window)."""
         run = mask & self.initialised
@@ -233,6 +306,7 @@ class WeightedRls:
         self.initialised[cells] = False
         self.theta[cells] = 0.0
         self.P[cells] = 0.0
+        self._since_prior[cells] = 0
 
     def restart(self, cells: np.ndarray) -> None:
         """Forget the selected cells' estimate and start a fresh initialisation block."""
@@ -283,6 +357,7 @@ class WeightedRls:
             "err_head": (np.array(self._err_head) if self._group_starts is None
                          else self._err_head[self._group_of].copy()),
             "err_count": self._err_count.copy(),
+            "since_prior": self._since_prior.copy(),
         }
 
     def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
@@ -303,6 +378,8 @@ class WeightedRls:
         self._err2 = np.array(s["err2"], dtype=float)
         self._err_head = int(s["err_head"])
         self._err_count = np.array(s["err_count"], dtype=np.int64)
+        # (a state saved before stabilised forgetting existed: its first step a full period on)
+        self._since_prior = np.array(s.get("since_prior", np.zeros(n)), dtype=np.int64)
 
 
 def _one_cell_gain_terms(pt: np.ndarray, phi: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:
