@@ -174,9 +174,11 @@ def test_a_logging_gap_is_rested_over_and_no_window_spans_it(tmp_path, nmc_like_
 
 
 def test_a_time_jump_of_a_file_at_its_own_step_is_rested_over_too(tmp_path, nmc_like_ocv):
-    """Logged at 1 s, the file is not resampled and has no filled bins: its time axis jumps by the hour."""
+    """Logged at 1 s, its time axis jumping by the hour: put on the 1 s grid as the same drive logged finer is
+    (data.py, "Resampling" 5.), the hour's bins marked unlogged, and rested over the same."""
     rec, soc_at = _gap_recording(tmp_path, nmc_like_ocv, step_s=1.0)
-    assert not rec.filled.any() and np.max(np.diff(rec.time_s)) == GAP_S + 1.0
+    assert np.count_nonzero(rec.filled) == GAP_S and np.all(rec.filled[int(GAP_AT_S):int(GAP_AT_S + GAP_S)])
+    assert np.max(np.diff(rec.time_s)) == 1.0
     res = _run(rec, nmc_like_ocv)
     assert res.logging_gaps == 1 and res.rested_s == GAP_S
     t = rec.time_s[np.round(res.start_s / rec.dt_s).astype(int)]  # (start_s counts samples of dt_s)
