@@ -780,11 +780,7 @@ class SocEstimator:
     def _capacity_line(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The anchor line ``s = s_0 + q / Q`` by least squares over all anchors: ``(slope, Q = 1 / slope,
         fits)``; ``fits`` where ``Q`` is finite and positive and the RMS residual is below ``capacity_max_rmse``."""
-        return self._line(self._cap)
-
-    def _line(self, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`_capacity_line` of the weighted sums ``sums`` (n, sq, ss, sqq, sqs, sss per cell)."""
-        slope, q_est, resid_var = _line_fit(sums)
+        slope, q_est, resid_var = _line_fit(self._cap)
         with np.errstate(invalid="ignore"):
             fits = np.isfinite(q_est) & (q_est > 0) & (np.sqrt(resid_var) < self.config.capacity_max_rmse)
         return slope, q_est, fits

@@ -185,8 +185,7 @@ def test_a_temperature_that_moves_20_k_during_a_drive_is_followed_by_the_ocv_tab
     cold = OcvCurve(s, 3.34 + 0.65 * s + 0.25 * s**2, 0.01 + 0 * s, capacity_discharge_ah=2.76)
     from bms_estimator.core.ocv_surface import OcvSurface
 
-    # 2 mV/K, twice the measured cells' (core.ocv_surface, item 9): not a check of one cell's tables here
-    surface = OcvSurface([warm, cold], [25.0, 5.0], check_one_cell=False)
+    surface = OcvSurface([warm, cold], [25.0, 5.0])
     n = N
     temp = 25.0 - 20.0 * np.clip(np.arange(n) / (0.5 * n), 0.0, 1.0)  # 25 -> 5 degC over the first 1.5 h
     i = pulse_current(n, 21, amp_a=4.0)

@@ -23,8 +23,7 @@ def _surface() -> OcvSurface:
     soc = np.linspace(0, 1, 101)
     curves = [OcvCurve(soc, 3.0 + 1.2 * soc - 0.15 * np.sin(3 * soc) + 0.03 * k - 0.2 * np.exp(-20 * soc))
               for k in range(3)]
-    # 30 mV apart 10 K apart, wider than the measured cells' (core.ocv_surface, item 9): not its check here
-    return OcvSurface(curves, [-10.0, 0.0, 25.0], check_one_cell=False)
+    return OcvSurface(curves, [-10.0, 0.0, 25.0])
 
 
 def _pack(n: int, seed: int):
