@@ -131,3 +131,14 @@ def hostile_stream(seed: int, amp: float, noise_v: float, noise_a: float, dropou
         i = current[k] + noise_a * rng.standard_normal() if rng.random() > dropout / 10 else np.nan
         yield i, v, rng.random(cells) >= dropout
 
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    """Figures a test reports for CI's log (``record_property("summary_line", text)``), printed in the
+    run's summary.  Not printed from the test itself: with pytest-xdist (``scripts/test`` runs the
+    suite on every core) a test runs in a worker whose output is captured; its properties reach the
+    controller with its report."""
+    for report in terminalreporter.getreports("passed"):
+        for name, value in report.user_properties:
+            if name == "summary_line":
+                terminalreporter.write_line(str(value))
