@@ -45,6 +45,7 @@ import can
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
+from .. import aio
 from ..errors import one_line_error
 from .receiver import RxFailure, RxThread
 
@@ -252,7 +253,7 @@ class ResilientBus:
     async def wait_open(self, timeout: float | None = None) -> bool:
         """Wait until a bus is open (e.g. before sending the first frames)."""
         try:
-            await asyncio.wait_for(self._opened.wait(), timeout)
+            await aio.wait_for(self._opened.wait(), timeout)
             return True
         except asyncio.TimeoutError:
             return False

@@ -29,6 +29,8 @@ import threading
 import can
 import structlog
 
+from .. import aio
+
 __all__ = ["RxFailure", "RxThread"]
 
 log = structlog.get_logger(__name__)
@@ -154,4 +156,4 @@ class RxThread:
             if timeout is None:
                 await self._wake.wait()
             else:
-                await asyncio.wait_for(self._wake.wait(), timeout)
+                await aio.wait_for(self._wake.wait(), timeout)

@@ -35,6 +35,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from .. import aio
 from ..mosquitto import Mosquitto, MosquittoError, find_mosquitto, free_port
 
 __all__ = ["BrokerInfo", "BrokerUnavailable", "find_mosquitto", "free_port", "open_broker"]
@@ -111,7 +112,7 @@ def serve_embedded(port: int) -> None:
         print(_READY, flush=True)
         await asyncio.to_thread(sys.stdin.read)  # returns at EOF: the parent closed it or exited
         with contextlib.suppress(Exception):
-            await asyncio.wait_for(broker.shutdown(), 5)
+            await aio.wait_for(broker.shutdown(), 5)
 
     asyncio.run(main())
 

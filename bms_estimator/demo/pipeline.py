@@ -47,6 +47,7 @@ from typing import Any
 import can
 import numpy as np
 
+from .. import aio
 from ..analysis import PARAM_KEYS, reference_capacity
 from ..core.ocv import OcvCurve
 from ..data import load_recording
@@ -468,7 +469,7 @@ async def run_pipeline(setup: PackSetup, *, broker: Any = None, speed: float = m
             state.status = "MQTT off: fed from the service directly"
         stop = asyncio.Event()
         svc_task = asyncio.create_task(svc.run(stop), name="bms-demo-service")
-        await asyncio.wait_for(svc.ready.wait(), 15)
+        await aio.wait_for(svc.ready.wait(), 15)
 
         fa = setup.frames
 
@@ -508,7 +509,7 @@ async def run_pipeline(setup: PackSetup, *, broker: Any = None, speed: float = m
                     await feeder
             stop.set()
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(svc_task, 30)
+                await aio.wait_for(svc_task, 30)
         final_t = record.t_s[record.rows - 1] if record.rows else math.nan
         if watcher is not None:
             # the service published its final states on shutdown: wait until they are all here

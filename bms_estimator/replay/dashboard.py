@@ -35,6 +35,7 @@ from rich.console import Group, RenderableType
 from rich.table import Table
 from rich.text import Text
 
+from .. import aio
 from ..service.schema import CELL_KEYS, PACK_SOX_FIELDS
 
 __all__ = [
@@ -413,7 +414,7 @@ async def run_dashboard(
                 state.connected, state.status = False, f"broker unreachable ({exc}); retrying"
                 state.last_error = str(exc)
                 with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(stop.wait(), timeout=delay)
+                    await aio.wait_for(stop.wait(), timeout=delay)
                 delay = min(delay * 2.0, reconnect_max_s)
             finally:
                 state.connected = False

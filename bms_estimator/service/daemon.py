@@ -68,6 +68,7 @@ from ..core.ocv import OcvCurve
 from ..core.ocv_surface import OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
+from .. import aio
 from ..errors import DataError
 from . import systemd
 from .config import ConfigError, ServiceConfig
@@ -588,7 +589,7 @@ class Service:
             task.cancel()
         for task in background:
             with contextlib.suppress(BaseException):
-                await asyncio.wait_for(task, 2.0)
+                await aio.wait_for(task, 2.0)
         if self.health is not None:
             with contextlib.suppress(Exception):
                 await self.health.close()

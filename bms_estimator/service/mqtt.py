@@ -32,7 +32,7 @@ import aiomqtt
 import numpy as np
 import structlog
 
-from .. import package_version
+from .. import aio, package_version
 from ..jsonsafe import to_jsonable
 from . import schema
 from .mqtt_client import MqttClient
@@ -314,12 +314,13 @@ class MqttPublisher:
         failures = 0
         try:
             while not self._closing:
+                aio.raise_if_cancelling()  # one a library's wait swallowed (:mod:`bms_estimator.aio`)
                 try:
                     was_connected = await self._session()
                 except asyncio.CancelledError:
                     raise
                 except Exception as exc:  # noqa: BLE001 - keep going whatever happens
-                    if _cancelling():
+                    if aio.cancelling():
                         raise asyncio.CancelledError from exc
                     log.exception("mqtt session error", error=repr(exc))
                     was_connected = False
@@ -331,7 +332,7 @@ class MqttPublisher:
                 self._wakeup.clear()
                 with contextlib.suppress(asyncio.TimeoutError):
                     # Woken early only by close() (submissions are ignored here).
-                    await asyncio.wait_for(self._wait_closing(), timeout=delay)
+                    await aio.wait_for(self._wait_closing(), timeout=delay)
         finally:
             self._set_connected(False)
             self._done.set()
@@ -355,12 +356,12 @@ class MqttPublisher:
         if task is None or task.done() or task is asyncio.current_task() or done is None:
             return
         try:
-            await asyncio.wait_for(done.wait(), timeout=timeout_s)
+            await aio.wait_for(done.wait(), timeout=timeout_s)
         except asyncio.TimeoutError:
             log.warning("mqtt publisher did not stop in time; cancelling")
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
-                await asyncio.wait_for(asyncio.shield(done.wait()), timeout=2.0)
+                await aio.wait_for(asyncio.shield(done.wait()), timeout=2.0)
 
     # ----------------------------------------------------------------- session
     def _tls_context(self) -> ssl.SSLContext | None:
@@ -413,7 +414,7 @@ class MqttPublisher:
                 log.info("mqtt connected", host=cfg.host, port=cfg.port, tls=cfg.tls.enabled)
                 await self._serve(client)
         except aiomqtt.MqttError as exc:
-            if _cancelling():
+            if aio.cancelling():
                 # e.g. the disconnect in __aexit__ timed out while we were being
                 # cancelled: never turn a cancellation into a reconnect.
                 raise asyncio.CancelledError from exc
@@ -452,6 +453,7 @@ class MqttPublisher:
                 await self._publish_discovery(client)
             listener = asyncio.create_task(self._listen(client))
             while True:
+                aio.raise_if_cancelling()  # one aiomqtt's publish swallowed: never block on it again
                 if listener.done():
                     listener.result()  # re-raise MqttError on a lost connection
                     raise aiomqtt.MqttError("message listener ended")
@@ -478,7 +480,7 @@ class MqttPublisher:
         except asyncio.CancelledError:
             # Cancelled (not close()): best effort to tell the world we are gone.
             with contextlib.suppress(BaseException):
-                await asyncio.wait_for(
+                await aio.wait_for(
                     client.publish(self.availability_topic, "offline", qos=_CONTROL_QOS, retain=True),
                     timeout=1.0,
                 )
@@ -627,7 +629,3 @@ def _text(payload: Any) -> str:
     return "" if payload is None else str(payload)
 
 
-def _cancelling() -> bool:
-    """True while the current task has a pending cancellation request."""
-    task = asyncio.current_task()
-    return bool(task is not None and getattr(task, "cancelling", lambda: 0)())

@@ -1,0 +1,45 @@
+"""asyncio waits that never lose a cancellation.
+
+On Python 3.11 ``asyncio.wait_for`` can swallow the cancellation of the task that calls it:
+a ``cancel()`` that arrives in the same loop iteration as the awaited thing completes is
+dropped, and ``wait_for`` returns the result as if nothing had happened (CPython gh-86296,
+gh-107547; 3.12 fixed it by rewriting ``wait_for`` on ``asyncio.timeout``).  The task's
+cancel request stays counted (``Task.cancelling()``) but no ``CancelledError`` is raised, so a
+loop that waits again blocks for good: the service's MQTT publisher, cancelled right after
+it connected, hung in 1-2 of 30 tries on this 2-core machine under load, and a stop that
+awaits such a task waits for ever (before the final state is saved).
+
+:func:`wait_for` is ``asyncio.wait_for`` done the 3.12 way, on ``asyncio.timeout``, which
+delivers every cancellation.  Waits inside libraries (aiomqtt's publish and disconnect use
+``asyncio.wait_for``) can still swallow one: a loop calls :func:`raise_if_cancelling` before
+it blocks again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable
+from typing import TypeVar
+
+__all__ = ["cancelling", "raise_if_cancelling", "wait_for"]
+
+T = TypeVar("T")
+
+
+async def wait_for(aw: Awaitable[T], timeout: float | None) -> T:
+    """Await ``aw``, raising ``TimeoutError`` after ``timeout`` seconds (None: no limit); a
+    cancellation of the caller is always raised, whenever it arrives."""
+    async with asyncio.timeout(timeout):
+        return await aw
+
+
+def cancelling() -> bool:
+    """True while the current task has a cancellation request pending or swallowed."""
+    task = asyncio.current_task()
+    return task is not None and task.cancelling() > 0
+
+
+def raise_if_cancelling() -> None:
+    """Raise the ``CancelledError`` that a wait inside a library may have swallowed."""
+    if cancelling():
+        raise asyncio.CancelledError
