@@ -396,6 +396,7 @@ async def run_dashboard(
                 async with client:
                     for topic in state.subscriptions():
                         await client.subscribe(topic, qos=0)
+                    aio.raise_if_cancelling()  # one aiomqtt's subscribe swallowed: never wait on it
                     state.connected, state.status = True, "connected"
                     state.ever_connected = True
                     delay = reconnect_min_s
