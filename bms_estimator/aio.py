@@ -6,8 +6,9 @@ dropped, and ``wait_for`` returns the result as if nothing had happened (CPython
 gh-107547; 3.12 fixed it by rewriting ``wait_for`` on ``asyncio.timeout``).  The task's
 cancel request stays counted (``Task.cancelling()``) but no ``CancelledError`` is raised, so a
 loop that waits again blocks for good: the service's MQTT publisher, cancelled right after
-it connected, hung in 1-2 of 30 tries on this 2-core machine under load, and a stop that
-awaits such a task waits for ever (before the final state is saved).
+it connected, hung within 30 such cancels in each of 5 runs on this 2-core machine under load
+(at the 1st to 18th), and a stop that awaits such a task waits for ever (before the final
+state is saved).
 
 :func:`wait_for` is ``asyncio.wait_for`` done the 3.12 way, on ``asyncio.timeout``, which
 delivers every cancellation.  Waits inside libraries (aiomqtt's publish and disconnect use

@@ -132,7 +132,6 @@ def hostile_stream(seed: int, amp: float, noise_v: float, noise_a: float, dropou
         yield i, v, rng.random(cells) >= dropout
 
 
-
 def pytest_terminal_summary(terminalreporter) -> None:
     """Figures a test reports for CI's log (``record_property("summary_line", text)``), printed in the
     run's summary.  Not printed from the test itself: with pytest-xdist (``scripts/test`` runs the

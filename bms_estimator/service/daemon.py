@@ -58,6 +58,7 @@ import numpy as np
 import structlog
 from pydantic import ValidationError
 
+from .. import aio
 from ..can.bus import BusConfig, ResilientBus, open_bus
 from ..can.dbc import load_db
 from ..can.decoder import FrameDecoder
@@ -68,7 +69,6 @@ from ..core.ocv import OcvCurve
 from ..core.ocv_surface import OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
-from .. import aio
 from ..errors import DataError
 from . import systemd
 from .config import ConfigError, ServiceConfig

@@ -627,5 +627,3 @@ def _text(payload: Any) -> str:
     if isinstance(payload, (bytes, bytearray)):
         return bytes(payload).decode("utf-8", "replace")
     return "" if payload is None else str(payload)
-
-
