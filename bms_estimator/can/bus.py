@@ -380,9 +380,7 @@ class ResilientBus:
                 try:
                     await asyncio.shield(self._ensure_open_task())
                 except asyncio.CancelledError:
-                    me = asyncio.current_task()
-                    cancelling = me.cancelling() if me is not None and hasattr(me, "cancelling") else 1
-                    if self._closed and not cancelling:  # the open task was cancelled by close()
+                    if self._closed and not aio.cancelling():  # the open task was cancelled by close()
                         raise RuntimeError("bus closed") from None
                     raise
                 continue
