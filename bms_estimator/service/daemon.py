@@ -38,6 +38,13 @@ it, so ``state.max_age_s`` measures how old the *estimate* is.
 Lifecycle: :meth:`Service.run` starts the bus (it opens and reopens itself in the
 background), sends ``READY=1`` at once, runs until ``stop_event`` is set (or the task is cancelled), then sends
 ``STOPPING=1``, saves the state, publishes ``offline`` and closes the bus.
+
+Reload (SIGHUP, ``systemctl reload``): :func:`serve` builds a new :class:`Service` from the
+configuration as it is now, in a worker thread while the running one goes on. One that does not
+build (:class:`ConfigError`, :class:`DataError`, or anything else) is logged with every problem and
+the running service keeps its configuration. Otherwise the running service stops as on SIGTERM but
+says ``RELOADING=1`` (the state saved), and the new one starts from that state (``READY=1``); a stop
+requested meanwhile ends there instead.
 """
 
 from __future__ import annotations
@@ -69,7 +76,7 @@ from ..core.ocv import OcvCurve
 from ..core.ocv_surface import OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
-from ..errors import DataError
+from ..errors import BmsEstimatorError, DataError, one_line_error
 from . import systemd
 from .config import ConfigError, ServiceConfig
 from .health import HealthServer, Heartbeat
@@ -79,7 +86,7 @@ from .pipeline import Pipeline, Snapshot
 from .schema import EstimatorState
 from .state import _move_aside, estimator_state, load_state, resume_sox, save_state
 
-__all__ = ["DEFAULT_OCV_CELL", "Service", "ServiceMetrics", "run_service"]
+__all__ = ["DEFAULT_OCV_CELL", "Service", "ServiceMetrics", "run_service", "serve"]
 
 log = structlog.get_logger("bms.daemon")
 
@@ -228,6 +235,7 @@ class Service:
         self._save_task: asyncio.Task[None] | None = None
         self._no_input_logged = False
         self._last_frame_mono: float | None = None
+        self.reloading = False  # set by serve(): the stop ahead is a reload (RELOADING=1, not STOPPING=1)
 
     @property
     def estimator(self) -> SocEstimator:
@@ -567,8 +575,11 @@ class Service:
             await self._shutdown(consume, background)
 
     async def _shutdown(self, consume: asyncio.Task[None] | None, background: list[asyncio.Task[Any]]) -> None:
-        systemd.notify_stopping("stopping: saving state")
-        log.info("service stopping")
+        if self.reloading:
+            systemd.notify_reloading("reloading the configuration: saving state")
+        else:
+            systemd.notify_stopping("stopping: saving state")
+        log.info("service stopping", reload=self.reloading)
         if consume is not None and not consume.done():
             consume.cancel()
             with contextlib.suppress(BaseException):
@@ -603,6 +614,50 @@ def _rested_until(meta: dict[str, Any], saved_at: float) -> float:
     if isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r):
         return max(float(r), saved_at)
     return saved_at
+
+
+async def serve(svc: Service, stop: asyncio.Event, reload: asyncio.Event, rebuild: Callable[[], Service], *,
+                config: str | None = None, reloaded: Callable[[Service], None] | None = None) -> Service:
+    """Run ``svc`` until ``stop`` is set, reloading each time ``reload`` is set (module docstring):
+    ``rebuild()`` (run in a worker thread) makes the new service from ``config`` (the file, named in
+    the log) or raises; ``reloaded(new)`` is called before the new one runs (the logging settings).
+    Returns the service that ran last; raises what its :meth:`Service.run` raised."""
+    while True:
+        run_stop = asyncio.Event()
+        task = asyncio.create_task(svc.run(run_stop), name="bms-service")
+        new: Service | None = None
+        while new is None and not stop.is_set():
+            stopped = asyncio.create_task(stop.wait())
+            hup = asyncio.create_task(reload.wait())
+            try:
+                await asyncio.wait({task, stopped, hup}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                stopped.cancel()
+                hup.cancel()
+            if task.done():
+                task.result()
+                return svc
+            if stop.is_set():
+                break
+            reload.clear()
+            log.info("reloading the configuration")
+            try:
+                new = await asyncio.to_thread(rebuild)
+            except BmsEstimatorError as exc:
+                log.error("configuration not reloaded: the service goes on with the one it has",
+                          config=config, error=exc.header, problems=exc.problems)
+            except Exception as exc:  # noqa: BLE001 - a reload must never end a running service
+                log.error("configuration not reloaded: the service goes on with the one it has",
+                          config=config, error=one_line_error(exc))
+        svc.reloading = new is not None and not stop.is_set()
+        run_stop.set()
+        await task
+        if not svc.reloading:
+            return svc
+        svc = new
+        if reloaded is not None:
+            reloaded(svc)
+        log.info("configuration reloaded", config=config, n_cells=svc.n_cells)
 
 
 class _WatchdogGate:
