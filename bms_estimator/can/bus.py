@@ -296,7 +296,9 @@ class ResilientBus:
         self._loop = loop
         while not self._closed:
             try:
-                bus = self._factory(self.cfg)
+                bus = await self._call_factory()
+            except asyncio.CancelledError:
+                raise
             except Exception as exc:  # can.CanError, OSError, ValueError, ImportError of a driver...
                 self.counters.open_failures += 1
                 self.last_error = one_line_error(exc)
@@ -324,6 +326,40 @@ class ResilientBus:
             self._opened.set()
             log.info("can.bus.open", interface=self.cfg.interface, channel=self.cfg.channel, opens=self.counters.opens)
             return
+
+    async def _call_factory(self) -> can.BusABC:
+        """``bus_factory(cfg)`` in a daemon thread of its own: an adapter whose open blocks (python-can's
+        slcan sleeps 2 s in its constructor; a wedged driver for ever) holds neither the event loop
+        (ticks, watchdog, signals) nor a stop. Cancelled meanwhile (:meth:`close`), the bus it returns
+        late is shut down; a wedged open is left behind in its thread, which never holds up the exit."""
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[can.BusABC] = loop.create_future()
+
+        def deliver(bus: can.BusABC | None, exc: BaseException | None) -> None:
+            if done.cancelled():
+                if bus is not None:
+                    with contextlib.suppress(Exception):
+                        bus.shutdown()
+            elif exc is not None:
+                done.set_exception(exc)
+            else:
+                done.set_result(bus)
+
+        def work() -> None:
+            bus, exc = None, None
+            try:
+                bus = self._factory(self.cfg)
+            except BaseException as e:  # noqa: BLE001 - handed to the loop
+                exc = e
+            try:
+                loop.call_soon_threadsafe(deliver, bus, exc)
+            except RuntimeError:  # the loop is gone
+                if bus is not None:
+                    with contextlib.suppress(Exception):
+                        bus.shutdown()
+
+        threading.Thread(target=work, name="bms-can-open", daemon=True).start()
+        return await done
 
     def _count_rx_drop(self) -> None:
         self.counters.rx_dropped += 1
@@ -362,9 +398,8 @@ class ResilientBus:
         """The frames received so far (at least one, at most ``limit``, oldest first);
         reopens the bus as often as needed.
 
-        Opening runs in the event loop (``can.Bus(...)`` is fast for socketcan,
-        virtual and udp_multicast; a slow USB/serial adapter would stall the
-        loop for its handshake).
+        Opening runs in a thread of its own (:meth:`_call_factory`), so a slow
+        USB/serial adapter's handshake does not stall the loop.
 
         Raises ``asyncio.CancelledError`` when cancelled and ``RuntimeError`` after :meth:`close`.
         """

@@ -419,6 +419,40 @@ def test_frames_are_read_while_the_event_loop_is_blocked():
     assert counters.rx_dropped == 0 and counters.rx_frames == n
 
 
+def test_a_bus_open_that_blocks_holds_neither_the_event_loop_nor_a_stop():
+    """Opening runs off the event loop: an adapter whose open blocks (python-can's slcan sleeps 2 s
+    in its constructor; a wedged USB driver for ever) held the loop, so no tick, no watchdog ping and
+    no SIGTERM was served until it returned. Now close() ends while the open still blocks, and the
+    bus that open returns late is shut down, never used."""
+    import threading
+
+    entered, release = threading.Event(), threading.Event()
+    returned: list[can.BusABC] = []
+
+    def factory(cfg: BusConfig) -> can.BusABC:
+        entered.set()
+        release.wait(3.0)  # bounded, so that the code before this fix fails rather than hangs
+        bus = VirtualBus(channel=cfg.channel)
+        returned.append(bus)
+        return bus
+
+    async def main():
+        rx = ResilientBus(fast(BusConfig(interface="virtual", channel=channel())), bus_factory=factory)
+        await rx.start()
+        while not entered.is_set():
+            await asyncio.sleep(0.005)
+        await rx.close()
+        closed_while_blocked = not returned
+        release.set()
+        while not (returned and returned[0]._is_shutdown):
+            await asyncio.sleep(0.005)
+        return closed_while_blocked, rx
+
+    closed_while_blocked, rx = run(main(), timeout=20)
+    assert closed_while_blocked, "close() waited for the blocked open"
+    assert rx.state == "closed" and not rx.is_open and rx.counters.opens == 0
+
+
 def test_close_ends_a_pending_receive():
     async def main():
         rx = ResilientBus(fast(BusConfig(interface="virtual", channel=channel())))
