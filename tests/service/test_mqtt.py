@@ -689,3 +689,46 @@ def test_cell_payload_texts_are_the_per_cell_dumps_byte_for_byte():
     check()
     with pytest.raises(ValueError, match="expected 3"):
         schema.cell_payload_texts(0.0, {"soc": np.zeros(2)}, 3)
+
+
+def test_a_stop_while_a_broker_does_not_answer_the_connect_closes_the_socket():
+    """A broker that accepts the TCP connection and never answers CONNECT (hung, or a black hole
+    behind a NAT): a stop cancels the connect (``close``'s timeout). aiomqtt then left paho's socket
+    open and watched by the loop, its keepalive task running: kept until the keepalive expired, and
+    when the peer reset it, ``on_disconnect`` raised ``CancelledError`` from the cancelled
+    ``_connected`` future inside a loop callback ("Exception in callback ...", a traceback in the
+    journal; after a reload the loop lives on). Now the socket is closed at the cancel: the peer sees
+    EOF, and its reset later reaches nothing."""
+    import socket
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        errors: list[dict] = []
+        loop.set_exception_handler(lambda _loop, ctx: errors.append(ctx))
+        srv = socket.socket()
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(1)
+        srv.setblocking(False)
+        pub = MqttPublisher(mqtt_cfg(srv.getsockname()[1], discovery=False, timeout_s=30.0, keepalive=30),
+                            "hungbroker", 1)
+        task = asyncio.create_task(pub.run())
+        conn, _ = await asyncio.wait_for(loop.sock_accept(srv), 5)
+        conn.setblocking(False)
+        first = await asyncio.wait_for(loop.sock_recv(conn, 4096), 5)
+        assert first[:1] == b"\x10"  # the CONNECT packet: the client waits for its CONNACK now
+        await pub.close(timeout_s=0.05)  # a stop: the publisher does not end in time and is cancelled
+        assert task.done()
+        try:
+            eof = await asyncio.wait_for(loop.sock_recv(conn, 4096), 3)
+        except TimeoutError:
+            eof = None
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+        conn.close()  # a reset
+        srv.close()
+        for _ in range(20):  # let a callback on the client's socket run, if one is still registered
+            await asyncio.sleep(0.01)
+        return eof, errors
+
+    eof, errors = run_async(main())
+    assert eof == b"", "the client's socket stayed open after the cancelled connect"
+    assert errors == [], [e.get("message") for e in errors]
