@@ -18,7 +18,9 @@ systemd-networkd - and is not passed).
 * failures: a ``can.CanError``/``OSError`` from receiving (or a fatal
   ``OSError`` from sending: ENODEV, ENETDOWN, ENXIO, EBADF) closes the bus and
   reopens it with exponential back-off (``reopen_initial_s`` doubling up to
-  ``reopen_max_s``; back-off resets once the new bus delivered a frame). An
+  ``reopen_max_s``; back-off resets once the new bus delivered a frame); any
+  other failed send, whatever it raises, is counted (``tx_errors``) and logged, and
+  the sender thread goes on with the next frame. An
   interface that disappears and comes back (USB adapter, ``ip link set can0
   down/up``) is survived without restarting the service.
 * silence: no frame for ``silence_reopen_s`` (default 5 s) reopens the bus the
@@ -503,7 +505,8 @@ class ResilientBus:
                     bus.send(msg, timeout=self.cfg.tx_timeout_s)
                     self.counters.tx_frames += 1
                     fails_logged = 0
-                except (can.CanError, OSError, ValueError) as exc:
+                except Exception as exc:  # noqa: BLE001 - python-can's errors, OSError, and whatever a driver raises:
+                    # the thread must outlive every failed send, or no frame goes out again
                     self.counters.tx_errors += 1
                     if fails_logged < 3:  # do not flood the log while a bus is down
                         fails_logged += 1

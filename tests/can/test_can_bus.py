@@ -453,6 +453,48 @@ def test_a_bus_open_that_blocks_holds_neither_the_event_loop_nor_a_stop():
     assert rx.state == "closed" and not rx.is_open and rx.counters.opens == 0
 
 
+class _SendFailBus(VirtualBus):
+    """A virtual bus whose send() raises the given exceptions, one per call, then sends."""
+
+    def __init__(self, *a, failures, **kw):
+        super().__init__(*a, **kw)
+        self.failures = list(failures)
+
+    def send(self, msg, timeout=None):
+        if self.failures:
+            raise self.failures.pop(0)
+        super().send(msg, timeout)
+
+
+def test_a_send_that_raises_anything_is_counted_and_sending_goes_on():
+    """The sender thread caught python-can's errors, OSError and ValueError only: anything else a driver
+    raises (a bug in it, a library of its own: here RuntimeError) ended the thread with a traceback, and
+    no CAN frame went out again until a restart (queued, then dropped as the queue filled). Now every
+    failed send is counted and logged, and the next frame goes out."""
+    ch = channel()
+    failures = [can.CanOperationError("No buffer space available", error_code=errno.ENOBUFS),
+                RuntimeError("driver bug"), TypeError("driver bug")]
+
+    async def main():
+        listener = can.Bus(interface="virtual", channel=ch)
+        try:
+            cfg = fast(BusConfig(interface="virtual", channel=ch))
+            async with ResilientBus(cfg, bus_factory=lambda c: _SendFailBus(channel=c.channel, failures=failures)) as rx:
+                assert await rx.wait_open(5)
+                for k in range(4):
+                    assert rx.send(own_current_frame(DB, float(k)))
+                drained = await rx.drain(5.0)
+                got = listener.recv(1.0)
+                return drained, got, rx.counters
+        finally:
+            listener.shutdown()
+
+    drained, got, counters = run(main())
+    assert drained, "the sender thread stopped sending"
+    assert got is not None and FrameDecoder(DB, "default", 1).decode(got)[0].value == 3.0
+    assert counters.tx_errors == 3 and counters.tx_frames == 1
+
+
 def test_close_ends_a_pending_receive():
     async def main():
         rx = ResilientBus(fast(BusConfig(interface="virtual", channel=channel())))
