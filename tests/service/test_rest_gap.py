@@ -244,3 +244,34 @@ def test_a_wall_clock_step_during_a_drive_is_not_rested_over(tmp_path, step_s):
     svc.clock_guard.boot_clock = _Clocks(wall_s=0.0).boot
     asyncio.run(svc.feed(stepped))
     assert svc.pipeline.counters.rests == 1 and svc.pipeline.counters.clock_steps == 0
+
+
+def test_a_clock_that_comes_back_behind_the_saved_state_resumes_it(tmp_path):
+    """A gateway without a real-time clock that loses power (the ignition cut) boots with the clock its
+    fake-hwclock or systemd-timesyncd saved last, up to their save period (an hour) behind the state the
+    service saved every minute, and NTP is not there yet (parked underground). The state was then set
+    aside as "saved in the future (clock skew)" when more than 5 min ahead, and the service started
+    fresh: the learnt capacity, resistances, SOH and energy counters gone with it. Now a state ahead of
+    the clock by up to ``state.max_age_s`` (the bound a past state has) is resumed, not rested (its age
+    is unknown), and that is logged; one further ahead is still set aside."""
+    i, v, _, rows = _trip()
+    cfg = _cfg(tmp_path)
+    svc = Service(cfg)
+    svc.pipeline.hooks.clear()
+    for m in _frames(i, v, rows[:600]):
+        svc.pipeline.process_frame(m)
+    state, meta, _ = svc._state_to_save()  # noqa: SLF001 - what the daemon saves
+    save_state(Path(cfg.state.path), state, meta, saved_at=time.time() + 3000)
+    resumed = Service(cfg)
+    with capture_logs() as logs:
+        assert resumed.restore(), [r["event"] for r in logs]
+    assert resumed.pipeline.counters.rests == 0
+    np.testing.assert_array_equal(resumed.estimator.capacity_ah, svc.estimator.capacity_ah)
+    np.testing.assert_array_equal(resumed.pipeline.sox.energy_discharged_wh, svc.pipeline.sox.energy_discharged_wh)
+    behind = [r for r in logs if "behind the saved state" in r["event"]]
+    assert len(behind) == 1 and behind[0]["behind_s"] == pytest.approx(3000, abs=60)
+
+    # a clock further behind than max_age_s: as a state older than it, set aside
+    save_state(Path(cfg.state.path), state, meta, saved_at=time.time() + cfg.state.max_age_s + 600)
+    assert not Service(cfg).restore()
+    assert len(list(tmp_path.glob("state.npz.stale-*"))) == 1
