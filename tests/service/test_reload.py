@@ -118,23 +118,42 @@ def test_sighup_with_a_bad_config_keeps_running_and_a_good_one_reloads(daemon):
                 and "not reloaded" not in e.get("event", "")], logs.text
 
 
-def test_a_stop_during_a_reload_ends_the_service_without_starting_the_new_one(tmp_path):
-    """SIGTERM while the new configuration is being built: the running service stops (state saved,
-    STOPPING, not RELOADING) and the new one never runs; a second stop changes nothing."""
+def test_systemd_hears_reloading_then_ready_and_a_stop_during_a_reload_stops(tmp_path, monkeypatch):
+    """In process, with a notify socket: a reload says RELOADING=1 (never STOPPING=1, which would tell
+    systemd the unit is going down) and then READY=1 from the new service, which resumes the state the
+    old one saved. SIGTERM while the next configuration is being built: the running service stops
+    (STOPPING=1, state saved) and the new one never runs; a second stop changes nothing."""
     import asyncio
+    import socket
 
     from service_helpers import run_async, wait_until
     from test_daemon import make_cfg
 
     from bms_estimator.service.daemon import Service, serve
 
+    sock_path = tmp_path / "notify.sock"
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(str(sock_path))
+    srv.setblocking(False)
+    monkeypatch.setenv("NOTIFY_SOCKET", str(sock_path))
+    monkeypatch.delenv("WATCHDOG_USEC", raising=False)
+    got: list[str] = []
+
+    def said() -> list[str]:
+        while True:
+            try:
+                got.append(srv.recv(4096).decode())
+            except BlockingIOError:
+                return [m.splitlines()[0] for m in got]
+
     cfg = make_cfg(tmp_path, f"bmsr-{uuid.uuid4().hex[:8]}", health={"enabled": False})
     building, release = threading.Event(), threading.Event()
     built: list[Service] = []
 
     def rebuild() -> Service:
-        building.set()
-        release.wait(10)
+        if built:  # the second reload: a stop arrives while it is built
+            building.set()
+            release.wait(10)
         built.append(Service(cfg))
         return built[-1]
 
@@ -144,14 +163,25 @@ def test_a_stop_during_a_reload_ends_the_service_without_starting_the_new_one(tm
         task = asyncio.create_task(serve(svc, stop, reload, rebuild))
         await wait_until(svc.ready.is_set, 10, "ready")
         reload.set()
-        await wait_until(building.is_set, 10, "the rebuild under way")
+        await wait_until(lambda: built and built[0].ready.is_set(), 10, "the reloaded service ready")
+        first = said()
+        reload.set()
+        await wait_until(building.is_set, 10, "the second rebuild under way")
         stop.set()
         stop.set()  # a second SIGTERM
         release.set()
         ended = await asyncio.wait_for(task, 15)
-        return svc, ended
+        return first, ended
 
-    svc, ended = run_async(main(), 30)
-    assert ended is svc and not svc.reloading
-    assert len(built) == 1 and built[0].bus is None  # built, never run
+    try:
+        first, ended = run_async(main(), 30)
+        last = said()[len(first):]
+    finally:
+        srv.close()
+    assert [m for m in first if m != "WATCHDOG=1" and not m.startswith("STATUS=")] == \
+        ["READY=1", "RELOADING=1", "READY=1"], first
+    assert built[0].restored  # the state the first service saved at the reload
+    assert ended is built[0] and not ended.reloading
+    assert "STOPPING=1" in last and "RELOADING=1" not in last, last
+    assert len(built) == 2 and built[1].bus is None  # built, never run
     assert load_state(cfg.state.path, pack_id=cfg.pack.pack_id, n_cells=cfg.pack.n_cells, max_age_s=None) is not None
