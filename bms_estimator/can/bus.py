@@ -513,16 +513,20 @@ class ResilientBus:
                         log.warning("can.bus.send_failed", error=repr(exc), tx_errors=self.counters.tx_errors)
                     err = getattr(exc, "errno", None) or getattr(exc, "error_code", None)
                     if err in _FATAL_TX_ERRNOS:
-                        self._request_reopen(exc)
+                        self._request_reopen(exc, bus)
             finally:
                 q.task_done()
 
-    def _request_reopen(self, exc: BaseException) -> None:
+    def _request_reopen(self, exc: BaseException, bus: can.BusABC) -> None:
+        """Reopen after ``bus`` failed a send fatally, if it is still the bus in use: one torn down
+        while the sender was inside its ``send`` (EBADF) says nothing about its successor."""
         loop = self._loop
         if loop is None or loop.is_closed():
             return
 
         def _set() -> None:
+            if self._bus is not bus:
+                return
             rx = self._rx
             if rx is not None:
                 rx.fail(exc)  # wakes a pending recv()

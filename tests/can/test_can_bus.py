@@ -495,6 +495,73 @@ def test_a_send_that_raises_anything_is_counted_and_sending_goes_on():
     assert counters.tx_errors == 3 and counters.tx_frames == 1
 
 
+class _SendBlocksUntilShutdownBus(VirtualBus):
+    """send() blocks (a full controller queue) until the bus is shut down, then fails as a socket closed
+    under it does: EBADF, one of the errors that reopen the bus."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        import threading
+
+        self.closed = threading.Event()
+        self.sending = threading.Event()
+
+    def send(self, msg, timeout=None):
+        self.sending.set()
+        self.closed.wait(5.0)
+        raise OSError(errno.EBADF, "Bad file descriptor")
+
+    def shutdown(self):
+        self.closed.set()
+        super().shutdown()
+
+
+def test_a_send_failing_on_a_bus_already_torn_down_does_not_reopen_its_successor():
+    """A bus torn down (here after silence_reopen_s without a frame) while the sender thread is inside its
+    send(): the send then fails with EBADF, and that asked for a reopen of whatever bus was current by
+    then, the fresh one: torn down again, a bus error counted, frames lost for another back-off. Now a
+    failure of a bus no longer in use is only counted."""
+    ch = channel()
+    buses: list[VirtualBus] = []
+
+    def factory(cfg):
+        bus = _SendBlocksUntilShutdownBus(channel=cfg.channel) if not buses else VirtualBus(channel=cfg.channel)
+        buses.append(bus)
+        return bus
+
+    async def main():
+        sender = can.Bus(interface="virtual", channel=ch)
+        try:
+            cfg = fast(BusConfig(interface="virtual", channel=ch), silence_reopen_s=0.3)
+            async with ResilientBus(cfg, bus_factory=factory) as rx:
+                assert await rx.wait_open(5)
+                rx.send(own_current_frame(DB, 1.0))
+                while not buses[0].sending.is_set():
+                    await asyncio.sleep(0.005)
+                got = []
+
+                async def produce():  # once the first bus is gone, frames: no silence reopen of the next
+                    while len(buses) < 2:
+                        await asyncio.sleep(0.005)
+                    while True:
+                        sender.send(own_current_frame(DB, 2.0))
+                        await asyncio.sleep(0.01)
+
+                prod = asyncio.create_task(produce())
+                try:
+                    while len(got) < 60:  # 0.6 s of frames: twice the silence limit
+                        got += await rx.recv_batch()
+                finally:
+                    prod.cancel()
+                return rx.counters, len(buses)
+        finally:
+            sender.shutdown()
+
+    counters, n_buses = run(main())
+    assert counters.silence_reopens == 1 and counters.tx_errors == 1
+    assert counters.bus_errors == 0 and counters.opens == 2 and n_buses == 2, counters
+
+
 def test_close_ends_a_pending_receive():
     async def main():
         rx = ResilientBus(fast(BusConfig(interface="virtual", channel=channel())))
