@@ -709,7 +709,7 @@ async def serve(svc: Service, stop: asyncio.Event, reload: asyncio.Event, rebuil
         svc = new
         if reloaded is not None:
             reloaded(svc)
-        log.info("configuration reloaded", config=config, n_cells=svc.n_cells)
+        log.info("configuration reloaded", config=config, settings=svc.cfg.redacted())
 
 
 class _WatchdogGate:

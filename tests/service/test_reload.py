@@ -104,7 +104,8 @@ def test_sighup_with_a_bad_config_keeps_running_and_a_good_one_reloads(daemon):
 
     write_config(cfg, state, level="DEBUG")
     proc.send_signal(signal.SIGHUP)
-    logs.wait_for("configuration reloaded")
+    reloaded = logs.wait_for("configuration reloaded")[0]
+    assert reloaded["settings"]["logging"]["level"] == "DEBUG"  # what runs now, secrets redacted
     logs.wait_for("can bus open: receiving", count=2)  # the service runs again, on the new configuration
     assert proc.poll() is None
     assert len(logs.wait_for("estimator state saved")) == 1  # the stop before the reload saved the state
