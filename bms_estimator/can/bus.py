@@ -159,6 +159,11 @@ def open_bus(cfg: BusConfig, *, log_time: bool = False) -> can.BusABC:
     return can.Bus(**kwargs)
 
 
+def _shutdown_quietly(bus: can.BusABC) -> None:
+    with contextlib.suppress(Exception):
+        bus.shutdown()
+
+
 class ResilientBus:
     """A CAN bus that reopens itself; see the module docstring.
 
@@ -330,38 +335,11 @@ class ResilientBus:
             return
 
     async def _call_factory(self) -> can.BusABC:
-        """``bus_factory(cfg)`` in a daemon thread of its own: an adapter whose open blocks (python-can's
-        slcan sleeps 2 s in its constructor; a wedged driver for ever) holds neither the event loop
-        (ticks, watchdog, signals) nor a stop. Cancelled meanwhile (:meth:`close`), the bus it returns
-        late is shut down; a wedged open is left behind in its thread, which never holds up the exit."""
-        loop = asyncio.get_running_loop()
-        done: asyncio.Future[can.BusABC] = loop.create_future()
-
-        def deliver(bus: can.BusABC | None, exc: BaseException | None) -> None:
-            if done.cancelled():
-                if bus is not None:
-                    with contextlib.suppress(Exception):
-                        bus.shutdown()
-            elif exc is not None:
-                done.set_exception(exc)
-            else:
-                done.set_result(bus)
-
-        def work() -> None:
-            bus, exc = None, None
-            try:
-                bus = self._factory(self.cfg)
-            except BaseException as e:  # noqa: BLE001 - handed to the loop
-                exc = e
-            try:
-                loop.call_soon_threadsafe(deliver, bus, exc)
-            except RuntimeError:  # the loop is gone
-                if bus is not None:
-                    with contextlib.suppress(Exception):
-                        bus.shutdown()
-
-        threading.Thread(target=work, name="bms-can-open", daemon=True).start()
-        return await done
+        """``bus_factory(cfg)`` in a daemon thread of its own (:func:`bms_estimator.aio.in_thread`): an
+        adapter whose open blocks (python-can's slcan sleeps 2 s in its constructor; a wedged driver for
+        ever) holds neither the event loop (ticks, watchdog, signals) nor a stop. Cancelled meanwhile
+        (:meth:`close`), the bus it returns late is shut down."""
+        return await aio.in_thread(lambda: self._factory(self.cfg), name="bms-can-open", discard=_shutdown_quietly)
 
     def _count_rx_drop(self) -> None:
         self.counters.rx_dropped += 1

@@ -42,7 +42,7 @@ background), sends ``READY=1`` at once, runs until ``stop_event`` is set (or the
 ``STOPPING=1``, saves the state, publishes ``offline`` and closes the bus.
 
 Reload (SIGHUP, ``systemctl reload``): :func:`serve` builds a new :class:`Service` from the
-configuration as it is now, in a worker thread while the running one goes on. One that does not
+configuration as it is now, in a thread of its own while the running one goes on. One that does not
 build (:class:`ConfigError`, :class:`DataError`, or anything else) is logged with every problem and
 the running service keeps its configuration. Otherwise the running service stops as on SIGTERM but
 says ``RELOADING=1`` (the state saved), and the new one starts from that state (``READY=1``); a stop
@@ -671,8 +671,8 @@ def _boot_clock() -> Callable[[], float]:
 async def serve(svc: Service, stop: asyncio.Event, reload: asyncio.Event, rebuild: Callable[[], Service], *,
                 config: str | None = None, reloaded: Callable[[Service], None] | None = None) -> Service:
     """Run ``svc`` until ``stop`` is set, reloading each time ``reload`` is set (module docstring):
-    ``rebuild()`` (run in a worker thread) makes the new service from ``config`` (the file, named in
-    the log) or raises; ``reloaded(new)`` is called before the new one runs (the logging settings).
+    ``rebuild()`` (run in a thread of its own, which a stop does not wait for) makes the new service
+    from ``config`` (the file, named in the log) or raises; ``reloaded(new)`` is called before the new one runs (the logging settings).
     Returns the service that ran last; raises what its :meth:`Service.run` raised."""
     while True:
         run_stop = asyncio.Event()
@@ -693,8 +693,17 @@ async def serve(svc: Service, stop: asyncio.Event, reload: asyncio.Event, rebuil
                 break
             reload.clear()
             log.info("reloading the configuration")
+            build = asyncio.ensure_future(aio.in_thread(rebuild, name="bms-reload"))
+            stopped = asyncio.create_task(stop.wait())
             try:
-                new = await asyncio.to_thread(rebuild)
+                await asyncio.wait({build, stopped}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                stopped.cancel()
+            if not build.done():  # a stop while the files are read: it does not wait for them
+                build.cancel()
+                break
+            try:
+                new = build.result()
             except BmsEstimatorError as exc:
                 log.error("configuration not reloaded: the service goes on with the one it has",
                           config=config, error=exc.header, problems=exc.problems)

@@ -122,8 +122,9 @@ def test_sighup_with_a_bad_config_keeps_running_and_a_good_one_reloads(daemon):
 def test_systemd_hears_reloading_then_ready_and_a_stop_during_a_reload_stops(tmp_path, monkeypatch):
     """In process, with a notify socket: a reload says RELOADING=1 (never STOPPING=1, which would tell
     systemd the unit is going down) and then READY=1 from the new service, which resumes the state the
-    old one saved. SIGTERM while the next configuration is being built: the running service stops
-    (STOPPING=1, state saved) and the new one never runs; a second stop changes nothing."""
+    old one saved. SIGTERM while the next configuration is being built (its files on a hung mount, say): the running
+    service stops at once (STOPPING=1, state saved), not waiting for the build, and the new one never
+    runs; a second stop changes nothing."""
     import asyncio
     import socket
 
@@ -148,13 +149,14 @@ def test_systemd_hears_reloading_then_ready_and_a_stop_during_a_reload_stops(tmp
                 return [m.splitlines()[0] for m in got]
 
     cfg = make_cfg(tmp_path, f"bmsr-{uuid.uuid4().hex[:8]}", health={"enabled": False})
-    building, release = threading.Event(), threading.Event()
+    building, release, finished = threading.Event(), threading.Event(), threading.Event()
     built: list[Service] = []
 
     def rebuild() -> Service:
-        if built:  # the second reload: a stop arrives while it is built
+        if built:  # the second reload: a stop arrives while it is built (its files on a hung mount)
             building.set()
             release.wait(10)
+            finished.set()
         built.append(Service(cfg))
         return built[-1]
 
@@ -170,12 +172,14 @@ def test_systemd_hears_reloading_then_ready_and_a_stop_during_a_reload_stops(tmp
         await wait_until(building.is_set, 10, "the second rebuild under way")
         stop.set()
         stop.set()  # a second SIGTERM
-        release.set()
         ended = await asyncio.wait_for(task, 15)
-        return first, ended
+        stopped_while_building = not finished.is_set()
+        release.set()
+        await wait_until(lambda: len(built) == 2, 10, "the abandoned rebuild to return")
+        return first, ended, stopped_while_building
 
     try:
-        first, ended = run_async(main(), 30)
+        first, ended, stopped_while_building = run_async(main(), 30)
         last = said()[len(first):]
     finally:
         srv.close()
@@ -183,6 +187,7 @@ def test_systemd_hears_reloading_then_ready_and_a_stop_during_a_reload_stops(tmp
         ["READY=1", "RELOADING=1", "READY=1"], first
     assert built[0].restored  # the state the first service saved at the reload
     assert ended is built[0] and not ended.reloading
+    assert stopped_while_building, "the stop waited for the configuration being read"
     assert "STOPPING=1" in last and "RELOADING=1" not in last, last
     assert len(built) == 2 and built[1].bus is None  # built, never run
     assert load_state(cfg.state.path, pack_id=cfg.pack.pack_id, n_cells=cfg.pack.n_cells, max_age_s=None) is not None
