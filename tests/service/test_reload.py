@@ -126,27 +126,16 @@ def test_systemd_hears_reloading_then_ready_and_a_stop_during_a_reload_stops(tmp
     service stops at once (STOPPING=1, state saved), not waiting for the build, and the new one never
     runs; a second stop changes nothing."""
     import asyncio
-    import socket
 
-    from service_helpers import run_async, wait_until
+    from service_helpers import NotifySocket, run_async, wait_until
     from test_daemon import make_cfg
 
     from bms_estimator.service.daemon import Service, serve
 
-    sock_path = tmp_path / "notify.sock"
-    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    srv.bind(str(sock_path))
-    srv.setblocking(False)
-    monkeypatch.setenv("NOTIFY_SOCKET", str(sock_path))
-    monkeypatch.delenv("WATCHDOG_USEC", raising=False)
-    got: list[str] = []
+    srv = NotifySocket(tmp_path / "notify.sock", monkeypatch)
 
     def said() -> list[str]:
-        while True:
-            try:
-                got.append(srv.recv(4096).decode())
-            except BlockingIOError:
-                return [m.splitlines()[0] for m in got]
+        return [m.splitlines()[0] for m in srv.drain()]
 
     cfg = make_cfg(tmp_path, f"bmsr-{uuid.uuid4().hex[:8]}", health={"enabled": False})
     building, release, finished = threading.Event(), threading.Event(), threading.Event()

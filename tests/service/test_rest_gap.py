@@ -103,14 +103,21 @@ def test_a_two_hour_hole_in_the_timestamps_is_rested_over_once(tmp_path, charged
     assert np.isfinite(svc.tte[t_last]) and svc.tte[t_first] == np.inf
 
 
-def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
+def _driven(tmp_path):
+    """The configuration, and a service with its state (what the daemon saves) after the drive of
+    :func:`_trip` up to the moment the car is parked."""
     i, v, _, rows = _trip()
     cfg = _cfg(tmp_path)
     svc = Service(cfg)
     svc.pipeline.hooks.clear()
-    for m in _frames(i, v, rows[:600]):  # the drive, up to the moment the car is parked
+    for m in _frames(i, v, rows[:600]):
         svc.pipeline.process_frame(m)
     state, meta, _ = svc._state_to_save()  # noqa: SLF001 - what the daemon saves
+    return cfg, svc, state, meta
+
+
+def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
+    cfg, svc, state, meta = _driven(tmp_path)
     before = svc.estimator
     assert np.abs(before.ekf.v_diffusion).max() > 1e-3  # under load: the diffusion branch holds millivolts
     save_state(Path(cfg.state.path), state, meta, saved_at=time.time() - 3 * 3600)
@@ -143,13 +150,7 @@ def test_a_restart_from_a_state_saved_hours_ago_rests_over_its_age(tmp_path):
 def test_a_restart_without_a_sample_since_rests_only_over_the_time_since(tmp_path, monkeypatch):
     """A state saved 3 h ago is resumed (rested 3 h), saved again before any sample (what the daemon writes),
     and resumed 1 h later: it rests 1 h more, 4 h in all, as the original state rested once over 4 h."""
-    i, v, _, rows = _trip()
-    cfg = _cfg(tmp_path)
-    svc = Service(cfg)
-    svc.pipeline.hooks.clear()
-    for m in _frames(i, v, rows[:600]):
-        svc.pipeline.process_frame(m)
-    state, meta, _ = svc._state_to_save()  # noqa: SLF001
+    cfg, svc, state, meta = _driven(tmp_path)
     t0 = time.time()
     monkeypatch.setattr(time, "time", lambda: t0)
     save_state(Path(cfg.state.path), state, meta, saved_at=t0 - 3 * 3600)
@@ -254,13 +255,7 @@ def test_a_clock_that_comes_back_behind_the_saved_state_resumes_it(tmp_path):
     fresh: the learnt capacity, resistances, SOH and energy counters gone with it. Now a state ahead of
     the clock by up to ``state.max_age_s`` (the bound a past state has) is resumed, not rested (its age
     is unknown), and that is logged; one further ahead is still set aside."""
-    i, v, _, rows = _trip()
-    cfg = _cfg(tmp_path)
-    svc = Service(cfg)
-    svc.pipeline.hooks.clear()
-    for m in _frames(i, v, rows[:600]):
-        svc.pipeline.process_frame(m)
-    state, meta, _ = svc._state_to_save()  # noqa: SLF001 - what the daemon saves
+    cfg, svc, state, meta = _driven(tmp_path)
     save_state(Path(cfg.state.path), state, meta, saved_at=time.time() + 3000)
     resumed = Service(cfg)
     with capture_logs() as logs:
