@@ -50,6 +50,11 @@ def run(args: argparse.Namespace) -> int:
     from ..service.daemon import Service, serve
     from ..service.logging import configure_logging
 
+    # A SIGHUP before the loop's handler is installed (the configuration, DBC and OCV table take about
+    # a second to load) would end the process, and systemd counts that as a clean exit (no restart):
+    # hold it, and reload once the service runs.
+    early_hup: list[int] = []
+    signal.signal(signal.SIGHUP, lambda signum, _frame: early_hup.append(signum))
     try:
         cfg = load_config(args.config)
         configure_logging(args.log_level or cfg.logging.level, args.log_format or cfg.logging.format)
@@ -91,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
                 loop.add_signal_handler(sig, event.set)
             except (NotImplementedError, RuntimeError):  # pragma: no cover - not on Unix
                 signal.signal(sig, lambda *_, e=event: loop.call_soon_threadsafe(e.set))
+        if early_hup:
+            reload.set()
         await serve(service, stop, reload, rebuild, config=str(args.config) if args.config else None,
                     reloaded=reloaded)
 

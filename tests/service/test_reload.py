@@ -180,3 +180,17 @@ def test_systemd_hears_reloading_then_ready_and_a_stop_during_a_reload_stops(tmp
     assert "STOPPING=1" in last and "RELOADING=1" not in last, last
     assert len(built) == 2 and built[1].bus is None  # built, never run
     assert load_state(cfg.state.path, pack_id=cfg.pack.pack_id, n_cells=cfg.pack.n_cells, max_age_s=None) is not None
+
+
+def test_a_sighup_while_the_service_starts_is_a_reload_once_it_runs(daemon):
+    """The loop's handlers are installed after the configuration, DBC and OCV table are loaded (about a
+    second). A SIGHUP before that (``systemctl kill -s HUP``, a config tool) ended the process, and
+    systemd counts a death by SIGHUP as a clean exit: ``Restart=on-failure`` left the estimator down.
+    Now it is held and served as a reload once the service runs."""
+    proc, logs, cfg, state = daemon
+    logs.wait_for("can.mapping.cells_beyond_pack")  # the decoder is being built: no handler yet
+    proc.send_signal(signal.SIGHUP)
+    logs.wait_for("configuration reloaded")
+    logs.wait_for("can bus open: receiving", count=2)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=15) == 0, "".join(logs.text[-10:])
