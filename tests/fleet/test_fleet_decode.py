@@ -165,6 +165,34 @@ def test_e2e_failures_are_dropped_and_counted_like_the_service():
     assert_same_samples(sa, ref)
 
 
+def test_a_sender_waking_with_restarted_counters_is_kept_like_the_service():
+    """After more than E2E_RESYNC_S of frame time without a frame of its group, a frame's alive counter
+    starts afresh (a BMS waking from sleep restarts its counters), in the bulk decode as in the service."""
+    from bms_estimator.can.e2e import E2E_RESYNC_S
+
+    rows = []
+    for part, (t0, n) in enumerate(((0.0, 30), (600.0, 30), (600.3 + E2E_RESYNC_S - 0.1, 10))):
+        stamper = E2EStamper(DB, "default")  # counters restart with every part
+        for k in range(n):
+            t = t0 + 0.01 * k
+            pack = PACK.encode({"PackCurrent": 1.0, "PackVoltage": 15.0, "MeasurementCounter": 0,
+                                "CurrentInvalid": 0, "VoltageInvalid": 0, "MeasurementCrc": 0})
+            rows.append((t, PACK.frame_id | EXTENDED_FLAG, stamper.stamp(PACK.frame_id, pack)))
+            volts = VOLTS.encode({"CellIndexBase": 3 * (k % 2), "VoltageCounter": 0, "CellVoltage0": 3.5,
+                                  "CellVoltage1": 3.5, "CellVoltage2": 3.5})
+            rows.append((t + 0.001, VOLTS.frame_id | EXTENDED_FLAG, stamper.stamp(VOLTS.frame_id, volts)))
+    ts, keys, data = zip(*rows)
+    frames = FrameTable._build(list(ts), list(keys), [8] * len(ts), [False] * len(ts), list(data))
+    ref_dec = FrameDecoder(DB, "default", N_CELLS)
+    ref = service_samples(ref_dec, service_sampler(N_CELLS), messages(frames))
+    ev, dc = decode_frames(FrameDecoder(DB, "default", N_CELLS), frames)
+    # the 10 min sleep resyncs all three groups; the restart 5 s after the last frame fails them, once each
+    assert dc.e2e_counter == 3
+    assert dc.as_dict() == ref_dec.counters.as_dict()
+    sa = assemble_samples(frames.t_s, ev, service_sampler(N_CELLS))
+    assert_same_samples(sa, ref)
+
+
 def test_candump_bulk_reader_equals_python_can(tmp_path):
     """The bulk .log parser gives python-can's frames bit for bit (timestamps included)."""
     rng = np.random.default_rng(1)
