@@ -232,10 +232,18 @@ class ResilientBus:
                 await task
         self._teardown()
         if self._tx_thread is not None:
-            with contextlib.suppress(queue.Full):
-                self._tx_queue.put_nowait(None)
-            await asyncio.get_running_loop().run_in_executor(None, self._tx_thread.join, 2.0)
+            # the bus is gone: the sender drops what is queued at once, so the stop sentinel gets in
+            # even behind a full queue (a bus-off adapter's), where put_nowait lost it and left the
+            # thread waiting for ever
+            await asyncio.get_running_loop().run_in_executor(None, self._stop_sender, 2.0)
             self._tx_thread = None
+
+    def _stop_sender(self, timeout: float) -> None:
+        thread = self._tx_thread
+        with contextlib.suppress(queue.Full):
+            self._tx_queue.put(None, timeout=timeout)
+        if thread is not None:
+            thread.join(timeout)
 
     @property
     def is_open(self) -> bool:

@@ -562,6 +562,37 @@ def test_a_send_failing_on_a_bus_already_torn_down_does_not_reopen_its_successor
     assert counters.bus_errors == 0 and counters.opens == 2 and n_buses == 2, counters
 
 
+def test_close_ends_the_sender_thread_even_with_its_queue_full():
+    """close() put its stop sentinel with put_nowait, dropped when the send queue was full (a bus-off
+    adapter whose sends block): the sender thread then emptied the queue and waited for ever, one
+    thread left behind per close (a reload, a reopen of the service). Now the sentinel is waited in."""
+    ch = channel()
+
+    async def main():
+        cfg = fast(BusConfig(interface="virtual", channel=ch), tx_queue_size=4)
+        made: list[_SendBlocksUntilShutdownBus] = []
+
+        def factory(c):
+            made.append(_SendBlocksUntilShutdownBus(channel=c.channel))
+            return made[-1]
+
+        rx = ResilientBus(cfg, bus_factory=factory)
+        await rx.start()
+        assert await rx.wait_open(5)
+        thread = rx._tx_thread
+        rx.send(own_current_frame(DB, 0.0))
+        while not made[0].sending.is_set():  # the sender is inside send(): the next ones queue up
+            await asyncio.sleep(0.005)
+        queued = sum(rx.send(own_current_frame(DB, float(k))) for k in range(1, 10))
+        await rx.close()
+        thread.join(2.0)
+        return queued, thread.is_alive(), rx.counters
+
+    queued, alive, counters = run(main())
+    assert queued == 4 and counters.tx_dropped >= 5  # the queue was full at the close
+    assert not alive, "the sender thread outlived close()"
+
+
 def test_close_ends_a_pending_receive():
     async def main():
         rx = ResilientBus(fast(BusConfig(interface="virtual", channel=channel())))
