@@ -732,3 +732,33 @@ def test_a_stop_while_a_broker_does_not_answer_the_connect_closes_the_socket():
     eof, errors = run_async(main())
     assert eof == b"", "the client's socket stayed open after the cancelled connect"
     assert errors == [], [e.get("message") for e in errors]
+
+
+def test_connections_that_drop_at_once_back_off_as_failed_connects_do(monkeypatch):
+    """A connection that the broker drops at once (another client with the same client id, e.g. a second
+    gateway or a stale process for this pack: the broker kicks the older session each time) reset the
+    back-off: both reconnected every reconnect_min_s for ever, each time re-sending discovery (thousands
+    of retained messages for 200 cells) and logging three lines. Now only a connection that lasted
+    reconnect_max_s resets it; shorter ones back off like failed connects."""
+    from structlog.testing import capture_logs
+
+    pub = MqttPublisher(mqtt_cfg(free_port(), reconnect_min_s=0.01, reconnect_max_s=0.64), "dup", 1)
+    sessions = []
+
+    async def dropped_at_once() -> bool:
+        sessions.append(time.monotonic())
+        return True  # connected, then lost
+
+    monkeypatch.setattr(pub, "_session", dropped_at_once)
+
+    async def main():
+        task = asyncio.create_task(pub.run())
+        await wait_until(lambda: len(sessions) >= 8, 10, "8 sessions")
+        await pub.close(timeout_s=3.0)
+        await task
+
+    with capture_logs() as logs:
+        run_async(main())
+    delays = [r["in_s"] for r in logs if r["event"] == "mqtt reconnecting"][:7]
+    # reconnect_min_s doubling, with jitter in [base/2, base]: 0.01, 0.02, ... 0.64
+    assert all(0.005 * 2 ** k <= d <= 0.01 * 2 ** k for k, d in enumerate(delays)), delays
