@@ -19,10 +19,11 @@ it blocks again.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable
+import threading
+from collections.abc import Awaitable, Callable
 from typing import TypeVar
 
-__all__ = ["cancelling", "raise_if_cancelling", "wait_for"]
+__all__ = ["cancelling", "in_thread", "raise_if_cancelling", "wait_for"]
 
 T = TypeVar("T")
 
@@ -44,3 +45,42 @@ def raise_if_cancelling() -> None:
     """Raise the ``CancelledError`` that a wait inside a library may have swallowed."""
     if cancelling():
         raise asyncio.CancelledError
+
+
+async def in_thread(fn: Callable[[], T], *, name: str, discard: Callable[[T], None] | None = None) -> T:
+    """``fn()`` in a daemon thread of its own, awaited: a call that blocks (a CAN adapter's open, a file
+    on a hung mount) holds neither the event loop nor a cancellation, which ends the wait at once.
+    A result that arrives after it is handed to ``discard`` (a bus to shut down); a call that never
+    returns is left in its thread, which, unlike ``asyncio.to_thread``'s executor (joined by
+    ``asyncio.run``), never holds up the exit."""
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[T] = loop.create_future()
+
+    def deliver(ok: bool, value: object) -> None:
+        if done.cancelled():
+            if ok and discard is not None:
+                try:
+                    discard(value)  # type: ignore[arg-type]
+                except Exception:  # noqa: BLE001, S110 - disposing of an unwanted result is best effort
+                    pass
+        elif ok:
+            done.set_result(value)  # type: ignore[arg-type]
+        else:
+            done.set_exception(value)  # type: ignore[arg-type]
+
+    def work() -> None:
+        try:
+            ok, value = True, fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting task
+            ok, value = False, exc
+        try:
+            loop.call_soon_threadsafe(deliver, ok, value)
+        except RuntimeError:  # the loop is gone
+            if ok and discard is not None:
+                try:
+                    discard(value)  # type: ignore[arg-type]
+                except Exception:  # noqa: BLE001, S110
+                    pass
+
+    threading.Thread(target=work, name=name, daemon=True).start()
+    return await done

@@ -74,3 +74,32 @@ def test_wait_for_returns_the_result_and_times_out():
         assert not aio.cancelling()  # a timeout leaves no cancel request behind
 
     asyncio.run(run())
+
+
+def test_in_thread_returns_raises_and_a_cancel_does_not_wait_for_a_blocked_call():
+    import threading
+
+    release = threading.Event()
+    discarded: list[str] = []
+
+    def blocked() -> str:
+        release.wait(10)
+        return "late"
+
+    async def main():
+        assert await aio.in_thread(lambda: 42, name="t") == 42
+        with pytest.raises(ValueError, match="bad"):
+            await aio.in_thread(lambda: (_ for _ in ()).throw(ValueError("bad")), name="t")
+        task = asyncio.create_task(aio.in_thread(blocked, name="t", discard=discarded.append))
+        await asyncio.sleep(0.01)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        returned_before = bool(discarded)
+        release.set()
+        while not discarded:
+            await asyncio.sleep(0.005)
+        return returned_before
+
+    assert asyncio.run(main()) is False  # the cancel ended the wait while the call still blocked
+    assert discarded == ["late"]  # and its late result went to discard

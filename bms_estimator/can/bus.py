@@ -18,7 +18,9 @@ systemd-networkd - and is not passed).
 * failures: a ``can.CanError``/``OSError`` from receiving (or a fatal
   ``OSError`` from sending: ENODEV, ENETDOWN, ENXIO, EBADF) closes the bus and
   reopens it with exponential back-off (``reopen_initial_s`` doubling up to
-  ``reopen_max_s``; back-off resets once the new bus delivered a frame). An
+  ``reopen_max_s``; back-off resets once the new bus delivered a frame); any
+  other failed send, whatever it raises, is counted (``tx_errors``) and logged, and
+  the sender thread goes on with the next frame. An
   interface that disappears and comes back (USB adapter, ``ip link set can0
   down/up``) is survived without restarting the service.
 * silence: no frame for ``silence_reopen_s`` (default 5 s) reopens the bus the
@@ -157,6 +159,11 @@ def open_bus(cfg: BusConfig, *, log_time: bool = False) -> can.BusABC:
     return can.Bus(**kwargs)
 
 
+def _shutdown_quietly(bus: can.BusABC) -> None:
+    with contextlib.suppress(Exception):
+        bus.shutdown()
+
+
 class ResilientBus:
     """A CAN bus that reopens itself; see the module docstring.
 
@@ -225,10 +232,18 @@ class ResilientBus:
                 await task
         self._teardown()
         if self._tx_thread is not None:
-            with contextlib.suppress(queue.Full):
-                self._tx_queue.put_nowait(None)
-            await asyncio.get_running_loop().run_in_executor(None, self._tx_thread.join, 2.0)
+            # the bus is gone: the sender drops what is queued at once, so the stop sentinel gets in
+            # even behind a full queue (a bus-off adapter's), where put_nowait lost it and left the
+            # thread waiting for ever
+            await asyncio.get_running_loop().run_in_executor(None, self._stop_sender, 2.0)
             self._tx_thread = None
+
+    def _stop_sender(self, timeout: float) -> None:
+        thread = self._tx_thread
+        with contextlib.suppress(queue.Full):
+            self._tx_queue.put(None, timeout=timeout)
+        if thread is not None:
+            thread.join(timeout)
 
     @property
     def is_open(self) -> bool:
@@ -296,7 +311,9 @@ class ResilientBus:
         self._loop = loop
         while not self._closed:
             try:
-                bus = self._factory(self.cfg)
+                bus = await self._call_factory()
+            except asyncio.CancelledError:
+                raise
             except Exception as exc:  # can.CanError, OSError, ValueError, ImportError of a driver...
                 self.counters.open_failures += 1
                 self.last_error = one_line_error(exc)
@@ -324,6 +341,13 @@ class ResilientBus:
             self._opened.set()
             log.info("can.bus.open", interface=self.cfg.interface, channel=self.cfg.channel, opens=self.counters.opens)
             return
+
+    async def _call_factory(self) -> can.BusABC:
+        """``bus_factory(cfg)`` in a daemon thread of its own (:func:`bms_estimator.aio.in_thread`): an
+        adapter whose open blocks (python-can's slcan sleeps 2 s in its constructor; a wedged driver for
+        ever) holds neither the event loop (ticks, watchdog, signals) nor a stop. Cancelled meanwhile
+        (:meth:`close`), the bus it returns late is shut down."""
+        return await aio.in_thread(lambda: self._factory(self.cfg), name="bms-can-open", discard=_shutdown_quietly)
 
     def _count_rx_drop(self) -> None:
         self.counters.rx_dropped += 1
@@ -362,9 +386,8 @@ class ResilientBus:
         """The frames received so far (at least one, at most ``limit``, oldest first);
         reopens the bus as often as needed.
 
-        Opening runs in the event loop (``can.Bus(...)`` is fast for socketcan,
-        virtual and udp_multicast; a slow USB/serial adapter would stall the
-        loop for its handshake).
+        Opening runs in a thread of its own (:meth:`_call_factory`), so a slow
+        USB/serial adapter's handshake does not stall the loop.
 
         Raises ``asyncio.CancelledError`` when cancelled and ``RuntimeError`` after :meth:`close`.
         """
@@ -468,23 +491,28 @@ class ResilientBus:
                     bus.send(msg, timeout=self.cfg.tx_timeout_s)
                     self.counters.tx_frames += 1
                     fails_logged = 0
-                except (can.CanError, OSError, ValueError) as exc:
+                except Exception as exc:  # noqa: BLE001 - python-can's errors, OSError, and whatever a driver raises:
+                    # the thread must outlive every failed send, or no frame goes out again
                     self.counters.tx_errors += 1
                     if fails_logged < 3:  # do not flood the log while a bus is down
                         fails_logged += 1
                         log.warning("can.bus.send_failed", error=repr(exc), tx_errors=self.counters.tx_errors)
                     err = getattr(exc, "errno", None) or getattr(exc, "error_code", None)
                     if err in _FATAL_TX_ERRNOS:
-                        self._request_reopen(exc)
+                        self._request_reopen(exc, bus)
             finally:
                 q.task_done()
 
-    def _request_reopen(self, exc: BaseException) -> None:
+    def _request_reopen(self, exc: BaseException, bus: can.BusABC) -> None:
+        """Reopen after ``bus`` failed a send fatally, if it is still the bus in use: one torn down
+        while the sender was inside its ``send`` (EBADF) says nothing about its successor."""
         loop = self._loop
         if loop is None or loop.is_closed():
             return
 
         def _set() -> None:
+            if self._bus is not bus:
+                return
             rx = self._rx
             if rx is not None:
                 rx.fail(exc)  # wakes a pending recv()

@@ -39,7 +39,7 @@ import can
 import structlog
 from cantools.database.can import Database, Message
 
-from .e2e import CRC_ALGORITHMS, e2e_layout
+from .e2e import CRC_ALGORITHMS, E2E_RESYNC_S, e2e_layout
 from .mapping import CanMapping, CellSignals, E2ECheck, MappingError, ScalarSignal, load_mapping
 from .signals import not_available_raws
 
@@ -129,7 +129,7 @@ class _E2EPlan:
     crc_byte: int  # its byte in the frame
     crc_fn: Callable[[bytes], int] | None
     crc_algorithm: str | None  # its name (the fleet's bulk decode computes it on arrays)
-    last: dict = field(default_factory=dict)  # multiplexer value (None) -> the last counter value seen
+    last: dict = field(default_factory=dict)  # multiplexer value (None) -> (last counter value seen, its frame time)
 
 
 @dataclass(slots=True)
@@ -414,8 +414,9 @@ class FrameDecoder:
         if dropped:
             log.info("can.mapping.cells_beyond_pack", group=what, n_cells=self.n_cells, signals_left_out=dropped)
 
-    def _e2e_ok(self, plan: _MessagePlan, e2e: _E2EPlan, data: bytes, raw: dict) -> bool:
-        """The frame's CRC and alive counter (see :mod:`bms_estimator.can.e2e`); counts a failure."""
+    def _e2e_ok(self, plan: _MessagePlan, e2e: _E2EPlan, data: bytes, raw: dict, t: float) -> bool:
+        """The frame's CRC and alive counter (see :mod:`bms_estimator.can.e2e`: a frame more than
+        ``E2E_RESYNC_S`` after the previous one of its group starts afresh); counts a failure."""
         if e2e.crc_fn is not None:
             k = e2e.crc_byte
             if e2e.crc_fn(data[:k] + data[k + 1:]) != data[k]:
@@ -425,8 +426,8 @@ class FrameDecoder:
             value = raw.get(e2e.counter)
             mux = raw.get(plan.mux_signal) if plan.mux_signal is not None else None
             last = e2e.last.get(mux)  # per multiplexer value of this frame id
-            e2e.last[mux] = value
-            if last is not None and value != (last + 1) % e2e.modulus:
+            e2e.last[mux] = (value, t)
+            if last is not None and not t - last[1] > E2E_RESYNC_S and value != (last[0] + 1) % e2e.modulus:
                 self.counters.e2e_counter += 1
                 return False
         return True
@@ -503,7 +504,7 @@ class FrameDecoder:
                         c.decode_error += 1
                     return []
             e2e = plan.e2e
-            if e2e is not None and not self._e2e_ok(plan, e2e, bytes(data[: plan.length]), raw):
+            if e2e is not None and not self._e2e_ok(plan, e2e, bytes(data[: plan.length]), raw, msg.timestamp):
                 return []
             c.decoded += 1
             entries = plan.common

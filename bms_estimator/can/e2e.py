@@ -12,7 +12,11 @@ Counter: an unsigned signal of ``L`` bits that the sender increments by one per 
 
 .. math:: c_k = (c_{k-1} + 1) \\bmod m,
 
-the first frame after start is accepted as the reference. A frame whose counter is not the
+the first frame after start is accepted as the reference, and so is a frame more than
+``E2E_RESYNC_S`` (5 s, the sampler's default gap) of frame time after the previous frame of its
+group: a sender that slept while the vehicle was parked wakes with its counters restarted, which
+is no lost or injected frame (each group's first frame after a wake was dropped and counted: a
+false alarm of about 100 frames per wake for 200 cells). A frame whose counter is not the
 next one (a skipped value: a lost or injected frame; a repeated value: a frozen sender) is
 dropped, and the counter re-synchronises on it, so one lost frame on the bus costs the frame
 after it too and nothing more. A frame dropped for its CRC is checked no further: its counter
@@ -47,6 +51,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "CRC_ALGORITHMS",
+    "E2E_RESYNC_S",
     "E2ELayout",
     "E2EStamper",
     "crc8_autosar",
@@ -103,6 +108,9 @@ def sum8(data: bytes) -> int:
 
 
 #: ``crc_algorithm`` name -> function of the protected bytes
+#: frame-time seconds without a frame of a counter group after which its counter starts afresh (module docstring)
+E2E_RESYNC_S = 5.0
+
 CRC_ALGORITHMS: dict[str, Callable[[bytes], int]] = {
     "crc8_sae_j1850": crc8_sae_j1850,
     "crc8_autosar": crc8_autosar,

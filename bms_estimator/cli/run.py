@@ -2,7 +2,9 @@
 
 Exit codes: 0 after SIGTERM/SIGINT (state saved, ``offline`` published),
 2 for a configuration problem (one line per problem on stderr), 1 if the
-daemon failed unexpectedly.
+daemon failed unexpectedly. SIGHUP reloads the configuration file
+(:func:`bms_estimator.service.daemon.serve`): one that does not validate is
+logged and the service goes on with the one it has.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ def add_parser(sub) -> None:
     p = sub.add_parser(
         "run",
         help="run the estimator daemon (CAN in, CAN + MQTT out; systemd Type=notify)",
-        description="Run the estimator service until SIGTERM/SIGINT. Configuration: TOML file plus "
+        description="Run the estimator service until SIGTERM/SIGINT; SIGHUP reloads the configuration "
+        "(an invalid one is logged and the running one kept). Configuration: TOML file plus "
         "BMS_<SECTION>__<KEY> environment overrides (see deploy/config.example.toml).",
     )
     p.add_argument("--config", type=Path, default=None,
@@ -44,9 +47,14 @@ def _config_error(exc) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from ..service.config import ConfigError, load_config
-    from ..service.daemon import Service
+    from ..service.daemon import Service, serve
     from ..service.logging import configure_logging
 
+    # A SIGHUP before the loop's handler is installed (the configuration, DBC and OCV table take about
+    # a second to load) would end the process, and systemd counts that as a clean exit (no restart):
+    # hold it, and reload once the service runs.
+    early_hup: list[int] = []
+    signal.signal(signal.SIGHUP, lambda signum, _frame: early_hup.append(signum))
     try:
         cfg = load_config(args.config)
         configure_logging(args.log_level or cfg.logging.level, args.log_format or cfg.logging.format)
@@ -74,15 +82,24 @@ def run(args: argparse.Namespace) -> int:
     log = structlog.get_logger("bms.cli")
     log.info("starting", config=str(args.config) if args.config else None, settings=cfg.redacted())
 
+    def rebuild() -> Service:  # SIGHUP: the configuration as it is now (raises ConfigError naming each problem)
+        return Service(load_config(args.config))
+
+    def reloaded(new: Service) -> None:
+        configure_logging(args.log_level or new.cfg.logging.level, args.log_format or new.cfg.logging.format)
+
     async def main() -> None:
-        stop = asyncio.Event()
+        stop, reload = asyncio.Event(), asyncio.Event()
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig, event in ((signal.SIGTERM, stop), (signal.SIGINT, stop), (signal.SIGHUP, reload)):
             try:
-                loop.add_signal_handler(sig, stop.set)
+                loop.add_signal_handler(sig, event.set)
             except (NotImplementedError, RuntimeError):  # pragma: no cover - not on Unix
-                signal.signal(sig, lambda *_: loop.call_soon_threadsafe(stop.set))
-        await service.run(stop)
+                signal.signal(sig, lambda *_, e=event: loop.call_soon_threadsafe(e.set))
+        if early_hup:
+            reload.set()
+        await serve(service, stop, reload, rebuild, config=str(args.config) if args.config else None,
+                    reloaded=reloaded)
 
     try:
         asyncio.run(main())

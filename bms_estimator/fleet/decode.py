@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..can.decoder import DecodeCounters, FrameDecoder
-from ..can.e2e import crc_rows
+from ..can.e2e import E2E_RESYNC_S, crc_rows
 from .frames import FrameTable
 
 __all__ = ["EventArrays", "SignalColumn", "decode_frames", "signal_raw"]
@@ -334,9 +334,11 @@ def _e2e_keep(plan, sigs: dict, frames: FrameTable, idx: np.ndarray, u_le: np.nd
         else:  # one group: frame order
             group = np.zeros(rows.size, np.int64)
             order = np.arange(rows.size)
-        g, v = group[order], value[order]
+        g, v, t = group[order], value[order], frames.t_s[idx[rows]][order]
         skip = np.zeros(rows.size, dtype=bool)
-        follows = g[1:] == g[:-1]  # not the first frame of its multiplexer value
+        # not the first frame of its multiplexer value, nor the first after E2E_RESYNC_S without one
+        with np.errstate(invalid="ignore"):
+            follows = (g[1:] == g[:-1]) & ~(t[1:] - t[:-1] > E2E_RESYNC_S)
         skip[order[1:]] = follows & (v[1:] != (v[:-1] + 1) % e2e.modulus)
         c.e2e_counter += int(np.count_nonzero(skip))
         keep[rows[skip]] = False

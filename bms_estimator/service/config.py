@@ -345,7 +345,7 @@ def _default_state_path() -> Path:
 class StateConfig(_Strict):
     path: Path = Field(default_factory=_default_state_path)
     save_interval_s: float = Field(60.0, gt=0, le=86400)
-    max_age_s: float | None = Field(7 * 86400.0, gt=0, description="older saved state is ignored; None = no limit")
+    max_age_s: float | None = Field(7 * 86400.0, gt=0, description="older saved state is ignored (and one saved this far ahead of the clock); None = no limit")
 
 
 # ------------------------------------------------------------------------- health

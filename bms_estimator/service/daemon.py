@@ -11,7 +11,9 @@ the daemon feeds it frames and attaches the outputs as ``on_snapshot`` hooks::
 
 Timing: everything the estimator and its outputs see is on the frames' own time
 base (``msg.timestamp``); the event-loop clock is read only for liveness
-(heartbeat, loop lag, "no input" status frames, uptime). Replaying a log at any
+(heartbeat, loop lag, "no input" status frames, uptime), and the receive clock only to tell a
+step of the wall clock that stamps the frames from a silence (:class:`ClockStepGuard`: a step is
+not rested over as a park). Replaying a log at any
 speed therefore gives identical estimator states, CAN cell/pack frames and
 MQTT payloads. The CAN output is sent when a sample's end time ``t_s`` enters a
 new ``can.output.period_s`` bucket (``floor(t_s / period)``), so with the
@@ -38,12 +40,20 @@ it, so ``state.max_age_s`` measures how old the *estimate* is.
 Lifecycle: :meth:`Service.run` starts the bus (it opens and reopens itself in the
 background), sends ``READY=1`` at once, runs until ``stop_event`` is set (or the task is cancelled), then sends
 ``STOPPING=1``, saves the state, publishes ``offline`` and closes the bus.
+
+Reload (SIGHUP, ``systemctl reload``): :func:`serve` builds a new :class:`Service` from the
+configuration as it is now, in a thread of its own while the running one goes on. One that does not
+build (:class:`ConfigError`, :class:`DataError`, or anything else) is logged with every problem and
+the running service keeps its configuration. Otherwise the running service stops as on SIGTERM but
+says ``RELOADING=1`` (the state saved), and the new one starts from that state (``READY=1``); a stop
+requested meanwhile ends there instead.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import hashlib
 import json
 import math
@@ -69,7 +79,7 @@ from ..core.ocv import OcvCurve
 from ..core.ocv_surface import OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
-from ..errors import DataError
+from ..errors import BmsEstimatorError, DataError, one_line_error
 from . import systemd
 from .config import ConfigError, ServiceConfig
 from .health import HealthServer, Heartbeat
@@ -79,7 +89,7 @@ from .pipeline import Pipeline, Snapshot
 from .schema import EstimatorState
 from .state import _move_aside, estimator_state, load_state, resume_sox, save_state
 
-__all__ = ["DEFAULT_OCV_CELL", "Service", "ServiceMetrics", "run_service"]
+__all__ = ["DEFAULT_OCV_CELL", "ClockStepGuard", "Service", "ServiceMetrics", "run_service", "serve"]
 
 log = structlog.get_logger("bms.daemon")
 
@@ -228,6 +238,8 @@ class Service:
         self._save_task: asyncio.Task[None] | None = None
         self._no_input_logged = False
         self._last_frame_mono: float | None = None
+        self.reloading = False  # set by serve(): the stop ahead is a reload (RELOADING=1, not STOPPING=1)
+        self.clock_guard = ClockStepGuard(self.sampler.max_gap_s)
 
     @property
     def estimator(self) -> SocEstimator:
@@ -440,6 +452,9 @@ class Service:
     def _take(self, msg: can.Message) -> int:
         """One frame into the pipeline (every frame source's path); returns the samples it completed."""
         self._last_frame_mono = time.monotonic()
+        step = self.clock_guard.check(msg.timestamp)
+        if step is not None:
+            self.pipeline.clock_stepped(msg.timestamp, step)
         return self.pipeline.process_frame(msg)
 
     async def feed(self, frames: Iterable[Any]) -> int:
@@ -567,8 +582,11 @@ class Service:
             await self._shutdown(consume, background)
 
     async def _shutdown(self, consume: asyncio.Task[None] | None, background: list[asyncio.Task[Any]]) -> None:
-        systemd.notify_stopping("stopping: saving state")
-        log.info("service stopping")
+        if self.reloading:
+            systemd.notify_reloading("reloading the configuration: saving state")
+        else:
+            systemd.notify_stopping("stopping: saving state")
+        log.info("service stopping", reload=self.reloading)
         if consume is not None and not consume.done():
             consume.cancel()
             with contextlib.suppress(BaseException):
@@ -603,6 +621,104 @@ def _rested_until(meta: dict[str, Any], saved_at: float) -> float:
     if isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r):
         return max(float(r), saved_at)
     return saved_at
+
+
+class ClockStepGuard:
+    """Tells a step of this host's wall clock from a silence on the bus.
+
+    socketcan stamps frames with the kernel's wall clock (CLOCK_REALTIME). A gateway without a
+    real-time clock boots with a wrong time, and NTP (chrony, systemd-timesyncd) steps it by hours
+    or years while the vehicle drives: the frames' time jumps though no frame was missed, and the
+    sampler and pipeline, seeing more than ``max_gap_s`` between two frames, would rest the
+    estimator over it as over a park. :meth:`check` calls a jump a step when the receive clock,
+    ``CLOCK_BOOTTIME`` (unlike ``CLOCK_MONOTONIC`` it counts a suspended gateway's sleep), moved
+    less than ``max_gap_s`` since the previous frame while the frames' time moved more, and the new
+    frame's time is this host's wall clock now (within ``max_gap_s``: stamped here, not a log's
+    time, so a replayed log keeps its gaps). Cost: one clock read a frame."""
+
+    __slots__ = ("boot_clock", "max_gap_s", "wall_clock", "_b", "_t")
+
+    def __init__(self, max_gap_s: float, *, boot_clock: Callable[[], float] | None = None,
+                 wall_clock: Callable[[], float] = time.time) -> None:
+        self.max_gap_s = float(max_gap_s)
+        self.boot_clock = boot_clock if boot_clock is not None else _boot_clock()
+        self.wall_clock = wall_clock
+        self._t: float | None = None  # the previous frame's time
+        self._b = 0.0  # the receive clock at it
+
+    def check(self, t: float) -> float | None:
+        """The step (seconds) if the frame of time ``t`` follows a wall clock step, else None."""
+        b = self.boot_clock()
+        prev, prev_b = self._t, self._b
+        if not math.isfinite(t):
+            return None
+        self._t, self._b = t, b
+        if prev is None or not t - prev > self.max_gap_s or b - prev_b >= self.max_gap_s:
+            return None
+        if abs(t - self.wall_clock()) > self.max_gap_s:
+            return None
+        return t - prev
+
+
+def _boot_clock() -> Callable[[], float]:
+    """``CLOCK_BOOTTIME`` where there is one (Linux), else ``time.monotonic``."""
+    clock_id = getattr(time, "CLOCK_BOOTTIME", None)
+    if clock_id is None:  # pragma: no cover - not Linux
+        return time.monotonic
+    return functools.partial(time.clock_gettime, clock_id)
+
+
+async def serve(svc: Service, stop: asyncio.Event, reload: asyncio.Event, rebuild: Callable[[], Service], *,
+                config: str | None = None, reloaded: Callable[[Service], None] | None = None) -> Service:
+    """Run ``svc`` until ``stop`` is set, reloading each time ``reload`` is set (module docstring):
+    ``rebuild()`` (run in a thread of its own, which a stop does not wait for) makes the new service
+    from ``config`` (the file, named in the log) or raises; ``reloaded(new)`` is called before the new one runs (the logging settings).
+    Returns the service that ran last; raises what its :meth:`Service.run` raised."""
+    while True:
+        run_stop = asyncio.Event()
+        task = asyncio.create_task(svc.run(run_stop), name="bms-service")
+        new: Service | None = None
+        while new is None and not stop.is_set():
+            stopped = asyncio.create_task(stop.wait())
+            hup = asyncio.create_task(reload.wait())
+            try:
+                await asyncio.wait({task, stopped, hup}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                stopped.cancel()
+                hup.cancel()
+            if task.done():
+                task.result()
+                return svc
+            if stop.is_set():
+                break
+            reload.clear()
+            log.info("reloading the configuration")
+            build = asyncio.ensure_future(aio.in_thread(rebuild, name="bms-reload"))
+            stopped = asyncio.create_task(stop.wait())
+            try:
+                await asyncio.wait({build, stopped}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                stopped.cancel()
+            if not build.done():  # a stop while the files are read: it does not wait for them
+                build.cancel()
+                break
+            try:
+                new = build.result()
+            except BmsEstimatorError as exc:
+                log.error("configuration not reloaded: the service goes on with the one it has",
+                          config=config, error=exc.header, problems=exc.problems)
+            except Exception as exc:  # noqa: BLE001 - a reload must never end a running service
+                log.error("configuration not reloaded: the service goes on with the one it has",
+                          config=config, error=one_line_error(exc))
+        svc.reloading = new is not None and not stop.is_set()
+        run_stop.set()
+        await task
+        if not svc.reloading:
+            return svc
+        svc = new
+        if reloaded is not None:
+            reloaded(svc)
+        log.info("configuration reloaded", config=config, settings=svc.cfg.redacted())
 
 
 class _WatchdogGate:

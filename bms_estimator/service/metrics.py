@@ -165,7 +165,8 @@ class _ServiceCollector(Collector):
         yield _counter("bms_sample_anomalies", "frames or values the sampler set aside or re-anchored on", None,
                        {"time_jump": sc.time_jumps, "rewind": sc.rewinds, "backward_frame": sc.backward_frames,
                         "bad_timestamp": sc.bad_timestamps, "non_finite_value": sc.non_finite_values,
-                        "bad_cell_index": sc.bad_cell_index, "internal_error": sc.internal_errors}, "kind")
+                        "bad_cell_index": sc.bad_cell_index, "internal_error": sc.internal_errors,
+                        "clock_step": svc.pipeline.counters.clock_steps}, "kind")
         yield _counter("bms_cell_samples_stale", "cell inputs stale or missing, summed over samples",
                        sc.stale_cell_samples)
         pc = svc.pipeline.counters

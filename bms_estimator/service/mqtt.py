@@ -10,7 +10,9 @@ into a bounded buffer (an older unsent payload of the same topic is replaced
 and counted as dropped; when the buffer is full the least recently updated
 topic is evicted and counted) and never raise. :meth:`~MqttPublisher.run` is
 the publishing task: it connects, publishes, and reconnects with exponential
-back-off and jitter while the broker is unreachable.
+back-off and jitter while the broker is unreachable, or drops each connection at once
+(a second client with this client id: only a connection that lasted ``reconnect_max_s``
+resets the back-off).
 """
 
 from __future__ import annotations
@@ -315,6 +317,7 @@ class MqttPublisher:
         try:
             while not self._closing:
                 aio.raise_if_cancelling()  # one a library's wait swallowed (:mod:`bms_estimator.aio`)
+                started = time.monotonic()
                 try:
                     was_connected = await self._session()
                 except asyncio.CancelledError:
@@ -326,7 +329,10 @@ class MqttPublisher:
                     was_connected = False
                 if self._closing:
                     break
-                failures = 0 if was_connected else failures + 1
+                # only a connection that lasted resets the back-off: one the broker drops at once
+                # (another client with this client id) backs off as a failed connect does
+                stable = was_connected and time.monotonic() - started >= self.cfg.reconnect_max_s
+                failures = 0 if stable else failures + 1
                 delay = self._backoff(max(failures, 1))
                 log.info("mqtt reconnecting", in_s=round(delay, 3), failed_attempts=failures)
                 self._wakeup.clear()

@@ -11,6 +11,13 @@ socket, the callback would have been registered on that.)
 
 :class:`MqttClient` registers only if the socket still has the descriptor it had when
 paho reported it, and treats ``OSError`` from the selector as "closed meanwhile".
+
+A connect that does not complete (cancelled while the broker has not answered CONNECT: a
+stop, a reload; or refused) left paho's socket open and watched by the loop, with aiomqtt's
+keepalive task running, until the keepalive expired; a reset by the peer meanwhile made
+aiomqtt's ``on_disconnect`` read the cancelled ``_connected`` future inside a loop callback
+(``CancelledError``, "Exception in callback ...": a traceback in the journal).
+:meth:`MqttClient.__aenter__` closes the socket of a connect that did not complete.
 """
 
 from __future__ import annotations
@@ -37,6 +44,21 @@ class MqttClient(aiomqtt.Client):
 
     The two callbacks are aiomqtt 2.x's own (read or write until the socket fails, then
     mark the connection lost), registered through :func:`_register_if_open`."""
+
+    async def __aenter__(self) -> MqttClient:
+        try:
+            return await super().__aenter__()
+        except BaseException:  # cancelled or refused before it was connected: nothing else closes it
+            self._abandon()
+            raise
+
+    def _abandon(self) -> None:
+        """Close paho's socket of a connect that did not complete: its close callback (aiomqtt's)
+        stops watching it and cancels the keepalive task; no disconnect callback runs."""
+        with contextlib.suppress(Exception):
+            self._client._sock_close()  # noqa: SLF001 - paho's own close, without on_disconnect
+        if self._lock.locked():
+            self._lock.release()
 
     def _lost(self, exc: BaseException) -> None:
         if not self._disconnected.done():

@@ -32,7 +32,8 @@ time jump: the bus was silent, the gateway asleep) has ``t_s - period_s - t_prev
 without samples before its period; the estimator rests over them
 (:meth:`~bms_estimator.core.soc.SocEstimator.rest`: the pack parked; with it
 :meth:`~bms_estimator.core.sox.SoxEstimator.rest`) before the sample, logged in one line and
-counted (``counters.rests``, ``counters.rest_s``).
+counted (``counters.rests``, ``counters.rest_s``). Except where the daemon said the jump was the
+wall clock stepped (:meth:`Pipeline.clock_stepped`): no frame was missed, nothing is rested.
 """
 
 from __future__ import annotations
@@ -118,6 +119,7 @@ class PipelineCounters:
     tick_errors: int = 0  # exceptions in a frame, a tick or a hook (logged, skipped)
     rests: int = 0  # gaps without samples the estimator rested over (a time jump, a restart)
     rest_s: float = 0.0  # their total length, seconds
+    clock_steps: int = 0  # time jumps that were the wall clock stepped, not a silence: not rested over
 
 
 class Pipeline:
@@ -155,6 +157,7 @@ class Pipeline:
         self._errors_logged = 0
         self._last_t_s: float | None = None  # the previous sample's end
         self._at_bound = np.zeros(self.n_cells, dtype=np.int8)  # capacity_at_bound last logged, per cell
+        self._stepped_at: float | None = None  # frame time of a wall clock step whose gap is not yet seen
 
     def add_hook(self, hook: Callable[[Snapshot], None]) -> None:
         self.hooks.append(hook)
@@ -182,8 +185,11 @@ class Pipeline:
             est = self.estimator
             last, self._last_t_s = self._last_t_s, sample.t_s
             gap = float(gap_before_s(sample.t_s, last, sample.period_s)) if last is not None else 0.0
-            if gap:
+            stepped = self._stepped_at
+            if gap and stepped is None:
                 self.rest(gap, "time jump")
+            if stepped is not None and (gap or sample.t_s > stepped + 2.0 * sample.period_s):
+                self._stepped_at = None  # its gap (the first sample after the step) is not rested over
             if sample.current_valid and math.isfinite(sample.current_a):
                 est.update(sample.current_a, sample.cell_voltage_v, sample.valid,
                            temperature_c=sample.cell_temperature_c)
@@ -233,6 +239,16 @@ class Pipeline:
         back = np.flatnonzero(changed & (side == 0))
         if back.size:
             log.info("capacity estimate back inside its bounds", cells=back[:20].tolist(), n_cells=int(back.size))
+
+    def clock_stepped(self, t: float, step_s: float) -> None:
+        """The frames' time jumped by ``step_s`` at the frame of time ``t`` because the wall clock that
+        stamps them was stepped, not because frames stopped (the daemon's
+        :class:`~bms_estimator.service.daemon.ClockStepGuard` tells): the gap before the next sample is
+        not rested over (the pack was not parked). One log line, counted (``counters.clock_steps``)."""
+        self._stepped_at = float(t)
+        self.counters.clock_steps += 1
+        log.warning("wall clock stepped: the frames' time jumped with no frame missed; not rested over",
+                    step_s=round(step_s, 3), t=t, clock_steps=self.counters.clock_steps)
 
     def rest(self, gap_s: float, why: str) -> None:
         """The estimator (and the SOP/SOE/SOH part, when given) rests over ``gap_s`` seconds without

@@ -54,7 +54,6 @@ FORMAT_TAG = "bms-estimator-state"
 FORMAT_VERSION = 1
 MAX_FILE_BYTES = 64 * 1024 * 1024
 KEEP_ASIDE = 5
-FUTURE_TOLERANCE_S = 300.0
 
 _RESERVED = ("__format__", "__version__", "__pack_id__", "__n_cells__", "__saved_at__", "__meta__")
 _KEY_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,127}$")
@@ -224,10 +223,16 @@ def load_state(
 
     Temp files of unfinished saves are removed first (:func:`remove_stale_temp_files`).
     ``None`` when the file is missing, older than ``max_age_s`` (None = no
-    limit) or saved more than 5 min in the future (clock skew), foreign
+    limit) or saved more than ``max_age_s`` in the future, foreign
     (other format, version, ``pack_id`` or ``n_cells``) or corrupt; every
     case but "missing" renames the file aside. ``now`` (epoch seconds)
     is for tests.
+
+    A state saved "in the future" is this host's clock come back behind it: a gateway without a
+    real-time clock boots, after a power cut, with the time its fake-hwclock or systemd-timesyncd
+    saved last (up to an hour old) until NTP answers. Such a state is used (its ``age_s`` is 0; the
+    daemon does not rest it and says so), as far ahead as a past state may be old; further ahead, the
+    clock is not to be trusted at all and it is set aside as ``stale``.
     """
     path = Path(path)
     remove_stale_temp_files(path)
@@ -318,8 +323,8 @@ def _load(
 
     wall = time.time() if now is None else now
     age = wall - saved_at
-    if age < -FUTURE_TOLERANCE_S:
-        raise _Reject("stale", f"saved {-age:.0f} s in the future (clock skew)")
+    if max_age_s is not None and age < -max_age_s:
+        raise _Reject("stale", f"saved {-age:.0f} s in the future (clock skew beyond max_age_s {max_age_s:.0f})")
     if max_age_s is not None and age > max_age_s:
         raise _Reject("stale", f"saved {age:.0f} s ago (max_age_s {max_age_s:.0f})")
 

@@ -1,6 +1,6 @@
 """sd_notify(3) without dependencies.
 
-Sends ``READY=1``, ``WATCHDOG=1``, ``STOPPING=1``, ``STATUS=...`` datagrams
+Sends ``READY=1``, ``WATCHDOG=1``, ``STOPPING=1``, ``RELOADING=1``, ``STATUS=...`` datagrams
 to ``$NOTIFY_SOCKET`` (a filesystem path or, with a leading ``@``, an
 abstract-namespace socket). Every function is a no-op returning ``False``
 when the variable is unset and never raises.
@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import os
 import socket
+import time
 from collections.abc import Mapping
 from typing import Protocol
 
@@ -25,6 +26,7 @@ import structlog
 __all__ = [
     "notify",
     "notify_ready",
+    "notify_reloading",
     "notify_status",
     "notify_stopping",
     "notify_watchdog",
@@ -85,6 +87,14 @@ def notify_watchdog(*, env: Mapping[str, str] | None = None) -> bool:
 
 def notify_stopping(status: str | None = None, *, env: Mapping[str, str] | None = None) -> bool:
     lines = ["STOPPING=1"]
+    if status:
+        lines.append(_status_line(status))
+    return notify(*lines, env=env)
+
+
+def notify_reloading(status: str | None = None, *, env: Mapping[str, str] | None = None) -> bool:
+    """``RELOADING=1`` with ``MONOTONIC_USEC`` (what systemd >= 253 asks of a reload); ``READY=1`` ends it."""
+    lines = ["RELOADING=1", f"MONOTONIC_USEC={time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000}"]
     if status:
         lines.append(_status_line(status))
     return notify(*lines, env=env)

@@ -419,6 +419,180 @@ def test_frames_are_read_while_the_event_loop_is_blocked():
     assert counters.rx_dropped == 0 and counters.rx_frames == n
 
 
+def test_a_bus_open_that_blocks_holds_neither_the_event_loop_nor_a_stop():
+    """Opening runs off the event loop: an adapter whose open blocks (python-can's slcan sleeps 2 s
+    in its constructor; a wedged USB driver for ever) held the loop, so no tick, no watchdog ping and
+    no SIGTERM was served until it returned. Now close() ends while the open still blocks, and the
+    bus that open returns late is shut down, never used."""
+    import threading
+
+    entered, release = threading.Event(), threading.Event()
+    returned: list[can.BusABC] = []
+
+    def factory(cfg: BusConfig) -> can.BusABC:
+        entered.set()
+        release.wait(3.0)  # bounded, so that the code before this fix fails rather than hangs
+        bus = VirtualBus(channel=cfg.channel)
+        returned.append(bus)
+        return bus
+
+    async def main():
+        rx = ResilientBus(fast(BusConfig(interface="virtual", channel=channel())), bus_factory=factory)
+        await rx.start()
+        while not entered.is_set():
+            await asyncio.sleep(0.005)
+        await rx.close()
+        closed_while_blocked = not returned
+        release.set()
+        while not (returned and returned[0]._is_shutdown):
+            await asyncio.sleep(0.005)
+        return closed_while_blocked, rx
+
+    closed_while_blocked, rx = run(main(), timeout=20)
+    assert closed_while_blocked, "close() waited for the blocked open"
+    assert rx.state == "closed" and not rx.is_open and rx.counters.opens == 0
+
+
+class _SendFailBus(VirtualBus):
+    """A virtual bus whose send() raises the given exceptions, one per call, then sends."""
+
+    def __init__(self, *a, failures, **kw):
+        super().__init__(*a, **kw)
+        self.failures = list(failures)
+
+    def send(self, msg, timeout=None):
+        if self.failures:
+            raise self.failures.pop(0)
+        super().send(msg, timeout)
+
+
+def test_a_send_that_raises_anything_is_counted_and_sending_goes_on():
+    """The sender thread caught python-can's errors, OSError and ValueError only: anything else a driver
+    raises (a bug in it, a library of its own: here RuntimeError) ended the thread with a traceback, and
+    no CAN frame went out again until a restart (queued, then dropped as the queue filled). Now every
+    failed send is counted and logged, and the next frame goes out."""
+    ch = channel()
+    failures = [can.CanOperationError("No buffer space available", error_code=errno.ENOBUFS),
+                RuntimeError("driver bug"), TypeError("driver bug")]
+
+    async def main():
+        listener = can.Bus(interface="virtual", channel=ch)
+        try:
+            cfg = fast(BusConfig(interface="virtual", channel=ch))
+            async with ResilientBus(cfg, bus_factory=lambda c: _SendFailBus(channel=c.channel, failures=failures)) as rx:
+                assert await rx.wait_open(5)
+                for k in range(4):
+                    assert rx.send(own_current_frame(DB, float(k)))
+                drained = await rx.drain(5.0)
+                got = listener.recv(1.0)
+                return drained, got, rx.counters
+        finally:
+            listener.shutdown()
+
+    drained, got, counters = run(main())
+    assert drained, "the sender thread stopped sending"
+    assert got is not None and FrameDecoder(DB, "default", 1).decode(got)[0].value == 3.0
+    assert counters.tx_errors == 3 and counters.tx_frames == 1
+
+
+class _SendBlocksUntilShutdownBus(VirtualBus):
+    """send() blocks (a full controller queue) until the bus is shut down, then fails as a socket closed
+    under it does: EBADF, one of the errors that reopen the bus."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        import threading
+
+        self.closed = threading.Event()
+        self.sending = threading.Event()
+
+    def send(self, msg, timeout=None):
+        self.sending.set()
+        self.closed.wait(5.0)
+        raise OSError(errno.EBADF, "Bad file descriptor")
+
+    def shutdown(self):
+        self.closed.set()
+        super().shutdown()
+
+
+def test_a_send_failing_on_a_bus_already_torn_down_does_not_reopen_its_successor():
+    """A bus torn down (here after silence_reopen_s without a frame) while the sender thread is inside its
+    send(): the send then fails with EBADF, and that asked for a reopen of whatever bus was current by
+    then, the fresh one: torn down again, a bus error counted, frames lost for another back-off. Now a
+    failure of a bus no longer in use is only counted."""
+    ch = channel()
+    buses: list[VirtualBus] = []
+
+    def factory(cfg):
+        bus = _SendBlocksUntilShutdownBus(channel=cfg.channel) if not buses else VirtualBus(channel=cfg.channel)
+        buses.append(bus)
+        return bus
+
+    async def main():
+        sender = can.Bus(interface="virtual", channel=ch)
+        try:
+            cfg = fast(BusConfig(interface="virtual", channel=ch), silence_reopen_s=0.3)
+            async with ResilientBus(cfg, bus_factory=factory) as rx:
+                assert await rx.wait_open(5)
+                rx.send(own_current_frame(DB, 1.0))
+                while not buses[0].sending.is_set():
+                    await asyncio.sleep(0.005)
+                got = []
+
+                async def produce():  # once the first bus is gone, frames: no silence reopen of the next
+                    while len(buses) < 2:
+                        await asyncio.sleep(0.005)
+                    while True:
+                        sender.send(own_current_frame(DB, 2.0))
+                        await asyncio.sleep(0.01)
+
+                prod = asyncio.create_task(produce())
+                try:
+                    while len(got) < 60:  # 0.6 s of frames: twice the silence limit
+                        got += await rx.recv_batch()
+                finally:
+                    prod.cancel()
+                return rx.counters, len(buses)
+        finally:
+            sender.shutdown()
+
+    counters, n_buses = run(main())
+    assert counters.silence_reopens == 1 and counters.tx_errors == 1
+    assert counters.bus_errors == 0 and counters.opens == 2 and n_buses == 2, counters
+
+
+def test_close_ends_the_sender_thread_even_with_its_queue_full():
+    """close() put its stop sentinel with put_nowait, dropped when the send queue was full (a bus-off
+    adapter whose sends block): the sender thread then emptied the queue and waited for ever, one
+    thread left behind per close (a reload, a reopen of the service). Now the sentinel is waited in."""
+    ch = channel()
+
+    async def main():
+        cfg = fast(BusConfig(interface="virtual", channel=ch), tx_queue_size=4)
+        made: list[_SendBlocksUntilShutdownBus] = []
+
+        def factory(c):
+            made.append(_SendBlocksUntilShutdownBus(channel=c.channel))
+            return made[-1]
+
+        rx = ResilientBus(cfg, bus_factory=factory)
+        await rx.start()
+        assert await rx.wait_open(5)
+        thread = rx._tx_thread
+        rx.send(own_current_frame(DB, 0.0))
+        while not made[0].sending.is_set():  # the sender is inside send(): the next ones queue up
+            await asyncio.sleep(0.005)
+        queued = sum(rx.send(own_current_frame(DB, float(k))) for k in range(1, 10))
+        await rx.close()
+        thread.join(2.0)
+        return queued, thread.is_alive(), rx.counters
+
+    queued, alive, counters = run(main())
+    assert queued == 4 and counters.tx_dropped >= 5  # the queue was full at the close
+    assert not alive, "the sender thread outlived close()"
+
+
 def test_close_ends_a_pending_receive():
     async def main():
         rx = ResilientBus(fast(BusConfig(interface="virtual", channel=channel())))

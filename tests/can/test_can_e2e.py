@@ -51,6 +51,31 @@ def test_a_skipped_or_repeated_counter_value_is_dropped_and_counted(project_db, 
     assert dec.counters.errors == 2
 
 
+@pytest.mark.parametrize("bit_fields", [True, False])
+def test_a_sender_that_wakes_with_its_counters_restarted_is_not_a_counter_failure(project_db, bit_fields):
+    """A BMS that sleeps while the vehicle is parked wakes with its alive counters restarted: the first
+    frame of every counter group (one per cell group on a multiplexed message: about 100 frames for 200
+    cells) was dropped and counted as ``e2e_counter``, a false alarm at every wake. A frame more than
+    ``E2E_RESYNC_S`` (5 s, the sampler's gap) of frame time after the previous one of its group starts
+    the count afresh; within it, a restarted counter is still a failure."""
+    from bms_estimator.can.e2e import E2E_RESYNC_S
+
+    dec = FrameDecoder(project_db, _with_e2e("default", {"PackMeasurement": {"counter": "MeasurementCounter"}}), 1,
+                       bit_fields=bit_fields)
+
+    def at(t: float, current_a: float, counter: int) -> can.Message:
+        m = _own(project_db, current_a, counter)
+        m.timestamp = t
+        return m
+
+    stream = [at(0.1 * k, 1.0, (7 + k) % 16) for k in range(5)]  # counters 7..11
+    stream += [at(0.4 + 600.0, 2.0, 0), at(0.5 + 600.0, 2.0, 1)]  # asleep 10 min, counters restarted
+    stream += [at(0.6 + 600.0 + E2E_RESYNC_S - 0.2, 3.0, 0)]  # restarted again after less than 5 s: a failure
+    got = [[e.value for e in dec.decode(m) if e.kind == EventKind.CURRENT] for m in stream]
+    assert got == [[1.0]] * 5 + [[2.0], [2.0], []]
+    assert dec.counters.e2e_counter == 1
+
+
 def test_without_e2e_the_counter_is_not_evaluated(project_db):
     dec = FrameDecoder(project_db, _with_e2e("default", {}), 1)
     assert all(dec.decode(_own(project_db, 1.0, 0)) for _ in range(3))

@@ -133,6 +133,17 @@ def test_anomalies_are_counted_like_the_service():
     assert np.all(~sa.valid)  # no cell voltage ever: every cell stale
 
 
+def _service_and_bulk(rows):
+    """``(t, key, data)`` rows as a frame table, through the service's decoder and sampler (its decoder and
+    samples) and through the bulk decode (its events and counters)."""
+    ts, keys, data = zip(*rows)
+    frames = FrameTable._build(list(ts), list(keys), [8] * len(ts), [False] * len(ts), list(data))
+    ref_dec = FrameDecoder(DB, "default", N_CELLS)
+    ref = service_samples(ref_dec, service_sampler(N_CELLS), messages(frames))
+    ev, dc = decode_frames(FrameDecoder(DB, "default", N_CELLS), frames)
+    return frames, ref_dec, ref, ev, dc
+
+
 def test_e2e_failures_are_dropped_and_counted_like_the_service():
     """A corrupted CRC (a spoofed 4999 A current) and a skipped alive counter value, per cell group too:
     the bulk decode drops the same frames and counts them as the service's decoder does."""
@@ -152,15 +163,35 @@ def test_e2e_failures_are_dropped_and_counted_like_the_service():
         if k == 31:  # base 3: its counter skips; base 0 goes on undisturbed
             stamper.stamp(VOLTS.frame_id, volts)
         rows.append((t + 0.001, VOLTS.frame_id | EXTENDED_FLAG, stamper.stamp(VOLTS.frame_id, volts)))
-    ts, keys, data = zip(*rows)
-    frames = FrameTable._build(list(ts), list(keys), [8] * len(ts), [False] * len(ts), list(data))
-    ref_dec = FrameDecoder(DB, "default", N_CELLS)
-    ref = service_samples(ref_dec, service_sampler(N_CELLS), messages(frames))
-    ev, dc = decode_frames(FrameDecoder(DB, "default", N_CELLS), frames)
+    frames, ref_dec, ref, ev, dc = _service_and_bulk(rows)
     # the CRC-dropped frame counts as lost, so the frame after it skips a value too
     assert (dc.e2e_crc, dc.e2e_counter) == (1, 3)
     assert dc.as_dict() == ref_dec.counters.as_dict()
     assert np.all(ev.value[ev.kind == 0] == 1.0)  # the spoofed 4999 A never became a current event
+    sa = assemble_samples(frames.t_s, ev, service_sampler(N_CELLS))
+    assert_same_samples(sa, ref)
+
+
+def test_a_sender_waking_with_restarted_counters_is_kept_like_the_service():
+    """After more than E2E_RESYNC_S of frame time without a frame of its group, a frame's alive counter
+    starts afresh (a BMS waking from sleep restarts its counters), in the bulk decode as in the service."""
+    from bms_estimator.can.e2e import E2E_RESYNC_S
+
+    rows = []
+    for part, (t0, n) in enumerate(((0.0, 30), (600.0, 30), (600.3 + E2E_RESYNC_S - 0.1, 10))):
+        stamper = E2EStamper(DB, "default")  # counters restart with every part
+        for k in range(n):
+            t = t0 + 0.01 * k
+            pack = PACK.encode({"PackCurrent": 1.0, "PackVoltage": 15.0, "MeasurementCounter": 0,
+                                "CurrentInvalid": 0, "VoltageInvalid": 0, "MeasurementCrc": 0})
+            rows.append((t, PACK.frame_id | EXTENDED_FLAG, stamper.stamp(PACK.frame_id, pack)))
+            volts = VOLTS.encode({"CellIndexBase": 3 * (k % 2), "VoltageCounter": 0, "CellVoltage0": 3.5,
+                                  "CellVoltage1": 3.5, "CellVoltage2": 3.5})
+            rows.append((t + 0.001, VOLTS.frame_id | EXTENDED_FLAG, stamper.stamp(VOLTS.frame_id, volts)))
+    frames, ref_dec, ref, ev, dc = _service_and_bulk(rows)
+    # the 10 min sleep resyncs all three groups; the restart 5 s after the last frame fails them, once each
+    assert dc.e2e_counter == 3
+    assert dc.as_dict() == ref_dec.counters.as_dict()
     sa = assemble_samples(frames.t_s, ev, service_sampler(N_CELLS))
     assert_same_samples(sa, ref)
 

@@ -45,6 +45,31 @@ async def wait_until(pred: Callable[[], bool], timeout: float = 5.0, what: str =
         await asyncio.sleep(0.01)
 
 
+class NotifySocket:
+    """A systemd notify socket at ``path`` (``$NOTIFY_SOCKET`` set with ``monkeypatch``, no watchdog):
+    :meth:`drain` returns every datagram received so far, in order."""
+
+    def __init__(self, path: Path, monkeypatch: Any) -> None:
+        import socket
+
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.setblocking(False)
+        monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+        monkeypatch.delenv("WATCHDOG_USEC", raising=False)
+        self.got: list[str] = []
+
+    def drain(self) -> list[str]:
+        while True:
+            try:
+                self.got.append(self.sock.recv(4096).decode())
+            except BlockingIOError:
+                return self.got
+
+    def close(self) -> None:
+        self.sock.close()
+
+
 class Collector:
     """An aiomqtt subscriber recording every message it receives."""
 

@@ -49,7 +49,7 @@ from bms_estimator.errors import DataError
 from bms_estimator.service.daemon import Service, run_service
 from bms_estimator.service.state import load_state, save_state
 
-from service_helpers import Collector, free_port, retained, run_async, wait_until
+from service_helpers import Collector, NotifySocket, free_port, retained, run_async, wait_until
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DB = load_project_db()
@@ -1082,25 +1082,12 @@ def test_ready_at_once_with_the_bus_absent_then_receiving_when_it_appears(tmp_pa
     """READY=1 does not wait for the CAN interface (an absent can0 used to keep the unit
     'activating' until TimeoutStartSec, then restart it forever): the service is ready at once,
     shows the bus as down in STATUS, /healthz and /metrics, and receives once the bus appears."""
-    import socket as _socket
     import threading
 
     from bms_estimator.can.bus import open_bus
 
-    sock_path = tmp_path / "notify.sock"
-    srv = _socket.socket(_socket.AF_UNIX, _socket.SOCK_DGRAM)
-    srv.bind(str(sock_path))
-    srv.setblocking(False)
-    monkeypatch.setenv("NOTIFY_SOCKET", str(sock_path))
-    monkeypatch.delenv("WATCHDOG_USEC", raising=False)
-    got: list[str] = []
-
-    def drain() -> list[str]:
-        while True:
-            try:
-                got.append(srv.recv(4096).decode())
-            except BlockingIOError:
-                return got
+    srv = NotifySocket(tmp_path / "notify.sock", monkeypatch)
+    drain, got = srv.drain, srv.got
 
     ch = channel()
     cfg = make_cfg(tmp_path, ch)

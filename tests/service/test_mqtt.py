@@ -689,3 +689,76 @@ def test_cell_payload_texts_are_the_per_cell_dumps_byte_for_byte():
     check()
     with pytest.raises(ValueError, match="expected 3"):
         schema.cell_payload_texts(0.0, {"soc": np.zeros(2)}, 3)
+
+
+def test_a_stop_while_a_broker_does_not_answer_the_connect_closes_the_socket():
+    """A broker that accepts the TCP connection and never answers CONNECT (hung, or a black hole
+    behind a NAT): a stop cancels the connect (``close``'s timeout). aiomqtt then left paho's socket
+    open and watched by the loop, its keepalive task running: kept until the keepalive expired, and
+    when the peer reset it, ``on_disconnect`` raised ``CancelledError`` from the cancelled
+    ``_connected`` future inside a loop callback ("Exception in callback ...", a traceback in the
+    journal; after a reload the loop lives on). Now the socket is closed at the cancel: the peer sees
+    EOF, and its reset later reaches nothing."""
+    import socket
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        errors: list[dict] = []
+        loop.set_exception_handler(lambda _loop, ctx: errors.append(ctx))
+        srv = socket.socket()
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(1)
+        srv.setblocking(False)
+        pub = MqttPublisher(mqtt_cfg(srv.getsockname()[1], discovery=False, timeout_s=30.0, keepalive=30),
+                            "hungbroker", 1)
+        task = asyncio.create_task(pub.run())
+        conn, _ = await asyncio.wait_for(loop.sock_accept(srv), 5)
+        conn.setblocking(False)
+        first = await asyncio.wait_for(loop.sock_recv(conn, 4096), 5)
+        assert first[:1] == b"\x10"  # the CONNECT packet: the client waits for its CONNACK now
+        await pub.close(timeout_s=0.05)  # a stop: the publisher does not end in time and is cancelled
+        assert task.done()
+        try:
+            eof = await asyncio.wait_for(loop.sock_recv(conn, 4096), 3)
+        except TimeoutError:
+            eof = None
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+        conn.close()  # a reset
+        srv.close()
+        for _ in range(20):  # let a callback on the client's socket run, if one is still registered
+            await asyncio.sleep(0.01)
+        return eof, errors
+
+    eof, errors = run_async(main())
+    assert eof == b"", "the client's socket stayed open after the cancelled connect"
+    assert errors == [], [e.get("message") for e in errors]
+
+
+def test_connections_that_drop_at_once_back_off_as_failed_connects_do(monkeypatch):
+    """A connection that the broker drops at once (another client with the same client id, e.g. a second
+    gateway or a stale process for this pack: the broker kicks the older session each time) reset the
+    back-off: both reconnected every reconnect_min_s for ever, each time re-sending discovery (thousands
+    of retained messages for 200 cells) and logging three lines. Now only a connection that lasted
+    reconnect_max_s resets it; shorter ones back off like failed connects."""
+    from structlog.testing import capture_logs
+
+    pub = MqttPublisher(mqtt_cfg(free_port(), reconnect_min_s=0.01, reconnect_max_s=0.64), "dup", 1)
+    sessions = []
+
+    async def dropped_at_once() -> bool:
+        sessions.append(time.monotonic())
+        return True  # connected, then lost
+
+    monkeypatch.setattr(pub, "_session", dropped_at_once)
+
+    async def main():
+        task = asyncio.create_task(pub.run())
+        await wait_until(lambda: len(sessions) >= 8, 10, "8 sessions")
+        await pub.close(timeout_s=3.0)
+        await task
+
+    with capture_logs() as logs:
+        run_async(main())
+    delays = [r["in_s"] for r in logs if r["event"] == "mqtt reconnecting"][:7]
+    # reconnect_min_s doubling, with jitter in [base/2, base]: 0.01, 0.02, ... 0.64
+    assert all(0.005 * 2 ** k <= d <= 0.01 * 2 ** k for k, d in enumerate(delays)), delays

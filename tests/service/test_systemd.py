@@ -124,6 +124,7 @@ def test_unit_file_settings():
     assert svc["ExecStart"].startswith("/usr/local/bin/bms-estimator run --config ")
     assert svc["WatchdogSec"] == "10" and svc["Restart"] == "on-failure"
     assert svc["KillSignal"] == "SIGTERM" and "TimeoutStopSec" in svc
+    assert svc["ExecReload"] == "/bin/kill -HUP $MAINPID"  # tests/service/test_reload.py
     for key in ("DynamicUser", "ProtectHome", "PrivateTmp", "NoNewPrivileges", "ProtectKernelTunables"):
         assert svc[key] == "yes", key
     assert svc["ProtectSystem"] == "strict"

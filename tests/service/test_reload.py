@@ -1,0 +1,196 @@
+"""SIGHUP: the running daemon re-reads its configuration (``systemctl reload``).
+
+A real ``bms-estimator run`` process on a ``virtual`` bus: a SIGHUP with a configuration that
+no longer validates keeps the service running on the one it has, and says why; a SIGHUP with a
+valid one stops the service as SIGTERM does (state saved) and starts it again on the new
+configuration, from that state; SIGTERM then ends it with exit code 0.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+from bms_estimator.service.state import load_state
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+PACK, N = "packR", 6
+
+
+class LogReader:
+    """The JSON log lines of a process's stderr, read by a thread as they come."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.events: list[dict] = []
+        self.text: list[str] = []
+        self.ended = False  # stderr closed: the process is gone
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._read, args=(proc.stderr,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream) -> None:
+        for raw in stream:
+            line = raw.decode(errors="replace")
+            with self._cond:
+                self.text.append(line)
+                if line.startswith("{"):
+                    self.events.append(json.loads(line))
+                self._cond.notify_all()
+        with self._cond:
+            self.ended = True
+            self._cond.notify_all()
+
+    def wait_for(self, event: str, count: int = 1, timeout: float = 15.0) -> list[dict]:
+        """Block until ``event`` was logged ``count`` times; those log records."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                got = [e for e in self.events if e.get("event") == event]
+                if len(got) >= count:
+                    return got
+                left = deadline - time.monotonic()
+                if left <= 0 or self.ended:
+                    why = "the process ended" if self.ended else f"not within {timeout} s"
+                    raise AssertionError(f"no {event!r} (x{count}): {why}; log:\n" + "".join(self.text[-10:]))
+                self._cond.wait(left)
+
+
+def write_config(path: Path, state: Path, *, n_cells: int | str = N, level: str = "INFO") -> None:
+    path.write_text(
+        f"[pack]\npack_id = '{PACK}'\nn_cells = {n_cells}\ncapacity_ah = 2.9\n"
+        f"[can]\ninterface = 'virtual'\nchannel = 'bmsr-{uuid.uuid4().hex[:8]}'\n"
+        "[mqtt]\nenabled = false\n"
+        f"[state]\npath = '{state}'\n"
+        "[health]\nenabled = false\n"
+        f"[logging]\nformat = 'json'\nlevel = '{level}'\n"
+    )
+
+
+@pytest.fixture
+def daemon(tmp_path):
+    state, cfg = tmp_path / "state.npz", tmp_path / "config.toml"
+    write_config(cfg, state)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("BMS_", "NOTIFY_SOCKET", "WATCHDOG_"))}
+    env["PYTHONPATH"] = str(REPO_ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.Popen([sys.executable, "-m", "bms_estimator.cli", "run", "--config", str(cfg)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    try:
+        yield proc, LogReader(proc), cfg, state
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_sighup_with_a_bad_config_keeps_running_and_a_good_one_reloads(daemon):
+    proc, logs, cfg, state = daemon
+    logs.wait_for("can bus open: receiving")
+
+    write_config(cfg, state, n_cells=0)  # no longer valid
+    proc.send_signal(signal.SIGHUP)
+    refused = logs.wait_for("configuration not reloaded: the service goes on with the one it has")[0]
+    assert proc.poll() is None, "a SIGHUP ended the service"
+    assert any("pack.n_cells" in p for p in refused["problems"]), refused
+    assert refused["config"] == str(cfg)
+
+    write_config(cfg, state, level="DEBUG")
+    proc.send_signal(signal.SIGHUP)
+    reloaded = logs.wait_for("configuration reloaded")[0]
+    assert reloaded["settings"]["logging"]["level"] == "DEBUG"  # what runs now, secrets redacted
+    logs.wait_for("can bus open: receiving", count=2)  # the service runs again, on the new configuration
+    assert proc.poll() is None
+    assert len(logs.wait_for("estimator state saved")) == 1  # the stop before the reload saved the state
+    assert [e for e in logs.events if e.get("level") == "debug"], "the new logging.level is not in force"
+
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=15) == 0, "".join(logs.text[-30:])
+    logs.wait_for("service stopped", count=2)
+    assert load_state(state, pack_id=PACK, n_cells=N, max_age_s=None) is not None
+    assert not [e for e in logs.events if e.get("level") in ("error", "critical")
+                and "not reloaded" not in e.get("event", "")], logs.text
+
+
+def test_systemd_hears_reloading_then_ready_and_a_stop_during_a_reload_stops(tmp_path, monkeypatch):
+    """In process, with a notify socket: a reload says RELOADING=1 (never STOPPING=1, which would tell
+    systemd the unit is going down) and then READY=1 from the new service, which resumes the state the
+    old one saved. SIGTERM while the next configuration is being built (its files on a hung mount, say): the running
+    service stops at once (STOPPING=1, state saved), not waiting for the build, and the new one never
+    runs; a second stop changes nothing."""
+    import asyncio
+
+    from service_helpers import NotifySocket, run_async, wait_until
+    from test_daemon import make_cfg
+
+    from bms_estimator.service.daemon import Service, serve
+
+    srv = NotifySocket(tmp_path / "notify.sock", monkeypatch)
+
+    def said() -> list[str]:
+        return [m.splitlines()[0] for m in srv.drain()]
+
+    cfg = make_cfg(tmp_path, f"bmsr-{uuid.uuid4().hex[:8]}", health={"enabled": False})
+    building, release, finished = threading.Event(), threading.Event(), threading.Event()
+    built: list[Service] = []
+
+    def rebuild() -> Service:
+        if built:  # the second reload: a stop arrives while it is built (its files on a hung mount)
+            building.set()
+            release.wait(10)
+            finished.set()
+        built.append(Service(cfg))
+        return built[-1]
+
+    async def main():
+        svc = Service(cfg)
+        stop, reload = asyncio.Event(), asyncio.Event()
+        task = asyncio.create_task(serve(svc, stop, reload, rebuild))
+        await wait_until(svc.ready.is_set, 10, "ready")
+        reload.set()
+        await wait_until(lambda: built and built[0].ready.is_set(), 10, "the reloaded service ready")
+        first = said()
+        reload.set()
+        await wait_until(building.is_set, 10, "the second rebuild under way")
+        stop.set()
+        stop.set()  # a second SIGTERM
+        ended = await asyncio.wait_for(task, 15)
+        stopped_while_building = not finished.is_set()
+        release.set()
+        await wait_until(lambda: len(built) == 2, 10, "the abandoned rebuild to return")
+        return first, ended, stopped_while_building
+
+    try:
+        first, ended, stopped_while_building = run_async(main(), 30)
+        last = said()[len(first):]
+    finally:
+        srv.close()
+    assert [m for m in first if m != "WATCHDOG=1" and not m.startswith("STATUS=")] == \
+        ["READY=1", "RELOADING=1", "READY=1"], first
+    assert built[0].restored  # the state the first service saved at the reload
+    assert ended is built[0] and not ended.reloading
+    assert stopped_while_building, "the stop waited for the configuration being read"
+    assert "STOPPING=1" in last and "RELOADING=1" not in last, last
+    assert len(built) == 2 and built[1].bus is None  # built, never run
+    assert load_state(cfg.state.path, pack_id=cfg.pack.pack_id, n_cells=cfg.pack.n_cells, max_age_s=None) is not None
+
+
+def test_a_sighup_while_the_service_starts_is_a_reload_once_it_runs(daemon):
+    """The loop's handlers are installed after the configuration, DBC and OCV table are loaded (about a
+    second). A SIGHUP before that (``systemctl kill -s HUP``, a config tool) ended the process, and
+    systemd counts a death by SIGHUP as a clean exit: ``Restart=on-failure`` left the estimator down.
+    Now it is held and served as a reload once the service runs."""
+    proc, logs, cfg, state = daemon
+    logs.wait_for("can.mapping.cells_beyond_pack")  # the decoder is being built: no handler yet
+    proc.send_signal(signal.SIGHUP)
+    logs.wait_for("configuration reloaded")
+    logs.wait_for("can bus open: receiving", count=2)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=15) == 0, "".join(logs.text[-10:])
