@@ -177,6 +177,10 @@ class SocConfig:
     #            rest_gate_sigma of its own sigmas away (a charge while parked) replaces it
     rest_soc_reading: RestSocReading = "ocv"
     rest_gate_sigma: Annotated[float, Gt(0)] = 3.0
+    # A period whose current is unknown (NaN: the current frame lost, a sensor fault) is counted with
+    # the current's running mean over this time constant, and the EKF's SOC variance grows by what
+    # that guess may miss (SocEstimator.update, "A lost current")
+    current_hold_s: Annotated[float, Gt(0)] = 60.0
 
     def __post_init__(self) -> None:
         if self.soc_method not in SOC_METHODS:
@@ -272,6 +276,12 @@ class SocEstimator:
         self._c0_sum = np.zeros(self.n_cells)  # running sums over the window (re-summed every window)
         self._c0_sq = np.zeros(self.n_cells)
         self._i_prev = np.zeros(self.n_cells)
+        # the current's running mean and mean squared deviation from it (what a lost current is counted
+        # with, and how far that may be off), and the periods lost in a row (update, "A lost current")
+        self._i_hold = np.zeros(self.n_cells)
+        self._i_dev2 = np.zeros(self.n_cells)
+        self._n_lost = np.zeros(self.n_cells, dtype=np.int64)
+        self._hold_a = min(1.0, self.dt_s / config.current_hold_s)
         self.charge_ah = np.zeros(self.n_cells)  # counted charge since start (positive = charged)
         # the same at the reference temperature (dq / relative capacity): the capacity line's abscissa
         self._charge_ref_ah = np.zeros(self.n_cells)
@@ -415,7 +425,21 @@ class SocEstimator:
         valid: np.ndarray | None = None,
         temperature_c: float | np.ndarray | None = None,
     ) -> None:
-        """One sample period: mean current over the period, the cell voltages and temperatures."""
+        """One sample period: mean current over the period, the cell voltages and temperatures.
+
+        A lost current.  A cell whose current is not finite this period (the current frame lost, a
+        sensor fault) is counted with the current's running mean ``i_m`` (exponential, time constant
+        ``current_hold_s``), its voltage is not read (the overpotential is unknown), and the EKF's
+        SOC variance grows by what that guess may miss: ``s_i = sqrt(mean (i - i_m)^2)``, the running
+        RMS deviation, taken as coherent over the loss, so after ``n`` lost periods the SOC's sigma
+        has grown by ``s_i n Ts / (3600 Q)`` (the variance by ``(s_i Ts / (3600 Q))^2 (2n - 1)``
+        each period).  When the current comes back the voltage corrects the count by that larger
+        uncertainty.  Measured on 19 losses of 300 s in ten measured drive cycles (LG HG2 at 25 and
+        0 degC, Panasonic at 25 degC, from a correct full start; README, Reliability): SOC RMSE over
+        the 30 min after the loss 0.91 % mean, 0.62 % median, one over 2 % (4.5 %), against 2.21 /
+        1.24 % and six over 2 % (up to 6.5 %) with the lost periods skipped; worse at 4 of the 19.
+        At the loss's end the count was within its grown 1-sigma at all 19.
+        """
         n = self.n_cells
         i = cell_vector(current_a, n)
         v = cell_vector(voltage_v, n)
@@ -425,12 +449,12 @@ class SocEstimator:
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
         i_ok = np.isfinite(i)
-        i_use = np.where(i_ok, i, 0.0)
+        i_use = self._hold_current(i, i_ok)
         unset = ~np.isfinite(self.soc)
         any_unset = any_cell(unset)
         read_now = None  # SOC read from this sample's voltage (none in the usual sample): not to be used a second time
         if any_unset:
-            read_now = unset & ok
+            read_now = unset & ok & i_ok  # (not under a load it does not know)
             if any_cell(read_now):
                 self._start_from_voltage(read_now, v)
         if self._any_rest_due:
@@ -475,6 +499,29 @@ class SocEstimator:
         if self.ekf is None:
             self._voltage_line(i_use, v, use, every_use)
         self.samples += 1
+
+    def _hold_current(self, i: np.ndarray, i_ok: np.ndarray) -> np.ndarray:
+        """The current to count this period: ``i`` where known, else the running mean (``update``'s
+        "A lost current", which also grows the EKF's SOC variance here); the running mean and
+        deviation take in the known currents."""
+        a = self._hold_a
+        if all_cells(i_ok):  # the usual sample
+            d = i - self._i_hold
+            self._i_hold += a * d
+            self._i_dev2 += a * (d * d - self._i_dev2)
+            if any_cell(self._n_lost):
+                self._n_lost[:] = 0
+            return i.copy()  # (kept as the next period's current: not the caller's array)
+        d = np.where(i_ok, i - self._i_hold, 0.0)
+        self._i_hold = self._i_hold + a * d
+        self._i_dev2 = np.where(i_ok, self._i_dev2 + a * (d * d - self._i_dev2), self._i_dev2)
+        self._n_lost = np.where(i_ok, 0, self._n_lost + 1)
+        lost = ~i_ok & np.isfinite(self.soc)
+        if self.ekf is not None and any_cell(lost):
+            q_now = self.capacity_ah * self._rel_q if self._t_aware else self.capacity_ah
+            step = np.sqrt(self._i_dev2) * (self.dt_s / 3600.0) / q_now
+            self.ekf.grow_soc_variance(step * step * (2.0 * self._n_lost - 1.0), lost)
+        return np.where(i_ok, i, self._i_hold)
 
     def _take_temperature(self, t: np.ndarray) -> None:
         """The cells' temperatures this sample: the identifier's and the diffusion branch's priors at the
@@ -544,6 +591,7 @@ class SocEstimator:
             self.ekf.predict(self._i_prev, dz, q_now, r, tau, live)
             self.ekf.rest(gap, q_now, tau, live)
         self._i_prev = np.where(sel, 0.0, self._i_prev)
+        self._i_hold = np.where(sel, 0.0, self._i_hold)  # parked: a current lost next is held at zero
         self.identifier.rest(gap, sel)
         self._c0_count = np.where(sel, 0, self._c0_count)
         self._v_warm = np.where(sel, 0, self._v_warm)  # the voltage line's averages restart
@@ -821,6 +869,7 @@ class SocEstimator:
             c0_head=np.array(self._c0_head),
             c0_count=self._c0_count.copy(),
             i_prev=self._i_prev.copy(),
+            i_hold=np.stack([self._i_hold, self._i_dev2, self._n_lost.astype(float)], axis=1),
             charge_ah=self.charge_ah.copy(),
             charge_ref_ah=self._charge_ref_ah.copy(),
             temperature_c=self.temperature_c.copy(),
@@ -876,6 +925,12 @@ class SocEstimator:
         self._c0_sum = self._c0_buf.sum(axis=1)
         self._c0_sq = np.einsum("nw,nw->n", self._c0_buf, self._c0_buf)
         self._i_prev = np.asarray(s["i_prev"], dtype=float).copy()
+        # states saved before a lost current was held: the running mean starts from the last current
+        hold = np.asarray(s.get("i_hold", np.stack([self._i_prev, np.zeros(n), np.zeros(n)], axis=1)), dtype=float)
+        if hold.shape != (n, 3) or not np.all(np.isfinite(hold)):
+            raise ValueError(f"state field 'i_hold' has shape {hold.shape} or non-finite values, expected ({n}, 3)")
+        self._i_hold, self._i_dev2 = hold[:, 0].copy(), np.maximum(hold[:, 1], 0.0)
+        self._n_lost = np.maximum(hold[:, 2], 0.0).astype(np.int64)
         self.charge_ah = np.asarray(s["charge_ah"], dtype=float).copy()
         # states saved before temperature existed: the count was at the reference temperature
         self._charge_ref_ah = np.asarray(s.get("charge_ref_ah", self.charge_ah), dtype=float).copy()

@@ -264,6 +264,11 @@ class SocEkf:
         self._pt[:, 0, sel] = 0.0
         self._pt[0, 0, sel] = s2[sel]
 
+    def grow_soc_variance(self, variance: np.ndarray, cells: np.ndarray) -> None:
+        """Add ``variance`` to the SOC's (``P[0, 0]``) of ``cells``: an uncertainty the count took on
+        that the model's noise does not hold (a period counted with a guessed current)."""
+        self._pt[0, 0] = np.where(cells, self._pt[0, 0] + variance, self._pt[0, 0])
+
     def predict(self, current_a: np.ndarray, dz: np.ndarray, capacity_ah: np.ndarray,
                 r_ohm: np.ndarray, tau_s: np.ndarray, live: np.ndarray) -> None:
         """One period of current ``current_a``: states forward, covariance grows (``live`` cells only).
