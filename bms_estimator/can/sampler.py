@@ -67,7 +67,7 @@ import structlog
 from ..gaps import MAX_GAP_S, gap_before_s  # the gap rule is shared with the offline commands
 from .decoder import Event, EventKind
 
-__all__ = ["MAX_GAP_S", "Sample", "SampleAssembler", "SamplerCounters", "gap_before_s"]
+__all__ = ["MAX_GAP_S", "Sample", "SampleAssembler", "SamplerCounters", "first_current", "gap_before_s", "sample_current"]
 
 log = structlog.get_logger(__name__)
 
@@ -89,6 +89,25 @@ class Sample:
     current_valid: bool = True
     current_coverage: float = 1.0  # fraction of the period with a known (held) current
     period_s: float = 1.0
+
+
+def sample_current(current_a, current_valid):
+    """The current the estimator takes for a sample (or an array of them): ``current_a`` where it is
+    valid and finite, else NaN, which the estimator counts with the current's running mean
+    (:meth:`~bms_estimator.core.soc.SocEstimator.update`, "A lost current"). The service and the
+    fleet's re-estimation both take it from here."""
+    if np.ndim(current_a) == 0:
+        c = float(current_a)
+        return c if current_valid and math.isfinite(c) else math.nan
+    c = np.asarray(current_a, dtype=float)
+    return np.where(np.asarray(current_valid, dtype=bool) & np.isfinite(c), c, np.nan)
+
+
+def first_current(current_a: np.ndarray, current_valid: np.ndarray) -> int:
+    """The index of the first sample with a valid current (``len`` if none): the estimator is fed from
+    there on (before it there is nothing to count; after it a lost current is held, :func:`sample_current`)."""
+    ok = np.asarray(current_valid, dtype=bool) & np.isfinite(np.asarray(current_a, dtype=float))
+    return int(np.argmax(ok)) if ok.any() else len(ok)
 
 
 @dataclass

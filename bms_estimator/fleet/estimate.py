@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import structlog
 
+from ..can.sampler import first_current, sample_current
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator, rest_estimators
 from ..gaps import gap_before_s
@@ -200,18 +201,19 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
         pack = {key: np.full(k, np.nan) for key in sox.pack_output_keys}
     pack_targets = list(pack.items())
     nan = math.nan
-    current = samples.current_a.tolist()  # Python floats, as Sample carries them
-    current_valid = samples.current_valid.tolist()
+    # Python floats, as Sample carries them; NaN where not valid (counted with its running mean, as the service)
+    current = sample_current(samples.current_a, samples.current_valid).tolist()
+    first = first_current(samples.current_a, samples.current_valid)
     volts, temps, valid = samples.cell_voltage_v, samples.cell_temperature_c, samples.valid
-    update, isfinite = est.update, math.isfinite
+    update = est.update
     gaps = sample_gaps(samples.t_s, samples.period_s).tolist()
     errors = 0
     for i in range(k):
         try:
             if gaps[i]:
                 rest_estimators(est, sox, gaps[i])
-            c = current[i]
-            if current_valid[i] and isfinite(c):
+            if i >= first:  # as the service: fed from the first valid current on (can.sampler.first_current)
+                c = current[i]
                 update(c, volts[i], valid[i], temperature_c=temps[i])
                 if sox is not None:
                     sox.update(est, c, volts[i], valid[i])

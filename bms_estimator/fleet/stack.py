@@ -9,14 +9,15 @@ alone (the EKF shifts each cell's own identifier history:
 the results are checked bit for bit against the solo run in ``tests/fleet/test_fleet_stack.py``.
 
 What a drive sees, step by step. :func:`~.estimate.estimate_drive` calls
-``update(i, v, valid, T)`` for sample ``k`` iff its current is valid and finite, and
-otherwise leaves the estimator untouched (row ``k`` repeats the state). So drive ``d`` is
-a sequence of ``m_d`` *updates* at its samples ``u_d = {k : current valid and finite}``,
-and the estimator's shared scalar counters (sample count, the LIF ring's head and fill,
-the RLS error window's head) after ``j`` updates are the same for every drive. The
-stack therefore runs step ``j`` as update ``j`` of every drive at once, the current a
-per-cell vector (drive ``d``'s current on its cells; a Python float and a vector filled
-with it give the same values), and maps back::
+``update(i, v, valid, T)`` for every sample ``k`` from its first valid current on (``i`` NaN
+where the current is lost again: the estimator counts it with the current's running mean),
+and before it leaves the estimator untouched (those rows repeat the fresh state). So drive
+``d`` is a sequence of ``m_d`` *updates* at its samples ``u_d = {k : k >= k0_d}``, ``k0_d``
+its first valid current, and the estimator's shared scalar counters (sample count, the LIF
+ring's head and fill, the RLS error window's head) after ``j`` updates are the same for
+every drive. The stack therefore runs step ``j`` as update ``j`` of every drive at once, the
+current a per-cell vector (drive ``d``'s current on its cells; a Python float and a vector
+filled with it give the same values), and maps back::
 
     row k of drive d  =  outputs after update  c_k - 1,   c_k = #{j in u_d : j <= k}
                          (the fresh estimator's values when c_k = 0)
@@ -63,6 +64,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..can.sampler import first_current, sample_current
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
 from ..service.state import SOX_PREFIX, estimator_state
@@ -152,7 +154,7 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
     axes = _cell_axes(estimator_state(solo, solo_sox), estimator_state(est, sox), s)
     fresh_state = estimator_state(solo, solo_sox)
 
-    steps = [np.flatnonzero(d.current_valid & np.isfinite(d.current_a)) for d in drives]
+    steps = [np.arange(first_current(d.current_a, d.current_valid), len(d)) for d in drives]
     counts = [int(u.size) for u in steps]
     length = max(counts)
     # stacked inputs, row j = update j of every drive; after a drive's last update: the filler
@@ -162,7 +164,7 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
     valid = np.zeros((length, big), dtype=bool)
     for d, (dr, u) in enumerate(zip(drives, steps)):
         cols, m = slice(d * n, (d + 1) * n), u.size
-        current[:m, cols] = dr.current_a[u][:, None]
+        current[:m, cols] = sample_current(dr.current_a, dr.current_valid)[u][:, None]
         volts[:m, cols] = dr.cell_voltage_v[u]
         temps[:m, cols] = dr.cell_temperature_c[u]
         valid[:m, cols] = dr.valid[u]

@@ -20,7 +20,8 @@ new ``can.output.period_s`` bucket (``floor(t_s / period)``), so with the
 defaults every 1 s sample produces one set of frames.
 
 Robustness: bad frames are counted by the decoder and the sampler; a sample
-whose current is invalid skips the estimator update (``samples_current_invalid``);
+whose current is invalid is counted with the current's running mean, its voltages not read
+(``samples_current_invalid``; :meth:`~bms_estimator.core.soc.SocEstimator.update`);
 an exception inside one frame/tick is logged (rate-limited) and counted
 (``tick_errors``) and the loop goes on; the bus reopens itself; MQTT runs in its
 own task with a bounded latest-value buffer, so a broker that is down never

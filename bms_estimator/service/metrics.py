@@ -171,7 +171,7 @@ class _ServiceCollector(Collector):
                        sc.stale_cell_samples)
         pc = svc.pipeline.counters
         yield _counter("bms_samples", "samples estimated", pc.samples)
-        yield _counter("bms_samples_current_invalid", "samples without a valid current (estimator update skipped)",
+        yield _counter("bms_samples_current_invalid", "samples without a valid current (counted with its running mean, voltages not read)",
                        pc.samples_current_invalid)
         yield _counter("bms_tick_errors", "exceptions while processing a frame, a sample or an output (logged, skipped)",
                        pc.tick_errors)

@@ -47,7 +47,7 @@ import numpy as np
 import structlog
 
 from ..can.decoder import FrameDecoder
-from ..can.sampler import Sample, SampleAssembler
+from ..can.sampler import Sample, SampleAssembler, sample_current
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator, rest_estimators
 from ..gaps import gap_before_s
@@ -115,7 +115,7 @@ class Snapshot:
 @dataclass
 class PipelineCounters:
     samples: int = 0  # samples estimated
-    samples_current_invalid: int = 0  # samples without a valid current: estimator update skipped
+    samples_current_invalid: int = 0  # samples without a valid current: its running mean counted (none before the first)
     tick_errors: int = 0  # exceptions in a frame, a tick or a hook (logged, skipped)
     rests: int = 0  # gaps without samples the estimator rested over (a time jump, a restart)
     rest_s: float = 0.0  # their total length, seconds
@@ -157,6 +157,7 @@ class Pipeline:
         self._errors_logged = 0
         self._last_t_s: float | None = None  # the previous sample's end
         self._at_bound = np.zeros(self.n_cells, dtype=np.int8)  # capacity_at_bound last logged, per cell
+        self._fed = False  # a valid current seen: the estimator is fed every sample from then on
         self._stepped_at: float | None = None  # frame time of a wall clock step whose gap is not yet seen
 
     def add_hook(self, hook: Callable[[Snapshot], None]) -> None:
@@ -190,13 +191,17 @@ class Pipeline:
                 self.rest(gap, "time jump")
             if stepped is not None and (gap or sample.t_s > stepped + 2.0 * sample.period_s):
                 self._stepped_at = None  # its gap (the first sample after the step) is not rested over
-            if sample.current_valid and math.isfinite(sample.current_a):
-                est.update(sample.current_a, sample.cell_voltage_v, sample.valid,
-                           temperature_c=sample.cell_temperature_c)
-                if self.sox is not None:
-                    self.sox.update(est, sample.current_a, sample.cell_voltage_v, sample.valid)
-            else:
+            current = sample_current(sample.current_a, sample.current_valid)
+            lost = math.isnan(current)
+            if lost:
                 c.samples_current_invalid += 1
+            # fed from the first valid current on; a current lost after it is counted with its running
+            # mean (SocEstimator.update), before it there is nothing to count (can.sampler.first_current)
+            self._fed |= not lost
+            if self._fed:
+                est.update(current, sample.cell_voltage_v, sample.valid, temperature_c=sample.cell_temperature_c)
+                if self.sox is not None:
+                    self.sox.update(est, current, sample.cell_voltage_v, sample.valid)
             self._log_capacity_bounds()
             snap = self._snapshot(sample)
             self.last = snap

@@ -172,13 +172,18 @@ class Offline:
     def feed(self, frames) -> Offline:
         est = self.est
         last_t = None
+        fed = False
         for m in frames:
             for s in self.smp.feed_frame(self.dec.decode(m), m.timestamp):
                 if last_t is not None and s.t_s - s.period_s - last_t > 0.5 * s.period_s:  # a time jump: parked
                     est.rest(s.t_s - s.period_s - last_t)
                 last_t = s.t_s
-                if s.current_valid and math.isfinite(s.current_a):
-                    est.update(s.current_a, s.cell_voltage_v, s.valid, temperature_c=s.cell_temperature_c)
+                # from the first valid current on, every sample; a lost current is NaN (held by the estimator)
+                known = s.current_valid and math.isfinite(s.current_a)
+                fed = fed or known
+                if fed:
+                    est.update(s.current_a if known else math.nan, s.cell_voltage_v, s.valid,
+                               temperature_c=s.cell_temperature_c)
                 p = {k: v.copy() for k, v in est.params.items()}
                 fr = self.enc.encode_cells(np.arange(N), est.soc, p["r0_ohm"], p["r1_ohm"], p["c1_f"], p["r2_ohm"],
                                            p["c2_f"], p["c0_v"])
@@ -617,7 +622,7 @@ def test_not_available_out_of_range_and_invalid_values(tmp_path):
     assert metrics['bms_decode_problems_total{reason="not_available"}'] == 10 + 60
     assert metrics['bms_decode_problems_total{reason="flagged_invalid"}'] == 10
     assert metrics['bms_decode_problems_total{reason="out_of_range"}'] == 60
-    # the samples of rows 10 and 11 have no current: the estimator update is skipped and counted
+    # the samples of rows 10 and 11 have no current: counted with its running mean, and counted here
     assert metrics["bms_samples_current_invalid_total"] == 2
     # cells 1 and 4 went stale while they sent nothing usable (staleness 2.5 s)
     stale = [s for s in ref.steps if s.sample.current_valid and not s.sample.valid.all()]
