@@ -525,14 +525,18 @@ class SocEstimator:
 
     def _take_temperature(self, t: np.ndarray) -> None:
         """The cells' temperatures this sample: the identifier's and the diffusion branch's priors at the
-        first one (with or without tables by temperature), and with them the tables' temperature and
-        relative capacity."""
+        first one (with or without tables by temperature), :attr:`temperature_c` (a lost reading keeps the
+        last), and with tables by temperature the relative capacity there.
+
+        With one OCV table the SOC path does not read the temperature, but what runs on the estimator
+        does (the SOP's temperature derating, the resistance SOH's Arrhenius step: ``core.sox``): a cell
+        at 80 degC must not be derated as one at 25 degC because its pack has a single table."""
         if self.samples == 0:  # the priors follow the start temperature, with or without T-tables
             self.identifier.start_prior_at(t, self.config.default_temperature_c)
             if self.ekf is not None:
                 self.ekf.start_diffusion_at(t, self.config.default_temperature_c)
+        self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)
         if self._t_aware:
-            self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)  # a lost reading keeps the last
             self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
 
     def _start_from_voltage(self, cells: np.ndarray, v: np.ndarray) -> None:
