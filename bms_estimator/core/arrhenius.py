@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CELL_TEMPERATURE_RANGE_C", "KELVIN", "R_GAS", "RESISTANCE_ACTIVATION_K", "arrhenius_factor", "resistances_at", "SCALED_RESISTANCES"]
+__all__ = ["CELL_TEMPERATURE_RANGE_C", "cell_temperature_ok", "KELVIN", "R_GAS", "RESISTANCE_ACTIVATION_K", "arrhenius_factor", "resistances_at", "SCALED_RESISTANCES"]
 
 KELVIN = 273.15
 R_GAS = 8.314462618  # J / (mol K)
@@ -44,6 +44,15 @@ SCALED_RESISTANCES = ("r0_ohm", "r1_ohm", "r2_ohm", "k1_ohm", "k2_ohm")
 _CAPACITANCES = ("c1_f", "c2_f")
 
 
+def cell_temperature_ok(temperature_c) -> np.ndarray:
+    """True where ``temperature_c`` (degC) is one a cell can have: finite and inside
+    ``CELL_TEMPERATURE_RANGE_C`` (module docstring)."""
+    t = np.asarray(temperature_c, dtype=float)
+    lo, hi = CELL_TEMPERATURE_RANGE_C
+    with np.errstate(invalid="ignore"):
+        return (t >= lo) & (t <= hi)  # (NaN: False)
+
+
 def arrhenius_factor(temperature_c, reference_c, activation_k: float) -> np.ndarray:
     """``exp(B (1/T - 1/T_ref))`` with the temperatures in degC; 1 where either is not finite or outside
     ``CELL_TEMPERATURE_RANGE_C`` (module docstring).
@@ -55,9 +64,7 @@ def arrhenius_factor(temperature_c, reference_c, activation_k: float) -> np.ndar
         raise ValueError(f"activation temperature must be a finite number >= 0 K, got {activation_k}")
     t_c = np.asarray(temperature_c, dtype=float)
     ref_c = np.asarray(reference_c, dtype=float)
-    lo, hi = CELL_TEMPERATURE_RANGE_C
-    with np.errstate(invalid="ignore"):
-        ok = (t_c >= lo) & (t_c <= hi) & (ref_c >= lo) & (ref_c <= hi)  # (NaN: False)
+    ok = cell_temperature_ok(t_c) & cell_temperature_ok(ref_c)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # (where not ok: not used)
         f = np.exp(b * (1.0 / (t_c + KELVIN) - 1.0 / (ref_c + KELVIN)))
     return np.where(ok, f, 1.0)

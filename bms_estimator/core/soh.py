@@ -34,7 +34,7 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge, Gt
 
-from .arrhenius import CELL_TEMPERATURE_RANGE_C, arrhenius_factor
+from .arrhenius import arrhenius_factor, cell_temperature_ok
 from .bounds import check_bounds
 
 __all__ = ["SohConfig", "ResistanceSoh", "capacity_soh", "r0_at_reference"]
@@ -66,13 +66,11 @@ def capacity_soh(capacity_ah, nominal_ah, capacity_sigma_ah, justified) -> tuple
 
 def r0_at_reference(r0_ohm, temperature_c, config: SohConfig = SohConfig()) -> np.ndarray:
     """R0 brought to the reference temperature (Arrhenius, module docstring)."""
-    t = np.asarray(temperature_c, dtype=float)
-    lo, hi = CELL_TEMPERATURE_RANGE_C
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         # exp(-B (1/T - 1/T_ref)), NaN where T is not a cell's temperature (missing, or a sensor fault
         # outside CELL_TEMPERATURE_RANGE_C: the SOH skips those samples)
         f = arrhenius_factor(config.reference_temperature_c, temperature_c, config.r0_activation_k)
-        return np.where((t >= lo) & (t <= hi), np.asarray(r0_ohm, dtype=float) * f, np.nan)
+        return np.where(cell_temperature_ok(temperature_c), np.asarray(r0_ohm, dtype=float) * f, np.nan)
 
 
 class ResistanceSoh:
