@@ -15,8 +15,8 @@ fresh block.  Until a cell's block-LS initialisation is done the cell reports a
 prior; a block whose least-squares theta is not physical (too short to place the
 slow pole) grows sample by sample up to ``init_max_samples``, after which the
 cell starts from the prior.  The prior's resistances are stated at 25 degC and
-brought to each cell's temperature at its first sample, when the caller knows it
-(:meth:`Identifier.start_prior_at`), by the resistances' Arrhenius line
+brought to each cell's start temperature, when the caller knows it, on a cell not
+yet identified (:meth:`Identifier.take_prior_at`), by the resistances' Arrhenius line
 ``R(T) = R(25 degC) exp(B (1/T - 1/T_ref))`` (``prior_activation_k``, the project's
 B = 2500 K; x2.2 at 0 degC, x4.4 at -20 degC), the time constants kept.  A cold
 cell whose block start does not turn physical (on six of the seven measured LG
@@ -174,15 +174,14 @@ class Identifier:
         self.accepted = np.zeros(self.n_cells, dtype=bool)  # learnt an admissible theta this sample
         self.params: PhysicalParams = self._physical(self.theta_good)
 
-    def _set_prior(self, factor: np.ndarray) -> None:
-        """The prior model with its resistances times ``factor`` (per cell): where the block start pulls
-        and where a cell starts (theta_ref, theta_good)."""
+    def _prior_at(self, factor: np.ndarray) -> np.ndarray:
+        """The prior model's scaled theta with its resistances times ``factor`` (per cell)."""
         config = self.config
         q = self.i_ref_a
         # the prior must itself pass the guard, whatever bounds the user set
         tau2 = min(config.prior_tau2_s, 0.9 * config.tau_max_s)
         tau1 = min(max(config.prior_tau1_s, 1.1 * config.tau_min_s, 1.5 * self.dt_s), 0.5 * tau2)
-        self._prior_theta_s = self._theta_s_from_physical(
+        return self._theta_s_from_physical(
             config.prior_r0_ohm_ah / q * factor,
             config.prior_r1_ohm_ah / q * factor,
             np.full(self.n_cells, tau1),
@@ -190,19 +189,27 @@ class Identifier:
             np.full(self.n_cells, tau2),
             np.zeros(self.n_cells),
         )
+
+    def _set_prior(self, factor: np.ndarray) -> None:
+        """The prior model with its resistances times ``factor`` (per cell): where the block start pulls
+        and where a cell starts (theta_ref, theta_good)."""
+        self._prior_theta_s = self._prior_at(factor)
         self.rls.theta_ref = self._prior_theta_s.copy()  # unexcited directions of the block start
         self.theta_good = self._prior_theta_s.copy()  # last admissible scaled theta
 
-    def start_prior_at(self, temperature_c: np.ndarray, reference_c: float) -> None:
-        """The prior's resistances brought to each cell's temperature (module docstring).
+    def take_prior_at(self, temperature_c: np.ndarray, reference_c: float, cells: np.ndarray) -> None:
+        """The prior's resistances brought to ``temperature_c`` on ``cells`` (module docstring).
 
-        Call once, before the first update (after it, it does nothing: a restored or running
-        identification keeps its own); a temperature that is not finite keeps the reference's.
+        Only a cell not yet identified takes it (one that is keeps its own model, restored or
+        learnt); a temperature that is not finite or out of range gives the reference's prior.
         """
-        if self.updates:
+        sel = np.asarray(cells, dtype=bool) & ~self.identified
+        if not any_cell(sel):
             return
-        self._set_prior(arrhenius_factor(temperature_c, reference_c, self.config.prior_activation_k))
-        self.params = self._physical(self.theta_good)
+        prior = self._prior_at(arrhenius_factor(temperature_c, reference_c, self.config.prior_activation_k))
+        for theta_s in (self._prior_theta_s, self.rls.theta_ref, self.theta_good):
+            theta_s[sel] = prior[sel]
+        self.params = self._physical(self.theta_good).select(sel, self.params)
 
     # -- to be provided by subclasses -------------------------------------------
     def _init_scales(self) -> None:

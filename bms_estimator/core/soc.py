@@ -93,6 +93,7 @@ import numpy as np
 from annotated_types import Ge, Gt, Interval
 
 from .bounds import check_bounds
+from .arrhenius import cell_temperature_ok
 from .cells import all_cells, any_cell, cell_vector, clip, rest_arguments
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
@@ -122,6 +123,13 @@ VOLTAGE_LINE_TAU_S = 600.0
 VOLTAGE_LINE_EVERY_S = 10.0
 VOLTAGE_LINE_MIN_MOVE = 0.3
 VOLTAGE_LINE_RATIO_MAX = STATED_CAPACITY_RATIO_MAX
+
+#: A cell's start temperature, at which the identifier's and the diffusion branch's priors are taken, is its
+#: first valid reading, or the median of its first this many valid readings (``SocConfig.prior_temperature_window_s``; update, "Start temperature")
+PRIOR_TEMPERATURE_READINGS = 5
+#: ... where that median is more than this from where the priors are [K]: a move the cell cannot have made
+#: in the window (a cell soaking from a warm charge cools by 1-2 K/min), so one of the readings was not the cell's
+PRIOR_TEMPERATURE_TOLERANCE_K = 5.0
 
 #: How a relaxed cell's voltage after a long rest meets the count (``SocConfig.rest_soc_reading``).
 RestSocReading = Literal["ocv", "fused"]
@@ -181,6 +189,9 @@ class SocConfig:
     # the current's running mean over this time constant, and the EKF's SOC variance grows by what
     # that guess may miss (SocEstimator.update, "A lost current")
     current_hold_s: Annotated[float, Gt(0)] = 60.0
+    # A cell's start temperature (its priors' temperature) is its first valid reading, checked by its
+    # first PRIOR_TEMPERATURE_READINGS valid readings, spread over this window (SocEstimator.update, "Start temperature")
+    prior_temperature_window_s: Annotated[float, Interval(ge=0.0, le=3600.0)] = 40.0
 
     def __post_init__(self) -> None:
         if self.soc_method not in SOC_METHODS:
@@ -329,6 +340,15 @@ class SocEstimator:
         # cells whose next valid sample follows a rest longer than the relaxation (rest())
         self._rest_due = np.zeros(self.n_cells, dtype=bool)
         self._any_rest_due = False
+        # the start temperature (update, "Start temperature"): a cell's first valid readings, how many,
+        # the sample from which the next may be taken, and the temperature its priors are at (NaN: the reference)
+        self._t_start = np.full((self.n_cells, PRIOR_TEMPERATURE_READINGS), np.nan)
+        self._t_start_n = np.zeros(self.n_cells, dtype=np.int64)
+        self._t_start_next = np.zeros(self.n_cells, dtype=np.int64)
+        self._t_start_open = True
+        self._t_start_every = max(1, int(round(config.prior_temperature_window_s
+                                               / (PRIOR_TEMPERATURE_READINGS - 1) / self.dt_s)))
+        self._t_prior = np.full(self.n_cells, np.nan)
 
     # ------------------------------------------------------------------ OCV at the cell temperature
     def _table_capacity_ah(self) -> float | None:
@@ -439,16 +459,29 @@ class SocEstimator:
         the 30 min after the loss 0.91 % mean, 0.62 % median, one over 2 % (4.5 %), against 2.21 /
         1.24 % and six over 2 % (up to 6.5 %) with the lost periods skipped; worse at 4 of the 19.
         At the loss's end the count was within its grown 1-sigma at all 19.
+
+        Start temperature.  The identifier's prior resistances and the EKF's diffusion resistance
+        start at the cell's temperature by their Arrhenius line (a cold cell has 2-4x a warm one's).
+        That temperature is the cell's first valid reading.  Its next readings, to
+        ``PRIOR_TEMPERATURE_READINGS`` (5) in all, ``prior_temperature_window_s / 4`` apart, check it:
+        where their median so far is more than ``PRIOR_TEMPERATURE_TOLERANCE_K`` (5 K) from it, a move
+        no cell makes in that time, the priors move to the median (the identifier's on a cell not yet
+        identified).  Within it they stay at the first reading, the start's.  A gateway's first sample
+        often has no temperature yet (slower or multiplexed frames), and a BMS may send its
+        signal's floor (-40 degC) until its first measurement: taken from the first sample alone,
+        the 25 degC prior or a -40 degC one stayed for the whole drive.  Measured on the LG 0 and
+        -10 degC drive cycles from a correct start, SOC RMSE from 30 min (correct first reading /
+        first reading missing / first reading -40 degC): see the README, Reliability.
         """
         n = self.n_cells
         i = cell_vector(current_a, n)
         v = cell_vector(voltage_v, n)
+        i_ok = np.isfinite(i)
         if temperature_c is not None:
-            self._take_temperature(cell_vector(temperature_c, n))
+            self._take_temperature(cell_vector(temperature_c, n), i_ok)
         ok = np.isfinite(v)
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
-        i_ok = np.isfinite(i)
         i_use = self._hold_current(i, i_ok)
         unset = ~np.isfinite(self.soc)
         any_unset = any_cell(unset)
@@ -523,21 +556,46 @@ class SocEstimator:
             self.ekf.grow_soc_variance(step * step * (2.0 * self._n_lost - 1.0), lost)
         return np.where(i_ok, i, self._i_hold)
 
-    def _take_temperature(self, t: np.ndarray) -> None:
-        """The cells' temperatures this sample: the identifier's and the diffusion branch's priors at the
-        first one (with or without tables by temperature), :attr:`temperature_c` (a lost reading keeps the
-        last), and with tables by temperature the relative capacity there.
+    def _take_temperature(self, t: np.ndarray, i_ok: np.ndarray) -> None:
+        """The cells' temperatures this sample: the start temperature (update, "Start temperature"),
+        :attr:`temperature_c` (a lost reading keeps the last), and with tables by temperature the
+        relative capacity there.
 
         With one OCV table the SOC path does not read the temperature, but what runs on the estimator
         does (the SOP's temperature derating, the resistance SOH's Arrhenius step: ``core.sox``): a cell
         at 80 degC must not be derated as one at 25 degC because its pack has a single table."""
-        if self.samples == 0:  # the priors follow the start temperature, with or without T-tables
-            self.identifier.start_prior_at(t, self.config.default_temperature_c)
-            if self.ekf is not None:
-                self.ekf.start_diffusion_at(t, self.config.default_temperature_c)
+        if self._t_start_open:  # the priors follow the start temperature, with or without T-tables
+            self._take_start_temperature(t, i_ok)
         self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)
         if self._t_aware:
             self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
+
+    def _take_start_temperature(self, t: np.ndarray, i_ok: np.ndarray) -> None:
+        """A valid reading of a cell that has begun (a valid current, or an SOC) joins its start readings
+        when due; the cell's priors move to their median where it is ``PRIOR_TEMPERATURE_TOLERANCE_K``
+        from where they are (or they have none)."""
+        k = PRIOR_TEMPERATURE_READINGS
+        due = cell_temperature_ok(t) & (self._t_start_n < k) & (self.samples >= self._t_start_next)
+        due &= i_ok | np.isfinite(self.soc)
+        if not any_cell(due):
+            return
+        rows = np.flatnonzero(due)
+        self._t_start[rows, self._t_start_n[rows]] = t[rows]
+        self._t_start_n[rows] += 1
+        self._t_start_next[rows] = self.samples + self._t_start_every
+        self._t_start_open = any_cell(self._t_start_n < k)
+        t_new = self._t_prior.copy()
+        t_new[rows] = np.nanmedian(self._t_start[rows], axis=1)
+        move = ~np.isfinite(self._t_prior) | (np.abs(t_new - self._t_prior) > PRIOR_TEMPERATURE_TOLERANCE_K)
+        move &= due
+        if not any_cell(move):
+            return
+        t_new = np.where(move, t_new, self._t_prior)
+        reference_c = self.config.default_temperature_c
+        self.identifier.take_prior_at(t_new, reference_c, move)
+        if self.ekf is not None:
+            self.ekf.take_diffusion_prior_at(t_new, self._t_prior, reference_c, move)
+        self._t_prior = t_new
 
     def _start_from_voltage(self, cells: np.ndarray, v: np.ndarray) -> None:
         """The start SOC of ``cells`` read from their voltage as an OCV (a pack started from rest);
@@ -571,6 +629,8 @@ class SocEstimator:
           (:meth:`SocEkf.rest`): the SOC's variance grows by the filter's random walk,
           ``drift_sigma_per_h^2 gap / 3600``.
         * The hysteresis state is kept: it follows charge, not time.
+        * A start temperature still being checked (:meth:`update`) is kept as it is: over the gap the
+          temperature may really have moved.
         * The identifier's regressor window restarts (:meth:`Identifier.rest`: it refills before it
           learns again; theta, P and the guard's state kept); the c0 average restarts.
         * A rest of ``rest_relaxation_s`` or longer relaxed the cell: at its next valid sample, if that
@@ -603,6 +663,12 @@ class SocEstimator:
         self._i_sum = np.where(sel, 0.0, self._i_sum)
         self._n_sum = np.where(sel, 0, self._n_sum + self._n_all)
         self._n_all = 0
+        if self._t_start_open:
+            # the start temperature's check ends for the cells that have one: over the gap their
+            # temperatures may really have moved, and the priors stay at the start's
+            k = PRIOR_TEMPERATURE_READINGS
+            self._t_start_n = np.where(sel & (self._t_start_n > 0), k, self._t_start_n)
+            self._t_start_open = any_cell(self._t_start_n < k)
         if gap >= self.config.rest_relaxation_s:
             self._rest_due = self._rest_due | live
             self._any_rest_due = any_cell(self._rest_due)
@@ -887,6 +953,8 @@ class SocEstimator:
             vline_q_range=np.stack([self._vq_min, self._vq_max], axis=1),
             samples=np.array(self.samples),
             rest_due=self._rest_due.copy(),  # a rest's OCV reading still to be taken (rest())
+            # the start temperature (update): the priors' temperature, readings taken, next due, the readings
+            prior_temperature=np.column_stack([self._t_prior, self._t_start_n, self._t_start_next, self._t_start]),
         )
         if self._hyst is not None:
             s.update({f"hyst.{k}": v for k, v in self._hyst.state_dict().items()})
@@ -967,6 +1035,18 @@ class SocEstimator:
             raise ValueError(f"state field 'rest_due' has shape {due.shape}, expected ({n},)")
         self._rest_due = due.copy()
         self._any_rest_due = any_cell(self._rest_due)
+        # states saved before it existed: the priors stay where they were saved, at an unknown temperature
+        k = PRIOR_TEMPERATURE_READINGS
+        pt = np.asarray(s.get("prior_temperature", np.column_stack([np.full(n, np.nan), np.full((n, 2), k),
+                                                                    np.full((n, k), np.nan)])), dtype=float)
+        if pt.shape != (n, k + 3) or not np.all(np.isfinite(pt[:, 1:3])) or np.any((pt[:, 1] < 0) | (pt[:, 1] > k)):
+            raise ValueError(f"state field 'prior_temperature' has shape {pt.shape} or invalid counts, "
+                             f"expected ({n}, {k + 3})")
+        self._t_prior = pt[:, 0].copy()
+        self._t_start_n = pt[:, 1].astype(np.int64)
+        self._t_start_next = pt[:, 2].astype(np.int64)
+        self._t_start = pt[:, 3:].copy()
+        self._t_start_open = any_cell(self._t_start_n < k)
         if self._hyst is not None:
             if "hyst.h" in s:
                 self._hyst.load_state_dict({"h": s["hyst.h"], "s": s["hyst.s"]})

@@ -73,7 +73,7 @@ Noise, stated in the cell's terms rather than tuned per file:
   ``Qn[dq]`` = ``capacity_drift_per_h``^2 Ts / 3600 (ageing and temperature).
 * ``dq`` starts at 0 with sigma ``capacity_sigma``; ``Qn[g]`` = ``overpotential_gain_drift_per_h``^2 Ts / 3600.
 * ``r_d`` starts at its prior mean ``diffusion_r_prior_ohm_ah / Q`` times the Arrhenius
-  factor of the cell temperature at the start, ``exp(B (1/T - 1/T_ref))`` (B
+  factor of the cell's start temperature, ``exp(B (1/T - 1/T_ref))`` (the caller's; B
   ``diffusion_r_activation_k``, T_ref the tables' reference temperature, 25 degC), with
   sigma ``diffusion_r_sigma_ohm_ah / Q`` (resistances per C-rate, so the same numbers
   fit any cell size); ``v_d`` starts at 0 with sigma ``diffusion_v_sigma_v`` (the cell
@@ -248,13 +248,16 @@ class SocEkf:
         self._pt[4, 4, sel] = self.config.overpotential_gain_sigma**2
         self.x[sel, 4] = 0.0
 
-    def start_diffusion_at(self, temperature_c: np.ndarray, reference_c: float) -> None:
-        """``r_d``'s prior mean brought to each cell's start temperature (Arrhenius, module docstring).
+    def take_diffusion_prior_at(self, temperature_c: np.ndarray, previous_c: np.ndarray, reference_c: float,
+                                cells: np.ndarray) -> None:
+        """``r_d`` of ``cells`` brought from the Arrhenius factor at ``previous_c`` to the one at
+        ``temperature_c`` (module docstring): from the prior mean, its prior at that temperature.
 
-        Call once, before the first update; a temperature that is not finite keeps the reference's.
+        A temperature that is not finite or out of range counts as the reference (factor 1).
         """
-        f = arrhenius_factor(temperature_c, reference_c, self.config.diffusion_r_activation_k)
-        self.x[:, 2] = self.config.diffusion_r_prior_ohm_ah / self.q_ref_ah * f
+        k = self.config.diffusion_r_activation_k
+        ratio = arrhenius_factor(temperature_c, reference_c, k) / arrhenius_factor(previous_c, reference_c, k)
+        self.x[:, 2] = np.where(cells, self.x[:, 2] * ratio, self.x[:, 2])
 
     def set_soc_sigma(self, sigma: float | np.ndarray, cells: np.ndarray | None = None) -> None:
         """Restart the SOC variance (a new start SOC) of some cells; its cross terms dropped."""
@@ -321,6 +324,7 @@ class SocEkf:
         hour, plus the current sensor's per-period term ``n`` times), the diffusion voltage's
         settles at its stationary value.  ``n`` need not be whole (the formula is the same).
         ``tau_s`` is the identified ``(N, 2)`` pairs'; only ``cells`` change.
+
         """
         n = gap_s / self.dt_s
         a_dn = float(np.exp(-gap_s / self.config.diffusion_tau_s))

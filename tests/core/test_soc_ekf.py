@@ -377,48 +377,103 @@ def test_a_slow_overpotential_the_filter_cannot_learn_is_expected_not_read_as_so
     assert np.all(none < 2.0), none
 
 
-def test_the_diffusion_prior_follows_the_start_temperature_once():
-    """r_d's prior mean is the configured ohm Ah over the capacity at 25 degC, Arrhenius-scaled to the
-    temperature at the first update (B = 2500 K: x2.16 at 0 degC), and only then."""
-    cfg = SocEkfConfig()
-    est = SocEstimator(3, _ocv(), STATED_AH, 1.0, initial_soc=0.9)
+def _f(t_c: float) -> float:
+    """The resistances' Arrhenius factor against 25 degC (B = 2500 K)."""
+    return float(np.exp(2500.0 * (1 / (t_c + 273.15) - 1 / 298.15)))
+
+
+def _rest(est: SocEstimator, temperature_c) -> None:
+    """One sample at rest (no current: no update moves r_d or the identifier's prior)."""
+    est.update(0.0, np.full(est.n_cells, 4.0), temperature_c=np.asarray(temperature_c, dtype=float))
+
+
+def test_the_priors_follow_the_start_temperature():
+    """r_d's prior mean (the configured ohm Ah over the capacity at 25 degC) and the identifier's prior
+    resistances (its time constants kept) are Arrhenius-scaled to the cell's start temperature (B = 2500 K:
+    x2.16 at 0 degC): its first valid reading, moved to the median of its first five readings (10 s
+    apart) only where that is more than 5 K away, and not after them."""
+    cfg, icfg = SocEkfConfig(), IdentifierConfig()
+    est = SocEstimator(4, _ocv(), STATED_AH, 1.0, initial_soc=0.9)
     at_25 = cfg.diffusion_r_prior_ohm_ah / STATED_AH
-    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, at_25)
-    est.update(0.0, np.full(3, 4.0), temperature_c=np.array([0.0, 25.0, np.nan]))
-    f0 = np.exp(2500.0 * (1 / 273.15 - 1 / 298.15))
-    assert f0 == pytest.approx(2.16, abs=0.01)
-    # at rest (no current) the update cannot move r_d: the prior is what is read
-    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, [at_25 * f0, at_25, at_25], rtol=1e-9)
-    est.update(0.0, np.full(3, 4.0), temperature_c=np.array([25.0, 0.0, 0.0]))
-    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, [at_25 * f0, at_25, at_25], rtol=1e-9)
-    flat = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=0.9,
-                        config=SocConfig(ekf=SocEkfConfig(diffusion_r_activation_k=0.0)))
-    flat.update(0.0, np.array([4.0]), temperature_c=-20.0)
-    np.testing.assert_allclose(flat.ekf.r_diffusion_ohm, at_25)
-
-
-def test_the_identifiers_prior_follows_the_start_temperature_once():
-    """Until a cell has a model of its own it runs on the prior: its resistances (stated in ohm Ah at
-    25 degC) are brought to the temperature at the first update by the same Arrhenius line, the time
-    constants kept, and only then; the block start pulls toward the same prior."""
-    icfg = IdentifierConfig()
-    est = SocEstimator(3, _ocv(), STATED_AH, 1.0, initial_soc=0.9)
     p25 = est.identifier.params
+    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, at_25)
     np.testing.assert_allclose(p25.r0_ohm, icfg.prior_r0_ohm_ah / STATED_AH, rtol=1e-9)
-    est.update(0.0, np.full(3, 4.0), temperature_c=np.array([0.0, 25.0, np.nan]))
-    f0 = np.exp(2500.0 * (1 / 273.15 - 1 / 298.15))
-    p = est.identifier.params
-    assert not est.identifier.identified.any()  # still on the prior after one sample
-    for name in ("r0_ohm", "r1_ohm", "r2_ohm"):
-        np.testing.assert_allclose(getattr(p, name), getattr(p25, name) * [f0, 1.0, 1.0], rtol=1e-9, err_msg=name)
-    for name in ("tau1_s", "tau2_s"):
-        np.testing.assert_allclose(getattr(p, name), getattr(p25, name), rtol=1e-9, err_msg=name)
-    est.update(0.0, np.full(3, 4.0), temperature_c=np.array([25.0, 0.0, 0.0]))  # once: the start's
-    np.testing.assert_allclose(est.identifier.params.r0_ohm, p25.r0_ohm * [f0, 1.0, 1.0], rtol=1e-9)
+    f0 = _f(0.0)
+    assert f0 == pytest.approx(2.16, abs=0.01)
+
+    def factors():
+        p = est.identifier.params
+        for name in ("tau1_s", "tau2_s"):
+            np.testing.assert_allclose(getattr(p, name), getattr(p25, name), rtol=1e-9, err_msg=name)
+        for name in ("r1_ohm", "r2_ohm"):
+            np.testing.assert_allclose(getattr(p, name) / getattr(p25, name), p.r0_ohm / p25.r0_ohm, rtol=1e-9)
+        ident = p.r0_ohm / p25.r0_ohm
+        np.testing.assert_allclose(est.ekf.r_diffusion_ohm / at_25, ident, rtol=1e-9)  # the same temperature
+        return ident
+
+    # the third cell's temperature has not come yet; the fourth's drifts 1 K a reading
+    _rest(est, [0.0, 25.0, np.nan, 20.0])
+    np.testing.assert_allclose(factors(), [f0, 1.0, 1.0, _f(20.0)], rtol=1e-9)
+    _rest(est, [25.0, 0.0, 0.0, 20.5])  # 1 s later: the others wait 10 s for their next reading, the third takes its first
+    np.testing.assert_allclose(factors(), [f0, 1.0, f0, _f(20.0)], rtol=1e-9)
+    assert not est.identifier.identified.any()  # still on the prior
+    for _ in range(8):
+        _rest(est, [25.0, 0.0, 0.0, 20.5])
+    _rest(est, [25.0, 0.0, 0.0, 21.0])  # 10 s: two readings each, the median of two their mean
+    np.testing.assert_allclose(factors(), [_f(12.5), _f(12.5), f0, _f(20.0)], rtol=1e-9)
+    for k in range(40):  # to 50 s: five readings each (the third's at 1, 11, 21, 31 and 41 s)
+        _rest(est, [25.0, 0.0, 0.0, 21.0 + (k + 1) / 10])
+    np.testing.assert_allclose(factors(), [1.0, f0, f0, _f(20.0)], rtol=1e-9)  # the fourth's median 22 degC
+    for _ in range(40):  # the five taken, later readings move nothing
+        _rest(est, [-20.0, -20.0, -20.0, -20.0])
+    np.testing.assert_allclose(factors(), [1.0, f0, f0, _f(20.0)], rtol=1e-9)
     flat = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=0.9,
-                        config=SocConfig(identifier=IdentifierConfig(prior_activation_k=0.0)))
-    flat.update(0.0, np.array([4.0]), temperature_c=-20.0)
+                        config=SocConfig(ekf=SocEkfConfig(diffusion_r_activation_k=0.0),
+                                         identifier=IdentifierConfig(prior_activation_k=0.0)))
+    _rest(flat, [-20.0])
+    np.testing.assert_allclose(flat.ekf.r_diffusion_ohm, at_25)
     np.testing.assert_allclose(flat.identifier.params.r0_ohm, icfg.prior_r0_ohm_ah / STATED_AH, rtol=1e-9)
+    # a gap in the samples ends the check: a cell that cooled while parked keeps its start's priors,
+    # one without a reading yet still takes its first
+    soak = SocEstimator(2, _ocv(), STATED_AH, 1.0, initial_soc=0.9)
+    _rest(soak, [18.0, np.nan])
+    soak.rest(1800.0)
+    for _ in range(50):
+        _rest(soak, [4.5, 4.5])
+    np.testing.assert_allclose(soak.ekf.r_diffusion_ohm, [at_25 * _f(18.0), at_25 * _f(4.5)], rtol=1e-9)
+    # a cell that has not begun (no start SOC, no current: a later start) takes its start's temperature
+    late = SocEstimator(2, _ocv(), STATED_AH, 1.0, initial_soc=np.array([0.9, np.nan]))
+    for k in range(60):
+        late.update(np.array([0.0, np.nan if k < 30 else 0.0]), np.full(2, 4.0),
+                    temperature_c=np.full(2, 25.0 if k < 30 else 0.0))
+    np.testing.assert_allclose(late.ekf.r_diffusion_ohm, [at_25, at_25 * f0], rtol=1e-9)
+
+
+def test_a_first_temperature_at_the_signal_floor_does_not_set_the_priors():
+    """A BMS that sends its signal's floor (-40 degC) until its first measurement, or a single wild
+    reading: the median of the first five readings is the cell's, and a state saved on the way
+    resumes to the same priors."""
+    est = SocEstimator(2, _ocv(), STATED_AH, 1.0, initial_soc=0.9)
+    at_25 = SocEkfConfig().diffusion_r_prior_ohm_ah / STATED_AH
+    temps = np.full((60, 2), 5.0)
+    temps[:8, 0] = -40.0  # the floor for 8 s
+    temps[30, 1] = 110.0  # one wild reading at a sample that is read (the fourth)
+    _rest(est, temps[0])
+    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, [at_25 * _f(-40.0), at_25 * _f(5.0)], rtol=1e-9)
+    for k in range(1, 25):
+        _rest(est, temps[k])
+    saved = est.state_dict()
+    for k in range(25, 60):
+        _rest(est, temps[k])
+    np.testing.assert_allclose(est.ekf.r_diffusion_ohm, at_25 * _f(5.0), rtol=1e-9)
+    np.testing.assert_allclose(est.identifier.params.r0_ohm,
+                               IdentifierConfig().prior_r0_ohm_ah / STATED_AH * _f(5.0), rtol=1e-9)
+    resumed = SocEstimator(2, _ocv(), STATED_AH, 1.0, initial_soc=0.9)
+    resumed.load_state_dict(saved)
+    for k in range(25, 60):
+        _rest(resumed, temps[k])
+    np.testing.assert_array_equal(resumed.ekf.r_diffusion_ohm, est.ekf.r_diffusion_ohm)
+    np.testing.assert_array_equal(resumed.identifier.params.r0_ohm, est.identifier.params.r0_ohm)
 
 
 @pytest.fixture(scope="module")
