@@ -124,6 +124,11 @@ __all__ = ["SocEkfConfig", "SocEkf"]
 
 _N = 5  # z, v_d, r_d, dq, g
 
+#: A rest longer than this counts as this long [s]; no rest grows the SOC's variance past a uniform SOC's
+#: over [0, 1] (:meth:`SocEkf.rest`)
+REST_GAP_MAX_S = 1e9
+SOC_VARIANCE_MAX = 1.0 / 12.0
+
 
 @dataclass(frozen=True)
 class SocEkfConfig:
@@ -325,7 +330,12 @@ class SocEkf:
         settles at its stationary value.  ``n`` need not be whole (the formula is the same).
         ``tau_s`` is the identified ``(N, 2)`` pairs'; only ``cells`` change.
 
+        The SOC's variance is capped at a uniform SOC's over [0, 1] (``SOC_VARIANCE_MAX`` = 1/12,
+        sigma 29 %: knowing nothing), its row and column scaled with it; the random walk reaches it
+        after about a year.  A gap longer than ``REST_GAP_MAX_S`` (1e9 s, 32 years) counts as that
+        long: a gap of 1e300 s no longer overflows the covariance.
         """
+        gap_s = min(gap_s, REST_GAP_MAX_S)
         n = gap_s / self.dt_s
         a_dn = float(np.exp(-gap_s / self.config.diffusion_tau_s))
         a_rc = np.exp(-gap_s / np.maximum(tau_s, 1e-9))
@@ -338,6 +348,12 @@ class SocEkf:
         p[2, 2] += n * (self.config.diffusion_r_drift_ohm_ah / capacity_ah) ** 2 * self._h_frac
         p[3, 3] += n * self._q33
         p[4, 4] += n * self._q44
+        # the SOC never less known than knowing nothing: its variance capped at a uniform SOC's, its row
+        # and column scaled with it (P stays positive semi-definite)
+        if np.any(p[0, 0] > SOC_VARIANCE_MAX):
+            s = np.sqrt(SOC_VARIANCE_MAX / np.maximum(p[0, 0], SOC_VARIANCE_MAX))
+            p[0] *= s
+            p[:, 0] *= s
         self._pt = np.where(cells, p, self._pt)
         self.x[:, 1] = np.where(cells, a_dn * self.x[:, 1], self.x[:, 1])
         self.v_rc = np.where(cells[:, None], a_rc * self.v_rc, self.v_rc)

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.core.identifier import METHODS, IdentifierConfig
 from bms_estimator.core.soc import REST_SOC_READINGS, SocConfig, SocEstimator
-from bms_estimator.core.soc_ekf import SocEkf, SocEkfConfig
+from bms_estimator.core.soc_ekf import REST_GAP_MAX_S, SOC_VARIANCE_MAX, SocEkf, SocEkfConfig
 from tests.conftest import pulse_current
 from tests.core.test_soc_ekf import _ocv
 
@@ -227,6 +227,30 @@ def test_the_closed_form_is_predict_at_zero_current_repeated():
     np.testing.assert_allclose(b.p, a.p, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(b.x, a.x, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(b.v_rc, a.v_rc, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize("gap_s", [1e12, 1e300, float(np.finfo(float).max)])
+def test_a_rest_of_any_length_leaves_a_usable_estimator(gap_s):
+    """A gap longer than REST_GAP_MAX_S counts as that long (1e300 s overflowed the covariance: every
+    value NaN for good), and no rest leaves the SOC less known than a uniform SOC over [0, 1]."""
+    ests = []
+    for gap in (REST_GAP_MAX_S, gap_s):
+        est = _random_estimator(11, "lif", "ekf")
+        est.rest(gap)
+        ests.append(est)
+        p = est.ekf.p
+        assert np.all(np.isfinite(p))
+        np.testing.assert_allclose(p[:, 0, 0], SOC_VARIANCE_MAX)  # sigma 29 %: knowing nothing
+        assert np.all(np.linalg.eigvalsh(p) > -1e-12 * np.abs(p).max(axis=(1, 2))[:, None])
+    assert _same_state(ests[0].state_dict(), ests[1].state_dict())
+    rng = np.random.default_rng(2)
+    for _ in range(30):
+        ests[1].update(rng.uniform(-3, 3), 3.3 + 0.9 * rng.random(3))
+        assert np.all(np.isfinite(ests[1].soc)) and np.all(ests[1].soc_sigma <= np.sqrt(SOC_VARIANCE_MAX) + 1e-12)
+    a_day = _random_estimator(11, "lif", "ekf")
+    before = a_day.ekf.p[:, 0, 0].copy()
+    a_day.rest(86400.0)  # a day's park is far from the cap: the random walk as it was (and the last period's)
+    np.testing.assert_allclose(a_day.ekf.p[:, 0, 0] - before, 86400.0 * a_day.ekf._q00, rtol=1e-3)
 
 
 def _random_estimator(seed: int, method: str, soc_method: str) -> SocEstimator:
