@@ -498,3 +498,56 @@ def test_c0_voltage_line_flags_a_stated_capacity_5x_the_cells_without_table_capa
     flags, est = _bound_flags(cur, vol, STATED_AH, _ocv(), "c0")
     assert not np.any(flags)
     assert est.capacity_voltage_ah[0] == pytest.approx(2.92, abs=0.05)
+
+
+def test_the_adaptive_noise_reads_a_large_lasting_voltage_error_less_as_soc(capacity_cases):
+    """``adaptive_noise_tau_s``: 10 min of a voltage 100 mV off (several times the stated noise) raise
+    ``r`` above 1 and the filter moves the SOC less than with the noise as stated; an hour on, with the
+    voltage right again, ``r`` is back under 1 (``Rv`` as stated).  Off, ``r`` stays 1."""
+    _, cur, vol = capacity_cases
+    cur, vol = cur[:6000, :2], vol[:6000, :2].copy()
+    vol[3000:3600] -= 0.10
+    moved = {}
+    for tau in (0.0, 300.0):
+        est = SocEstimator(2, _ocv(), 3.0, 1.0, initial_soc=1.0,
+                           config=SocConfig(ekf=SocEkfConfig(adaptive_noise_tau_s=tau)))
+        for k in range(3000):
+            est.update(cur[k], vol[k])
+        before = est.soc.copy()
+        for k in range(3000, 3600):
+            est.update(cur[k], vol[k])
+        moved[tau] = est.soc - before
+        if tau:
+            assert np.all(est.ekf.noise_ratio > 1.0), est.ekf.noise_ratio
+        for k in range(3600, 6000):
+            est.update(cur[k], vol[k])
+        if tau:
+            assert np.all(est.ekf.noise_ratio < 1.0), est.ekf.noise_ratio
+        else:
+            np.testing.assert_array_equal(est.ekf.noise_ratio, 1.0)
+    # the same 600 s of charge counted; what differs is the voltage correction (measured: the SOC moved
+    # -5.77 / -12.71 % on, -7.40 / -12.92 % off, about -4.8 / -12.3 % of it counted)
+    assert np.all(np.abs(moved[300.0]) < np.abs(moved[0.0])), moved
+
+
+def test_the_adaptive_noise_ratio_round_trips_and_an_older_state_loads_without_it(capacity_cases):
+    _, cur, vol = capacity_cases
+    cfg = SocConfig(ekf=SocEkfConfig(adaptive_noise_tau_s=300.0))
+    a = SocEstimator(4, _ocv(), 3.0, 1.0, initial_soc=0.8, config=cfg)
+    for k in range(900):
+        a.update(cur[k], vol[k])
+    s = a.state_dict()
+    assert not np.all(s["ekf.noise_ratio"] == 1.0)
+    b = SocEstimator(4, _ocv(), 3.0, 1.0, initial_soc=0.5, config=cfg)
+    b.load_state_dict(s)
+    np.testing.assert_array_equal(b.ekf.noise_ratio, a.ekf.noise_ratio)
+    for k in range(900, 1200):
+        a.update(cur[k], vol[k])
+        b.update(cur[k], vol[k])
+    np.testing.assert_array_equal(b.soc, a.soc)
+    old = {k: v for k, v in s.items() if k != "ekf.noise_ratio"}
+    c = SocEstimator(4, _ocv(), 3.0, 1.0, config=cfg)
+    c.load_state_dict(old)
+    np.testing.assert_array_equal(c.ekf.noise_ratio, 1.0)
+    with pytest.raises(ValueError, match="noise_ratio"):
+        c.load_state_dict(dict(s, **{"ekf.noise_ratio": np.full(4, np.nan)}))
