@@ -94,26 +94,6 @@ Noise, stated in the cell's terms rather than tuned per file:
   after the RC voltages have decayed.  Inside a hysteresis transition (``|h| < 1``)
   the branch is uncertain by up to ``H``, so the filter trusts the voltage less there.
 
-Adaptive noise (``adaptive_noise_tau_s`` > 0; off by default).  Innovation-based adaptation
-of the measurement noise (Mehra's covariance matching, Sage-Husa; Xiong et al. 2013): where the
-innovations ``e = v - v_hat`` stay larger than the filter predicts, ``Rv`` is raised, so a
-model error is read less as SOC.  Per cell, on every sample the filter reads::
-
-    r[k] = r[k-1] + a (e[k]^2 / (C P- C' + Rv_1[k]) - r[k-1]),   a = 1 - exp(-Ts / adaptive_noise_tau_s)
-    Rv used = Rv clip(r, 1, adaptive_noise_max),                 r starts at 1
-
-with ``Rv_1`` = ``voltage_sigma_v``^2 + (rho |eta|)^2 + (``ocv_table_sigma_soc`` dOCV/dz)^2 + ((1-|h|) H)^2:
-the variance of one sample's model error, not the ``correlation_s / Ts`` times larger ``Rv`` the
-update uses.  That factor says how little a correlated sample is worth, not how large its error is:
-normalised by the filter's own ``S`` an error at the stated size gives ``e^2 / S`` near ``Ts /
-correlation_s`` (1/300 at 1 s) and an error 10 times the stated one still under 1, so the test
-would never fire.  ``r`` is then the low-passed normalised innovation squared, 1 when the model's
-error is what the noise states and the SOC is as sure as ``P`` says.  ``Rv`` is only ever raised
-(the filter already under-trusts a white error by ``correlation_s``), and at most by
-``adaptive_noise_max``: a start error, which shows in ``e`` too, is covered by ``C P- C'`` while the
-SOC's sigma is wide, and the cap keeps a start error caught late from freezing the SOC.  ``r`` is
-saved with the state (an older state loads with ``r = 1``).
-
 Why a prior mean above 0.  Under a steady mean current ``r_d`` and an SOC offset are
 the same signal: only the OCV curve's shape over a long discharge separates them, so
 ``r_d`` stays near where it starts (from 0 it learnt 0.000-0.026 ohm Ah on the
@@ -189,11 +169,6 @@ class SocEkfConfig:
     overpotential_gain_sigma: Annotated[float, Ge(0)] = 0.4
     overpotential_gain_drift_per_h: Annotated[float, Ge(0)] = 0.2
     max_soc_step: Annotated[float, Gt(0)] = 0.01  # at most this SOC correction per sample (a bad sample cannot jump it)
-    # the measurement noise adapted from the innovations (module docstring, "Adaptive noise"): the
-    # low-pass time constant of the normalised innovation squared (0: off, the noise as stated) and
-    # the most the noise may be raised by (a factor on Rv)
-    adaptive_noise_tau_s: Annotated[float, Ge(0)] = 0.0
-    adaptive_noise_max: Annotated[float, Ge(1)] = 4.0
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -232,10 +207,6 @@ class SocEkf:
         self._q33 = config.capacity_drift_per_h**2 * h_frac
         self._q44 = config.overpotential_gain_drift_per_h**2 * h_frac
         self._r_scale = max(config.correlation_s / self.dt_s, 1.0)  # correct's
-        # the adaptive noise's ratio r per cell (1: the noise as stated) and its low-pass weight
-        self.noise_ratio = np.ones(self.n_cells)
-        self._a_noise = (1.0 - np.exp(-self.dt_s / config.adaptive_noise_tau_s)
-                         if config.adaptive_noise_tau_s > 0 else 0.0)
 
     @property
     def p(self) -> np.ndarray:
@@ -408,12 +379,9 @@ class SocEkf:
         # P C' with C = [slope, 1, 0, 0, eta]: columns, not a product; (5, N)
         pc = p[:, 0] * slope_v + p[:, 1] + p[:, 4] * overpotential_v
         table_v = cfg.ocv_table_sigma_soc * slope_v
-        r_white = cfg.voltage_sigma_v**2 + np.square(model_uncertain_v) + table_v * table_v
-        r_v = r_white * self._r_scale + hyst_uncertain_v**2
-        cpc = pc[0] * slope_v + pc[1] + pc[4] * overpotential_v
-        if self._a_noise:
-            r_v = self._adapt_noise(innovation_v, cpc, r_white + hyst_uncertain_v**2, r_v, use)
-        s = cpc + r_v
+        r_v = ((cfg.voltage_sigma_v**2 + np.square(model_uncertain_v) + table_v * table_v)
+               * self._r_scale + hyst_uncertain_v**2)
+        s = pc[0] * slope_v + pc[1] + pc[4] * overpotential_v + r_v
         k = pc / s
         held = (self.soc_sigma > cfg.capacity_learn_max_soc_sigma) | (slope_v > cfg.capacity_learn_max_slope_v)
         any_held = any_cell(held)  # (none, the usual sample: the selects below would leave every value as it is)
@@ -442,18 +410,8 @@ class SocEkf:
         self.x = np.where(use[:, None], x, self.x)
         return np.where(use, dz, 0.0), np.where(use, dq, 0.0)
 
-    def _adapt_noise(self, innovation_v: np.ndarray, cpc: np.ndarray, r_sample: np.ndarray, r_v: np.ndarray,
-                     use: np.ndarray) -> np.ndarray:
-        """The adaptive noise (module docstring): ``r`` low-passed toward ``e^2 / (C P- C' + Rv_1)``
-        on the ``use`` cells, and the ``Rv`` to use, ``Rv clip(r, 1, adaptive_noise_max)``."""
-        nis = innovation_v * innovation_v / (cpc + r_sample)
-        r = self.noise_ratio + self._a_noise * (nis - self.noise_ratio)
-        self.noise_ratio = np.where(use & np.isfinite(r), r, self.noise_ratio)
-        return r_v * clip(self.noise_ratio, 1.0, self.config.adaptive_noise_max)
-
     def state_dict(self) -> dict[str, np.ndarray]:
-        return {"x": self.x.copy(), "p": self.p.copy(), "v_rc": self.v_rc.copy(),
-                "noise_ratio": self.noise_ratio.copy()}
+        return {"x": self.x.copy(), "p": self.p.copy(), "v_rc": self.v_rc.copy()}
 
     def load_state_dict(self, s: dict[str, np.ndarray]) -> None:
         """A saved state; one saved before ``g`` existed (4 states) takes ``g = 0`` with sigma ``overpotential_gain_sigma``."""
@@ -472,9 +430,3 @@ class SocEkf:
         self.p = p
         if "v_rc" in s:
             self.v_rc = np.asarray(s["v_rc"], dtype=float).copy()
-        # a state saved before the adaptive noise: the noise as stated (r = 1)
-        ratio = np.asarray(s.get("noise_ratio", np.ones(n)), dtype=float)
-        if ratio.shape != (n,) or not np.all(np.isfinite(ratio)):
-            raise ValueError(f"EKF state field 'noise_ratio' has shape {ratio.shape} or non-finite values, "
-                             f"expected ({n},)")
-        self.noise_ratio = ratio.copy()
