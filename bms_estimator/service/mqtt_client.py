@@ -17,12 +17,16 @@ stop, a reload; or refused) left paho's socket open and watched by the loop, wit
 keepalive task running, until the keepalive expired; a reset by the peer meanwhile made
 aiomqtt's ``on_disconnect`` read the cancelled ``_connected`` future inside a loop callback
 (``CancelledError``, "Exception in callback ...": a traceback in the journal).
-:meth:`MqttClient.__aenter__` closes the socket of a connect that did not complete.
+:meth:`MqttClient.__aenter__` closes the socket of a connect that did not complete.  A cancel
+that lands while the TCP connect itself still runs in aiomqtt's executor thread (a broker slow
+to accept, a SYN retried) finds no socket yet: the thread then closes the one it made, on the
+loop (:meth:`MqttClient._client_connect`), or it stayed open and registered for good.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -45,20 +49,44 @@ class MqttClient(aiomqtt.Client):
     The two callbacks are aiomqtt 2.x's own (read or write until the socket fails, then
     mark the connection lost), registered through :func:`_register_if_open`."""
 
+    _abandon_guard = threading.Lock()  # the connect thread's check against _abandon (any client: held briefly)
+    _abandoned = False
+
     async def __aenter__(self) -> MqttClient:
+        with self._abandon_guard:
+            self._abandoned = False
         try:
             return await super().__aenter__()
         except BaseException:  # cancelled or refused before it was connected: nothing else closes it
             self._abandon()
             raise
 
+    def _client_connect(self) -> None:
+        """aiomqtt's connect, in its executor thread; if the connect was abandoned while it ran (a
+        cancel does not stop the thread), the socket it made is closed on the loop."""
+        super()._client_connect()
+        with self._abandon_guard:
+            if not self._abandoned:
+                return
+        try:
+            self._loop.call_soon_threadsafe(self._close_socket)
+        except RuntimeError:  # the loop is closed: nothing watches the socket any more
+            with contextlib.suppress(Exception):
+                self._client._sock_close()  # noqa: SLF001
+
     def _abandon(self) -> None:
-        """Close paho's socket of a connect that did not complete: its close callback (aiomqtt's)
-        stops watching it and cancels the keepalive task; no disconnect callback runs."""
-        with contextlib.suppress(Exception):
-            self._client._sock_close()  # noqa: SLF001 - paho's own close, without on_disconnect
+        """Close paho's socket of a connect that did not complete (or have the connect thread close
+        it, if it has none yet): its close callback (aiomqtt's) stops watching it and cancels the
+        keepalive task; no disconnect callback runs."""
+        with self._abandon_guard:
+            self._abandoned = True
+        self._close_socket()
         if self._lock.locked():
             self._lock.release()
+
+    def _close_socket(self) -> None:
+        with contextlib.suppress(Exception):
+            self._client._sock_close()  # noqa: SLF001 - paho's own close, without on_disconnect
 
     def _lost(self, exc: BaseException) -> None:
         if not self._disconnected.done():

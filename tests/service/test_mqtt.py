@@ -734,6 +734,70 @@ def test_a_stop_while_a_broker_does_not_answer_the_connect_closes_the_socket():
     assert errors == [], [e.get("message") for e in errors]
 
 
+def test_a_stop_while_the_tcp_connect_itself_still_runs_closes_the_socket_it_makes():
+    """A stop that lands while paho's TCP connect still runs in aiomqtt's executor thread (a broker that
+    does not accept in time: here its accept queue is full, so the kernel drops the SYN and the client
+    retries it a second later). The cancel does not stop the thread: the connect completed after it,
+    and its socket stayed open (the CONNECT sent, never closed) with the loop watching it. Now the
+    thread closes the socket it made: the broker sees EOF."""
+    import socket
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        errors: list[dict] = []
+        loop.set_exception_handler(lambda _loop, ctx: errors.append(ctx))
+        srv = socket.socket()
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(0)
+        port = srv.getsockname()[1]
+        fillers = []
+        for _ in range(3):  # fill the accept queue (backlog 0 holds one; a SYN beyond it is dropped)
+            f = socket.socket()
+            f.setblocking(False)
+            f.connect_ex(("127.0.0.1", port))
+            fillers.append(f)
+        await asyncio.sleep(0.2)
+        pub = MqttPublisher(mqtt_cfg(port, discovery=False, timeout_s=30.0, keepalive=30), "slowaccept", 1)
+        task = asyncio.create_task(pub.run())
+        await asyncio.sleep(0.3)  # the client's SYN dropped: its connect waits in the thread
+        await pub.close(timeout_s=0.05)  # a stop: cancelled while the thread still connects
+        assert task.done()
+        srv.setblocking(False)
+        late = None
+        deadline = loop.time() + 10.0
+        while late is None and loop.time() < deadline:  # free the queue; the client's retried SYN gets in
+            try:
+                conn, _ = srv.accept()
+            except BlockingIOError:
+                await asyncio.sleep(0.05)
+                continue
+            conn.setblocking(False)
+            try:
+                first = await asyncio.wait_for(loop.sock_recv(conn, 4096), 0.3)
+            except TimeoutError:
+                first = None  # a filler: it sends nothing and stays open
+            if first is not None:  # the client's: its CONNECT, or at once its end
+                late = conn
+            else:
+                conn.close()
+        assert late is not None, "the client's connect never reached the broker"
+        rest = first
+        while rest:  # what it sent (the CONNECT, if it got that far), then: the end, or silence
+            try:
+                rest = await asyncio.wait_for(loop.sock_recv(late, 4096), 3)
+            except TimeoutError:
+                rest = None
+        late.close()
+        srv.close()
+        for f in fillers:
+            f.close()
+        return rest, errors
+
+    rest, errors = run_async(main())
+    assert rest == b"", "the socket of the connect that completed after the stop stayed open"
+    assert errors == [], [e.get("message") for e in errors]
+
+
 def test_connections_that_drop_at_once_back_off_as_failed_connects_do(monkeypatch):
     """A connection that the broker drops at once (another client with the same client id, e.g. a second
     gateway or a stale process for this pack: the broker kicks the older session each time) reset the
