@@ -691,6 +691,24 @@ def test_cell_payload_texts_are_the_per_cell_dumps_byte_for_byte():
         schema.cell_payload_texts(0.0, {"soc": np.zeros(2)}, 3)
 
 
+def _collect_loop_errors() -> list[dict]:
+    """The running loop's errors in callbacks ("Exception in callback ...": a traceback in the journal),
+    collected instead of logged."""
+    errors: list[dict] = []
+    asyncio.get_running_loop().set_exception_handler(lambda _loop, ctx: errors.append(ctx))
+    return errors
+
+
+def _broker_socket(backlog: int):
+    """A listening TCP socket on a free 127.0.0.1 port that plays a broker's end."""
+    import socket
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(backlog)
+    return srv
+
+
 def test_a_stop_while_a_broker_does_not_answer_the_connect_closes_the_socket():
     """A broker that accepts the TCP connection and never answers CONNECT (hung, or a black hole
     behind a NAT): a stop cancels the connect (``close``'s timeout). aiomqtt then left paho's socket
@@ -703,11 +721,8 @@ def test_a_stop_while_a_broker_does_not_answer_the_connect_closes_the_socket():
 
     async def main():
         loop = asyncio.get_running_loop()
-        errors: list[dict] = []
-        loop.set_exception_handler(lambda _loop, ctx: errors.append(ctx))
-        srv = socket.socket()
-        srv.bind(("127.0.0.1", 0))
-        srv.listen(1)
+        errors = _collect_loop_errors()
+        srv = _broker_socket(1)
         srv.setblocking(False)
         pub = MqttPublisher(mqtt_cfg(srv.getsockname()[1], discovery=False, timeout_s=30.0, keepalive=30),
                             "hungbroker", 1)
@@ -744,11 +759,8 @@ def test_a_stop_while_the_tcp_connect_itself_still_runs_closes_the_socket_it_mak
 
     async def main():
         loop = asyncio.get_running_loop()
-        errors: list[dict] = []
-        loop.set_exception_handler(lambda _loop, ctx: errors.append(ctx))
-        srv = socket.socket()
-        srv.bind(("127.0.0.1", 0))
-        srv.listen(0)
+        errors = _collect_loop_errors()
+        srv = _broker_socket(0)
         port = srv.getsockname()[1]
         fillers = []
         for _ in range(3):  # fill the accept queue (backlog 0 holds one; a SYN beyond it is dropped)
