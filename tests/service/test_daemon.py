@@ -514,6 +514,34 @@ def test_ocv_tables_at_several_temperatures_are_read_at_each_cells_temperature(t
     assert not [e for e in logs if e.get("config_key") == "pack.ocv_csv"], logs
 
 
+def test_the_priors_take_the_cells_temperature_from_can_when_it_comes(tmp_path):
+    """The cells' temperature frames come after the first samples (slower or multiplexed frames on a real
+    bus; here 3 s late), at 0 degC: the identifier's prior resistances and the EKF's diffusion resistance
+    start at 0 degC (x2.16 of the 25 degC prior), as with the temperature there from the first sample. They
+    were taken from the first sample alone: with no temperature there, at 25 degC for the whole drive."""
+    cold = {"CellIndexBase": 0, **{f"CellTemperature{j}": 0.0 for j in range(N)}}
+
+    def frames(late_s: float) -> list:
+        out = [m for m in rows(0, 30) if m.arbitration_id != MSG["CellTemperatures"].frame_id]
+        out += [msg("CellTemperatures", cold, T0 + k + 0.05) for k in range(30) if k >= late_s]
+        out.sort(key=lambda m: m.timestamp)
+        return restamp(out)
+
+    at = {}
+    for late_s in (0.0, 3.0):
+        _, ref, svc = run_bad_input(tmp_path / f"late{late_s:g}", frames(late_s), 30)
+        est = svc.estimator
+        assert not est.identifier.identified.any()  # still on the prior after 30 s
+        np.testing.assert_array_equal(est.temperature_c, 0.0)
+        at[late_s] = (est.identifier.params.r0_ohm.copy(), est.ekf.r_diffusion_ohm.copy())
+    prior_25 = SocEstimator(N, ocv(), CAPACITY_AH, 1.0)
+    f0 = np.exp(2500.0 * (1 / 273.15 - 1 / 298.15))
+    np.testing.assert_allclose(at[3.0][0], prior_25.identifier.params.r0_ohm * f0, rtol=1e-9)
+    np.testing.assert_allclose(at[3.0][0], at[0.0][0], rtol=1e-9)
+    np.testing.assert_allclose(at[3.0][1], at[0.0][1], rtol=0.02)  # r_d: 3 s of drive learnt less
+    assert np.all(at[3.0][1] > 1.8 * prior_25.ekf.r_diffusion_ohm)
+
+
 def test_unknown_ids_are_ignored_and_counted(tmp_path):
     clean = rows(0, 30)
     frames = []
