@@ -92,8 +92,8 @@ from typing import Annotated, Literal, get_args
 import numpy as np
 from annotated_types import Ge, Gt, Interval
 
-from .bounds import check_bounds
 from .arrhenius import cell_temperature_ok
+from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector, clip, rest_arguments
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
@@ -125,7 +125,8 @@ VOLTAGE_LINE_MIN_MOVE = 0.3
 VOLTAGE_LINE_RATIO_MAX = STATED_CAPACITY_RATIO_MAX
 
 #: A cell's start temperature, at which the identifier's and the diffusion branch's priors are taken, is its
-#: first valid reading, or the median of its first this many valid readings (``SocConfig.prior_temperature_window_s``; update, "Start temperature")
+#: first valid reading, or the median of its first this many valid readings
+#: (``SocConfig.prior_temperature_window_s``; update, "Start temperature")
 PRIOR_TEMPERATURE_READINGS = 5
 #: ... where that median is more than this from where the priors are [K]: a move the cell cannot have made
 #: in the window (a cell soaking from a warm charge cools by 1-2 K/min), so one of the readings was not the cell's
@@ -190,7 +191,8 @@ class SocConfig:
     # that guess may miss (SocEstimator.update, "A lost current")
     current_hold_s: Annotated[float, Gt(0)] = 60.0
     # A cell's start temperature (its priors' temperature) is its first valid reading, checked by its
-    # first PRIOR_TEMPERATURE_READINGS valid readings, spread over this window (SocEstimator.update, "Start temperature")
+    # first PRIOR_TEMPERATURE_READINGS valid readings, spread over this window
+    # (SocEstimator.update, "Start temperature")
     prior_temperature_window_s: Annotated[float, Interval(ge=0.0, le=3600.0)] = 40.0
 
     def __post_init__(self) -> None:

@@ -20,7 +20,7 @@ aiomqtt's ``on_disconnect`` read the cancelled ``_connected`` future inside a lo
 :meth:`MqttClient.__aenter__` closes the socket of a connect that did not complete.  A cancel
 that lands while the TCP connect itself still runs in aiomqtt's executor thread (a broker slow
 to accept, a SYN retried) finds no socket yet: the thread then closes the one it made, on the
-loop (:meth:`MqttClient._client_connect`), or it stayed open and registered for good.
+loop (:meth:`MqttClient._client_connect`); before, that socket stayed open and watched.
 """
 
 from __future__ import annotations
