@@ -491,7 +491,7 @@ class SocEstimator:
         if any_unset:
             read_now = unset & ok & i_ok  # (not under a load it does not know)
             if any_cell(read_now):
-                self._start_from_voltage(read_now, v)
+                self._start_from_voltage(read_now, v, i)
         if self._any_rest_due:
             read_rest = self._read_after_rest(i, v, ok)
             read_now = read_rest if read_now is None else read_now | read_rest
@@ -599,15 +599,31 @@ class SocEstimator:
             self.ekf.take_diffusion_prior_at(t_new, self._t_prior, reference_c, move)
         self._t_prior = t_new
 
-    def _start_from_voltage(self, cells: np.ndarray, v: np.ndarray) -> None:
-        """The start SOC of ``cells`` read from their voltage as an OCV (a pack started from rest);
-        the count and the hysteresis branch start there, the EKF with the OCV's own uncertainty."""
+    def _start_from_voltage(self, cells: np.ndarray, v: np.ndarray, i: np.ndarray) -> None:
+        """The start SOC of ``cells`` read from their voltage as an OCV; the count and the hysteresis
+        branch start there, the EKF with the reading's uncertainty.
+
+        At rest (a pack started from rest) the voltage is the OCV to the table's accuracy
+        (``ocv_start_soc_sigma``).  Under load (a gateway started mid-drive without a state) it is
+        not: the ohmic drop of the identifier's prior at the start temperature, ``R0 i``, the one
+        part of the overpotential a single sample shows, is taken out, and what the RC branches may
+        hold, up to ``(R1 + R2) |i|`` of the prior, is added to the uncertainty as an SOC,
+        ``sigma^2 = ocv_start_soc_sigma^2 + ((R1 + R2) |i| / dOCV/dz)^2``."""
+        p = self.identifier.params
+        loaded = cells & (np.abs(i) > self.config.rest_current_c * self.capacity_stated_ah)
+        if any_cell(loaded):
+            v = np.where(loaded, v - p.r0_ohm * i, v)
         self.soc = np.where(cells, np.clip(self._soc_at(np.where(cells, v, 3.7)), 0.0, 1.0), self.soc)
         self._soc_fix = np.where(cells, self.soc, self._soc_fix)
         self._q_fix = np.where(cells, self._charge_ref_ah, self._q_fix)
         self._start_hysteresis(cells)
-        if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty
-            self.ekf.set_soc_sigma(self.config.ekf.ocv_start_soc_sigma, cells)
+        if self.ekf is not None:  # a reading, not a guess: the OCV's own uncertainty, and the load's
+            sigma = np.full(self.n_cells, self.config.ekf.ocv_start_soc_sigma)
+            if any_cell(loaded):
+                slope = np.maximum(self._slope(np.where(cells, self.soc, 0.5)), 1e-3)
+                unseen = (p.r1_ohm + p.r2_ohm) * np.abs(i) / slope
+                sigma = np.where(loaded, np.hypot(sigma, unseen), sigma)
+            self.ekf.set_soc_sigma(sigma, cells)
 
     def _rc_pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """The identified RC pairs, ``(r_ohm, tau_s)``, each ``(N, 2)``."""

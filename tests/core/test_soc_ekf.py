@@ -553,3 +553,31 @@ def test_c0_voltage_line_flags_a_stated_capacity_5x_the_cells_without_table_capa
     flags, est = _bound_flags(cur, vol, STATED_AH, _ocv(), "c0")
     assert not np.any(flags)
     assert est.capacity_voltage_ah[0] == pytest.approx(2.92, abs=0.05)
+
+
+@pytest.mark.parametrize("current_c", [-1.0, 0.5])
+def test_a_start_read_from_a_loaded_voltage(current_c):
+    """A gateway started mid-drive without a state reads its start SOC from a voltage under load. The
+    prior's ohmic drop R0 i comes out of it, and what the RC branches may hold, (R1 + R2) |i| of the
+    prior, goes into its sigma as an SOC: the start is off by about that and within it. Before, the
+    whole overpotential was read as OCV, here 4 % of SOC off at 1C, trusted to 3 %. At rest the
+    reading is the OCV's, as it was."""
+    icfg, cfg = IdentifierConfig(), SocEkfConfig()
+    r0, r1, r2 = (x / STATED_AH for x in (icfg.prior_r0_ohm_ah, icfg.prior_r1_ohm_ah, icfg.prior_r2_ohm_ah))
+    i_a = current_c * STATED_AH
+    n = 900  # 15 min: both RC branches (10 and 100 s) settled
+    cur = np.concatenate([np.zeros(600), np.full(n, i_a)])
+    sim = simulate_ecm(cur, 1.0, EcmParams.from_rc(r0, [r1, r2], [10.0, 100.0]), _ocv().ocv, soc0=0.6,
+                       capacity_ah=STATED_AH, output="mean")
+    slope = float(_ocv().docv_dsoc(np.array([sim.soc[-1]]))[0])
+    for k, loaded in ((599, False), (cur.size - 1, True)):
+        est = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=None)
+        est.update(cur[k], sim.voltage_v[k:k + 1])
+        err = float(est.soc[0] - sim.soc[k])
+        if not loaded:  # at rest: the OCV, with its own uncertainty
+            assert abs(err) < 1e-3 and est.soc_sigma[0] == pytest.approx(cfg.ocv_start_soc_sigma, rel=1e-4)
+            continue
+        rc = (r1 + r2) * i_a / slope  # what the RC branches hold, as an SOC
+        assert abs(rc) > 0.015
+        assert err == pytest.approx(rc, rel=0.1), (err, rc)  # R0 i taken out, the RC part left
+        assert abs(err) < est.soc_sigma[0] == pytest.approx(np.hypot(cfg.ocv_start_soc_sigma, rc), rel=0.02)

@@ -879,8 +879,17 @@ def test_unusable_state_file_means_fresh_start(tmp_path, kind):
     metrics, ref, svc = run_bad_input(tmp_path, frames, 30)
     assert not svc.restored and metrics["bms_state_restored"] == 0
     assert len(list(tmp_path.glob(f"state.npz.{aside}-*"))) == 1  # kept, not deleted
-    # a fresh start: SOC from the OCV of the first sample (not 0.3)
-    assert ref.steps[0].soc == pytest.approx(ocv().soc_from_ocv(ref.steps[0].sample.cell_voltage_v))
+    # a fresh start: SOC from the voltage of the first sample (not 0.3), read as an OCV once the prior's
+    # ohmic drop at the cells' temperature is out of it (the drive cycle's first sample is under load)
+    from bms_estimator.core.arrhenius import RESISTANCE_ACTIVATION_K, arrhenius_factor
+    from bms_estimator.core.identifier import IdentifierConfig
+
+    first = ref.steps[0].sample
+    assert abs(first.current_a) > 1.0
+    r0 = IdentifierConfig().prior_r0_ohm_ah / CAPACITY_AH * arrhenius_factor(first.cell_temperature_c, 25.0,
+                                                                           RESISTANCE_ACTIVATION_K)
+    assert ref.steps[0].soc == pytest.approx(ocv().soc_from_ocv(first.cell_voltage_v - r0 * first.current_a))
+    assert np.all(np.abs(ref.steps[0].soc - 0.3) > 0.3)
 
 
 def test_restart_resumes_from_saved_state(tmp_path):
