@@ -12,7 +12,9 @@ and, asked for by name (``--starts``), ``atP+E`` / ``atP-E``: at P % of the file
 with the reference + or - E % (``at75-5``: three quarters through, 5 % low), the
 starts a hidden recording may bring that the four above do not; and ``ocv``: at
 t = 0 with the SOC read from the first sample's voltage (the files start at rest),
-as the service starts after a rest and ``soc --start-soc ocv`` does.
+as the service starts after a rest and ``soc --start-soc ocv`` does; ``atPocv``: at P % of
+the file with the SOC read from the voltage there, under load (a gateway started mid-drive
+without a state, ``soc --start-s T --start-soc ocv``).
 
 OCV: every table the cell has (C/20 tests, and HPPC rests where an ambient has no
 C/20 test), interpolated by the cell temperature.  Where the file's own ambient
@@ -193,7 +195,7 @@ def _run_cells(recs: list, starts: list[tuple[int, float]], ocv, stated_ah: floa
     return GroupRun(out, sigma, est.counting_capacity_ah.copy())
 
 
-_AT = re.compile(r"at(\d+(?:\.\d+)?)([+-]\d+(?:\.\d+)?)")
+_AT = re.compile(r"at(\d+(?:\.\d+)?)(?:([+-]\d+(?:\.\d+)?)|ocv)")
 
 
 def check_start(name: str) -> str:
@@ -201,14 +203,14 @@ def check_start(name: str) -> str:
     m = _AT.fullmatch(name)
     if name in STARTS or name == "ocv" or (m and 0.0 <= float(m.group(1)) < 100.0):
         return name
-    raise ValueError(f"unknown start {name!r}: use {', '.join(STARTS)}, ocv, or atP+E / atP-E "
-                     f"(P % of the file, E % off)")
+    raise ValueError(f"unknown start {name!r}: use {', '.join(STARTS)}, ocv, atP+E / atP-E "
+                     f"(P % of the file, E % off) or atPocv (P % of the file, read from the voltage there)")
 
 
 def start_point(name: str, base_soc: np.ndarray, fed: np.ndarray | None = None) -> tuple[int, float]:
     """(sample, SOC told to the estimator) of a start in a file whose reference SOC is ``base_soc``.
 
-    NaN for ``ocv``: the estimator reads it from the first sample's voltage.  ``fed`` (per sample,
+    NaN for ``ocv`` and ``atPocv``: the estimator reads it from that sample's voltage.  ``fed`` (per sample,
     :class:`~bms_estimator.gaps.RestPlan`): a start in a logging gap begins at the next fed sample,
     told the reference there (as ``soc --start-s``).
     """
@@ -223,10 +225,10 @@ def start_point(name: str, base_soc: np.ndarray, fed: np.ndarray | None = None) 
         k, err = n // 4, (0.1 if name == "mid+10" else -0.1)
     else:
         m = _AT.fullmatch(check_start(name))
-        k, err = int(n * float(m.group(1)) / 100.0), float(m.group(2)) / 100.0
+        k, err = int(n * float(m.group(1)) / 100.0), (float("nan") if m.group(2) is None else float(m.group(2)) / 100.0)
     if fed is not None and not fed[k]:
         k += int(np.argmax(fed[k:]))
-    return k, float(np.clip(base_soc[k] + err, 0.0, 1.0))
+    return k, float(np.clip(base_soc[k] + err, 0.0, 1.0))  # (NaN for atPocv: read from the voltage there)
 
 
 def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,

@@ -47,7 +47,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="an estimator setting to try (SocConfig field, or ekf.FIELD / identifier.FIELD)")
     ap.add_argument("--starts", default=",".join(STARTS),
                     help="comma-separated starts (default: the README's four); atP+E / atP-E = at P %% of the file, "
-                         "the reference + or - E %%; ocv = at the start, read from the first sample's voltage")
+                         "the reference + or - E %%; ocv = at the start, read from the first sample's voltage; "
+                         "atPocv = at P %% of the file, read from the voltage there (a gateway started mid-drive)")
     ap.add_argument("--current-gain", type=float, default=1.0, metavar="G",
                     help="stress test: every file's current times G before the estimator and the reference see it "
                          "(a cell G times the capacity its OCV tables were measured on, or a current sensor's gain "

@@ -84,7 +84,9 @@ def test_start_names_place_the_start_and_an_unknown_one_is_named():
     assert start_point("at10+20", ref) == (100, 1.0)  # clipped to full
     k, soc = start_point(check_start("ocv"), ref)  # read from the first sample's voltage by the estimator
     assert k == 0 and np.isnan(soc)
-    for bad in ("late", "at100+5", "at50", "at50*5"):
+    k, soc = start_point(check_start("at50ocv"), ref)  # read from the voltage halfway through
+    assert k == 500 and np.isnan(soc)
+    for bad in ("late", "at100+5", "at50", "at50*5", "at100ocv", "atocv"):
         with pytest.raises(ValueError, match=re.escape(repr(bad))):
             check_start(bad)
 
@@ -110,6 +112,26 @@ def test_starts_later_in_a_drive():
     assert np.mean(e30 <= 2.0) >= 0.75, np.sort(e30)
     assert np.median(e30) <= 1.4, np.median(e30)
     assert np.mean(e30 < cnt) >= 0.95, np.mean(e30 < cnt)
+
+
+@needs_shared
+def test_starts_read_from_a_loaded_voltage_mid_drive():
+    """A gateway started mid-drive without a state (``soc --start-s T --start-soc ocv``): 10, 25, 50 and 75 %
+    into each scored file the SOC is read from the voltage under load.  Measured 53 of 67 within 2 % from
+    30 min (median 1.20 %, worst 4.73 %), better than counting with the stated capacity from the same start
+    on 63; 33 of 67 (median 2.10 %, worst 11.93 %) while the whole overpotential was read as OCV and
+    trusted to 3 %."""
+    rows = []
+    for cell, pattern in (("lg-hg2", "lg-hg2/[02]*degC/*"), ("panasonic-18650pf", "panasonic-18650pf/25degC/*")):
+        rows += run_cell(SHARED, cell, [DEFAULT], pattern, leave_out=False,
+                         start_names=("at10ocv", "at25ocv", "at50ocv", "at75ocv"))
+    scored = [r for r in rows if r.get("reference_relaxed") and np.isfinite(r["rmse_30min_pct"])]
+    assert len(scored) >= 60, len(scored)
+    e30 = np.array([r["rmse_30min_pct"] for r in scored])
+    cnt = np.array([r["counting_rmse_30min_pct"] for r in scored])
+    assert np.mean(e30 <= 2.0) >= 0.7, np.sort(e30)
+    assert np.median(e30) <= 1.6 and e30.max() <= 6.0, (np.median(e30), e30.max())
+    assert np.mean(e30 < cnt) >= 0.85, np.mean(e30 < cnt)
 
 
 def test_sigma_coverage_counts_the_samples_within_one_and_two_sigma():
