@@ -150,16 +150,17 @@ def test_sigma_coverage_counts_the_samples_within_one_and_two_sigma():
 @needs_shared
 def test_a_start_read_from_the_ocv_at_the_first_sample():
     """What the service does after a rest (and ``soc --start-soc ocv``): the SOC read from the first
-    sample's voltage, every scored file starting at rest after a charge.  Measured 17 of 18 within 2 %
-    from 30 min (median 0.56 %); the miss is Panasonic hwfet_a, 2.56 % (1.14 % when told it is full: from
-    35 min the identifier's slow branch and its c0 drift together, README)."""
+    sample's voltage, every scored file starting after a charge (three Panasonic files under a 1.6-2.7 A
+    load: the prior's ohmic drop taken out).  Measured 17 of 18 within 2 % from 30 min (median 0.64 %;
+    0.56 % before the loaded reads, which read 0.92-0.96 then); the miss is Panasonic hwfet_a, 2.56 %
+    (1.14 % when told it is full: from 35 min the identifier's slow branch and its c0 drift together, README)."""
     rows = []
     for cell, pattern in (("lg-hg2", "lg-hg2/[02]*degC/*"), ("panasonic-18650pf", "panasonic-18650pf/25degC/*")):
         rows += run_cell(SHARED, cell, [DEFAULT], pattern, leave_out=False, start_names=("ocv",))
     scored = [r for r in rows if r.get("reference_relaxed")]
     assert len(scored) == 18, len(scored)
     starts = np.array([r["start_soc"] for r in scored])
-    assert np.all((starts > 0.85) & (starts <= 1.0)), starts  # read near full: measured 0.92-1.00
+    assert np.all((starts > 0.85) & (starts <= 1.0)), starts  # read near full: measured 0.97-1.00
     e30 = np.array([r["rmse_30min_pct"] for r in scored])
     assert np.sum(e30 <= 2.0) >= 16, np.sort(e30)
     assert np.median(e30) <= 1.0, np.median(e30)
