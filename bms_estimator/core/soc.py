@@ -606,9 +606,9 @@ class SocEstimator:
         At rest (a pack started from rest) the voltage is the OCV to the table's accuracy
         (``ocv_start_soc_sigma``).  Under load (a gateway started mid-drive without a state) it is
         not: the ohmic drop of the identifier's prior at the start temperature, ``R0 i``, the one
-        part of the overpotential a single sample shows, is taken out, and what the RC branches may
-        hold, up to ``(R1 + R2) |i|`` of the prior, is added to the uncertainty as an SOC,
-        ``sigma^2 = ocv_start_soc_sigma^2 + ((R1 + R2) |i| / dOCV/dz)^2``."""
+        part of the overpotential a single sample shows, is taken out, and what the RC branches and
+        the diffusion branch may hold, up to ``(R1 + R2 + r_d) |i|`` of the priors, is added to the
+        uncertainty as an SOC, ``sigma^2 = ocv_start_soc_sigma^2 + ((R1 + R2 + r_d) |i| / dOCV/dz)^2``."""
         p = self.identifier.params
         loaded = cells & (np.abs(i) > self.config.rest_current_c * self.capacity_stated_ah)
         if any_cell(loaded):
@@ -621,7 +621,7 @@ class SocEstimator:
             sigma = np.full(self.n_cells, self.config.ekf.ocv_start_soc_sigma)
             if any_cell(loaded):
                 slope = np.maximum(self._slope(np.where(cells, self.soc, 0.5)), 1e-3)
-                unseen = (p.r1_ohm + p.r2_ohm) * np.abs(i) / slope
+                unseen = (p.r1_ohm + p.r2_ohm + self.ekf.r_diffusion_ohm) * np.abs(i) / slope
                 sigma = np.where(loaded, np.hypot(sigma, unseen), sigma)
             self.ekf.set_soc_sigma(sigma, cells)
 

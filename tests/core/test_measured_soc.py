@@ -117,8 +117,8 @@ def test_starts_later_in_a_drive():
 @needs_shared
 def test_starts_read_from_a_loaded_voltage_mid_drive():
     """A gateway started mid-drive without a state (``soc --start-s T --start-soc ocv``): 10, 25, 50 and 75 %
-    into each scored file the SOC is read from the voltage under load.  Measured 53 of 67 within 2 % from
-    30 min (median 1.20 %, worst 4.73 %), better than counting with the stated capacity from the same start
+    into each scored file the SOC is read from the voltage under load.  Measured 55 of 67 within 2 % from
+    30 min (median 1.13 %, worst 4.64 %), better than counting with the stated capacity from the same start
     on 63; 33 of 67 (median 2.10 %, worst 11.93 %) while the whole overpotential was read as OCV and
     trusted to 3 %."""
     rows = []
@@ -151,7 +151,7 @@ def test_sigma_coverage_counts_the_samples_within_one_and_two_sigma():
 def test_a_start_read_from_the_ocv_at_the_first_sample():
     """What the service does after a rest (and ``soc --start-soc ocv``): the SOC read from the first
     sample's voltage, every scored file starting after a charge (three Panasonic files under a 1.6-2.7 A
-    load: the prior's ohmic drop taken out).  Measured 17 of 18 within 2 % from 30 min (median 0.64 %;
+    load: the prior's ohmic drop taken out).  Measured 17 of 18 within 2 % from 30 min (median 0.63 %;
     0.56 % before the loaded reads, which read 0.92-0.96 then); the miss is Panasonic hwfet_a, 2.56 %
     (1.14 % when told it is full: from 35 min the identifier's slow branch and its c0 drift together, README)."""
     rows = []
