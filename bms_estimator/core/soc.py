@@ -99,7 +99,7 @@ from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig, make_identifier
 from .ocv import OcvCurve
 from .ocv_surface import STATED_CAPACITY_RATIO_MAX
-from .soc_ekf import SocEkf, SocEkfConfig
+from .soc_ekf import SOC_VARIANCE_MAX, SocEkf, SocEkfConfig
 
 __all__ = ["SocConfig", "SocEstimator", "CAPACITY_BOUND_TOL", "CAPACITY_SOC_UPDATES", "REST_SOC_READINGS", "SOC_METHODS",
            "VOLTAGE_LINE_RATIO_MAX", "voltage_line_capacity_ah"]
@@ -608,7 +608,8 @@ class SocEstimator:
         not: the ohmic drop of the identifier's prior at the start temperature, ``R0 i``, the one
         part of the overpotential a single sample shows, is taken out, and what the RC branches and
         the diffusion branch may hold, up to ``(R1 + R2 + r_d) |i|`` of the priors, is added to the
-        uncertainty as an SOC, ``sigma^2 = ocv_start_soc_sigma^2 + ((R1 + R2 + r_d) |i| / dOCV/dz)^2``."""
+        uncertainty as an SOC, ``sigma^2 = ocv_start_soc_sigma^2 + ((R1 + R2 + r_d) |i| / dOCV/dz)^2``,
+        at most a uniform SOC's (``SOC_VARIANCE_MAX``)."""
         p = self.identifier.params
         loaded = cells & (np.abs(i) > self.config.rest_current_c * self.capacity_stated_ah)
         if any_cell(loaded):
@@ -622,7 +623,8 @@ class SocEstimator:
             if any_cell(loaded):
                 slope = np.maximum(self._slope(np.where(cells, self.soc, 0.5)), 1e-3)
                 unseen = (p.r1_ohm + p.r2_ohm + self.ekf.r_diffusion_ohm) * np.abs(i) / slope
-                sigma = np.where(loaded, np.hypot(sigma, unseen), sigma)
+                # (never less known than knowing nothing: a uniform SOC's sigma at most)
+                sigma = np.where(loaded, np.minimum(np.hypot(sigma, unseen), np.sqrt(SOC_VARIANCE_MAX)), sigma)
             self.ekf.set_soc_sigma(sigma, cells)
 
     def _rc_pairs(self) -> tuple[np.ndarray, np.ndarray]:
