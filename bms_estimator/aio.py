@@ -56,13 +56,17 @@ async def in_thread(fn: Callable[[], T], *, name: str, discard: Callable[[T], No
     loop = asyncio.get_running_loop()
     done: asyncio.Future[T] = loop.create_future()
 
+    def dispose(value: object) -> None:  # a result nobody awaits any more (best effort)
+        if discard is not None:
+            try:
+                discard(value)  # type: ignore[arg-type]
+            except Exception:  # noqa: BLE001, S110
+                pass
+
     def deliver(ok: bool, value: object) -> None:
         if done.cancelled():
-            if ok and discard is not None:
-                try:
-                    discard(value)  # type: ignore[arg-type]
-                except Exception:  # noqa: BLE001, S110 - disposing of an unwanted result is best effort
-                    pass
+            if ok:
+                dispose(value)
         elif ok:
             done.set_result(value)  # type: ignore[arg-type]
         else:
@@ -76,11 +80,8 @@ async def in_thread(fn: Callable[[], T], *, name: str, discard: Callable[[T], No
         try:
             loop.call_soon_threadsafe(deliver, ok, value)
         except RuntimeError:  # the loop is gone
-            if ok and discard is not None:
-                try:
-                    discard(value)  # type: ignore[arg-type]
-                except Exception:  # noqa: BLE001, S110
-                    pass
+            if ok:
+                dispose(value)
 
     threading.Thread(target=work, name=name, daemon=True).start()
     return await done

@@ -107,10 +107,10 @@ def sum8(data: bytes) -> int:
     return sum(data) & 0xFF
 
 
-#: ``crc_algorithm`` name -> function of the protected bytes
 #: frame-time seconds without a frame of a counter group after which its counter starts afresh (module docstring)
 E2E_RESYNC_S = 5.0
 
+#: ``crc_algorithm`` name -> function of the protected bytes
 CRC_ALGORITHMS: dict[str, Callable[[bytes], int]] = {
     "crc8_sae_j1850": crc8_sae_j1850,
     "crc8_autosar": crc8_autosar,

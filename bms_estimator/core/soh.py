@@ -66,11 +66,10 @@ def capacity_soh(capacity_ah, nominal_ah, capacity_sigma_ah, justified) -> tuple
 
 def r0_at_reference(r0_ohm, temperature_c, config: SohConfig = SohConfig()) -> np.ndarray:
     """R0 brought to the reference temperature (Arrhenius, module docstring)."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        # exp(-B (1/T - 1/T_ref)), NaN where T is not a cell's temperature (missing, or a sensor fault
-        # outside CELL_TEMPERATURE_RANGE_C: the SOH skips those samples)
-        f = arrhenius_factor(config.reference_temperature_c, temperature_c, config.r0_activation_k)
-        return np.where(cell_temperature_ok(temperature_c), np.asarray(r0_ohm, dtype=float) * f, np.nan)
+    # exp(-B (1/T - 1/T_ref)), NaN where T is not a cell's temperature (missing, or a sensor fault
+    # outside CELL_TEMPERATURE_RANGE_C: the SOH skips those samples); arrhenius_factor keeps its own errstate
+    f = arrhenius_factor(config.reference_temperature_c, temperature_c, config.r0_activation_k)
+    return np.where(cell_temperature_ok(temperature_c), np.asarray(r0_ohm, dtype=float) * f, np.nan)
 
 
 class ResistanceSoh:
