@@ -60,7 +60,7 @@ from ..service.schema import CELL_FIELDS
 from ..service.state import estimator_state
 from .samples import SampleArrays
 
-__all__ = ["DriveEstimate", "EPOCH_MIN_S", "estimate_drive", "carry_state", "finish_estimate", "output_getters",
+__all__ = ["DriveEstimate", "EPOCH_MIN_S", "drive_getters", "estimate_drive", "carry_state", "finish_estimate", "output_getters",
            "rest_between_drives", "sample_gaps", "sox_getters"]
 
 #: frame times from this on (2000-01-01 00:00 UTC) are epoch seconds: the log carries absolute times
@@ -159,6 +159,17 @@ def sox_getters(sox: SoxEstimator) -> list[tuple[str, Callable[[], np.ndarray | 
     return [(key, out(key)) for key in sox.output_keys]
 
 
+def drive_getters(est: SocEstimator, sox: SoxEstimator | None
+                  ) -> tuple[list[tuple[str, Callable[[], np.ndarray | float]]], tuple[str, ...]]:
+    """The (key, call) pairs a drive's outputs are read with (:func:`output_getters`, then the SOX
+    outputs of :func:`sox_getters` when ``sox`` is given) and the SOX keys among them."""
+    getters: list[tuple[str, Callable[[], np.ndarray | float]]] = list(output_getters(est))
+    if sox is None:
+        return getters, ()
+    more = sox_getters(sox)
+    return getters + more, tuple(key for key, _ in more)
+
+
 #: the SOX energy counters (Wh out, Wh in) whose change over a drive is its energy
 ENERGY_COUNTERS = ("energy_discharged_wh", "energy_charged_wh")
 
@@ -187,12 +198,8 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
     """
     k = len(samples)
     est = estimator
-    getters = output_getters(est)
-    sox_keys: tuple[str, ...] = ()
+    getters, sox_keys = drive_getters(est, sox)
     if sox is not None:
-        more = sox_getters(sox)
-        sox_keys = tuple(key for key, _ in more)
-        getters += more
         energy0 = {key: np.array(getattr(sox, key), copy=True) for key in ENERGY_COUNTERS}
     store = {key: np.empty((k, samples.n_cells)) for key, _ in getters}  # every row is written below (NaN on error)
     targets = [(store[key], get) for key, get in getters]

@@ -68,7 +68,7 @@ from ..can.sampler import first_current, sample_current
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
 from ..service.state import SOX_PREFIX, estimator_state
-from .estimate import ENERGY_COUNTERS, DriveEstimate, finish_estimate, output_getters, sample_gaps, sox_getters
+from .estimate import ENERGY_COUNTERS, DriveEstimate, drive_getters, finish_estimate, sample_gaps
 from .samples import SampleArrays
 
 __all__ = ["StackError", "estimate_stacked"]
@@ -169,12 +169,7 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
         temps[:m, cols] = dr.cell_temperature_c[u]
         valid[:m, cols] = dr.valid[u]
 
-    getters = output_getters(est)
-    sox_keys: tuple[str, ...] = ()
-    if sox is not None:
-        more = sox_getters(sox)
-        sox_keys = tuple(key for key, _ in more)
-        getters += more
+    getters, sox_keys = drive_getters(est, sox)
     # drive-major: store[key][d, 0] the fresh estimator's values, store[key][d, j + 1] the outputs after
     # update j. A drive whose every sample is an update (the usual drive) then has its rows as one
     # contiguous block, taken as it is; otherwise one fancy index picks them. (Rows the stacked
