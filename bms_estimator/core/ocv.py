@@ -62,6 +62,10 @@ GRID_POINTS = 2001
 INVERSE_GRID_POINTS = 8001
 #: A user OCV table may dip by up to this much [V] and be repaired with a warning.
 MAX_OCV_DIP_V = 5e-3
+#: A user OCV table should span at least this SOC range; beyond its knots the curve is extrapolated along
+#: its end secants (module docstring, 2.), which for a table that stops short is a guess, warned of once.
+#: (The shipped and measured tables start at 0-2.2 % SOC: C/20 at 0, HPPC rests at 1.5-2.2 %.)
+OCV_SOC_COVERAGE = (0.1, 0.9)
 #: A table's ocv_v must lie in this range [V] (a single cell's open-circuit voltage).
 OCV_RANGE_V = (0.0, 10.0)
 #: A cell's temperature lies in this range [degC]; outside it a value is in kelvin or Fahrenheit, or a
@@ -608,7 +612,8 @@ class OcvCurve:
 
         The optional constant columns ``temperature_c`` and ``capacity_ah`` set
         :attr:`temperature_c` and :attr:`capacity_discharge_ah`; each must hold
-        one value on every row.  ``soc`` must be a strictly increasing fraction in [0, 1].  An ``ocv_v``
+        one value on every row.  ``soc`` must be a strictly increasing fraction in [0, 1]; a table that
+        does not span ``OCV_SOC_COVERAGE`` (0.1..0.9) is read with a ``UserWarning``.  An ``ocv_v``
         column that is flat or dips by at most ``MAX_OCV_DIP_V`` (5 mV) is
         repaired to strictly increasing with a ``UserWarning``; a larger dip is an
         error.
@@ -706,6 +711,15 @@ class OcvCurve:
                 stacklevel=2,
             )
             v = _strictly_increasing(v, _EPS_V)
+        lo_cover, hi_cover = OCV_SOC_COVERAGE
+        if s[0] > lo_cover or s[-1] < hi_cover:
+            warnings.warn(
+                f"{path}: the table covers soc {s[0]:.3g}..{s[-1]:.3g} only; outside it the OCV is extrapolated "
+                f"along its end segments, and an SOC read there is a guess: give a table that spans "
+                f"{lo_cover:g}..{hi_cover:g} or more (a C/20 test spans 0..1)",
+                UserWarning,
+                stacklevel=2,
+            )
         return cls(np.clip(s, 0.0, 1.0), v, h, capacity_discharge_ah=const.get("capacity_ah"),
                    temperature_c=const.get("temperature_c"))
 
