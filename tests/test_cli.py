@@ -446,6 +446,22 @@ def test_a_recording_far_from_the_tables_temperatures_is_warned_about(tmp_path, 
     assert "outside the --ocv table" not in capsys.readouterr().err
 
 
+def test_a_recording_just_below_zero_is_told_to_take_a_table_near_0_not_minus_0_degc(tmp_path, capsys):
+    """The LG 0 degC udds drive (median cell temperature -0.3 degC) on the 25 degC table alone was told to
+    'give a table measured near -0 degC': the rounded temperature kept the sign of the unrounded one."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(str(drive_cycle("lg-hg2", "la92")))
+    shift = float(np.median(rec.temperature_c)) + 0.3  # the median lands at -0.3 degC
+    cold = save_recording(CellRecording(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c - shift, "c"),
+                          tmp_path / "cold.csv.gz")
+    assert main(["soc", str(cold), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3",
+                 "--reference-capacity-ah", "2.8"]) == 0
+    err = capsys.readouterr().err
+    assert "its median cell temperature -0.3 degC is 24 K outside" in err
+    assert "give a table measured near 0 degC" in err, err
+
+
 def test_compare_of_files_at_different_periods_names_them_and_the_way_out(tmp_path, nmc_like_ocv, capsys):
     """It read 'training and validation files have different sample periods (60.0 vs 1.0 s)'."""
     c20 = tmp_path / "c20.csv"
