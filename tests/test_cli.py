@@ -182,6 +182,50 @@ def test_bench_help_lists_every_figure(capsys):
         assert name in text, name
 
 
+def _readme_command_line_section() -> str:
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    return text[text.index("\n## Command line\n"):text.index("\n## SOC from any start")]
+
+
+def _subcommand_parsers() -> dict:
+    import argparse
+
+    from bms_estimator.cli.__main__ import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def test_every_option_of_every_command_is_in_the_readme_command_line_section():
+    """A new user reads the README's Command line section, not 13 --help pages: 47 options of 12
+    commands were in no word of it (encode-log --spread/--seed/--t0, dashboard --tls/--password-env,
+    soc --reference-ocv, sop-backtest --mode and the cell's current ratings, demo --cell/--plain, ...;
+    batch --stack and run --check-config only sections later)."""
+    import re
+
+    section = _readme_command_line_section()
+    missing = []
+    for name, parser in _subcommand_parsers().items():
+        for action in parser._actions:
+            strings = [o for o in action.option_strings if o not in ("-h", "--help")]
+            if strings and not any(re.search(rf"(?<![\w-]){re.escape(o)}(?![\w-])", section) for o in strings):
+                missing.append(f"{name} {'/'.join(strings)}")
+    assert not missing, missing
+
+
+def test_every_option_the_readme_command_table_shows_exists():
+    """The README's command table is a synopsis: each option it shows for a command is one of its own."""
+    import re
+
+    parsers = _subcommand_parsers()
+    rows = re.findall(r"^\| `bms-estimator ([a-z-]+) ([^`]*)`", _readme_command_line_section(), re.M)
+    assert {name for name, _ in rows} == set(parsers)
+    for name, synopsis in rows:
+        known = {o for a in parsers[name]._actions for o in a.option_strings}
+        for opt in re.findall(r"(?<![\w-])--?[a-z][a-z0-9-]*", synopsis):
+            assert opt in known, (name, opt)
+
+
 def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
     """LG HG2 udds -> la92 (shipped samples): CT validation simulation RMSE <= 25 mV (11.8 mV when written)."""
     out = tmp_path / "cmp.json"
