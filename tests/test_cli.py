@@ -182,6 +182,50 @@ def test_bench_help_lists_every_figure(capsys):
         assert name in text, name
 
 
+def _readme_command_line_section() -> str:
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    return text[text.index("\n## Command line\n"):text.index("\n## SOC from any start")]
+
+
+def _subcommand_parsers() -> dict:
+    import argparse
+
+    from bms_estimator.cli.__main__ import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def test_every_option_of_every_command_is_in_the_readme_command_line_section():
+    """A new user reads the README's Command line section, not 13 --help pages: 47 options of 12
+    commands were in no word of it (encode-log --spread/--seed/--t0, dashboard --tls/--password-env,
+    soc --reference-ocv, sop-backtest --mode and the cell's current ratings, demo --cell/--plain, ...;
+    batch --stack and run --check-config only sections later)."""
+    import re
+
+    section = _readme_command_line_section()
+    missing = []
+    for name, parser in _subcommand_parsers().items():
+        for action in parser._actions:
+            strings = [o for o in action.option_strings if o not in ("-h", "--help")]
+            if strings and not any(re.search(rf"(?<![\w-]){re.escape(o)}(?![\w-])", section) for o in strings):
+                missing.append(f"{name} {'/'.join(strings)}")
+    assert not missing, missing
+
+
+def test_every_option_the_readme_command_table_shows_exists():
+    """The README's command table is a synopsis: each option it shows for a command is one of its own."""
+    import re
+
+    parsers = _subcommand_parsers()
+    rows = re.findall(r"^\| `bms-estimator ([a-z-]+) ([^`]*)`", _readme_command_line_section(), re.M)
+    assert {name for name, _ in rows} == set(parsers)
+    for name, synopsis in rows:
+        known = {o for a in parsers[name]._actions for o in a.option_strings}
+        for opt in re.findall(r"(?<![\w-])--?[a-z][a-z0-9-]*", synopsis):
+            assert opt in known, (name, opt)
+
+
 def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
     """LG HG2 udds -> la92 (shipped samples): CT validation simulation RMSE <= 25 mV (11.8 mV when written)."""
     out = tmp_path / "cmp.json"
@@ -444,6 +488,22 @@ def test_a_recording_far_from_the_tables_temperatures_is_warned_about(tmp_path, 
             "table(s) at 23.9 degC, read there (held, not extrapolated): give a table measured near -6 degC") in err
     assert main(["soc", la92, *cell]) == 0
     assert "outside the --ocv table" not in capsys.readouterr().err
+
+
+def test_a_recording_just_below_zero_is_told_to_take_a_table_near_0_not_minus_0_degc(tmp_path, capsys):
+    """The LG 0 degC udds drive (median cell temperature -0.3 degC) on the 25 degC table alone was told to
+    'give a table measured near -0 degC': the rounded temperature kept the sign of the unrounded one."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(str(drive_cycle("lg-hg2", "la92")))
+    shift = float(np.median(rec.temperature_c)) + 0.3  # the median lands at -0.3 degC
+    cold = save_recording(CellRecording(rec.time_s, rec.current_a, rec.voltage_v, rec.temperature_c - shift, "c"),
+                          tmp_path / "cold.csv.gz")
+    assert main(["soc", str(cold), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3",
+                 "--reference-capacity-ah", "2.8"]) == 0
+    err = capsys.readouterr().err
+    assert "its median cell temperature -0.3 degC is 24 K outside" in err
+    assert "give a table measured near 0 degC" in err, err
 
 
 def test_compare_of_files_at_different_periods_names_them_and_the_way_out(tmp_path, nmc_like_ocv, capsys):

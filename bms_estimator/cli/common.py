@@ -251,7 +251,7 @@ def _warn_if_outside_the_tables(rec: CellRecording, median_c: float, surface: Oc
         span = f"{lo:.1f}" if hi - lo < 0.05 else f"{lo:.1f}..{hi:.1f}"
         warnings.warn(f"{rec.source}: its median cell temperature {median_c:.1f} degC is {off:.0f} K outside the "
                       f"--ocv table(s) at {span} degC, read there (held, not extrapolated): give a table measured "
-                      f"near {median_c:.0f} degC", UserWarning, stacklevel=3)
+                      f"near {round(median_c)} degC", UserWarning, stacklevel=3)  # an int: -0.3 reads 0, not -0
 
 
 def warn_if_start_is_not_initial_soc(rec: CellRecording, ocv: OcvSurface, args: argparse.Namespace) -> None:
