@@ -14,12 +14,12 @@ def bench_diagnose_s() -> float:
     cross-validated.  For ``bms-estimator bench``; a figure, not a test.
     """
     from bms_estimator import samples
-    from bms_estimator.core.ocv import OcvCurve
     from bms_estimator.data import load_recording
     from bms_estimator.diagnose import Series, diagnose
+    from bms_estimator.ocv_table import read_ocv_table
 
     rec = load_recording(samples.drive_cycle("lg-hg2", "udds"))
-    ocv = OcvCurve.from_csv(samples.ocv_table("lg-hg2"))
+    ocv = read_ocv_table(samples.ocv_table("lg-hg2"))
     data = Series.from_recording(rec, ocv, 3.0)
     t0 = time.perf_counter()
     diagnose(data)

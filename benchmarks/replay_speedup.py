@@ -55,6 +55,7 @@ import numpy as np
 
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import CellRecording, load_recording
+from bms_estimator.ocv_table import read_ocv_table
 from bms_estimator.samples import CELLS, drive_cycle, ocv_table
 from bms_estimator.replay.encode_log import FrameArrays, build_pack, frame_arrays
 from bms_estimator.replay.replay import open_replay_bus, replay_messages
@@ -103,7 +104,7 @@ def prepare_frames(hours: float, n_cells: int, *, cell: str = "lg-hg2", cycle: s
     rec = _tile(rec, n)
     q = CELLS[cell][0]
     ocv_path = ocv_table(cell)
-    ocv = OcvCurve.from_csv(ocv_path)
+    ocv = read_ocv_table(ocv_path)
     # the reference capacity is given (the stated one), so no online SOC run is needed here
     trace = build_pack(rec, n_cells, ocv, q, seed=seed, reference_capacity_ah=q, duration_s=hours * 3600)
     return frame_arrays(trace), ocv, q, str(ocv_path)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import load_recording, save_recording, shared_data_dir
+from bms_estimator.ocv_table import write_ocv_table
 
 SAMPLES = Path(__file__).resolve().parents[1] / "bms_estimator" / "samples"
 CYCLES = {
@@ -32,8 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     SAMPLES.mkdir(exist_ok=True)
     for cell, cycles in CYCLES.items():
         c20 = load_recording(data / cell / "25degC" / "c20_ocv.csv.gz", resample_s=None)
-        OcvCurve.from_c20(c20.time_s, c20.current_a, c20.voltage_v, temperature_c=c20.temperature_c).to_csv(
-            SAMPLES / f"{cell}_25degC_ocv.csv")
+        curve = OcvCurve.from_c20(c20.time_s, c20.current_a, c20.voltage_v, temperature_c=c20.temperature_c)
+        write_ocv_table(curve, SAMPLES / f"{cell}_25degC_ocv.csv")
         for cycle in cycles:
             rec = load_recording(data / cell / "25degC" / f"{cycle}.csv.gz", resample_s=1.0)
             out = save_recording(rec, SAMPLES / f"{cell}_25degC_{cycle}_1s.csv.gz")

@@ -11,6 +11,7 @@ import pytest
 from bms_estimator.cli.__main__ import main
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import CellRecording, save_recording
+from bms_estimator.ocv_table import read_ocv_table, write_ocv_table
 from bms_estimator.samples import drive_cycle, ocv_table
 
 PAN_OCV = str(ocv_table("panasonic-18650pf"))
@@ -32,7 +33,7 @@ def test_ocv_command_writes_a_table_the_others_read(tmp_path, nmc_like_ocv, caps
     src, out = tmp_path / "c20.csv", tmp_path / "ocv.csv"
     _c20_file(src, nmc_like_ocv)
     assert main(["ocv", str(src), "-o", str(out)]) == 0
-    curve = OcvCurve.from_csv(out)
+    curve = read_ocv_table(out)
     s = np.linspace(0.1, 0.9, 9)
     np.testing.assert_allclose(curve.ocv(s), nmc_like_ocv.ocv(s), atol=0.01)
     assert np.all(curve.hysteresis(s) > 0.015)
@@ -45,29 +46,29 @@ def test_ocv_command_writes_the_tests_temperature_or_the_one_given(tmp_path, nmc
     assert main(["ocv", str(src), "-o", str(out)]) == 0
     header = out.read_text().splitlines()[0]
     assert header == "soc,ocv_v,hysteresis_v,temperature_c,capacity_ah"
-    curve = OcvCurve.from_csv(out)
+    curve = read_ocv_table(out)
     assert curve.temperature_c == pytest.approx(10.0, abs=0.1)  # the median of the logged cell temperature
     assert curve.capacity_discharge_ah == pytest.approx(3.0, abs=0.01)
     assert "at 10" in capsys.readouterr().out
     assert main(["ocv", str(src), "-o", str(out), "--temperature-c", "-20"]) == 0
-    assert OcvCurve.from_csv(out).temperature_c == -20.0
+    assert read_ocv_table(out).temperature_c == -20.0
     bare = tmp_path / "bare.csv"
     _c20_file(bare, nmc_like_ocv)  # no temperature logged
     assert main(["ocv", str(bare), "-o", str(tmp_path / "bare_ocv.csv")]) == 0
     assert "give --temperature-c" in capsys.readouterr().out
-    assert OcvCurve.from_csv(tmp_path / "bare_ocv.csv").temperature_c is None
+    assert read_ocv_table(tmp_path / "bare_ocv.csv").temperature_c is None
 
 
 def test_fit_takes_several_ocv_tables(tmp_path, capsys):
-    lg = OcvCurve.from_csv(ocv_table("lg-hg2"))
-    cold = OcvCurve(lg.soc, lg.ocv_v - 0.02 * (1 - lg.soc), lg.hysteresis_v, temperature_c=0.0,
-                    capacity_discharge_ah=2.6).to_csv(tmp_path / "cold.csv")
+    lg = read_ocv_table(ocv_table("lg-hg2"))
+    cold = write_ocv_table(OcvCurve(lg.soc, lg.ocv_v - 0.02 * (1 - lg.soc), lg.hysteresis_v, temperature_c=0.0,
+                    capacity_discharge_ah=2.6), tmp_path / "cold.csv")
     data = str(drive_cycle("lg-hg2", "la92"))
     out = tmp_path / "fit.json"
     assert main(["fit", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(cold), "--capacity-ah", "3.0",
                  "--method", "arx", "--json", str(out)]) == 0
     assert json.loads(out.read_text())["sim_rmse_mv"] > 0
-    no_temperature = OcvCurve(lg.soc, lg.ocv_v).to_csv(tmp_path / "bare.csv")
+    no_temperature = write_ocv_table(OcvCurve(lg.soc, lg.ocv_v), tmp_path / "bare.csv")
     assert main(["fit", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(no_temperature),
                  "--capacity-ah", "3.0", "--method", "arx"]) != 0
     err = capsys.readouterr().err
@@ -556,7 +557,7 @@ def test_a_file_that_does_not_start_at_initial_soc_is_warned_about(tmp_path, cap
     from bms_estimator.core.ecm import EcmParams, simulate_ecm
 
     lg_ocv = str(ocv_table("lg-hg2"))
-    curve = OcvCurve.from_csv(lg_ocv)
+    curve = read_ocv_table(lg_ocv)
     i = np.r_[np.zeros(120), np.tile(np.r_[np.full(60, -3.0), np.zeros(60), np.full(20, 1.5), np.zeros(40)], 8)]
     sim = simulate_ecm(i, 1.0, EcmParams.from_rc(0.02, [0.01, 0.02], [10.0, 200.0]), curve.ocv, soc0=0.5,
                        capacity_ah=3.0)
@@ -655,8 +656,8 @@ def test_ocv_tables_of_two_cells_are_named_in_one_warning(tmp_path, capsys):
     """--ocv given the LG HG2 table and the Panasonic 18650PF one labelled 20 degC (shipped samples, Kollmeyer,
     CC BY 4.0): the surface blends two cells; one warning line names both files, their temperatures and the
     figure (not refused: core.ocv_surface, item 9). The LG table with a copy of itself 20 K colder says nothing."""
-    pan = OcvCurve.from_csv(PAN_OCV)
-    pan20 = OcvCurve(pan.soc, pan.ocv_v, pan.hysteresis_v, temperature_c=20.0).to_csv(tmp_path / "pan20.csv")
+    pan = read_ocv_table(PAN_OCV)
+    pan20 = write_ocv_table(OcvCurve(pan.soc, pan.ocv_v, pan.hysteresis_v, temperature_c=20.0), tmp_path / "pan20.csv")
     data = str(drive_cycle("lg-hg2", "udds"))
     out = tmp_path / "mixed.json"
     assert main(["soc", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(pan20), "--capacity-ah", "2.8",
@@ -667,8 +668,8 @@ def test_ocv_tables_of_two_cells_are_named_in_one_warning(tmp_path, capsys):
     assert len(line) == 1, err
     assert line[0].startswith("bms-estimator soc: warning: --ocv: ") and "pan20.csv (20 degC) and " in line[0], err
     assert "lg-hg2_25degC_ocv.csv (23.871 degC) differ by 4" in line[0], err
-    lg = OcvCurve.from_csv(ocv_table("lg-hg2"))
-    lg5 = OcvCurve(lg.soc, lg.ocv_v, lg.hysteresis_v, temperature_c=4.0).to_csv(tmp_path / "lg4.csv")
+    lg = read_ocv_table(ocv_table("lg-hg2"))
+    lg5 = write_ocv_table(OcvCurve(lg.soc, lg.ocv_v, lg.hysteresis_v, temperature_c=4.0), tmp_path / "lg4.csv")
     assert main(["soc", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(lg5), "--capacity-ah", "2.8",
                  "--json", str(out)]) == 0
     assert "tables of one cell" not in capsys.readouterr().err

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from bms_estimator.core.ocv import MIN_SLOPE_V, OcvCurve
 from bms_estimator.data import load_recording
+from bms_estimator.ocv_table import read_ocv_table, write_ocv_table
 from tests.conftest import shared_file
 
 
@@ -347,10 +348,10 @@ def test_from_hppc_naive_integration_would_be_wrong() -> None:
 def test_csv_round_trip(tmp_path: Path) -> None:
     for hyst in (True, False):
         c = knot_curve(31, hysteresis=hyst)
-        path = c.to_csv(tmp_path / f"ocv_{hyst}.csv")
+        path = write_ocv_table(c, tmp_path / f"ocv_{hyst}.csv")
         header = path.read_text().splitlines()[0]
         assert header == ("soc,ocv_v,hysteresis_v" if hyst else "soc,ocv_v")
-        back = OcvCurve.from_csv(path)
+        back = read_ocv_table(path)
         np.testing.assert_allclose(back.soc, c.soc, atol=1e-8)
         np.testing.assert_allclose(back.ocv_v, c.ocv_v, atol=1e-8)
         s = np.linspace(-0.1, 1.1, 121)
@@ -361,23 +362,23 @@ def test_csv_round_trip(tmp_path: Path) -> None:
 def test_csv_round_trip_of_temperature_and_capacity(tmp_path: Path) -> None:
     c = knot_curve(31, hysteresis=True)
     warm = OcvCurve(c.soc, c.ocv_v, c.hysteresis_v, capacity_discharge_ah=2.778764189, temperature_c=-0.526)
-    path = warm.to_csv(tmp_path / "ocv.csv")
+    path = write_ocv_table(warm, tmp_path / "ocv.csv")
     lines = path.read_text().splitlines()
     assert lines[0] == "soc,ocv_v,hysteresis_v,temperature_c,capacity_ah"
     assert all(ln.endswith(",-0.526,2.778764189") for ln in lines[1:])
-    back = OcvCurve.from_csv(path)
+    back = read_ocv_table(path)
     assert back.temperature_c == -0.526 and back.capacity_discharge_ah == 2.778764189
     np.testing.assert_allclose(back.hysteresis_v, c.hysteresis_v, atol=1e-8)
-    only_t = OcvCurve(c.soc, c.ocv_v, temperature_c=10.0).to_csv(tmp_path / "t.csv")
+    only_t = write_ocv_table(OcvCurve(c.soc, c.ocv_v, temperature_c=10.0), tmp_path / "t.csv")
     assert only_t.read_text().splitlines()[0] == "soc,ocv_v,temperature_c"
-    assert OcvCurve.from_csv(only_t).capacity_discharge_ah is None
-    assert OcvCurve.from_csv(c.to_csv(tmp_path / "old.csv")).temperature_c is None  # old tables still read
+    assert read_ocv_table(only_t).capacity_discharge_ah is None
+    assert read_ocv_table(write_ocv_table(c, tmp_path / "old.csv")).temperature_c is None  # old tables still read
 
 
 def test_csv_extra_columns_ignored(tmp_path: Path) -> None:
     p = tmp_path / "x.csv"
     p.write_text("note,soc,ocv_v\na,0,3.0\nb,0.5,3.6\nc,1,4.2\n")
-    c = OcvCurve.from_csv(p)
+    c = read_ocv_table(p)
     assert c.ocv(0.5) == pytest.approx(3.6)
 
 
@@ -407,7 +408,7 @@ def test_csv_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: st
     p = tmp_path / "bad.csv"
     p.write_text(text)
     with pytest.raises(ValueError, match=pattern) as exc:
-        OcvCurve.from_csv(p)
+        read_ocv_table(p)
     assert str(p) in str(exc.value)
 
 
@@ -416,14 +417,14 @@ def test_csv_that_is_not_text_names_the_file(tmp_path: Path) -> None:
     p = tmp_path / "binary.csv"
     p.write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(ValueError, match=r"binary.csv: not UTF-8 text \(invalid start byte at byte 0\)$"):
-        OcvCurve.from_csv(p)
+        read_ocv_table(p)
 
 
 def test_csv_small_dip_is_repaired_with_warning(tmp_path: Path) -> None:
     p = tmp_path / "dip.csv"
     p.write_text("soc,ocv_v\n0,3.0\n0.4,3.6\n0.5,3.599\n0.6,3.6\n1,4.2\n")
     with pytest.warns(UserWarning, match="not strictly increasing"):
-        c = OcvCurve.from_csv(p)
+        c = read_ocv_table(p)
     assert np.all(np.diff(c.ocv_v) > 0)
     assert c.ocv_v[2] == pytest.approx(3.6, abs=1e-5)
 
@@ -439,7 +440,7 @@ def test_csv_that_does_not_span_the_soc_range_is_read_with_a_warning(tmp_path: P
     p = tmp_path / "short.csv"
     p.write_text("soc,ocv_v\n" + rows)
     with pytest.warns(UserWarning, match=rf"short.csv: the table covers soc {re.escape(covered)} only; outside it"):
-        c = OcvCurve.from_csv(p)
+        c = read_ocv_table(p)
     knots = np.array([[float(x) for x in r.split(",")] for r in rows.split()])
     np.testing.assert_allclose(c.ocv(knots[:, 0]), knots[:, 1], atol=1e-6)  # read as before, through its knots
 
@@ -451,7 +452,7 @@ def test_csv_that_spans_the_soc_range_reads_without_a_warning(tmp_path: Path, ro
     p.write_text("soc,ocv_v\n" + rows)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        OcvCurve.from_csv(p)
+        read_ocv_table(p)
 
 
 # --------------------------------------------------------------------------- real data

@@ -19,6 +19,7 @@ from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.core.soc import SocConfig, SocEstimator
 from bms_estimator.data import CellRecording, load_recording, save_recording
 from bms_estimator.gaps import logging_gaps, recording_rest_plan, rest_plan
+from bms_estimator.ocv_table import read_ocv_table, write_ocv_table
 from bms_estimator.soc_matrix import run_group, start_point
 
 Q = 3.0
@@ -49,7 +50,7 @@ def gap_file(tmp_path, nmc_like_ocv):
     keep = ~((t >= PARK_AT_S) & (t < PARK_AT_S + PARK_S))
     path = save_recording(CellRecording(t[keep], i[keep], sim.voltage_v[keep], np.full(keep.sum(), 25.0), "gap"),
                           tmp_path / "gap.csv")
-    return path, nmc_like_ocv.to_csv(tmp_path / "ocv.csv"), lambda t_s: float(sim.soc[int(round(t_s / STEP_S))])
+    return path, write_ocv_table(nmc_like_ocv, tmp_path / "ocv.csv"), lambda t_s: float(sim.soc[int(round(t_s / STEP_S))])
 
 
 def _soc_args(path, ocv, *extra):
@@ -180,10 +181,9 @@ def test_the_matrix_rests_a_recordings_starts_over_its_gaps(gap_file):
 def _one_drive_two_steps(tmp_path):
     """The same 75 min drive (2-RC cell, the LG HG2 sample's table) logged at 0.1 s and at 1 s (its bin means):
     holes of 3 s at 1000 s and 60 s at 2000 s with current flowing, 60 s at 3000 s at rest; a final 15 min rest."""
-    from bms_estimator.core.ocv import OcvCurve
     from bms_estimator.samples import ocv_table
 
-    ocv = OcvCurve.from_csv(ocv_table("lg-hg2"))
+    ocv = read_ocv_table(ocv_table("lg-hg2"))
     dt, n = 0.1, 45000
     t = np.arange(n) * dt
     i = np.repeat(np.random.default_rng(3).uniform(-3.5, 1.5, n // 100 + 1), 100)[:n]

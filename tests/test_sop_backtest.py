@@ -10,6 +10,7 @@ import pytest
 from bms_estimator.cli.__main__ import main
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.data import CellRecording, load_recording, save_recording
+from bms_estimator.ocv_table import write_ocv_table
 from bms_estimator.sop_backtest import find_pulses, run_backtest
 
 Q = 3.0
@@ -28,7 +29,7 @@ def _recording(tmp_path, nmc_like_ocv, pulses: int = 12):
     data = tmp_path / "pulses.csv"
     np.savetxt(data, np.column_stack([np.arange(len(i), dtype=float), i, sim.voltage_v, np.full(len(i), 25.0)]),
                delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.6f")
-    ocv = nmc_like_ocv.to_csv(tmp_path / "ocv.csv")
+    ocv = write_ocv_table(nmc_like_ocv, tmp_path / "ocv.csv")
     return data, ocv, i
 
 
@@ -203,7 +204,7 @@ def test_cli_no_rest_over_gaps(tmp_path, nmc_like_ocv, capsys):
         main(["sop-backtest", "--help"])
     assert "--no-rest-over-gaps" in capsys.readouterr().out
     rec, _ = _gap_recording(tmp_path, nmc_like_ocv)
-    ocv = nmc_like_ocv.to_csv(tmp_path / "ocv.csv")
+    ocv = write_ocv_table(nmc_like_ocv, tmp_path / "ocv.csv")
     base = ["sop-backtest", str(tmp_path / "gap_0.5_True.csv"), "--ocv", str(ocv), "--capacity-ah", str(Q),
             "--mode", "drive", "--json", "-"]
     assert main(base) == 0

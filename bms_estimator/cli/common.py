@@ -20,6 +20,7 @@ from ..data import CellRecording, check_charge_span, load_recording
 from ..errors import DataError, UsageError
 from ..gaps import MAX_GAP_S
 from ..jsonsafe import to_jsonable
+from ..ocv_table import read_ocv_tables
 
 _ID = IdentifierConfig()
 _SOC = SocConfig()
@@ -218,7 +219,7 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
     t = median_temperature_c(rec.temperature_c) if rec is not None else None
     path_list = [paths] if isinstance(paths, (str, Path)) else list(paths)
     try:
-        surface = OcvSurface.from_csvs(path_list, default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
+        surface = read_ocv_tables(path_list, default_temperature_c=REFERENCE_TEMPERATURE_C if t is None else t)
     except ValueError as exc:  # a malformed table is a data error (exit 3); the message names the file
         raise DataError(f"OCV table: {exc}") from None
     if surface.mixed_cells:  # each table fine, the set doubtful (core.ocv_surface, item 9)

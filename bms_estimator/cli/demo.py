@@ -26,9 +26,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from ..analysis import compare_methods, reference_capacity, reference_soc, run_soc, soc_errors
-from ..core.ocv import OcvCurve
 from ..data import load_recording
 from ..errors import EXIT_RUNTIME
+from ..ocv_table import read_ocv_table
 from ..samples import CELLS, drive_cycle, ocv_table
 from .common import positive_float, write_json
 
@@ -153,7 +153,7 @@ def run_paper(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     for cell in args.cell or sorted(CELLS):
         q_stated, (train_name, val_name) = CELLS[cell]
-        ocv = OcvCurve.from_csv(ocv_table(cell))
+        ocv = read_ocv_table(ocv_table(cell))
         tr = load_recording(drive_cycle(cell, train_name))
         va = load_recording(drive_cycle(cell, val_name))
         res = compare_methods((tr.current_a, tr.voltage_v), (va.current_a, va.voltage_v), ocv, q_stated,

@@ -8,6 +8,7 @@ from pathlib import Path
 from ..core.ocv import CELL_TEMPERATURE_RANGE_C, OcvCurve
 from ..data import load_recording
 from ..errors import DataError
+from ..ocv_table import write_ocv_table
 
 
 def add_parser(sub) -> None:
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
             curve = OcvCurve.from_c20(rec.time_s, rec.current_a, rec.voltage_v, temperature_c=temperature)
         except ValueError as exc:  # the file is not a C/20 test
             raise DataError(f"{args.data}: {exc} (an HPPC test needs --hppc-steps)") from None
-    curve.to_csv(args.output)
+    write_ocv_table(curve, args.output)
     msg = f"wrote {args.output}: {len(curve.soc)} points, OCV {curve.ocv_v[0]:.3f}..{curve.ocv_v[-1]:.3f} V"
     if curve.temperature_c is None:
         msg += ("; no temperature_c (the data logs no cell temperature): give --temperature-c to use this table "

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -584,15 +583,15 @@ class OcvCurve:
         return cls(soc, ocv, None, capacity_discharge_ah=capacity, temperature_c=median_temperature_c(temperature_c))
 
     # ------------------------------------------------------------------- CSV
-    def to_csv(self, path: str | Path) -> Path:
-        """Write ``soc,ocv_v[,hysteresis_v][,temperature_c][,capacity_ah]`` (header row).
+    def to_csv_text(self) -> str:
+        """The table as CSV text: ``soc,ocv_v[,hysteresis_v][,temperature_c][,capacity_ah]`` (header row).
 
         The curve columns have 8 decimals (round trip to 5e-9).  ``temperature_c``
         (:attr:`temperature_c`) and ``capacity_ah`` (:attr:`capacity_discharge_ah`,
         the table's C/20 discharge throughput) are constant columns, written when
         known (10 significant digits).  The charge-branch capacity is not stored.
+        (Files: :func:`bms_estimator.ocv_table.write_ocv_table`.)
         """
-        path = Path(path)
         header = ["soc", "ocv_v"] + (["hysteresis_v"] if self.hysteresis_v is not None else [])
         cols = [self.soc, self.ocv_v] + ([self.hysteresis_v] if self.hysteresis_v is not None else [])
         const = [(name, value) for name, value in (("temperature_c", self.temperature_c),
@@ -602,13 +601,12 @@ class OcvCurve:
         lines = [",".join(header + [name for name, _ in const])]
         for row in zip(*cols):
             lines.append(",".join(f"{x:.8f}" for x in row) + tail)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-        return path
+        return "\n".join(lines) + "\n"
 
     @classmethod
-    def from_csv(cls, path: str | Path) -> "OcvCurve":
-        """Read a table written by :meth:`to_csv` (extra columns ignored).
+    def from_csv_text(cls, text: str, source: str = "OCV table") -> "OcvCurve":
+        """The table in CSV ``text`` as :meth:`to_csv_text` writes it (extra columns ignored); ``source``
+        (the file's name) starts every error and warning.  (Files: :func:`bms_estimator.ocv_table.read_ocv_table`.)
 
         The optional constant columns ``temperature_c`` and ``capacity_ah`` set
         :attr:`temperature_c` and :attr:`capacity_discharge_ah`; each must hold
@@ -622,20 +620,15 @@ class OcvCurve:
             ValueError: naming the file and the problem (missing column, empty or
                 non-numeric value with its line, NaN, non-monotone soc, ...).
         """
-        path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8-sig")
-        except UnicodeDecodeError as exc:  # (a binary file's error named no file)
-            raise ValueError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-        lines = [(n, ln) for n, ln in enumerate(text.splitlines(), start=1)
+        lines = [(n, ln) for n, ln in enumerate(text.removeprefix("\ufeff").splitlines(), start=1)
                  if ln.strip() and not ln.lstrip().startswith("#")]
         if not lines:
-            raise ValueError(f"{path}: empty file (no header row)")
+            raise ValueError(f"{source}: empty file (no header row)")
         hdr = lines[0][1]
         names = [c.strip().strip('"').strip() for c in hdr.split(",")]
         missing = [c for c in ("soc", "ocv_v") if c not in names]
         if missing:
-            raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (header: {hdr.strip()})")
+            raise ValueError(f"{source}: missing column(s) {', '.join(missing)} (header: {hdr.strip()})")
         wanted = ["soc", "ocv_v"] + (["hysteresis_v"] if "hysteresis_v" in names else [])
         constants = [c for c in _CONSTANT_COLUMNS if c in names]
         wanted += constants
@@ -644,68 +637,68 @@ class OcvCurve:
         for n, ln in lines[1:]:
             fields = ln.split(",")
             if len(fields) < len(names):
-                raise ValueError(f"{path}: line {n} has {len(fields)} fields, header has {len(names)}")
+                raise ValueError(f"{source}: line {n} has {len(fields)} fields, header has {len(names)}")
             row = []
             for c, j in zip(wanted, idx):
                 txt = fields[j].strip()
                 try:
                     x = float(txt)
                 except ValueError:
-                    raise ValueError(f"{path}: line {n}: non-numeric value {txt!r} in column '{c}'") from None
+                    raise ValueError(f"{source}: line {n}: non-numeric value {txt!r} in column '{c}'") from None
                 if not math.isfinite(x):
-                    raise ValueError(f"{path}: line {n}: value {txt!r} in column '{c}' is not finite")
+                    raise ValueError(f"{source}: line {n}: value {txt!r} in column '{c}' is not finite")
                 row.append(x)
             rows.append(row)
         if len(rows) < 2:
-            raise ValueError(f"{path}: needs at least 2 data rows, found {len(rows)}")
+            raise ValueError(f"{source}: needs at least 2 data rows, found {len(rows)}")
         data = np.asarray(rows)
         const: dict[str, float] = {}
         for col, name in zip(data.T[len(wanted) - len(constants):], constants):
             if np.any(col != col[0]):
                 k = int(np.flatnonzero(col != col[0])[0])
                 raise ValueError(
-                    f"{path}: column '{name}' must hold one value (the table's), but line {lines[1][0]} has "
+                    f"{source}: column '{name}' must hold one value (the table's), but line {lines[1][0]} has "
                     f"{float(col[0]):g} and line {lines[k + 1][0]} has {float(col[k]):g}"
                 )
             const[name] = float(col[0])
         if const.get("capacity_ah", 1.0) <= 0:
-            raise ValueError(f"{path}: capacity_ah must be positive, got {const['capacity_ah']:g}")
+            raise ValueError(f"{source}: capacity_ah must be positive, got {const['capacity_ah']:g}")
         t_lo, t_hi = CELL_TEMPERATURE_RANGE_C
         if not t_lo <= const.get("temperature_c", 25.0) <= t_hi:  # (a table at 298.15 was filed at 298 degC)
-            raise ValueError(f"{path}: temperature_c {const['temperature_c']:g} is not a cell temperature "
+            raise ValueError(f"{source}: temperature_c {const['temperature_c']:g} is not a cell temperature "
                              f"(expected {t_lo:g}..{t_hi:g} degC; is the column in kelvin?)")
         data = data[:, :len(wanted) - len(constants)]
         s, v = data[:, 0], data[:, 1]
         h = data[:, 2] if data.shape[1] > 2 else None
         if s.min() < -1e-9 or s.max() > 1 + 1e-9:
             hint = " (percent? soc must be a fraction)" if s.max() > 1.5 else ""
-            raise ValueError(f"{path}: soc must lie in [0, 1], got {s.min():.6g}..{s.max():.6g}{hint}")
+            raise ValueError(f"{source}: soc must lie in [0, 1], got {s.min():.6g}..{s.max():.6g}{hint}")
         ds = np.diff(s)
         if np.any(ds <= 0):
             k = int(np.flatnonzero(ds <= 0)[0]) + 1
             raise ValueError(
-                f"{path}: soc is not strictly increasing at line {lines[k + 1][0]} "
+                f"{source}: soc is not strictly increasing at line {lines[k + 1][0]} "
                 f"({float(s[k - 1])!r} -> {float(s[k])!r})"
             )
         if h is not None and np.any(h < 0):
             k = int(np.flatnonzero(h < 0)[0])
-            raise ValueError(f"{path}: line {lines[k + 1][0]}: hysteresis_v {float(h[k])!r} is negative")
+            raise ValueError(f"{source}: line {lines[k + 1][0]}: hysteresis_v {float(h[k])!r} is negative")
         lo, hi = OCV_RANGE_V
         off = np.flatnonzero((v < lo) | (v > hi))
         if off.size:
             k = int(off[0])
-            raise ValueError(f"{path}: line {lines[k + 1][0]}: ocv_v {float(v[k])!r} is not a cell's open-circuit "
+            raise ValueError(f"{source}: line {lines[k + 1][0]}: ocv_v {float(v[k])!r} is not a cell's open-circuit "
                              f"voltage (expected {lo:g}..{hi:g} V; is the column in mV?)")
         if np.any(np.diff(v) <= 0):
             dip = np.maximum.accumulate(v) - v
             k = int(np.argmax(dip))
             if dip[k] > MAX_OCV_DIP_V:
                 raise ValueError(
-                    f"{path}: ocv_v decreases by {dip[k] * 1e3:.1f} mV at line {lines[k + 1][0]} "
+                    f"{source}: ocv_v decreases by {dip[k] * 1e3:.1f} mV at line {lines[k + 1][0]} "
                     f"(soc {s[k]:.4f}); OCV must increase with SOC"
                 )
             warnings.warn(
-                f"{path}: ocv_v is not strictly increasing (largest dip {dip[k] * 1e3:.2f} mV "
+                f"{source}: ocv_v is not strictly increasing (largest dip {dip[k] * 1e3:.2f} mV "
                 f"at soc {s[k]:.4f}); repaired to a strictly increasing curve",
                 UserWarning,
                 stacklevel=2,
@@ -714,7 +707,7 @@ class OcvCurve:
         lo_cover, hi_cover = OCV_SOC_COVERAGE
         if s[0] > lo_cover or s[-1] < hi_cover:
             warnings.warn(
-                f"{path}: the table covers soc {s[0]:.3g}..{s[-1]:.3g} only; outside it the OCV is extrapolated "
+                f"{source}: the table covers soc {s[0]:.3g}..{s[-1]:.3g} only; outside it the OCV is extrapolated "
                 f"along its end segments, and an SOC read there is a guess: give a table that spans "
                 f"{lo_cover:g}..{hi_cover:g} or more (a C/20 test spans 0..1)",
                 UserWarning,

@@ -107,7 +107,6 @@ measured at one temperature ``T_j`` (``T_0 < T_1 < ... < T_{m-1}``).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -416,50 +415,50 @@ class OcvSurface:
 
     # ------------------------------------------------------------ constructors
     @classmethod
-    def from_csvs(
+    def from_tables(
         cls,
-        paths: Sequence[str | Path] | str | Path,
+        curves: Sequence[OcvCurve],
+        names: Sequence[str],
         temperatures_c: Sequence[float] | None = None,
         *,
         default_temperature_c: float = REFERENCE_TEMPERATURE_C,
     ) -> "OcvSurface":
-        """Read one table per file (:meth:`OcvCurve.from_csv`), each at its ``temperature_c`` column.
+        """One surface of ``curves`` (one per table, named by ``names``: the files), each at its own
+        :attr:`OcvCurve.temperature_c`.  (Files: :func:`bms_estimator.ocv_table.read_ocv_tables`.)
 
-        ``temperatures_c`` (one per file) overrides the files' columns.
+        ``temperatures_c`` (one per table) overrides the tables' own.
 
         Raises:
-            ValueError: naming the file: unreadable table, no ``temperature_c``
-                column while there are several tables, two files at the same
-                temperature.  Neighbouring tables that are not of one cell
-                (module docstring, item 9) are not an error: :attr:`mixed_cells`
-                names both files, their temperatures and the figure.
+            ValueError: naming the table: no ``temperature_c`` while there are several tables,
+                two tables at the same temperature.  Neighbouring tables that are not of one cell
+                (module docstring, item 9) are not an error: :attr:`mixed_cells` names both,
+                their temperatures and the figure.
         """
-        if isinstance(paths, (str, Path)):
-            paths = [paths]
-        paths = [Path(p) for p in paths]
-        if not paths:
+        curves, names = list(curves), [str(n) for n in names]
+        if not curves:
             raise ValueError("no OCV table given")
-        curves = [OcvCurve.from_csv(p) for p in paths]
+        if len(names) != len(curves):
+            raise ValueError(f"{len(curves)} OCV tables but {len(names)} names")
         if temperatures_c is not None:
             temps = [float(t) for t in temperatures_c]
-            if len(temps) != len(paths):
-                raise ValueError(f"{len(paths)} OCV tables but {len(temps)} temperatures")
+            if len(temps) != len(curves):
+                raise ValueError(f"{len(curves)} OCV tables but {len(temps)} temperatures")
         else:
             temps = [c.temperature_c for c in curves]
-        if len(paths) > 1:
-            for p, t in zip(paths, temps):
+        if len(curves) > 1:
+            for name, t in zip(names, temps):
                 if t is None:
                     raise ValueError(
-                        f"{p}: has no temperature_c column; give --temperature-c when you build it with "
+                        f"{name}: has no temperature_c column; give --temperature-c when you build it with "
                         "`bms-estimator ocv` (with several OCV tables each needs its temperature)"
                     )
-            seen: dict[float, Path] = {}
-            for p, t in zip(paths, temps):
+            seen: dict[float, str] = {}
+            for name, t in zip(names, temps):
                 if t in seen:
-                    raise ValueError(f"{seen[t]} and {p} are both at {t:g} degC; give one OCV table per temperature")
-                seen[t] = p
-        return cls(curves, temps if len(paths) > 1 or temperatures_c is not None else None,
-                   default_temperature_c=default_temperature_c, names=[str(p) for p in paths])
+                    raise ValueError(f"{seen[t]} and {name} are both at {t:g} degC; give one OCV table per temperature")
+                seen[t] = name
+        return cls(curves, temps if len(curves) > 1 or temperatures_c is not None else None,
+                   default_temperature_c=default_temperature_c, names=names)
 
     # ------------------------------------------------------------- properties
     @property

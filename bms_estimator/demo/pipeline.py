@@ -51,6 +51,7 @@ from .. import aio
 from ..analysis import PARAM_KEYS, reference_capacity
 from ..core.ocv import OcvCurve
 from ..data import load_recording
+from ..ocv_table import read_ocv_table
 from ..replay.encode_log import CellSpread, FrameArrays, PackTrace, build_pack, frame_arrays, truth_dict
 from ..samples import CELLS, drive_cycle, ocv_table
 
@@ -114,7 +115,7 @@ def prepare_pack(cell: str = "lg-hg2", cycle: str | None = None, n_cells: int = 
     t0 = time.perf_counter()
     rec = load_recording(drive_cycle(cell, cycle))
     ocv_path = ocv_table(cell)
-    ocv = OcvCurve.from_csv(ocv_path)
+    ocv = read_ocv_table(ocv_path)
     # the reference capacity exactly as `bms-estimator soc` takes it for this file (from full)
     q_ref, source = reference_capacity(rec.current_a, rec.voltage_v, rec.dt_s, ocv, q_stated, 1.0)
     trace = build_pack(rec, n_cells, ocv, q_stated, seed=seed, spread=spread or CellSpread(),

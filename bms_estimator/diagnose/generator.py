@@ -55,6 +55,7 @@ from ..core.arrhenius import KELVIN, R_GAS
 from ..core.hysteresis import hysteresis_trajectory
 from ..core.ocv import OcvCurve
 from ..data import CellRecording, load_recording, save_recording, shared_data_dir
+from ..ocv_table import read_ocv_table, write_ocv_table
 from .extensions import Series, rc_mean, unabsorbed
 
 __all__ = ["GeneratedCell", "generate", "load_profile", "profile_names", "EFFECTS"]
@@ -96,7 +97,7 @@ class GeneratedCell:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         out = {"data": save_recording(self.recording(), folder / "data.csv"),
-               "ocv": self.ocv.to_csv(folder / "ocv.csv")}
+               "ocv": write_ocv_table(self.ocv, folder / "ocv.csv")}
         truth = {"causes": self.causes, "dominant": self.dominant, "capacity_ah": self.capacity_ah,
                  "initial_soc": self.initial_soc, **self.truth}
         (folder / "truth.json").write_text(json.dumps(truth, indent=1, default=float) + "\n")
@@ -133,7 +134,7 @@ def load_profile(name: str):
     shared data set.  The OCV is the cell's shipped 25 degC table.
     """
     cell, ambient, test = name.split("/")
-    ocv = OcvCurve.from_csv(samples.ocv_table(cell))
+    ocv = read_ocv_table(samples.ocv_table(cell))
     try:
         if ambient != "25degC":
             raise FileNotFoundError
@@ -422,7 +423,7 @@ def generate(
     i_true = np.asarray(profile_current, dtype=float)
     n = i_true.size
     if ocv is None:
-        ocv = OcvCurve.from_csv(samples.ocv_table("panasonic-18650pf"))
+        ocv = read_ocv_table(samples.ocv_table("panasonic-18650pf"))
     if cause is None or cause == "none":
         causes: dict[str, float] = {}
     elif isinstance(cause, str):

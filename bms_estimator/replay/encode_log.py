@@ -109,6 +109,7 @@ from ..core.ocv import OcvCurve
 from ..data import CellRecording, check_charge_span, load_recording
 from ..errors import DataError, UsageError
 from ..jsonsafe import to_jsonable
+from ..ocv_table import read_ocv_table
 from ..samples import CELLS, ocv_table
 
 __all__ = [
@@ -646,7 +647,7 @@ def resolve_cell_defaults(
         ocv_path = ocv_table(cell)
     else:
         ocv_path = Path(ocv)
-    curve = OcvCurve.from_csv(ocv_path)
+    curve = read_ocv_table(ocv_path)
     q = float(capacity_ah) if capacity_ah is not None else float(CELLS[cell][0])
     if not (math.isfinite(q) and q > 0):
         raise ValueError(f"capacity must be positive, got {q}")

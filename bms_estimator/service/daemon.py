@@ -81,6 +81,7 @@ from ..core.ocv_surface import OcvSurface, stated_capacity_ratio, table_capaciti
 from ..core.soc import SocEstimator
 from ..core.sox import SoxEstimator
 from ..errors import BmsEstimatorError, DataError, one_line_error
+from ..ocv_table import read_ocv_table, read_ocv_tables
 from . import systemd
 from .config import ConfigError, ServiceConfig
 from .health import HealthServer, Heartbeat
@@ -161,7 +162,7 @@ class Service:
                 from ..samples import ocv_table
 
                 self.ocv_source = str(ocv_table(DEFAULT_OCV_CELL))
-                self.ocv = OcvCurve.from_csv(self.ocv_source)
+                self.ocv = read_ocv_table(self.ocv_source)
             else:
                 paths = cfg.pack.ocv_csv if isinstance(cfg.pack.ocv_csv, list) else [cfg.pack.ocv_csv]
                 if not paths:
@@ -169,7 +170,7 @@ class Service:
                 else:
                     self.ocv_source = ", ".join(str(p) for p in paths)
                     # several tables: OCV(soc, T), read at each cell's temperature from CAN
-                    self.ocv = OcvCurve.from_csv(paths[0]) if len(paths) == 1 else OcvSurface.from_csvs(paths)
+                    self.ocv = read_ocv_table(paths[0]) if len(paths) == 1 else read_ocv_tables(paths)
         except (OSError, ValueError) as exc:  # the table itself: a data error, not the configuration's
             data_problems.append(f"pack.ocv_csv: {exc}")
         self.soc_config = cfg.estimator.soc_config

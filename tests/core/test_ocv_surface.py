@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from bms_estimator.core.ocv import MIN_SLOPE_V, OcvCurve
 from bms_estimator.core.ocv_surface import OcvSurface
+from bms_estimator.ocv_table import read_ocv_table, read_ocv_tables, write_ocv_table
 from bms_estimator.samples import ocv_table
 
 KNOTS = np.linspace(0.0, 1.0, 41)
@@ -157,7 +158,7 @@ def test_capacity_interpolated_and_relative_to_the_table_nearest_25_degc(surface
 
 
 def test_one_table_is_that_table_at_every_temperature():
-    c = OcvCurve.from_csv(ocv_table("lg-hg2"))
+    c = read_ocv_table(ocv_table("lg-hg2"))
     surf = OcvSurface([c])
     s = np.linspace(-0.1, 1.1, 121)
     for t in (None, -20.0, 45.0, np.full(121, 3.0)):
@@ -180,24 +181,24 @@ def test_bad_tables_are_named(tables):
         OcvSurface(tables[:2], [1.0])
 
 
-def test_from_csvs_reads_each_files_temperature(tmp_path, tables):
+def test_read_ocv_tables_reads_each_files_temperature(tmp_path, tables):
     paths = []
     for k, c in enumerate(tables):
-        paths.append(c.to_csv(tmp_path / f"t{k}.csv"))
-    surf = OcvSurface.from_csvs(paths)
+        paths.append(write_ocv_table(c, tmp_path / f"t{k}.csv"))
+    surf = read_ocv_tables(paths)
     assert surf.temperatures_c.tolist() == [-10.0, 0.0, 25.0]
     np.testing.assert_allclose(surf.ocv(0.4, 0.0), tables[2].ocv(0.4), atol=1e-7)  # 8-decimal CSV
     assert surf.capacity_ah(-10.0) == pytest.approx(2.5)
-    bare = OcvCurve(KNOTS, 3.2 + KNOTS).to_csv(tmp_path / "bare.csv")
+    bare = write_ocv_table(OcvCurve(KNOTS, 3.2 + KNOTS), tmp_path / "bare.csv")
     with pytest.raises(ValueError, match=r"bare.csv: has no temperature_c column; give --temperature-c when you "
                                          r"build it with `bms-estimator ocv`"):
-        OcvSurface.from_csvs([paths[0], bare])
-    assert OcvSurface.from_csvs([bare]).ocv(0.5) == pytest.approx(3.7)  # one table needs none
-    bare_like = _curve(0.05, None, None).to_csv(tmp_path / "bare_like.csv")  # one cell's, no temperature column
-    assert OcvSurface.from_csvs([paths[0], bare_like], [25.0, 5.0]).temperatures_c.tolist() == [5.0, 25.0]
-    same = _curve(0.2, None, 25.0).to_csv(tmp_path / "same.csv")
+        read_ocv_tables([paths[0], bare])
+    assert read_ocv_tables([bare]).ocv(0.5) == pytest.approx(3.7)  # one table needs none
+    bare_like = write_ocv_table(_curve(0.05, None, None), tmp_path / "bare_like.csv")  # one cell's, no temperature column
+    assert read_ocv_tables([paths[0], bare_like], [25.0, 5.0]).temperatures_c.tolist() == [5.0, 25.0]
+    same = write_ocv_table(_curve(0.2, None, 25.0), tmp_path / "same.csv")
     with pytest.raises(ValueError, match=r"t0.csv and .*same.csv are both at 25 degC"):
-        OcvSurface.from_csvs([paths[0], same])
+        read_ocv_tables([paths[0], same])
 
 
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
@@ -228,11 +229,11 @@ def test_tables_of_two_cells_are_flagged_naming_both_files_and_the_figure(tmp_pa
     the flag (with_half_gap_cap)."""
     from bms_estimator.core.ocv_surface import one_cell_mismatch
 
-    lg = OcvCurve.from_csv(ocv_table("lg-hg2"))
-    pan = OcvCurve.from_csv(ocv_table("panasonic-18650pf"))
-    lg_path = lg.to_csv(tmp_path / "lg.csv")
-    pan_path = pan.to_csv(tmp_path / "pan20.csv")
-    mixed = OcvSurface.from_csvs([lg_path, pan_path], [lg.temperature_c, 20.0])
+    lg = read_ocv_table(ocv_table("lg-hg2"))
+    pan = read_ocv_table(ocv_table("panasonic-18650pf"))
+    lg_path = write_ocv_table(lg, tmp_path / "lg.csv")
+    pan_path = write_ocv_table(pan, tmp_path / "pan20.csv")
+    mixed = read_ocv_tables([lg_path, pan_path], [lg.temperature_c, 20.0])
     assert re.fullmatch(r".*pan20.csv \(20 degC\) and .*lg.csv \(23.87\d* degC\) differ by 4\d mV RMS at equal SOC "
                         r"\(10-90 %\), more than one cell's tables 3.9 K apart do \(19 mV: 15 mV \+ 1 mV/K, at most "
                         r"45 mV\): are they tables of one cell\?.*", mixed.mixed_cells)

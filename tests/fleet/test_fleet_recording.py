@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.core.soc import SocEstimator
 from bms_estimator.fleet.drive import run_drive
+from bms_estimator.ocv_table import read_ocv_table
 
 SAMPLES = Path(__file__).parents[2] / "bms_estimator" / "samples"
 
@@ -34,7 +34,7 @@ def test_recording_is_a_one_cell_drive(tmp_path):
     res, _, est = run_drive(csv, str(_config(tmp_path)), tmp_path / "out", "car")
     assert res.status == "ok", res.error
     assert est.cells["soc"].shape == (k, 1) and np.array_equal(est.t_s, t + 1.0)
-    ref = SocEstimator(1, OcvCurve.from_csv(SAMPLES / "lg-hg2_25degC_ocv.csv"), 3.0, 1.0)
+    ref = SocEstimator(1, read_ocv_table(SAMPLES / "lg-hg2_25degC_ocv.csv"), 3.0, 1.0)
     soc = []
     for a, b, c in zip(i, v, temp):
         ref.update(a, np.array([b]), np.array([True]), temperature_c=np.array([c]))

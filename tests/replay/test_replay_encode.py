@@ -15,8 +15,8 @@ from replay_helpers import CELL, CYCLE, DURATION_S, N_CELLS, SEED
 from bms_estimator.analysis import lookup_params
 from bms_estimator.can.dbc import load_project_db
 from bms_estimator.cli.__main__ import main
-from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import CellRecording, load_recording, save_recording
+from bms_estimator.ocv_table import read_ocv_table
 from bms_estimator.replay.encode_log import (
     CellSpread,
     build_pack,
@@ -173,7 +173,7 @@ def test_other_cells_are_what_the_truth_json_says(encoded, cell_voltages, measur
         assert c["r0_factor"] != 1.0 and c["tau2_factor"] != 1.0
         assert c["voltage_rms_diff_to_cell0_mv"] > 0.1
     # rebuild the pack from the JSON alone (model re-identified with the JSON's reference capacity)
-    ocv = OcvCurve.from_csv(ocv_table(CELL))
+    ocv = read_ocv_table(ocv_table(CELL))
     model = identify_cell_model(rec, ocv, 2.9, reference_capacity_ah=q_ref)
     model = replace(model, soc=model.soc[:DURATION_S], residual_v=model.residual_v[:DURATION_S])
     expect = pack_voltages(i_meas, v_meas, model, truths_from_json(truth))
@@ -214,7 +214,7 @@ def test_asc_and_blf_carry_the_same_frames(encoded):
 
 def test_zero_spread_makes_every_cell_the_measured_one():
     rec = load_recording(drive_cycle("lg-hg2", "udds"))
-    ocv = OcvCurve.from_csv(ocv_table("lg-hg2"))
+    ocv = read_ocv_table(ocv_table("lg-hg2"))
     tr = build_pack(rec, 4, ocv, 3.0, spread=CellSpread().scaled(0.0), reference_capacity_ah=2.7, duration_s=300)
     np.testing.assert_allclose(tr.cell_voltage_v, np.repeat(rec.voltage_v[:300, None], 4, axis=1), atol=1e-9)
     fa = frame_arrays(tr, t0_s=100.0)

@@ -43,6 +43,7 @@ from bms_estimator.cli.__main__ import main as cli_main
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.core.soc import SocEstimator
 from bms_estimator.data import load_recording
+from bms_estimator.ocv_table import read_ocv_table, read_ocv_tables, write_ocv_table
 from bms_estimator.samples import drive_cycle, ocv_table
 from bms_estimator.service.config import ConfigError, ServiceConfig, soc_config_from_core
 from bms_estimator.errors import DataError
@@ -76,7 +77,7 @@ def cycle():
 
 @functools.lru_cache(maxsize=1)
 def ocv() -> OcvCurve:
-    return OcvCurve.from_csv(ocv_table("panasonic-18650pf"))
+    return read_ocv_table(ocv_table("panasonic-18650pf"))
 
 
 # ------------------------------------------------------------------ frames
@@ -479,8 +480,8 @@ def test_ocv_tables_at_several_temperatures_are_read_at_each_cells_temperature(t
     warm = ocv()
     cold = OcvCurve(warm.soc, warm.ocv_v + 0.02, warm.hysteresis_v, temperature_c=0.0,
                     capacity_discharge_ah=2.6)
-    paths = [str(warm.to_csv(tmp_path / "warm.csv")) if warm.temperature_c is not None else None,
-             str(cold.to_csv(tmp_path / "cold.csv"))]
+    paths = [str(write_ocv_table(warm, tmp_path / "warm.csv")) if warm.temperature_c is not None else None,
+             str(write_ocv_table(cold, tmp_path / "cold.csv"))]
     assert paths[0] is not None, "the shipped table carries its temperature"
     frames = rows(0, 30)
     metrics, _, svc = run_bad_input(tmp_path, frames, 30, expect_equal=False, pack={"ocv_csv": paths})
@@ -488,9 +489,7 @@ def test_ocv_tables_at_several_temperatures_are_read_at_each_cells_temperature(t
     assert list(est.ocv.temperatures_c) == [0.0, warm.temperature_c]
     np.testing.assert_array_equal(est.temperature_c, 25.0 + np.arange(N))  # CellTemperature0..5 of row_frames
     # the same frames offline with the same tables and temperatures give the same SOC
-    from bms_estimator.core.ocv_surface import OcvSurface
-
-    offline = Offline(estimator=SocEstimator(N, OcvSurface.from_csvs(paths), CAPACITY_AH, 1.0)).feed(frames)
+    offline = Offline(estimator=SocEstimator(N, read_ocv_tables(paths), CAPACITY_AH, 1.0)).feed(frames)
     np.testing.assert_array_equal(est.soc, offline.est.soc)
     snap = svc.pipeline.last
     sigma = np.asarray(snap.cells["soc_sigma"])
@@ -500,8 +499,8 @@ def test_ocv_tables_at_several_temperatures_are_read_at_each_cells_temperature(t
         Service(ServiceConfig(**bad))
     # a table of another cell (the LG HG2 sample's, labelled 20 degC, beside the Panasonic one): each file is fine,
     # the list doubtful: the service starts and says so in one warning naming both files (core.ocv_surface, item 9)
-    other = OcvCurve.from_csv(ocv_table("lg-hg2"))
-    other_path = str(OcvCurve(other.soc, other.ocv_v, temperature_c=20.0).to_csv(tmp_path / "other20.csv"))
+    other = read_ocv_table(ocv_table("lg-hg2"))
+    other_path = str(write_ocv_table(OcvCurve(other.soc, other.ocv_v, temperature_c=20.0), tmp_path / "other20.csv"))
     mixed = config_data(tmp_path, channel(), pack={"ocv_csv": [paths[0], other_path]})
     with capture_logs() as logs:
         Service(ServiceConfig(**mixed))
