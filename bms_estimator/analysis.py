@@ -38,7 +38,8 @@ import numpy as np
 
 from .core.arrhenius import RESISTANCE_ACTIVATION_K, resistances_at
 from .core.ecm import EcmParams, simulate_ecm
-from .core.identifier import IdentifierConfig, make_identifier
+from .core.identifier import IdentifierConfig
+from .core.identifier_methods import make_identifier
 from .core.lif_bv import kinetic_input
 from .core.lif_ct import kinetic_excess, thermal_voltage
 from .core.ocv import OcvCurve

@@ -56,7 +56,8 @@ def median_identification(method: str, overpotential, n: int = 6000, seeds=range
                           noise_a: float = 0.02, capacity_ah: float = 3.0) -> dict[str, np.ndarray]:
     """Each seed's pulse current (up to 2 C of 3 Ah) as one cell, its ``overpotential(current)``, 5 mV / 20 mA
     noise (rng 7), identified online by ``method``: every parameter's median over the second half, per cell."""
-    from bms_estimator.core.identifier import IdentifierConfig, make_identifier
+    from bms_estimator.core.identifier import IdentifierConfig
+    from bms_estimator.core.identifier_methods import make_identifier
 
     cur = np.stack([pulse_current(n, s) for s in seeds], axis=1)
     v = np.stack([overpotential(cur[:, j]) for j in range(cur.shape[1])], axis=1)

@@ -54,7 +54,7 @@ from .rls import RlsConfig, WeightedRls
 #: kinetic (Butler-Volmer) term, with recursive IV and a charge-transfer (Butler-Volmer) fast branch, discrete-time ARX
 METHODS = ("lif", "lif-iv", "lif-iv-bv", "lif-iv-ct", "arx")
 
-__all__ = ["METHODS", "IdentifierConfig", "Identifier", "LifEstimator", "ArxEstimator", "make_identifier"]
+__all__ = ["METHODS", "IdentifierConfig", "Identifier", "LifEstimator", "ArxEstimator"]
 
 
 @dataclass(frozen=True)
@@ -593,25 +593,3 @@ class ArxEstimator(Identifier):
         self._taint = np.asarray(s["taint"], dtype=np.int64).copy()
         self._v_hold = np.asarray(s["v_hold"], dtype=float).copy()
         super().load_state_dict(s)
-
-
-def make_identifier(n_cells: int, dt_s: float, capacity_ah, config: IdentifierConfig = IdentifierConfig()) -> Identifier:
-    """The identifier ``config.method`` names.  (The IV variants subclass :class:`LifEstimator` in
-    modules that import this one, so they are imported here, when asked for.)"""
-    if config.method == "lif":
-        return LifEstimator(n_cells, dt_s, capacity_ah, config)
-    if config.method == "lif-iv":
-        from .lif_iv import LifIvEstimator
-
-        return LifIvEstimator(n_cells, dt_s, capacity_ah, config)
-    if config.method == "lif-iv-bv":
-        from .lif_bv import LifIvBvEstimator
-
-        return LifIvBvEstimator(n_cells, dt_s, capacity_ah, config)
-    if config.method == "lif-iv-ct":
-        from .lif_ct import LifIvCtEstimator
-
-        return LifIvCtEstimator(n_cells, dt_s, capacity_ah, config)
-    if config.method == "arx":
-        return ArxEstimator(n_cells, dt_s, capacity_ah, config)
-    raise ValueError(f"unknown identification method {config.method!r}: use {', '.join(map(repr, METHODS))}")

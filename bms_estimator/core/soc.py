@@ -96,7 +96,8 @@ from .arrhenius import cell_temperature_ok
 from .bounds import check_bounds
 from .cells import all_cells, any_cell, cell_vector, clip, rest_arguments
 from .hysteresis import HysteresisParams, HysteresisState
-from .identifier import Identifier, IdentifierConfig, make_identifier
+from .identifier import Identifier, IdentifierConfig
+from .identifier_methods import make_identifier
 from .ocv import OcvCurve
 from .ocv_surface import STATED_CAPACITY_RATIO_MAX
 from .soc_ekf import SOC_VARIANCE_MAX, SocEkf, SocEkfConfig

@@ -19,7 +19,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from bms_estimator.analysis import one_step_ahead, simulate_with_params
-from bms_estimator.core.identifier import IdentifierConfig, make_identifier
+from bms_estimator.core.identifier import IdentifierConfig
+from bms_estimator.core.identifier_methods import make_identifier
 from bms_estimator.core.lif_bv import LifIvBvEstimator, kinetic_input
 from bms_estimator.core.ocv import OcvCurve
 from tests.conftest import (TRUE, assert_physical_and_finite, hostile_strategies, hostile_stream,

@@ -17,7 +17,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bms_estimator.core.identifier import IdentifierConfig, make_identifier
+from bms_estimator.core.identifier import IdentifierConfig
+from bms_estimator.core.identifier_methods import make_identifier
 from bms_estimator.core.lif import lif_regressors
 from bms_estimator.core.lif_iv import LifIvEstimator
 from tests.conftest import TRUE, hostile_strategies, hostile_stream, synthetic_overpotential

@@ -22,7 +22,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bms_estimator.core.identifier import IdentifierConfig, make_identifier
+from bms_estimator.core.identifier import IdentifierConfig
+from bms_estimator.core.identifier_methods import make_identifier
 from bms_estimator.core.rls import RlsConfig, WeightedRls
 from tests.conftest import assert_physical_and_finite, hostile_strategies, hostile_stream, pulse_current, state_round_trip
 
