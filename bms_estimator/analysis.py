@@ -42,7 +42,7 @@ from .core.identifier import IdentifierConfig
 from .core.identifier_methods import make_identifier
 from .core.lif_bv import kinetic_input
 from .core.lif_ct import kinetic_excess, thermal_voltage
-from .core.ocv import OcvCurve
+from .core.ocv_surface import Ocv
 from .core.params import dt_theta_from_physical
 from .core.soc import SocConfig, SocEstimator
 from .scoring import counted_soc, soc_on_branch
@@ -123,7 +123,7 @@ def run_identification(
     current_a: np.ndarray,
     voltage_v: np.ndarray,
     soc: np.ndarray,
-    ocv: OcvCurve,
+    ocv: Ocv,
     capacity_ah: float,
     dt_s: float = 1.0,
     config: IdentifierConfig = IdentifierConfig(),
@@ -137,7 +137,7 @@ def run_identification_paths(
     current_a: np.ndarray,
     voltage_v: np.ndarray,
     soc_paths: np.ndarray,
-    ocv: OcvCurve,
+    ocv: Ocv,
     capacity_ah: float,
     dt_s: float = 1.0,
     config: IdentifierConfig = IdentifierConfig(),
@@ -173,7 +173,7 @@ def run_identification_paths(
 def output_error_capacity(
     current_a: np.ndarray,
     voltage_v: np.ndarray,
-    ocv: OcvCurve,
+    ocv: Ocv,
     stated_ah: float,
     initial_soc: float = 1.0,
     dt_s: float = 1.0,
@@ -220,7 +220,7 @@ def output_error_capacity(
 def run_soc(
     current_a: np.ndarray,
     voltage_v: np.ndarray,
-    ocv: OcvCurve,
+    ocv: Ocv,
     capacity_ah: float,
     initial_soc: float | None,
     dt_s: float = 1.0,
@@ -307,7 +307,7 @@ def _osa_through_branches(x: np.ndarray, r1, r2, params: dict[str, np.ndarray], 
 
 
 def simulate_with_params(
-    current_a: np.ndarray, soc: np.ndarray, ocv: OcvCurve, params: dict[str, np.ndarray], dt_s: float = 1.0
+    current_a: np.ndarray, soc: np.ndarray, ocv: Ocv, params: dict[str, np.ndarray], dt_s: float = 1.0
 ) -> np.ndarray:
     """Free-run voltage simulation with (possibly time-varying) parameters, from rest.
 
@@ -333,7 +333,7 @@ def simulate_with_params(
 
 
 def one_step_ahead(
-    current_a: np.ndarray, voltage_v: np.ndarray, soc: np.ndarray, ocv: OcvCurve,
+    current_a: np.ndarray, voltage_v: np.ndarray, soc: np.ndarray, ocv: Ocv,
     params: dict[str, np.ndarray], dt_s: float = 1.0,
 ) -> np.ndarray:
     """OSA prediction v_hat[k] from the model of sample k-1 and the measured past (NaN for k < 2)."""
@@ -458,7 +458,7 @@ class Training:
 
 def train_methods(
     train: tuple[np.ndarray, np.ndarray],
-    ocv: OcvCurve,
+    ocv: Ocv,
     capacity_ah: float,
     *,
     dt_s: float = 1.0,
@@ -499,7 +499,7 @@ def train_methods(
 
 
 def validate_methods(
-    training: Training, validate: tuple[np.ndarray, np.ndarray], ocv: OcvCurve, *, dt_s: float = 1.0,
+    training: Training, validate: tuple[np.ndarray, np.ndarray], ocv: Ocv, *, dt_s: float = 1.0,
     initial_soc: float = 1.0, name: str = "validate", temperature_c: np.ndarray | None = None,
     activation_k: float = RESISTANCE_ACTIVATION_K,
 ) -> FileResult:
@@ -531,7 +531,7 @@ def validate_methods(
 def compare_methods(
     train: tuple[np.ndarray, np.ndarray],
     validate: tuple[np.ndarray, np.ndarray],
-    ocv: OcvCurve,
+    ocv: Ocv,
     capacity_ah: float,
     *,
     dt_s: float = 1.0,
@@ -589,7 +589,7 @@ def reference_capacity(
     current_a: np.ndarray,
     voltage_v: np.ndarray,
     dt_s: float,
-    ocv: OcvCurve,
+    ocv: Ocv,
     stated_ah: float,
     soc0: float = 1.0,
     *,

@@ -113,7 +113,7 @@ import numpy as np
 
 from .ocv import GRID_POINTS, MIN_SLOPE_V, OcvCurve, _as_float_array, _strictly_increasing
 
-__all__ = ["OcvSurface", "OcvAtTemperatures", "ONE_CELL_RMS_MAX_V", "ONE_CELL_RMS_PER_K_V",
+__all__ = ["Ocv", "OcvSurface", "OcvAtTemperatures", "ONE_CELL_RMS_MAX_V", "ONE_CELL_RMS_PER_K_V",
            "ONE_CELL_RMS_V",
            "REFERENCE_TEMPERATURE_C", "STATED_CAPACITY_RATIO_MAX", "one_cell_mismatch", "stated_capacity_ratio",
            "table_capacities_ah"]
@@ -649,6 +649,11 @@ class OcvSurface:
         if self._cap.size == 0:
             return 1.0 if np.ndim(q) == 0 else np.ones(np.shape(q))
         return q / self._cap_ref
+
+
+#: What an estimator reads the OCV from: one table (at every temperature), or several by temperature.  Both
+#: answer ``ocv``, ``docv_dsoc``, ``soc_from_ocv`` and ``hysteresis``; the surface's take the cells' temperatures.
+Ocv = OcvCurve | OcvSurface
 
 
 class OcvAtTemperatures:

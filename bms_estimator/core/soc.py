@@ -98,8 +98,7 @@ from .cells import all_cells, any_cell, cell_vector, clip, rest_arguments
 from .hysteresis import HysteresisParams, HysteresisState
 from .identifier import Identifier, IdentifierConfig
 from .identifier_methods import make_identifier
-from .ocv import OcvCurve
-from .ocv_surface import STATED_CAPACITY_RATIO_MAX
+from .ocv_surface import STATED_CAPACITY_RATIO_MAX, Ocv
 from .soc_ekf import SOC_VARIANCE_MAX, SocEkf, SocEkfConfig
 
 __all__ = ["SocConfig", "SocEstimator", "CAPACITY_BOUND_TOL", "CAPACITY_SOC_UPDATES", "REST_SOC_READINGS", "SOC_METHODS",
@@ -246,7 +245,7 @@ class SocEstimator:
     def __init__(
         self,
         n_cells: int,
-        ocv: OcvCurve,
+        ocv: Ocv,
         capacity_ah: float | np.ndarray,
         dt_s: float = 1.0,
         *,
