@@ -126,7 +126,10 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
                 n += 1
                 yield msg
         except Exception as exc:  # noqa: BLE001 - each of python-can's readers fails in its own way
-            raise DataError(f"{path}: unreadable after {n:,} frames ({one_line_error(exc)})") from None
+            where = _candump_line(path, n) if _log_suffix(path) == ".log" else None
+            what = "" if where is None else (f" at line {where[0]:,}, {where[1]!r}, not a candump -L frame "
+                                             "'(time) channel id#data'")
+            raise DataError(f"{path}: unreadable after {n:,} frames{what} ({one_line_error(exc)})") from None
         finally:
             stop = getattr(reader, "stop", None)
             if stop is not None:
@@ -135,6 +138,26 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
             raise DataError(f"{path}: no CAN frame in the log")
 
     return gen()
+
+
+def _candump_line(path: Path, frames: int, shown: int = 60) -> tuple[int, str] | None:
+    """(line number, text cut to ``shown`` characters) of a candump log's line after its first ``frames``
+    frames: the one its reader failed on (one frame a non-blank line, as ``can.CanutilsLogReader`` reads)."""
+    import gzip
+
+    opener = gzip.open if path.suffix.lower() == ".gz" else open
+    seen = 0
+    try:
+        with opener(path, "rt", encoding="utf-8", errors="replace") as fh:
+            for number, line in enumerate(fh, start=1):
+                if line.strip():
+                    if seen == frames:
+                        text = line.strip()
+                        return number, text if len(text) <= shown else text[:shown] + "..."
+                    seen += 1
+    except (OSError, EOFError):
+        return None
+    return None
 
 
 def _tail_lines(path: Path, nbytes: int = 8192) -> list[str]:

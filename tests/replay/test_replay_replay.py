@@ -169,9 +169,11 @@ def test_replay_command_on_a_virtual_bus(encoded, tmp_path, capsys):
 
 @pytest.mark.parametrize("name, content, message", [
     ("empty.log", b"", "empty.log: no CAN frame in the log"),
-    ("words.log", b"hello world\n", "words.log: unreadable after 0 frames (ValueError: "),
+    ("words.log", b"hello world\n", "words.log: unreadable after 0 frames at line 1, 'hello world', not a candump -L "
+                                     "frame '(time) channel id#data' (ValueError: "),
     ("bad.blf", b"garbage\n", "bad.blf: unreadable as a CAN log ("),
-    ("late.log", b"(1.000000) can0 123#00\n(1.010000) can0 123#01\nnonsense\n", "late.log: unreadable after 2 frames"),
+    ("late.log", b"(1.000000) can0 123#00\n\n(1.010000) can0 123#01\nnonsense\n",
+     "late.log: unreadable after 2 frames at line 4, 'nonsense', not a candump -L frame"),
     # cut in the middle of its last frame's data: python-can sent 123#0011 as a 2-byte frame
     ("cut.log", b"(1.000000) can0 123#0011223344556677\n(1.010000) can0 123#0011", "cut.log: its last line has no line end"),
 ])
