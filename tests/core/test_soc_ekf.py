@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
+from bms_estimator.core.arrhenius import arrhenius_factor
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.core.identifier import IdentifierConfig
 from bms_estimator.core.soc import SOC_METHODS, SocConfig, SocEstimator
@@ -585,6 +586,14 @@ def test_a_start_read_from_a_loaded_voltage(current_c):
         assert abs(err) < est.soc_sigma[0] == pytest.approx(np.hypot(cfg.ocv_start_soc_sigma, unseen), rel=0.02)
 
 
+
+def test_a_start_under_a_load_no_reading_explains_is_at_most_a_uniform_socs_sigma():
+    """At 10C the priors' unseen overpotential, (R1 + R2 + r_d) |i| / slope, is about 1 (all of the range):
+    the start's sigma is capped at a uniform SOC's, sqrt(1/12) = 29 % (knowing nothing), not more."""
+    est = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=None)
+    est.update(np.array([-10.0 * STATED_AH]), np.array([3.4]))
+    assert est.soc_sigma[0] == pytest.approx(np.sqrt(1.0 / 12.0), rel=1e-6)
+
 def _correlated_ekf(n: int = 2):
     """A filter whose covariance couples z, v_d, r_d and g (P = v v' + 1e-8 I, v = [0.1, 0.1, 0.1, 0, 1]):
     one innovation moves all four the same way, dq not at all (its row of P C' is 0)."""
@@ -680,3 +689,34 @@ def test_a_rest_reading_is_fused_inside_its_gate_and_refused_outside():
     np.testing.assert_array_equal(ekf.x[1], x0[1])
     np.testing.assert_array_equal(ekf.p[1], p0)
     assert x0[2, 2] + k[2] * e[2] < 0 and ekf.r_diffusion_ohm[2] == 0.0  # a resistance is never negative
+
+
+def test_the_capacity_counts_as_estimated_once_its_sigma_halved():
+    """``capacity_estimated`` is set where the EKF's capacity sigma fell below half its start value
+    (``0.5 capacity_sigma``): not at the start, not at 0.51 of its start sigma, at 0.49."""
+    cfg = SocConfig()
+    est = SocEstimator(3, _ocv(), STATED_AH, 1.0, initial_soc=0.9, config=cfg)
+    v = np.full(3, float(_ocv().ocv(0.9)))
+    est.update(np.zeros(3), v)
+    assert not est.capacity_estimated.any()
+    p = est.ekf.p.copy()
+    p[:, 3, 3] = (np.array([1.0, 0.51, 0.49]) * cfg.ekf.capacity_sigma) ** 2
+    est.ekf.p = p
+    est.update(np.zeros(3), v)
+    assert est.capacity_estimated.tolist() == [False, False, True]
+
+
+def test_a_start_temperature_check_in_progress_survives_the_state_file():
+    """A state saved after the first of the start readings (-40 degC, a BMS's signal floor) resumes the check:
+    the next readings (0 degC) move the priors to their median as they would have without the restart."""
+    v = np.array([float(_ocv().ocv(0.6))])
+    a = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=0.6)
+    a.update(np.zeros(1), v, temperature_c=np.array([-40.0]))
+    b = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=0.6)
+    b.load_state_dict(a.state_dict())
+    for _ in range(60):
+        for est in (a, b):
+            est.update(np.zeros(1), v, temperature_c=np.array([0.0]))
+    assert a.ekf.r_diffusion_ohm[0] < 0.5 * float(arrhenius_factor(-40.0, 25.0, SocEkfConfig().diffusion_r_activation_k)) * 0.04 / STATED_AH
+    np.testing.assert_array_equal(b.identifier.params.r0_ohm, a.identifier.params.r0_ohm)
+    np.testing.assert_array_equal(b.ekf.r_diffusion_ohm, a.ekf.r_diffusion_ohm)
