@@ -540,3 +540,9 @@ def test_ocv_slope_hysteresis_in_one_lookup_equals_the_three_methods(hysteresis:
         assert h is None
     inside = np.linspace(0.01, 0.99, 96)  # no cell beyond the ends: the slope table's values as they are
     assert np.array_equal(curve.ocv_slope_hysteresis(inside)[1], knot_curve(hysteresis=hysteresis).docv_dsoc(inside))
+
+
+def test_the_slope_is_floored_beyond_a_flat_end_for_a_float_as_for_an_array():
+    """Below the knots the slope is the first secant floored at ``MIN_SLOPE_V``, a float in as an array in."""
+    flat = OcvCurve([0.0, 0.5, 1.0], [3.0, 3.0 + 1e-4, 4.0])  # first secant 2e-4 V per unit SOC
+    assert flat.docv_dsoc(-0.1) == MIN_SLOPE_V == flat.docv_dsoc(np.array([-0.1]))[0]

@@ -79,3 +79,11 @@ def test_no_nan_and_no_inadmissible_parameter_leaves_it(t, t_ref, b, r):
     # there and back again
     back = resistances_at(q, t_ref, np.array(t), b)
     np.testing.assert_allclose(back["r2_ohm"], p["r2_ohm"], rtol=1e-9)
+
+
+def test_both_kinetic_gains_scale_as_resistances():
+    """K1 and K2 (lif_bv's kinetic terms) are resistances: both take the factor f."""
+    p = {"k1_ohm": np.array([0.004]), "k2_ohm": np.array([-0.006])}
+    q = resistances_at(p, 0.0, 25.0, 2500.0)
+    f = float(arrhenius_factor(0.0, 25.0, 2500.0))
+    assert q["k1_ohm"][0] == pytest.approx(0.004 * f) and q["k2_ohm"][0] == pytest.approx(-0.006 * f)

@@ -55,3 +55,11 @@ def test_tuples_of_bounded_numbers_are_checked_element_by_element():
         SopConfig(discharge_derate=(0.3, 0.6, -0.1, 1.0, 0.0))
     with pytest.raises(ValueError, match="block_s_bounds"):
         DiagnoseConfig(block_s_bounds=(300.0, -1.0))
+
+
+def test_a_value_that_is_not_a_number_is_refused_by_name():
+    """A string or None where a bounded number belongs is refused like one out of bounds (no comparison is made)."""
+    with pytest.raises(ValueError, match="voltage_sigma_v"):
+        SocEkfConfig(voltage_sigma_v="0.015")
+    with pytest.raises(ValueError, match="capacity_bounds"):
+        SocConfig(capacity_bounds=(0.6, None))

@@ -324,3 +324,25 @@ def test_a_due_rest_reading_survives_the_state_file(saved_before_the_field):
         assert fresh.soc[1] < 0.52  # the cell not rested had nothing due
     with pytest.raises(ValueError, match="rest_due"):
         SocEstimator(2, _ocv(), Q_AH, 1.0).load_state_dict({**est.state_dict(), "rest_due": np.zeros(3, bool)})
+
+
+def test_a_rest_of_exactly_the_relaxation_reads_the_voltage():
+    """``rest_relaxation_s`` or longer relaxed the cell: a gap of exactly that reads the next sample's voltage."""
+    est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.5, config=SocConfig(soc_method="c0"))
+    est.update(0.0, np.array([float(_ocv().ocv(0.5))]))
+    est.rest(SocConfig().rest_relaxation_s)
+    est.update(0.0, np.array([float(_ocv().ocv(0.8))]))
+    assert est.soc[0] == pytest.approx(0.8, abs=1e-6)
+
+
+def test_after_a_park_the_count_and_a_lost_current_are_at_zero():
+    """A park is zero current: after ``rest`` the count does not move, and a current lost next is held at
+    zero (not at the running mean of the drive before)."""
+    est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.5)
+    for _ in range(300):
+        est.update(-3.0, np.array([np.nan]))  # 1C discharge, no voltage: the count alone
+    est.rest(600.0)
+    soc = est.soc.copy()
+    for _ in range(5):
+        est.update(np.nan, np.array([np.nan]))
+    np.testing.assert_array_equal(est.soc, soc)

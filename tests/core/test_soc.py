@@ -36,6 +36,21 @@ def test_compensation_removes_a_20pct_initial_error(nmc_like_ocv):
     assert err["soc_rmse_pct"] < 10
 
 
+
+def test_compensation_removes_a_20pct_initial_error_from_above(nmc_like_ocv):
+    """Step 5 compares ``|c0_avg|``: a start too high (c0 < 0, the voltage below what the SOC implies) is
+    corrected as a start too low is: a 3 h drive from a true 70 % read from 90 %."""
+    n = 3 * 3600
+    i = 0.5 * _drive_cycle(n, 1)  # 45 % of 3 Ah in 3 h: 70 % -> 25 %
+    p = EcmParams.from_rc(0.02, [0.01, 0.015], [10.0, 200.0])
+    v = simulate_ecm(i, 1.0, p, nmc_like_ocv.ocv, soc0=0.7, capacity_ah=3.0, output="mean").voltage_v
+    v = v + 5e-4 * np.random.default_rng(1).standard_normal(n)
+    run = run_soc(i, v, nmc_like_ocv, 3.0, initial_soc=0.9, config=SocConfig(soc_method="c0", estimate_capacity=False))
+    ref = reference_soc(i, 1.0, 3.0, 0.7)
+    err = soc_errors(run.soc, ref, np.arange(n))
+    assert run.corrections >= 1
+    assert err["soc_rmse_pct_after_3600s"] < 1.5, err
+
 CAPACITY_SEEDS = (2, 3, 4, 5, 6, 7)  # six drive cycles, not one that happens to work
 
 
@@ -208,3 +223,21 @@ def test_hysteresis_option_tracks_the_branch_and_survives_a_restart(nmc_like_ocv
             e.update(-3.0, curve.ocv(e.soc) - 0.03)
     np.testing.assert_array_equal(twin.hysteresis_state, est.hysteresis_state)
     assert est.hysteresis_state[0] < -0.8  # back on the discharge branch
+
+
+def test_the_start_branch_is_known_only_at_the_ends(nmc_like_ocv):
+    """Class docstring, "Starting hysteresis": a cell started full (SOC >= 0.98) came off a charge (h = +1), one
+    started empty (<= 0.02) off a discharge (h = -1); anywhere else, 0.95 and 0.05 included, the mean curve (h = 0)."""
+    curve = OcvCurve(nmc_like_ocv.soc, nmc_like_ocv.ocv_v, np.full(len(nmc_like_ocv.soc), 0.03))
+    start = np.array([1.0, 0.98, 0.95, 0.5, 0.05, 0.02, 0.0])
+    est = SocEstimator(len(start), curve, 3.0, initial_soc=start)
+    np.testing.assert_array_equal(est.hysteresis_state, [1, 1, 0, 0, 0, -1, -1])
+
+
+def test_the_overpotential_is_read_at_the_periods_middle_soc(nmc_like_ocv):
+    """Step 2: the voltage is a period mean, so ``v_o = v - OCV(soc + i Ts / 2 / (3600 Q))``: at 1C over a 10 s
+    period the middle is 0.14 % SOC past the count (2 mV on this curve)."""
+    est = SocEstimator(1, nmc_like_ocv, 3.0, 10.0, initial_soc=0.5, config=SocConfig(soc_method="c0"))
+    est.update(3.0, np.array([3.8]))
+    mid = 0.5 + 3.0 * 5.0 / (3600.0 * 3.0)
+    assert est.v_o[0] == pytest.approx(3.8 - nmc_like_ocv.ocv(mid), abs=1e-9)

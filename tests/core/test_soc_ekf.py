@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
+from bms_estimator.core.arrhenius import arrhenius_factor
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.core.identifier import IdentifierConfig
 from bms_estimator.core.soc import SOC_METHODS, SocConfig, SocEstimator
@@ -583,3 +584,139 @@ def test_a_start_read_from_a_loaded_voltage(current_c):
         assert err == pytest.approx(rc, rel=0.1), (err, rc)  # R0 i taken out, the RC part left
         unseen = rc + cfg.diffusion_r_prior_ohm_ah / STATED_AH * i_a / slope
         assert abs(err) < est.soc_sigma[0] == pytest.approx(np.hypot(cfg.ocv_start_soc_sigma, unseen), rel=0.02)
+
+
+
+def test_a_start_under_a_load_no_reading_explains_is_at_most_a_uniform_socs_sigma():
+    """At 10C the priors' unseen overpotential, (R1 + R2 + r_d) |i| / slope, is about 1 (all of the range):
+    the start's sigma is capped at a uniform SOC's, sqrt(1/12) = 29 % (knowing nothing), not more."""
+    est = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=None)
+    est.update(np.array([-10.0 * STATED_AH]), np.array([3.4]))
+    assert est.soc_sigma[0] == pytest.approx(np.sqrt(1.0 / 12.0), rel=1e-6)
+
+def _correlated_ekf(n: int = 2):
+    """A filter whose covariance couples z, v_d, r_d and g (P = v v' + 1e-8 I, v = [0.1, 0.1, 0.1, 0, 1]):
+    one innovation moves all four the same way, dq not at all (its row of P C' is 0)."""
+    from bms_estimator.core.soc_ekf import SocEkf
+
+    cfg = SocEkfConfig()
+    ekf = SocEkf(n, 1.0, np.full(n, STATED_AH), cfg)
+    v = np.array([0.1, 0.1, 0.1, 0.0, 1.0])
+    ekf.p = np.broadcast_to(np.outer(v, v) + 1e-8 * np.eye(5), (n, 5, 5)).copy()
+    return ekf, cfg
+
+
+def test_one_correction_keeps_its_bounds():
+    """A bad sample (1 V below the prediction) asks every coupled state to fall far beyond its bound; the
+    update keeps them: the SOC moves at most ``max_soc_step``, ``r_d`` stops at 0 (a resistance), ``g`` at
+    -0.8 (``1 + g >= 0.2``: the overpotential keeps its sign), and the capacity takes ``dq`` clipped to
+    +-1 % a sample, after which ``dq`` restarts at 0."""
+    ekf, cfg = _correlated_ekf()
+    ekf.x[:, 2] = 1e-3
+    ekf.x[:, 3] = [0.05, -0.05]
+    slope, eta, e = np.full(2, 0.5), np.full(2, 0.1), np.full(2, -1.0)
+    c = np.array([0.5, 1.0, 0.0, 0.0, 0.1])
+    p0 = ekf.p[0]
+    s = c @ p0 @ c + cfg.voltage_sigma_v**2 * cfg.correlation_s  # no load term: model_uncertain_v = 0
+    free = ekf.x[0] + p0 @ c / s * e[0]  # the unbounded update
+    assert free[0] - ekf.x[0, 0] < -10 * cfg.max_soc_step and free[2] < -0.1 and free[4] < -1.5  # far past each
+    d_soc, d_q = ekf.correct(e, slope, np.zeros(2), np.ones(2, bool), 0.0, eta)
+    np.testing.assert_array_equal(d_soc, -cfg.max_soc_step)
+    np.testing.assert_array_equal(ekf.r_diffusion_ohm, 0.0)
+    np.testing.assert_array_equal(ekf.overpotential_gain, -0.8)
+    np.testing.assert_array_equal(d_q, [0.01, -0.01])
+    np.testing.assert_array_equal(ekf.x[:, 3], 0.0)
+
+
+def test_restarting_the_gain_and_the_soc_sigma_drops_their_cross_terms_cell_by_cell():
+    """``restart_gain``: g = 0 with variance ``overpotential_gain_sigma^2``, its row and column 0;
+    ``set_soc_sigma``: P[0, 0] = sigma^2, its row and column 0; only the cells named change."""
+    ekf, cfg = _correlated_ekf()
+    ekf.x[:, 4] = 0.5
+    p0 = ekf.p.copy()
+    ekf.restart_gain(np.array([True, False]))
+    assert ekf.overpotential_gain.tolist() == [0.0, 0.5]
+    np.testing.assert_array_equal(ekf.p[0, 4, :4], 0.0)
+    np.testing.assert_array_equal(ekf.p[0, :4, 4], 0.0)
+    assert ekf.p[0, 4, 4] == cfg.overpotential_gain_sigma**2
+    np.testing.assert_array_equal(ekf.p[0, :4, :4], p0[0, :4, :4])
+    np.testing.assert_array_equal(ekf.p[1], p0[1])
+    ekf.set_soc_sigma(0.03, np.array([False, True]))
+    np.testing.assert_array_equal(ekf.p[1, 0, 1:], 0.0)
+    np.testing.assert_array_equal(ekf.p[1, 1:, 0], 0.0)
+    assert ekf.soc_sigma[1] == pytest.approx(0.03)
+    np.testing.assert_array_equal(ekf.p[1, 1:, 1:], p0[1, 1:, 1:])
+    assert ekf.p[0, 0, 1] == p0[0, 0, 1] != 0.0
+
+
+def test_the_diffusion_priors_are_per_c_rate():
+    """``r_d`` starts at ``diffusion_r_prior_ohm_ah / Q`` with sigma ``diffusion_r_sigma_ohm_ah / Q``: a cell of
+    twice the capacity has half the resistance and half its sigma."""
+    from bms_estimator.core.soc_ekf import SocEkf
+
+    cfg = SocEkfConfig()
+    ekf = SocEkf(2, 1.0, np.array([2.0, 4.0]), cfg)
+    np.testing.assert_allclose(ekf.r_diffusion_ohm, [0.02, 0.01])
+    np.testing.assert_allclose(np.sqrt(ekf.p[:, 2, 2]), [0.025, 0.0125])
+
+
+def test_growing_the_soc_variance_adds_exactly_that_to_the_cells_named():
+    """``grow_soc_variance`` (a period counted with a guessed current): ``P[0, 0] += variance`` where named;
+    nothing else changes."""
+    ekf, _ = _correlated_ekf()
+    p0 = ekf.p.copy()
+    ekf.grow_soc_variance(np.array([4e-4, 4e-4]), np.array([True, False]))
+    assert ekf.p[0, 0, 0] == pytest.approx(p0[0, 0, 0] + 4e-4, rel=1e-12)
+    np.testing.assert_array_equal(ekf.p[0, 1:], p0[0, 1:])
+    np.testing.assert_array_equal(ekf.p[1], p0[1])
+
+
+def test_a_rest_reading_is_fused_inside_its_gate_and_refused_outside():
+    """``read_at_rest``: ``S = C P C' + r_v`` with ``C = [slope, 1, 0, 0, 0]``; a reading within
+    ``gate_sigma sqrt(S)`` of the prediction is one Kalman update (``x += K e``, ``P -= P C' C P / S``,
+    ``r_d`` kept >= 0), one beyond it is refused and leaves the cell as it was."""
+    ekf, _ = _correlated_ekf(3)
+    x0, p0 = ekf.x.copy(), ekf.p[0].copy()
+    c = np.array([0.5, 1.0, 0.0, 0.0, 0.0])
+    s = c @ p0 @ c + 1e-4
+    e = np.array([2.9, 3.1, -2.9]) * np.sqrt(s)
+    d_soc, contradicted = ekf.read_at_rest(e, np.full(3, 0.5), np.full(3, 1e-4), np.ones(3, bool), 3.0)
+    assert contradicted.tolist() == [False, True, False]
+    k = p0 @ c / s
+    np.testing.assert_allclose(d_soc, [k[0] * e[0], 0.0, k[0] * e[2]], rtol=1e-12)
+    np.testing.assert_allclose(ekf.x[0], x0[0] + k * e[0], rtol=1e-12)
+    np.testing.assert_allclose(ekf.p[0], p0 - np.outer(p0 @ c, p0 @ c) / s, rtol=1e-9, atol=1e-18)
+    np.testing.assert_array_equal(ekf.x[1], x0[1])
+    np.testing.assert_array_equal(ekf.p[1], p0)
+    assert x0[2, 2] + k[2] * e[2] < 0 and ekf.r_diffusion_ohm[2] == 0.0  # a resistance is never negative
+
+
+def test_the_capacity_counts_as_estimated_once_its_sigma_halved():
+    """``capacity_estimated`` is set where the EKF's capacity sigma fell below half its start value
+    (``0.5 capacity_sigma``): not at the start, not at 0.51 of its start sigma, at 0.49."""
+    cfg = SocConfig()
+    est = SocEstimator(3, _ocv(), STATED_AH, 1.0, initial_soc=0.9, config=cfg)
+    v = np.full(3, float(_ocv().ocv(0.9)))
+    est.update(np.zeros(3), v)
+    assert not est.capacity_estimated.any()
+    p = est.ekf.p.copy()
+    p[:, 3, 3] = (np.array([1.0, 0.51, 0.49]) * cfg.ekf.capacity_sigma) ** 2
+    est.ekf.p = p
+    est.update(np.zeros(3), v)
+    assert est.capacity_estimated.tolist() == [False, False, True]
+
+
+def test_a_start_temperature_check_in_progress_survives_the_state_file():
+    """A state saved after the first of the start readings (-40 degC, a BMS's signal floor) resumes the check:
+    the next readings (0 degC) move the priors to their median as they would have without the restart."""
+    v = np.array([float(_ocv().ocv(0.6))])
+    a = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=0.6)
+    a.update(np.zeros(1), v, temperature_c=np.array([-40.0]))
+    b = SocEstimator(1, _ocv(), STATED_AH, 1.0, initial_soc=0.6)
+    b.load_state_dict(a.state_dict())
+    for _ in range(60):
+        for est in (a, b):
+            est.update(np.zeros(1), v, temperature_c=np.array([0.0]))
+    assert a.ekf.r_diffusion_ohm[0] < 0.5 * float(arrhenius_factor(-40.0, 25.0, SocEkfConfig().diffusion_r_activation_k)) * 0.04 / STATED_AH
+    np.testing.assert_array_equal(b.identifier.params.r0_ohm, a.identifier.params.r0_ohm)
+    np.testing.assert_array_equal(b.ekf.r_diffusion_ohm, a.ekf.r_diffusion_ohm)
