@@ -64,10 +64,10 @@ suboptimal gain.
 
 Noise, stated in the cell's terms rather than tuned per file:
 
-* ``Qn[z]`` = (``capacity_sigma`` |dz|)^2 + (``current_sigma_c`` Ts / 3600)^2
-  + ``drift_sigma_per_h``^2 Ts / 3600: a relative capacity uncertainty on the
-  counted step, a current-sensor noise (as a C-rate, so it fits any cell size),
-  and a random walk for what the count cannot see; ``Qn[v_d]`` = (``rc_sigma_v``)^2
+* ``Qn[z]`` = (``current_sigma_c`` Ts / 3600)^2 + ``drift_sigma_per_h``^2 Ts / 3600: a
+  current-sensor noise (as a C-rate, so it fits any cell size) and a random walk for what
+  the count cannot see.  The capacity's uncertainty reaches the SOC through ``dq``
+  (``F[0,3]``, its variance starting at ``capacity_sigma``^2), not as noise; ``Qn[v_d]`` = (``rc_sigma_v``)^2
   Ts / tau_d (the diffusion voltage follows its resistance and the current; free to
   wander, it would soak up an SOC error); ``Qn[r_d]`` = (``diffusion_r_drift_ohm_ah`` / Q)^2 Ts / 3600;
   ``Qn[dq]`` = ``capacity_drift_per_h``^2 Ts / 3600 (ageing and temperature).
