@@ -60,8 +60,8 @@ from ..service.schema import CELL_FIELDS
 from ..service.state import estimator_state
 from .samples import SampleArrays
 
-__all__ = ["DriveEstimate", "EPOCH_MIN_S", "drive_getters", "estimate_drive", "carry_state", "finish_estimate", "output_getters",
-           "rest_between_drives", "sample_gaps", "sox_getters"]
+__all__ = ["DriveEstimate", "EPOCH_MIN_S", "drive_getters", "estimate_drive", "carry_state", "finish_estimate",
+           "output_getters", "rest_between_drives", "sample_gaps", "sox_getters"]
 
 #: frame times from this on (2000-01-01 00:00 UTC) are epoch seconds: the log carries absolute times
 EPOCH_MIN_S = 946_684_800.0
