@@ -288,3 +288,50 @@ def test_shift_bias_params_are_the_full_mapping_of_the_shifted_theta(cls, method
         for key in ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "admissible"):
             assert np.array_equal(getattr(est.params, key), getattr(full, key), equal_nan=True), (k, key)
     assert shifted > n // 2 and est.rejections.sum() > 0 and est.identified.any()
+
+
+def test_one_rls_step_is_the_weighted_recursion_of_the_docstring():
+    """k = P phi / (lambda + phi' P phi), theta += k e, P = (P - k phi' P) / lambda, for a learning cell;
+    a masked cell (w = 0) keeps theta and P. lambda = 0.9 so that a 1 in place of lambda shows."""
+    from bms_estimator.core.rls import RlsConfig, WeightedRls
+
+    rng = np.random.default_rng(5)
+    rls = WeightedRls(2, 3, RlsConfig(forgetting=0.9, init_samples=20, trace_max=1e9))
+    true = np.array([0.5, -1.0, 2.0])
+    for _ in range(20):
+        phi = rng.normal(size=(2, 3))
+        rls.update(phi, phi @ true + 0.05 * rng.normal(size=2))
+    assert rls.initialised.all()
+    theta, P = rls.theta.copy(), rls.P.copy()
+    phi, y = rng.normal(size=(2, 3)), rng.normal(size=2)
+    e = rls.update(phi, y, mask=np.array([True, False]))
+    k = P[0] @ phi[0] / (0.9 + phi[0] @ P[0] @ phi[0])
+    np.testing.assert_allclose(e, y - np.einsum("np,np->n", phi, theta), rtol=1e-12)
+    np.testing.assert_allclose(rls.theta[0], theta[0] + k * e[0], rtol=1e-10)
+    np.testing.assert_allclose(rls.P[0], (P[0] - np.outer(k, phi[0] @ P[0])) / 0.9, rtol=1e-10)
+    np.testing.assert_array_equal(rls.theta[1], theta[1])
+    np.testing.assert_array_equal(rls.P[1], P[1])
+
+
+def test_rls_state_round_trip_keeps_the_error_window_count():
+    """The error RMS divides by the samples the window holds so far (min(count, window)): a state
+    saved before the window is full must carry that count, or the restored RMS reads sqrt(count)
+    times too high and switches adaptation on where the uninterrupted run stays off."""
+    from bms_estimator.core.rls import RlsConfig, WeightedRls
+
+    cfg = RlsConfig(forgetting=0.99, error_on=0.05, error_off=0.02, error_window=30, init_samples=20)
+    rng = np.random.default_rng(2)
+    true = np.array([0.5, -1.0, 2.0])
+    data = [(phi, phi @ true + 0.015 * rng.normal(size=1)) for phi in rng.normal(size=(60, 1, 3))]
+    whole = WeightedRls(1, 3, cfg)
+    for phi, y in data[:35]:  # the block, then 15 samples in the window
+        whole.update(phi, y)
+    assert not whole.adapting[0]  # rms ~0.015 < error_off
+    resumed = WeightedRls(1, 3, cfg)
+    resumed.load_state_dict(whole.state_dict())
+    for phi, y in data[35:]:
+        whole.update(phi, y)
+        resumed.update(phi, y)
+        assert resumed.adapting[0] == whole.adapting[0]
+    np.testing.assert_array_equal(resumed.theta, whole.theta)
+    np.testing.assert_array_equal(resumed.P, whole.P)

@@ -179,3 +179,24 @@ def test_the_config_names_a_bad_strength_or_period():
         assert [p.split(":")[0].rsplit(".", 1)[-1] for p in exc.value.problems] == [key], exc.value.problems
     with pytest.raises(ValueError, match="prior_share"):
         RlsConfig(prior_share=-1.0)
+
+
+def test_a_restarted_cell_counts_its_prior_period_afresh():
+    """The prior step comes every ``prior_every`` learning samples of a cell: a cell whose start is
+    undone (extend_block / restart) begins the count again, as a fresh cell does; 9 learning samples
+    after its new block (every = 10) are then the plain recursion's, no prior step among them."""
+    rng = np.random.default_rng(8)
+    block = [rng.normal(size=(2, 3)) for _ in range(50)]
+    after = [rng.normal(size=(2, 3)) for _ in range(9)]
+    true = np.array([2.0, -1.0, 0.5])
+    restarted, fresh = _started_rls(0.15), _started_rls(0.15)
+    for phi in block[:5]:  # 5 learning samples: half a period counted
+        restarted.update(phi, phi @ true)
+    restarted.restart(np.ones(2, dtype=bool))
+    fresh.restart(np.ones(2, dtype=bool))
+    fresh._since_prior[:] = 0  # (what a cell that never learned has)
+    for rls in (restarted, fresh):
+        for phi in block + after:
+            rls.update(phi, phi @ true)
+    np.testing.assert_array_equal(restarted.theta, fresh.theta)
+    np.testing.assert_array_equal(restarted.P, fresh.P)
