@@ -335,3 +335,23 @@ def test_rls_state_round_trip_keeps_the_error_window_count():
         assert resumed.adapting[0] == whole.adapting[0]
     np.testing.assert_array_equal(resumed.theta, whole.theta)
     np.testing.assert_array_equal(resumed.P, whole.P)
+
+
+def test_rls_error_rms_is_over_the_samples_the_window_holds_so_far():
+    """Before the window is full the RMS is over the samples it holds (min(count, window)): one
+    a-priori error of 30 mV right after the block reads 30 mV, inside the hysteresis band
+    (20..50 mV), so adaptation stays on and theta moves; over the whole window it would read 5 mV."""
+    from bms_estimator.core.rls import RlsConfig, WeightedRls
+
+    rng = np.random.default_rng(4)
+    true = np.array([0.5, -1.0, 2.0])
+    rls = WeightedRls(1, 3, RlsConfig(forgetting=0.99, error_on=0.05, error_off=0.02, error_window=30,
+                                      init_samples=20))
+    for _ in range(20):
+        phi = rng.normal(size=(1, 3))
+        rls.update(phi, phi @ true)
+    theta = rls.theta.copy()
+    phi = rng.normal(size=(1, 3))
+    e = rls.update(phi, phi @ true + 0.03)
+    np.testing.assert_allclose(e, 0.03, rtol=1e-6)
+    assert rls.adapting[0] and not np.allclose(rls.theta, theta, rtol=0, atol=1e-6)

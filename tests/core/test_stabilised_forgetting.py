@@ -200,3 +200,21 @@ def test_a_restarted_cell_counts_its_prior_period_afresh():
             rls.update(phi, phi @ true)
     np.testing.assert_array_equal(restarted.theta, fresh.theta)
     np.testing.assert_array_equal(restarted.P, fresh.P)
+
+
+def test_the_prior_information_is_the_share_of_a_full_memory_of_the_block_energy():
+    """Pi^-1 = share / (1 - lambda) diag(e), e_j = sum lambda^(n-k) phi_kj^2 / sum lambda^(n-k) (the
+    block's forgetting-weighted mean energy), floored at 1e-3 of the columns' mean: computed here from
+    the block's regressors themselves. lambda = 0.9 over 50 samples: the weights' sum (6.95) is far
+    from the count."""
+    lam, share, n = 0.9, 0.15, 50
+    phis = np.random.default_rng(6).normal(size=(n, 2, 3)) * np.array([1.0, 10.0, 0.01])
+    rls = WeightedRls(2, 3, RlsConfig(forgetting=lam, init_samples=n, prior_share=share))
+    for phi in phis:
+        rls.update(phi, phi.sum(axis=1))
+    w = lam ** np.arange(n - 1, -1, -1)
+    e = np.einsum("k,knp->np", w, phis**2) / w.sum()
+    floor = e.mean(axis=1, keepdims=True) * 1e-3
+    assert np.all(e[:, 2] < floor[:, 0])  # the third column is floored
+    np.testing.assert_allclose(rls.prior_information(np.arange(2)), share / (1 - lam) * np.maximum(e, floor),
+                               rtol=1e-10)
