@@ -355,3 +355,29 @@ def test_rls_error_rms_is_over_the_samples_the_window_holds_so_far():
     e = rls.update(phi, phi @ true + 0.03)
     np.testing.assert_allclose(e, 0.03, rtol=1e-6)
     assert rls.adapting[0] and not np.allclose(rls.theta, theta, rtol=0, atol=1e-6)
+
+
+def test_the_prior_takes_the_start_temperature_on_cells_not_yet_identified():
+    """R(T) = R(25 degC) exp(B (1/T - 1/T_ref)) on every resistance of the prior (x2.15 at 0 degC with
+    B = 2500 K), the time constants kept; a cell already identified keeps its own model."""
+    cfg = IdentifierConfig(prior_activation_k=2500.0)
+    est = LifEstimator(3, 1.0, 3.0, cfg)
+    warm = est.params
+    est.identified[2] = True  # (as a restored state says)
+    est.take_prior_at(np.array([0.0, 25.0, 0.0]), 25.0, np.array([True, True, True]))
+    f = np.exp(2500.0 * (1 / 273.15 - 1 / 298.15))
+    for key in ("r0_ohm", "r1_ohm", "r2_ohm"):
+        np.testing.assert_allclose(getattr(est.params, key) / getattr(warm, key), [f, 1.0, 1.0], rtol=1e-9)
+    for key in ("tau1_s", "tau2_s"):
+        np.testing.assert_allclose(getattr(est.params, key), getattr(warm, key), rtol=1e-9)
+    np.testing.assert_allclose(est.params.r0_ohm[0], cfg.prior_r0_ohm_ah / 3.0 * f, rtol=1e-9)
+
+
+def test_the_prior_time_constants_are_moved_inside_the_guards_bounds():
+    """tau2 <= 0.9 tau_max, tau1 >= max(1.1 tau_min, 1.5 Ts) and tau1 <= tau2 / 2: the prior passes the guard."""
+    cfg = IdentifierConfig(prior_tau1_s=0.5, prior_tau2_s=1000.0, tau_min_s=1.0, tau_max_s=500.0)
+    p = LifEstimator(1, 1.0, 3.0, cfg).params
+    np.testing.assert_allclose([p.tau1_s[0], p.tau2_s[0]], [1.5, 450.0], rtol=1e-9)  # 1.5 Ts > 1.1 tau_min
+    p = LifEstimator(1, 1.0, 3.0, cfg.with_(prior_tau1_s=400.0)).params
+    np.testing.assert_allclose(p.tau1_s[0], 225.0, rtol=1e-9)
+    assert p.admissible[0]
