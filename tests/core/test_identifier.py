@@ -381,3 +381,13 @@ def test_the_prior_time_constants_are_moved_inside_the_guards_bounds():
     p = LifEstimator(1, 1.0, 3.0, cfg.with_(prior_tau1_s=400.0)).params
     np.testing.assert_allclose(p.tau1_s[0], 225.0, rtol=1e-9)
     assert p.admissible[0]
+
+
+def test_the_guard_counts_rejections_in_a_row_per_cell():
+    """restart_after_rejections counts a cell's rejections *in a row*: an accepted sample ends its run,
+    also in a sample where another cell is rejected; the rejected cell's run grows by one."""
+    est = LifEstimator(2, 1.0, 3.0, IdentifierConfig(restart_after_rejections=10))
+    est._rejected_run[:] = [5, 7]
+    est._guard(np.array([True, False]), np.array([False, True]))
+    np.testing.assert_array_equal(est._rejected_run, [6, 0])
+    np.testing.assert_array_equal(est.rejections, [1, 0])
