@@ -391,3 +391,37 @@ def test_the_guard_counts_rejections_in_a_row_per_cell():
     est._guard(np.array([True, False]), np.array([False, True]))
     np.testing.assert_array_equal(est._rejected_run, [6, 0])
     np.testing.assert_array_equal(est.rejections, [1, 0])
+
+
+def test_predict_static_is_the_steady_state_overpotential():
+    est = LifEstimator(1, 1.0, 3.0)
+    p = est.params
+    np.testing.assert_allclose(est.predict_static(2.0), (p.r0_ohm + p.r1_ohm + p.r2_ohm) * 2.0 + p.c0_v, rtol=1e-12)
+
+
+def test_a_rest_keeps_the_named_cells_from_learning_for_a_full_window():
+    """After rest(gap) a cell's regressor window is restarted: it learns again only once 2L + 1 samples
+    after the gap fill it; the cells not named go on learning; what was learnt stays."""
+    i, v = synthetic_overpotential(700, seed=7, noise_v=5e-4)
+    est = LifEstimator(2, 1.0, 3.0)
+    for k in range(600):
+        est.update(np.full(2, i[k]), np.full(2, v[k]))
+    assert est.rls.initialised.all()
+    est.rest(600.0, np.array([True, False]))
+    theta = est.rls.theta.copy()
+    n = est.history.length  # 2L + 1
+    for k in range(600, 600 + n - 1):  # the window holds a sample from before the gap
+        est.update(np.full(2, i[k]), np.full(2, v[k]))
+        assert np.array_equal(est.rls.theta[0], theta[0]) and not est.accepted[0]
+    assert not np.array_equal(est.rls.theta[1], theta[1])
+    est.update(np.full(2, i[600 + n - 1]), np.full(2, v[600 + n - 1]))  # the (2L + 1)-th: all after it
+    assert not np.array_equal(est.rls.theta[0], theta[0])
+
+
+def test_the_guards_run_of_rejections_survives_a_state_round_trip():
+    """A cell on its way to restart_after_rejections resumes its run where it was, not from 0."""
+    est = LifEstimator(2, 1.0, 3.0)
+    est._rejected_run[:] = [4, 0]
+    other = LifEstimator(2, 1.0, 3.0)
+    other.load_state_dict(est.state_dict())
+    np.testing.assert_array_equal(other._rejected_run, [4, 0])
