@@ -167,3 +167,22 @@ def test_resistance_soh_commissioning_count_smoothing_and_band_edges():
         two.update(np.array([r]), 25.0, np.array([0.5]), np.array([True]), samples=2)
     np.testing.assert_allclose(two.r0_commissioning_ohm, 2.0, rtol=1e-12)
     assert np.isnan(r0_at_reference(0.02, 500.0, cfg))  # no cell's temperature (a sensor fault)
+
+
+def test_sox_counts_discharge_and_charge_apart_and_anchors_the_sop_a_period_on(nmc_like_ocv):
+    """E_dis sums -v i Ts / 3600 over discharge samples only, E_chg v i Ts / 3600 over charge samples only;
+    the SOP's SOC anchor is the SOC at the next period's start, s + i Ts / (3600 Q)."""
+    p = EcmParams.from_rc(0.03, [0.01, 0.02], [8.0, 150.0])
+    i = np.concatenate([np.full(300, 3.0), np.full(300, -3.0)])
+    sim = simulate_ecm(i, 1.0, p, nmc_like_ocv.ocv, soc0=0.5, capacity_ah=3.0)
+    est = SocEstimator(1, nmc_like_ocv, 3.0, 1.0, initial_soc=0.5)
+    sox = SoxEstimator(1, 1.0)
+    for k in range(i.size):
+        est.update(i[k], sim.voltage_v[k:k + 1])
+        sox.update(est, i[k], sim.voltage_v[k:k + 1])
+        if k in (10, 400):
+            step = sox.soc_anchor[0] - est.soc[0]
+            np.testing.assert_allclose(step, i[k] / (3600.0 * est.capacity_ah[0]), rtol=1e-9)
+    e = i * sim.voltage_v / 3600.0
+    np.testing.assert_allclose(sox.energy_discharged_wh[0], -e[i < 0].sum(), rtol=1e-12)
+    np.testing.assert_allclose(sox.energy_charged_wh[0], e[i > 0].sum(), rtol=1e-12)
