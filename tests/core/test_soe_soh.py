@@ -186,3 +186,19 @@ def test_sox_counts_discharge_and_charge_apart_and_anchors_the_sop_a_period_on(n
     e = i * sim.voltage_v / 3600.0
     np.testing.assert_allclose(sox.energy_discharged_wh[0], -e[i < 0].sum(), rtol=1e-12)
     np.testing.assert_allclose(sox.energy_charged_wh[0], e[i > 0].sum(), rtol=1e-12)
+
+
+def test_sox_pack_figures_take_the_weakest_cell_and_the_slowest_to_fill(nmc_like_ocv):
+    """A series string ends its discharge with its weakest cell: the pack's energy left is that cell's
+    times the cells (times n_parallel), not the cells' sum; it is full when its slowest cell is."""
+    est = SocEstimator(2, nmc_like_ocv, 3.0, 1.0, initial_soc=np.array([0.3, 0.6]))
+    sox = SoxEstimator(2, 1.0)
+    v = nmc_like_ocv.ocv(np.array([0.3, 0.6]))
+    for _ in range(30):
+        est.update(1.5, v)
+        sox.update(est, 1.5, v)
+    out, pack = sox.outputs, sox.pack_outputs()
+    assert out["energy_left_wh"][0] < out["energy_left_wh"][1]
+    assert pack["energy_left_wh"] == pytest.approx(2 * out["energy_left_wh"][0], rel=1e-12)
+    assert out["time_to_full_s"][0] > out["time_to_full_s"][1]
+    assert pack["time_to_full_s"] == out["time_to_full_s"][0]
