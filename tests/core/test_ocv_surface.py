@@ -264,3 +264,5 @@ def test_one_cell_limit_and_stated_capacity_ratio_at_their_edges():
     assert stated_capacity_ratio(1.0, warm) == pytest.approx(1.0 / 3.0)
     assert stated_capacity_ratio(7.5, warm) == pytest.approx(2.5)
     assert stated_capacity_ratio(1.6, warm) is None and stated_capacity_ratio(5.9, warm) is None
+    three = OcvSurface([OcvCurve(soc, base, capacity_discharge_ah=q) for q in (2.0, 3.0, 10.0)], [0.0, 10.0, 25.0])
+    assert stated_capacity_ratio(1.6, three) is None  # against the median, 3 Ah (not the largest, 10 Ah)
