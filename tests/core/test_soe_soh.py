@@ -7,7 +7,8 @@ from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.core.soc import SocEstimator
 from bms_estimator.core.soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from bms_estimator.core.soh import ResistanceSoh, SohConfig, capacity_soh, r0_at_reference
-from bms_estimator.core.sox import SoxEstimator
+from bms_estimator.core.sop import SopConfig
+from bms_estimator.core.sox import SoxConfig, SoxEstimator
 
 
 def _linear_ocv(s):
@@ -202,3 +203,11 @@ def test_sox_pack_figures_take_the_weakest_cell_and_the_slowest_to_fill(nmc_like
     assert pack["energy_left_wh"] == pytest.approx(2 * out["energy_left_wh"][0], rel=1e-12)
     assert out["time_to_full_s"][0] > out["time_to_full_s"][1]
     assert pack["time_to_full_s"] == out["time_to_full_s"][0]
+    out["soh_resistance"] = np.array([1.1, 1.3])  # (two cells' ageing, as the slow outputs hold it)
+    assert sox.pack_outputs()["soh_resistance_max"] == 1.3  # the most aged cell
+    again = SoxEstimator(2, 1.0)
+    again.load_state_dict(sox.state_dict())  # the energy charged is kept across a restart
+    np.testing.assert_array_equal(again.energy_charged_wh, sox.energy_charged_wh)
+    assert np.all(sox.energy_charged_wh > 0)
+    two = SoxEstimator(2, 1.0, SoxConfig(sop=SopConfig(n_parallel=2)))
+    assert two.pack_energy_wh([1.0, 2.0]) == 6.0  # every cell stands for its n_parallel equal cells
