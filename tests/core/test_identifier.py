@@ -288,3 +288,140 @@ def test_shift_bias_params_are_the_full_mapping_of_the_shifted_theta(cls, method
         for key in ("r0_ohm", "r1_ohm", "c1_f", "r2_ohm", "c2_f", "c0_v", "admissible"):
             assert np.array_equal(getattr(est.params, key), getattr(full, key), equal_nan=True), (k, key)
     assert shifted > n // 2 and est.rejections.sum() > 0 and est.identified.any()
+
+
+def test_one_rls_step_is_the_weighted_recursion_of_the_docstring():
+    """k = P phi / (lambda + phi' P phi), theta += k e, P = (P - k phi' P) / lambda, for a learning cell;
+    a masked cell (w = 0) keeps theta and P. lambda = 0.9 so that a 1 in place of lambda shows."""
+    from bms_estimator.core.rls import RlsConfig, WeightedRls
+
+    rng = np.random.default_rng(5)
+    rls = WeightedRls(2, 3, RlsConfig(forgetting=0.9, init_samples=20, trace_max=1e9))
+    true = np.array([0.5, -1.0, 2.0])
+    for _ in range(20):
+        phi = rng.normal(size=(2, 3))
+        rls.update(phi, phi @ true + 0.05 * rng.normal(size=2))
+    assert rls.initialised.all()
+    theta, P = rls.theta.copy(), rls.P.copy()
+    phi, y = rng.normal(size=(2, 3)), rng.normal(size=2)
+    e = rls.update(phi, y, mask=np.array([True, False]))
+    k = P[0] @ phi[0] / (0.9 + phi[0] @ P[0] @ phi[0])
+    np.testing.assert_allclose(e, y - np.einsum("np,np->n", phi, theta), rtol=1e-12)
+    np.testing.assert_allclose(rls.theta[0], theta[0] + k * e[0], rtol=1e-10)
+    np.testing.assert_allclose(rls.P[0], (P[0] - np.outer(k, phi[0] @ P[0])) / 0.9, rtol=1e-10)
+    np.testing.assert_array_equal(rls.theta[1], theta[1])
+    np.testing.assert_array_equal(rls.P[1], P[1])
+
+
+def test_rls_state_round_trip_keeps_the_error_window_count():
+    """The error RMS divides by the samples the window holds so far (min(count, window)): a state
+    saved before the window is full must carry that count, or the restored RMS reads sqrt(count)
+    times too high and switches adaptation on where the uninterrupted run stays off."""
+    from bms_estimator.core.rls import RlsConfig, WeightedRls
+
+    cfg = RlsConfig(forgetting=0.99, error_on=0.05, error_off=0.02, error_window=30, init_samples=20)
+    rng = np.random.default_rng(2)
+    true = np.array([0.5, -1.0, 2.0])
+    data = [(phi, phi @ true + 0.015 * rng.normal(size=1)) for phi in rng.normal(size=(60, 1, 3))]
+    whole = WeightedRls(1, 3, cfg)
+    for phi, y in data[:35]:  # the block, then 15 samples in the window
+        whole.update(phi, y)
+    assert not whole.adapting[0]  # rms ~0.015 < error_off
+    resumed = WeightedRls(1, 3, cfg)
+    resumed.load_state_dict(whole.state_dict())
+    for phi, y in data[35:]:
+        whole.update(phi, y)
+        resumed.update(phi, y)
+        assert resumed.adapting[0] == whole.adapting[0]
+    np.testing.assert_array_equal(resumed.theta, whole.theta)
+    np.testing.assert_array_equal(resumed.P, whole.P)
+
+
+def test_rls_error_rms_is_over_the_samples_the_window_holds_so_far():
+    """Before the window is full the RMS is over the samples it holds (min(count, window)): one
+    a-priori error of 30 mV right after the block reads 30 mV, inside the hysteresis band
+    (20..50 mV), so adaptation stays on and theta moves; over the whole window it would read 5 mV."""
+    from bms_estimator.core.rls import RlsConfig, WeightedRls
+
+    rng = np.random.default_rng(4)
+    true = np.array([0.5, -1.0, 2.0])
+    rls = WeightedRls(1, 3, RlsConfig(forgetting=0.99, error_on=0.05, error_off=0.02, error_window=30,
+                                      init_samples=20))
+    for _ in range(20):
+        phi = rng.normal(size=(1, 3))
+        rls.update(phi, phi @ true)
+    theta = rls.theta.copy()
+    phi = rng.normal(size=(1, 3))
+    e = rls.update(phi, phi @ true + 0.03)
+    np.testing.assert_allclose(e, 0.03, rtol=1e-6)
+    assert rls.adapting[0] and not np.allclose(rls.theta, theta, rtol=0, atol=1e-6)
+
+
+def test_the_prior_takes_the_start_temperature_on_cells_not_yet_identified():
+    """R(T) = R(25 degC) exp(B (1/T - 1/T_ref)) on every resistance of the prior (x2.15 at 0 degC with
+    B = 2500 K), the time constants kept; a cell already identified keeps its own model."""
+    cfg = IdentifierConfig(prior_activation_k=2500.0)
+    est = LifEstimator(3, 1.0, 3.0, cfg)
+    warm = est.params
+    est.identified[2] = True  # (as a restored state says)
+    est.take_prior_at(np.array([0.0, 25.0, 0.0]), 25.0, np.array([True, True, True]))
+    f = np.exp(2500.0 * (1 / 273.15 - 1 / 298.15))
+    for key in ("r0_ohm", "r1_ohm", "r2_ohm"):
+        np.testing.assert_allclose(getattr(est.params, key) / getattr(warm, key), [f, 1.0, 1.0], rtol=1e-9)
+    for key in ("tau1_s", "tau2_s"):
+        np.testing.assert_allclose(getattr(est.params, key), getattr(warm, key), rtol=1e-9)
+    np.testing.assert_allclose(est.params.r0_ohm[0], cfg.prior_r0_ohm_ah / 3.0 * f, rtol=1e-9)
+
+
+def test_the_prior_time_constants_are_moved_inside_the_guards_bounds():
+    """tau2 <= 0.9 tau_max, tau1 >= max(1.1 tau_min, 1.5 Ts) and tau1 <= tau2 / 2: the prior passes the guard."""
+    cfg = IdentifierConfig(prior_tau1_s=0.5, prior_tau2_s=1000.0, tau_min_s=1.0, tau_max_s=500.0)
+    p = LifEstimator(1, 1.0, 3.0, cfg).params
+    np.testing.assert_allclose([p.tau1_s[0], p.tau2_s[0]], [1.5, 450.0], rtol=1e-9)  # 1.5 Ts > 1.1 tau_min
+    p = LifEstimator(1, 1.0, 3.0, cfg.with_(prior_tau1_s=400.0)).params
+    np.testing.assert_allclose(p.tau1_s[0], 225.0, rtol=1e-9)
+    assert p.admissible[0]
+
+
+def test_the_guard_counts_rejections_in_a_row_per_cell():
+    """restart_after_rejections counts a cell's rejections *in a row*: an accepted sample ends its run,
+    also in a sample where another cell is rejected; the rejected cell's run grows by one."""
+    est = LifEstimator(2, 1.0, 3.0, IdentifierConfig(restart_after_rejections=10))
+    est._rejected_run[:] = [5, 7]
+    est._guard(np.array([True, False]), np.array([False, True]))
+    np.testing.assert_array_equal(est._rejected_run, [6, 0])
+    np.testing.assert_array_equal(est.rejections, [1, 0])
+
+
+def test_predict_static_is_the_steady_state_overpotential():
+    est = LifEstimator(1, 1.0, 3.0)
+    p = est.params
+    np.testing.assert_allclose(est.predict_static(2.0), (p.r0_ohm + p.r1_ohm + p.r2_ohm) * 2.0 + p.c0_v, rtol=1e-12)
+
+
+def test_a_rest_keeps_the_named_cells_from_learning_for_a_full_window():
+    """After rest(gap) a cell's regressor window is restarted: it learns again only once 2L + 1 samples
+    after the gap fill it; the cells not named go on learning; what was learnt stays."""
+    i, v = synthetic_overpotential(700, seed=7, noise_v=5e-4)
+    est = LifEstimator(2, 1.0, 3.0)
+    for k in range(600):
+        est.update(np.full(2, i[k]), np.full(2, v[k]))
+    assert est.rls.initialised.all()
+    est.rest(600.0, np.array([True, False]))
+    theta = est.rls.theta.copy()
+    n = est.history.length  # 2L + 1
+    for k in range(600, 600 + n - 1):  # the window holds a sample from before the gap
+        est.update(np.full(2, i[k]), np.full(2, v[k]))
+        assert np.array_equal(est.rls.theta[0], theta[0]) and not est.accepted[0]
+    assert not np.array_equal(est.rls.theta[1], theta[1])
+    est.update(np.full(2, i[600 + n - 1]), np.full(2, v[600 + n - 1]))  # the (2L + 1)-th: all after it
+    assert not np.array_equal(est.rls.theta[0], theta[0])
+
+
+def test_the_guards_run_of_rejections_survives_a_state_round_trip():
+    """A cell on its way to restart_after_rejections resumes its run where it was, not from 0."""
+    est = LifEstimator(2, 1.0, 3.0)
+    est._rejected_run[:] = [4, 0]
+    other = LifEstimator(2, 1.0, 3.0)
+    other.load_state_dict(est.state_dict())
+    np.testing.assert_array_equal(other._rejected_run, [4, 0])

@@ -43,3 +43,26 @@ def test_regression_holds_exactly_for_the_true_theta():
     theta_s = ct_theta_from_physical(**TRUE) * lif_scale(L, 1.0, 3.0)
     resid = y[2 * L:] - phi[2 * L:] @ theta_s
     assert np.sqrt(np.mean(resid**2)) < 2e-3 * np.sqrt(np.mean(y[2 * L:] ** 2))
+
+
+def test_scaled_columns_are_one_for_a_1c_step_and_ramp_over_any_window():
+    """scale = [T, T^2, I_ref, T I_ref, T^2 I_ref, T^2]: f2^2 of a constant c is c T^2 and f1 f2 of a
+    ramp of slope a is a T^2 (f2 integrates linear signals exactly), so a constant 1C current, a ramp
+    reaching 1C (or 1 V) over one window and the constant column all read exactly 1 once the window
+    is full, whatever the window and the cell size."""
+    for L, dt, i_ref in ((10, 0.5, 3.0), (40, 1.0, 50.0)):
+        big_t = L * dt
+        t = np.arange(6 * L) * dt
+        _, step = lif_regressors(np.full(t.size, 1.0), np.full(t.size, i_ref), L, dt, i_ref)
+        _, ramp = lif_regressors(t / big_t, i_ref * t / big_t, L, dt, i_ref)
+        np.testing.assert_allclose(step[2 * L:, [1, 4, 5]], 1.0, rtol=1e-12)
+        np.testing.assert_allclose(ramp[2 * L:, [0, 3]], 1.0, rtol=1e-9)
+
+
+def test_history_is_ready_once_it_holds_2l_plus_1_samples():
+    """The FIR filters are 2L + 1 long: before that many samples they see the zero initial state."""
+    hist = LifHistory(2, 3, 1.0)
+    for k in range(7):
+        assert not hist.ready
+        hist.push(np.ones(2), np.ones(2))
+    assert hist.ready

@@ -114,3 +114,39 @@ def test_the_service_config_takes_lif_iv_and_names_a_bad_method():
         with pytest.raises(ConfigError) as exc:
             soc_config_from_core(core)
         assert [p.split(":")[0].rsplit(".", 1)[-1] for p in exc.value.problems] == [field], exc.value.problems
+
+
+def _true_aux_estimator(n_cells: int = 1) -> LifIvEstimator:
+    est = LifIvEstimator(n_cells, 1.0, 3.0, IdentifierConfig(init_samples=10_000, iv_model_every=10**6))
+    est._set_aux(np.tile([TRUE["r0_ohm"], TRUE["r1_ohm"], TRUE["tau1_s"], TRUE["r2_ohm"], TRUE["tau2_s"],
+                          TRUE["c0_v"]], (n_cells, 1)))
+    return est
+
+
+def test_after_a_bias_shift_the_instrument_is_still_the_shifted_v_os():
+    """shift_bias(dv) makes v_o read dv lower from then on: the auxiliary model's c0 (and the stored x)
+    move with it, so with the true model zeta stays phi of the shifted v_o."""
+    i, v = synthetic_overpotential(300, seed=4)
+    est = _true_aux_estimator()
+    for k in range(150):
+        est.update(i[k : k + 1], v[k : k + 1])
+    est.shift_bias(np.array([0.01]))
+    for k in range(150, 300):
+        est.update(i[k : k + 1], v[k : k + 1] - 0.01)
+    _, phi = lif_regressors(v - 0.01, i / 3.0, est.config.window, 1.0)
+    np.testing.assert_allclose(est._zeta[0], phi[-1], rtol=1e-9, atol=1e-12)
+    assert est._aux_params[0, 5] == est._aux_c0[0]  # what a refresh or a saved state starts from
+
+
+def test_a_rest_relaxes_the_auxiliary_models_rc_voltages():
+    """rest(gap): x_j <- x_j exp(-gap / tau_j) on the cells named, the others untouched."""
+    i, v = synthetic_overpotential(100, seed=4)
+    est = _true_aux_estimator(2)
+    for k in range(100):
+        est.update(np.full(2, i[k]), np.full(2, v[k]))
+    x = est._aux_state.copy()
+    assert np.all(np.abs(x) > 1e-4)
+    est.rest(50.0, np.array([True, False]))
+    decay = np.exp(-50.0 / np.array([TRUE["tau1_s"], TRUE["tau2_s"]]))
+    np.testing.assert_allclose(est._aux_state[0], x[0] * decay, rtol=1e-12)
+    np.testing.assert_array_equal(est._aux_state[1], x[1])

@@ -247,3 +247,22 @@ def test_tables_of_two_cells_are_flagged_naming_both_files_and_the_figure(tmp_pa
     surf = OcvSurface([lg, cold])
     assert surf.mixed_cells is None
     assert surf.with_half_gap_cap(0.01).temperatures_c.tolist() == surf.temperatures_c.tolist()
+
+
+def test_one_cell_limit_and_stated_capacity_ratio_at_their_edges():
+    """Flagged when the RMS at equal SOC exceeds 15 mV + 1 mV/K dT (20 mV for 5 K): 21 mV apart is, 19 mV
+    is not. A stated capacity outside [1/2, 2] x the tables' median C/20 capacity is named by its ratio,
+    on either side."""
+    from bms_estimator.core.ocv_surface import one_cell_mismatch, stated_capacity_ratio
+
+    soc = np.linspace(0.0, 1.0, 21)
+    base = 3.2 + 0.9 * soc
+    warm = OcvCurve(soc, base, capacity_discharge_ah=3.0)
+    k, rms, limit = one_cell_mismatch([OcvCurve(soc, base - 0.021), warm], [20.0, 25.0])
+    assert k == 0 and rms == pytest.approx(0.021) and limit == pytest.approx(0.020)
+    assert one_cell_mismatch([OcvCurve(soc, base - 0.019), warm], [20.0, 25.0]) is None
+    assert stated_capacity_ratio(1.0, warm) == pytest.approx(1.0 / 3.0)
+    assert stated_capacity_ratio(7.5, warm) == pytest.approx(2.5)
+    assert stated_capacity_ratio(1.6, warm) is None and stated_capacity_ratio(5.9, warm) is None
+    three = OcvSurface([OcvCurve(soc, base, capacity_discharge_ah=q) for q in (2.0, 3.0, 10.0)], [0.0, 10.0, 25.0])
+    assert stated_capacity_ratio(1.6, three) is None  # against the median, 3 Ah (not the largest, 10 Ah)

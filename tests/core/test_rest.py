@@ -346,3 +346,14 @@ def test_after_a_park_the_count_and_a_lost_current_are_at_zero():
     for _ in range(5):
         est.update(np.nan, np.array([np.nan]))
     np.testing.assert_array_equal(est.soc, soc)
+
+
+def test_the_first_sample_after_a_rest_reads_the_voltage_only_at_rest_current():
+    """The OCV reading after a park needs the cell at rest (|i| <= rest_current_c Q): a first sample
+    under a 2C discharge is no rest voltage, and the SOC goes on by counting (1 % per sample at most)."""
+    est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.5, config=SocConfig(soc_method="c0"))
+    for _ in range(300):
+        est.update(0.0, np.array([float(_ocv().ocv(0.5))]))
+    est.rest(3600.0)
+    est.update(-2.0 * Q_AH, np.array([float(_ocv().ocv(0.8))]))
+    assert est.soc[0] == pytest.approx(0.5, abs=0.02)

@@ -7,7 +7,8 @@ from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.core.soc import SocEstimator
 from bms_estimator.core.soe import SoeConfig, energy_left_wh, time_to_empty_s, time_to_full_s
 from bms_estimator.core.soh import ResistanceSoh, SohConfig, capacity_soh, r0_at_reference
-from bms_estimator.core.sox import SoxEstimator
+from bms_estimator.core.sop import SopConfig
+from bms_estimator.core.sox import SoxConfig, SoxEstimator
 
 
 def _linear_ocv(s):
@@ -118,3 +119,95 @@ def test_energy_left_matches_a_simulated_discharge_to_v_min(nmc_like_ocv):
                           config=SoeConfig(rate_c=rate))
     # the steady-state resistance overstates the drop while the slow pair charges up: within 1 %
     assert abs(e[0] - e_true) / e_true < 0.01
+
+
+def test_energy_left_refuses_a_non_positive_capacity():
+    """A capacity of 0 or below is no cell's: NaN, not an energy of 0 or below."""
+    e, z_cut = energy_left_wh(np.array([0.5, 0.5, 0.5]), np.array([3.0, 0.0, -3.0]), 0.05, _linear_ocv, v_min=3.0)
+    assert np.isfinite(e[0]) and np.isnan(e[1:]).all() and np.isnan(z_cut[1:]).all()
+
+
+def test_times_idle_below_a_c_rate_and_never_negative():
+    """The idle threshold is ``idle_current_c * Q`` (a C-rate: 1 A on a 100 Ah cell at 0.01 C);
+    a SOC already past the end gives 0 s, not a negative time."""
+    q = np.array([100.0, 100.0])
+    tte = time_to_empty_s(np.array([0.5, 0.5]), np.array([0.1, 0.1]), q, np.array([-0.5, -2.0]))
+    assert np.isinf(tte[0])  # 0.5 A < 1 A: idle
+    np.testing.assert_allclose(tte[1], 3600.0 * 100.0 * 0.4 / 2.0)
+    ttf = time_to_full_s(np.array([0.5, 0.5]), q, np.array([0.5, 2.0]))
+    assert np.isinf(ttf[0])
+    np.testing.assert_allclose(ttf[1], 3600.0 * 100.0 * 0.5 / 2.0)
+    assert time_to_empty_s(0.05, 0.1, 3.0, -3.0) == 0.0  # below the cut-off already
+    assert time_to_full_s(1.0, 3.0, 3.0, soc_max=0.95) == 0.0
+
+
+def test_resistance_soh_commissioning_count_smoothing_and_band_edges():
+    """R0_c is the mean of exactly the first ``commissioning_samples`` counted samples (each reading
+    weighted by the samples it stands for); R0_ref starts at the first reading and then follows
+    R0_ref += (1 - exp(-dt/tau)) (R0 - R0_ref); the band ends count, R0 <= 0 and a temperature no cell
+    has do not; a state saved mid-commissioning continues it."""
+    cfg = SohConfig(commissioning_samples=4, smoothing_s=10.0, soc_lo=0.3, soc_hi=0.8)
+    a = 1.0 - np.exp(-1.0 / 10.0)
+    soh = ResistanceSoh(2, 1.0, cfg)
+    on = np.array([True, True])
+    for k, r in enumerate([1.0, 2.0, 3.0]):  # at 25 degC (the reference): R0_ref = R0
+        soh.update(np.array([r, r]), 25.0, np.array([0.3, 0.8]), on)  # both band ends count
+        if k == 0:
+            np.testing.assert_array_equal(soh.r0_ref_ohm, [1.0, 1.0])
+    np.testing.assert_allclose(soh.r0_ref_ohm, (1.0 + a * 1.0) + a * (3.0 - (1.0 + a * 1.0)), rtol=1e-12)
+    soh.update(np.array([-1.0, 0.0]), 25.0, np.array([0.5, 0.5]), on)  # R0 <= 0: not taken
+    assert np.isnan(soh.r0_commissioning_ohm).all()
+    resumed = ResistanceSoh(2, 1.0, cfg)
+    resumed.load_state_dict(soh.state_dict())
+    for s in (soh, resumed):
+        s.update(np.array([4.0, 4.0]), 25.0, np.array([0.5, 0.5]), on)
+        s.update(np.array([100.0, 100.0]), 25.0, np.array([0.5, 0.5]), on)  # after commissioning: held
+        np.testing.assert_allclose(s.r0_commissioning_ohm, 2.5, rtol=1e-12)  # (1 + 2 + 3 + 4) / 4
+    two = ResistanceSoh(1, 2.0, cfg)  # readings every 2nd sample: each counts twice
+    for r in (1.0, 3.0, 50.0):
+        two.update(np.array([r]), 25.0, np.array([0.5]), np.array([True]), samples=2)
+    np.testing.assert_allclose(two.r0_commissioning_ohm, 2.0, rtol=1e-12)
+    assert np.isnan(r0_at_reference(0.02, 500.0, cfg))  # no cell's temperature (a sensor fault)
+
+
+def test_sox_counts_discharge_and_charge_apart_and_anchors_the_sop_a_period_on(nmc_like_ocv):
+    """E_dis sums -v i Ts / 3600 over discharge samples only, E_chg v i Ts / 3600 over charge samples only;
+    the SOP's SOC anchor is the SOC at the next period's start, s + i Ts / (3600 Q)."""
+    p = EcmParams.from_rc(0.03, [0.01, 0.02], [8.0, 150.0])
+    i = np.concatenate([np.full(300, 3.0), np.full(300, -3.0)])
+    sim = simulate_ecm(i, 1.0, p, nmc_like_ocv.ocv, soc0=0.5, capacity_ah=3.0)
+    est = SocEstimator(1, nmc_like_ocv, 3.0, 1.0, initial_soc=0.5)
+    sox = SoxEstimator(1, 1.0)
+    for k in range(i.size):
+        est.update(i[k], sim.voltage_v[k:k + 1])
+        sox.update(est, i[k], sim.voltage_v[k:k + 1])
+        if k in (10, 400):
+            step = sox.soc_anchor[0] - est.soc[0]
+            np.testing.assert_allclose(step, i[k] / (3600.0 * est.capacity_ah[0]), rtol=1e-9)
+    e = i * sim.voltage_v / 3600.0
+    np.testing.assert_allclose(sox.energy_discharged_wh[0], -e[i < 0].sum(), rtol=1e-12)
+    np.testing.assert_allclose(sox.energy_charged_wh[0], e[i > 0].sum(), rtol=1e-12)
+
+
+def test_sox_pack_figures_take_the_weakest_cell_and_the_slowest_to_fill(nmc_like_ocv):
+    """A series string ends its discharge with its weakest cell: the pack's energy left is that cell's
+    times the cells (times n_parallel), not the cells' sum; it is full when its slowest cell is."""
+    est = SocEstimator(2, nmc_like_ocv, 3.0, 1.0, initial_soc=np.array([0.3, 0.6]))
+    sox = SoxEstimator(2, 1.0)
+    v = nmc_like_ocv.ocv(np.array([0.3, 0.6]))
+    for _ in range(30):
+        est.update(1.5, v)
+        sox.update(est, 1.5, v)
+    out, pack = sox.outputs, sox.pack_outputs()
+    assert out["energy_left_wh"][0] < out["energy_left_wh"][1]
+    assert pack["energy_left_wh"] == pytest.approx(2 * out["energy_left_wh"][0], rel=1e-12)
+    assert out["time_to_full_s"][0] > out["time_to_full_s"][1]
+    assert pack["time_to_full_s"] == out["time_to_full_s"][0]
+    out["soh_resistance"] = np.array([1.1, 1.3])  # (two cells' ageing, as the slow outputs hold it)
+    assert sox.pack_outputs()["soh_resistance_max"] == 1.3  # the most aged cell
+    again = SoxEstimator(2, 1.0)
+    again.load_state_dict(sox.state_dict())  # the energy charged is kept across a restart
+    np.testing.assert_array_equal(again.energy_charged_wh, sox.energy_charged_wh)
+    assert np.all(sox.energy_charged_wh > 0)
+    two = SoxEstimator(2, 1.0, SoxConfig(sop=SopConfig(n_parallel=2)))
+    assert two.pack_energy_wh([1.0, 2.0]) == 6.0  # every cell stands for its n_parallel equal cells

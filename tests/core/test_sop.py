@@ -165,3 +165,34 @@ def test_limits_never_negative_never_nan_and_shrink_as_the_cell_empties_or_cools
     if c["temperature_c"] <= 45.0:  # above it the derating falls with heat instead
         assert np.all(colder.discharge_a <= res.discharge_a + 1e-9)
         assert np.all(colder.charge_a <= res.charge_a + 1e-9)
+
+
+def test_soc_min_bounds_the_discharge_and_a_non_positive_r0_gets_zero(nmc_like_ocv):
+    """I_dis <= (s - soc_min) 3600 Q / D (the SOC room is above soc_min, not above 0); a cell whose R0 is
+    not positive cannot be predicted (v(D, I) need not increase): 0 A, 0 W."""
+    cfg = SopConfig(v_min=0.1, soc_min=0.1, i_discharge_max_a=500.0, horizons_s=(10.0,))
+    res = _limits(nmc_like_ocv, np.full(3, 0.101), np.zeros((3, 2)), np.zeros(3), cfg)
+    np.testing.assert_allclose(res.discharge_a[0], 0.001 * 3600 * Q / 10.0, rtol=1e-9)
+    soc = np.full(3, 0.5)
+    res = sop_limits(voltage_v=_cells(nmc_like_ocv, soc, np.zeros((3, 2)), np.zeros(3)), current_now_a=np.zeros(3),
+                     soc=soc, capacity_ah=Q, temperature_c=25.0, ocv=nmc_like_ocv.ocv, docv_dsoc=nmc_like_ocv.docv_dsoc,
+                     r0_ohm=np.array([-0.01, 0.0, 0.05]), r_ohm=R_RC, tau_s=TAU, x_v=np.zeros((3, 2)), config=WIDE)
+    for a in (res.discharge_a, res.charge_a, res.discharge_w, res.charge_w):
+        assert np.all(a[:, :2] == 0.0) and np.all(a[:, 2] > 0.0)
+
+
+def test_a_learnt_correction_is_floored_at_half_r_d_and_a_negative_margin_is_none(nmc_like_ocv):
+    """R_D + dR is used as max(R_D + dR, R_D / 2), so v(D, I) keeps increasing however wrong dR is; a
+    negative (or NaN) model-error margin moves no bound outward."""
+    soc, x, i_now = np.array([0.3, 0.6, 0.9]), np.zeros((3, 2)), np.zeros(3)
+    kw = dict(voltage_v=_cells(nmc_like_ocv, soc, x, i_now), current_now_a=i_now, soc=soc, capacity_ah=Q,
+              ocv=nmc_like_ocv.ocv, r0_ohm=R0, r_ohm=R_RC, tau_s=TAU, x_v=x)
+    r_d = R0 + (R_RC * (1 - np.exp(-10.0 / TAU))).sum(axis=1)
+    plain = predict_voltage(-5.0, 10.0, **kw)
+    floored = predict_voltage(-5.0, 10.0, dr_ohm=np.full(3, -1e3), **kw)
+    np.testing.assert_allclose(floored - plain, 0.5 * r_d * 5.0, rtol=1e-9)
+    base = _limits(nmc_like_ocv, soc, x, i_now)
+    for m in (-0.5, np.nan):
+        neg = sop_limits(v_margin=m, temperature_c=25.0, docv_dsoc=nmc_like_ocv.docv_dsoc, config=WIDE, **kw)
+        np.testing.assert_array_equal(neg.discharge_a, base.discharge_a)
+        np.testing.assert_array_equal(neg.charge_a, base.charge_a)

@@ -179,3 +179,42 @@ def test_the_config_names_a_bad_strength_or_period():
         assert [p.split(":")[0].rsplit(".", 1)[-1] for p in exc.value.problems] == [key], exc.value.problems
     with pytest.raises(ValueError, match="prior_share"):
         RlsConfig(prior_share=-1.0)
+
+
+def test_a_restarted_cell_counts_its_prior_period_afresh():
+    """The prior step comes every ``prior_every`` learning samples of a cell: a cell whose start is
+    undone (extend_block / restart) begins the count again, as a fresh cell does; 9 learning samples
+    after its new block (every = 10) are then the plain recursion's, no prior step among them."""
+    rng = np.random.default_rng(8)
+    block = [rng.normal(size=(2, 3)) for _ in range(50)]
+    after = [rng.normal(size=(2, 3)) for _ in range(9)]
+    true = np.array([2.0, -1.0, 0.5])
+    restarted, fresh = _started_rls(0.15), _started_rls(0.15)
+    for phi in block[:5]:  # 5 learning samples: half a period counted
+        restarted.update(phi, phi @ true)
+    restarted.restart(np.ones(2, dtype=bool))
+    fresh.restart(np.ones(2, dtype=bool))
+    fresh._since_prior[:] = 0  # (what a cell that never learned has)
+    for rls in (restarted, fresh):
+        for phi in block + after:
+            rls.update(phi, phi @ true)
+    np.testing.assert_array_equal(restarted.theta, fresh.theta)
+    np.testing.assert_array_equal(restarted.P, fresh.P)
+
+
+def test_the_prior_information_is_the_share_of_a_full_memory_of_the_block_energy():
+    """Pi^-1 = share / (1 - lambda) diag(e), e_j = sum lambda^(n-k) phi_kj^2 / sum lambda^(n-k) (the
+    block's forgetting-weighted mean energy), floored at 1e-3 of the columns' mean: computed here from
+    the block's regressors themselves. lambda = 0.9 over 50 samples: the weights' sum (6.95) is far
+    from the count."""
+    lam, share, n = 0.9, 0.15, 50
+    phis = np.random.default_rng(6).normal(size=(n, 2, 3)) * np.array([1.0, 10.0, 0.01])
+    rls = WeightedRls(2, 3, RlsConfig(forgetting=lam, init_samples=n, prior_share=share))
+    for phi in phis:
+        rls.update(phi, phi.sum(axis=1))
+    w = lam ** np.arange(n - 1, -1, -1)
+    e = np.einsum("k,knp->np", w, phis**2) / w.sum()
+    floor = e.mean(axis=1, keepdims=True) * 1e-3
+    assert np.all(e[:, 2] < floor[:, 0])  # the third column is floored
+    np.testing.assert_allclose(rls.prior_information(np.arange(2)), share / (1 - lam) * np.maximum(e, floor),
+                               rtol=1e-10)
