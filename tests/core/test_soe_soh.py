@@ -211,3 +211,18 @@ def test_sox_pack_figures_take_the_weakest_cell_and_the_slowest_to_fill(nmc_like
     assert np.all(sox.energy_charged_wh > 0)
     two = SoxEstimator(2, 1.0, SoxConfig(sop=SopConfig(n_parallel=2)))
     assert two.pack_energy_wh([1.0, 2.0]) == 6.0  # every cell stands for its n_parallel equal cells
+
+
+def test_the_net_energy_delivered_restarts_at_full_soc_itself(nmc_like_ocv):
+    """``energy_delivered_wh`` restarts while the cell is at or above ``full_soc`` (a charge to full ends a
+    trip's count) and counts below it: at exactly ``full_soc`` it is 0, a hair below it is the period's energy."""
+    est = SocEstimator(1, nmc_like_ocv, 3.0, 1.0, initial_soc=0.995)
+    i, v = -1.5, np.array([float(nmc_like_ocv.ocv(0.995)) - 0.05])
+    est.update(i, v)
+    soc = float(est.soc[0])
+    at = SoxEstimator(1, 1.0, SoxConfig(full_soc=soc))
+    at.update(est, i, v)
+    below = SoxEstimator(1, 1.0, SoxConfig(full_soc=float(np.nextafter(soc, 2.0))))
+    below.update(est, i, v)
+    assert at.outputs["energy_delivered_wh"][0] == 0.0
+    np.testing.assert_allclose(below.outputs["energy_delivered_wh"][0], -i * v[0] / 3600.0, rtol=1e-12)
