@@ -43,9 +43,7 @@ def read_ocv_tables(paths: Sequence[PathLike] | PathLike, temperatures_c: Sequen
     """
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
-    paths = [Path(p) for p in paths]
-    if not paths:
-        raise ValueError("no OCV table given")
+    paths = [Path(p) for p in paths]  # (none: OcvSurface.from_tables says so)
     return OcvSurface.from_tables([read_ocv_table(p) for p in paths], [str(p) for p in paths], temperatures_c,
                                   default_temperature_c=default_temperature_c)
 
