@@ -425,3 +425,33 @@ def test_the_guards_run_of_rejections_survives_a_state_round_trip():
     other = LifEstimator(2, 1.0, 3.0)
     other.load_state_dict(est.state_dict())
     np.testing.assert_array_equal(other._rejected_run, [4, 0])
+
+
+def test_the_c0_prior_is_one_pseudo_measurement_of_its_stated_weight():
+    """The prior ``c0 = 0`` of weight w is a row h = sqrt(w) e_c0 / g of unit noise (h' theta = sqrt(w) c0):
+    after the data step, one RLS step with it takes c0 (linearised at theta, c0 = theta_c0 / g) to
+    c0 / (1 + w sigma2), sigma2 = P_c0c0 / g^2 its variance. So c0 moves by the share w sigma2 of where it
+    lands: the prior's pull is its weight times c0's variance, not w^2 (a row of w in place of sqrt(w))."""
+    import copy
+
+    i, v = synthetic_overpotential(1600, seed=9)
+    w = 0.1
+    est = LifEstimator(1, 1.0, 3.0, IdentifierConfig(c0_prior_weight=w))
+    for k in range(1500):
+        est.update(i[k : k + 1], v[k : k + 1])
+    assert est.rls.initialised[0] and abs(est.params.c0_v[0]) > 1e-3
+    data_only = copy.deepcopy(est)
+    data_only.config = est.config.with_(c0_prior_weight=0.0)
+    est.update(i[1500:1501], v[1500:1501])
+    data_only.update(i[1500:1501], v[1500:1501])
+    theta, P = data_only.rls.theta[0], data_only.rls.P[0]  # after the data step: what the prior row meets
+    g = -theta[1]  # LIF: c0 = -theta_6 / theta_2 (scaled)
+    c0_before = theta[5] / g
+    c0_after = est.rls.theta[0, 5] / g
+    sigma2 = P[5, 5] / g**2
+    assert w * sigma2 > 1e-9  # the pull is large enough to be told from w^2 sigma2 below
+    np.testing.assert_allclose((c0_before - c0_after) / c0_after, w * sigma2, rtol=1e-6)
+    # the whole step: theta -= P h (h' theta) / (1 + h' P h)
+    h = np.zeros(theta.size)
+    h[5] = np.sqrt(w) / g
+    np.testing.assert_allclose(est.rls.theta[0], theta - P @ h * (h @ theta) / (1.0 + h @ P @ h), rtol=1e-9, atol=1e-15)
