@@ -357,3 +357,21 @@ def test_the_first_sample_after_a_rest_reads_the_voltage_only_at_rest_current():
     est.rest(3600.0)
     est.update(-2.0 * Q_AH, np.array([float(_ocv().ocv(0.8))]))
     assert est.soc[0] == pytest.approx(0.5, abs=0.02)
+
+
+def test_after_a_park_a_negative_diffusion_voltage_is_taken_out_of_the_rest_voltage():
+    """The rest reading is ``OCV(z) = v - eta - v_d``: a cell parked after a discharge holds a negative
+    diffusion voltage v_d (decayed over the period in progress and the gap by exp(-(Ts + gap) / tau_d),
+    SocEstimator.rest), its terminal voltage is OCV + v_d, and it reads the SOC whose OCV is the voltage
+    less v_d, not plus it."""
+    est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.5, config=SocConfig(hysteresis=False))
+    for _ in range(60):
+        est.update(0.0, np.array([float(_ocv().ocv(0.5))]))
+    est.ekf.v_rc[:] = 0.0  # at rest: no RC voltage, and i = 0, so eta = 0
+    est.ekf.x[:, 1] = -0.03  # the diffusion voltage a discharge left (constructed: known)
+    gap = SocConfig().rest_relaxation_s
+    est.rest(gap)
+    v_d = -0.03 * np.exp(-(1.0 + gap) / SocEkfConfig().diffusion_tau_s)
+    assert est.ekf.v_diffusion[0] == pytest.approx(v_d, rel=1e-9)
+    est.update(0.0, np.array([float(_ocv().ocv(0.6)) + v_d]))
+    assert est.soc[0] == pytest.approx(0.6, abs=1e-6)
