@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.core.identifier import METHODS, IdentifierConfig
+from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.core.soc import REST_SOC_READINGS, SocConfig, SocEstimator
 from bms_estimator.core.soc_ekf import REST_GAP_MAX_S, SOC_VARIANCE_MAX, SocEkf, SocEkfConfig
 from tests.conftest import pulse_current
@@ -374,4 +375,19 @@ def test_after_a_park_a_negative_diffusion_voltage_is_taken_out_of_the_rest_volt
     v_d = -0.03 * np.exp(-(1.0 + gap) / SocEkfConfig().diffusion_tau_s)
     assert est.ekf.v_diffusion[0] == pytest.approx(v_d, rel=1e-9)
     est.update(0.0, np.array([float(_ocv().ocv(0.6)) + v_d]))
+    assert est.soc[0] == pytest.approx(0.6, abs=1e-6)
+
+
+def test_after_a_park_the_rest_voltage_is_read_on_the_hysteresis_branch():
+    """The rest reading solves ``OCV(z) + h H(z) = v``: a cell on the discharge branch (h = -1, started empty)
+    with a half gap H = 30 mV reads the voltage OCV(0.6) - H as 0.6 exactly (on the mean curve it would be
+    0.6 less H / slope, on the charge branch less twice that)."""
+    base = _ocv()
+    curve = OcvCurve(base.soc, base.ocv_v, np.full(base.soc.size, 0.03))
+    est = SocEstimator(1, curve, Q_AH, 1.0, initial_soc=0.02, config=SocConfig(soc_method="c0"))
+    assert est.hysteresis_state[0] == -1.0
+    est.update(0.0, np.array([float(curve.ocv(0.02)) - 0.03]))
+    est.rest(SocConfig().rest_relaxation_s)
+    est.update(0.0, np.array([float(curve.ocv(0.6)) - 0.03]))
+    assert est.hysteresis_state[0] == -1.0
     assert est.soc[0] == pytest.approx(0.6, abs=1e-6)
