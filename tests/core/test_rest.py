@@ -391,3 +391,18 @@ def test_after_a_park_the_rest_voltage_is_read_on_the_hysteresis_branch():
     est.update(0.0, np.array([float(curve.ocv(0.6)) - 0.03]))
     assert est.hysteresis_state[0] == -1.0
     assert est.soc[0] == pytest.approx(0.6, abs=1e-6)
+
+
+@pytest.mark.parametrize("soc_method", ["c0", "ekf"])
+def test_a_rest_reading_moves_the_ocv_out_of_the_identifiers_model(soc_method):
+    """A rest reading moves the SOC, so the OCV the identifier subtracts moves by dv = OCV(new) - OCV(old): its
+    v_o history and c0 drop by dv (Identifier.shift_bias), as for every EKF or c0 move; without it the next
+    windows would see a dv step in v_o. From 0.5 to 0.8 on a fresh identifier (c0 = 0): c0 = -dv."""
+    est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.5, config=SocConfig(soc_method=soc_method))
+    est.update(0.0, np.array([float(_ocv().ocv(0.5))]))
+    assert est.identifier.params.c0_v[0] == 0.0
+    est.rest(SocConfig().rest_relaxation_s)
+    est.update(0.0, np.array([float(_ocv().ocv(0.8))]))
+    assert est.soc[0] == pytest.approx(0.8, abs=1e-6)
+    dv = float(_ocv().ocv(0.8) - _ocv().ocv(0.5))
+    assert est.identifier.params.c0_v[0] == pytest.approx(-dv, rel=1e-6)
