@@ -6,7 +6,7 @@ import pytest
 from bms_estimator.analysis import reference_soc, run_soc, soc_errors
 from bms_estimator.core.ecm import EcmParams, simulate_ecm
 from bms_estimator.core.ocv import OcvCurve
-from bms_estimator.core.soc import SocConfig, SocEstimator
+from bms_estimator.core.soc import VOLTAGE_LINE_RATIO_MAX, SocConfig, SocEstimator
 from tests.conftest import pulse_current
 
 
@@ -241,3 +241,21 @@ def test_the_overpotential_is_read_at_the_periods_middle_soc(nmc_like_ocv):
     est.update(3.0, np.array([3.8]))
     mid = 0.5 + 3.0 * 5.0 / (3600.0 * 3.0)
     assert est.v_o[0] == pytest.approx(3.8 - nmc_like_ocv.ocv(mid), abs=1e-9)
+
+
+@pytest.mark.parametrize("stated_ah, flag", [(1.0, 1), (1.45, 1), (1.55, 0), (6.2, -1), (5.8, 0)])
+def test_the_voltage_line_flags_a_stated_capacity_off_by_more_than_its_ratio_either_way(stated_ah, flag, nmc_like_ocv):
+    """The c0 method's voltage line (module docstring, "At a bound") of a 3 Ah cell flags a stated capacity more
+    than VOLTAGE_LINE_RATIO_MAX (2) times it as at the low bound (-1) and one under 1/2 of it as at the high
+    bound (+1); within the ratio, no flag. A state carries the line: its sums of points on s = 0.9 + q / 3 Ah."""
+    assert VOLTAGE_LINE_RATIO_MAX == 2.0
+    q = np.linspace(-2.4, 0.0, 50)
+    s = 0.9 + q / 3.0
+    cfg = SocConfig(soc_method="c0")
+    state = SocEstimator(1, nmc_like_ocv, stated_ah, 1.0, initial_soc=0.9, config=cfg).state_dict()
+    state["vline"] = np.array([[q.size, q.sum(), s.sum(), (q * q).sum(), (q * s).sum(), (s * s).sum()]])
+    state["vline_q_range"] = np.array([[q.min(), q.max()]])
+    est = SocEstimator(1, nmc_like_ocv, stated_ah, 1.0, config=cfg)
+    est.load_state_dict(state)
+    assert est.capacity_voltage_ah[0] == pytest.approx(3.0, rel=1e-9)
+    assert est.capacity_at_bound[0] == flag
