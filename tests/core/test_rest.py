@@ -406,3 +406,15 @@ def test_a_rest_reading_moves_the_ocv_out_of_the_identifiers_model(soc_method):
     assert est.soc[0] == pytest.approx(0.8, abs=1e-6)
     dv = float(_ocv().ocv(0.8) - _ocv().ocv(0.5))
     assert est.identifier.params.c0_v[0] == pytest.approx(-dv, rel=1e-6)
+
+
+def test_a_rest_counts_the_period_in_progress_when_the_samples_stopped():
+    """rest() counts the last period as the next update would have: after one 1C-discharge sample (3 A on
+    3 Ah, no voltage: the count alone) the SOC is still the start's, and the rest takes it 1 s x 3 A = 1/1200 Ah
+    lower, 1/3600 of SOC; then nothing moves over the gap."""
+    est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.5, config=SocConfig(soc_method="c0"))
+    est.update(-Q_AH, np.array([np.nan]))
+    assert est.soc[0] == 0.5
+    est.rest(600.0)
+    assert est.soc[0] == pytest.approx(0.5 - 1.0 / 3600.0, rel=1e-12)
+    assert est.charge_ah[0] == pytest.approx(-Q_AH / 3600.0, rel=1e-12)
