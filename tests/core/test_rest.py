@@ -408,6 +408,20 @@ def test_a_rest_reading_moves_the_ocv_out_of_the_identifiers_model(soc_method):
     assert est.identifier.params.c0_v[0] == pytest.approx(-dv, rel=1e-6)
 
 
+def test_the_c0_methods_rest_reading_takes_out_the_ohmic_drop_of_a_small_current():
+    """The c0 method tracks no RC voltage: after a park it reads OCV(z) = v - R0 i. A charge at the rest current
+    itself (rest_current_c = 0.02 C, 60 mA) through the prior's R0 (0.06 ohm Ah / 3 Ah) lifts the voltage by
+    1.2 mV; taken out, the reading is the SOC under it exactly."""
+    est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.5, config=SocConfig(soc_method="c0"))
+    est.update(0.0, np.array([float(_ocv().ocv(0.5))]))
+    est.rest(SocConfig().rest_relaxation_s)
+    i0 = SocConfig().rest_current_c * Q_AH
+    r0 = float(est.identifier.params.r0_ohm[0])
+    assert r0 == pytest.approx(0.06 / Q_AH)
+    est.update(i0, np.array([float(_ocv().ocv(0.6)) + r0 * i0]))
+    assert est.soc[0] == pytest.approx(0.6, abs=1e-6)
+
+
 def test_a_rest_counts_the_period_in_progress_when_the_samples_stopped():
     """rest() counts the last period as the next update would have: after one 1C-discharge sample (3 A on
     3 Ah, no voltage: the count alone) the SOC is still the start's, and the rest takes it 1 s x 3 A = 1/1200 Ah
