@@ -78,3 +78,84 @@ def test_error_figures_count_from_the_start(c20_table):
     assert figs["rmse_1h_pct"] == pytest.approx(1.0)
     assert figs["max_abs_pct"] == pytest.approx(1.0)
     assert figs["rmse_all_pct"] > 1.0
+
+
+# --- a drive at an ambient without a table of its own (the matrix's file_reference)
+
+
+def _table_at(ambient, t_c, offset_v, kind="c20"):
+    from bms_estimator.soc_matrix import Table
+
+    s = np.linspace(0.0, 1.0, 11)
+    curve = OcvCurve(s, 3.2 + offset_v + 0.9 * s + 0.1 * s**2, np.full(11, 0.02), temperature_c=t_c)
+    return Table(ambient, kind, curve, t_c)
+
+
+def _recording(i, v, t_c):
+    from bms_estimator.data import CellRecording
+
+    n = len(i)
+    return CellRecording(np.arange(n, dtype=float), i, v, np.full(n, t_c), "constructed")
+
+
+def test_an_ambient_without_its_own_c20_test_is_read_on_the_others_at_the_files_temperature():
+    """No C/20 test at 15 degC: the 0 and 30 degC tests, 40 mV apart, are read at the file's 15 degC,
+    halfway. The end rest on that branch gives the analytic Q_ref; it is reported, not scored."""
+    from bms_estimator.soc_matrix import file_reference
+
+    cold, warm = _table_at("0degC", 0.0, -0.02), _table_at("30degC", 30.0, +0.02)
+    mid = _table_at("15degC", 15.0, 0.0).curve  # the curve halfway between them
+    i, v, n_dis = _drive(mid, q_true=2.5, soc_end=0.1, rest_s=600)
+    ref = file_reference([cold, warm], "15degC", _recording(i, v, 15.0))
+    assert ref.soc_end == pytest.approx(0.1, abs=2e-3)
+    assert ref.capacity_ah == pytest.approx(2.5, rel=3e-3)
+    assert not ref.relaxed
+    assert ref.why == ("no C/20 test at this ambient: approximate reference from the C/20 tests at 0.0, 30.0 degC "
+                       "read at the file's 15.0 degC, reported only")
+    # read on the cold table alone the same rest is a different SOC: the temperature is what was used
+    assert file_reference([cold], "15degC", _recording(i, v, 15.0)).soc_end > ref.soc_end + 0.01
+
+
+def test_a_files_own_c20_test_is_the_scored_reference_and_hppc_rests_are_not():
+    from bms_estimator.soc_matrix import file_reference
+
+    own, other = _table_at("15degC", 15.0, 0.0), _table_at("30degC", 30.0, +0.02)
+    i, v, _ = _drive(own.curve, q_true=2.5, soc_end=0.1, rest_s=600)
+    ref = file_reference([own, other], "15degC", _recording(i, v, 15.0))
+    assert ref.relaxed and ref.capacity_ah == pytest.approx(2.5, rel=3e-3)
+    hppc = _table_at("15degC", 15.0, 0.0, kind="hppc")
+    approx = file_reference([hppc, other], "15degC", _recording(i, v, 15.0))
+    assert not approx.relaxed and "HPPC rest table" in approx.why
+
+
+def test_a_file_without_a_reference_says_why_instead_of_stopping_the_matrix(c20_table):
+    from bms_estimator.soc_matrix import file_reference
+
+    warm = _table_at("30degC", 30.0, 0.0)
+    i, v, _ = _drive(warm.curve, q_true=2.5, soc_end=0.1, rest_s=30)  # ends under load: no final rest
+    why = file_reference([warm], "30degC", _recording(i, v, 30.0))
+    assert why.startswith("no reference: the recording ends with 30 s of rest")
+    hppc_only = _table_at("30degC", 30.0, 0.0, kind="hppc")
+    assert file_reference([hppc_only], "15degC", _recording(i, v, 15.0)) == (
+        "no C/20 test at this ambient nor any other: no reference")
+
+
+def test_the_matrix_script_runs_the_cells_it_finds_and_names_the_rest(tmp_path):
+    """A data folder with one cell of its own and neither known cell: the script said nothing and
+    stopped on a traceback (FileNotFoundError) at the first known cell it could not find."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    (tmp_path / "data" / "other-cell" / "25degC").mkdir(parents=True)
+    repo = Path(__file__).resolve().parents[1]
+    res = subprocess.run([sys.executable, str(repo / "scripts" / "soc_matrix.py"), "--methods", "ekf"],
+                         capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "BMS_SHARED_DATA": str(tmp_path / "data")})
+    assert res.returncode == 0, res.stderr
+    data = tmp_path / "data"
+    assert f"{data / 'other-cell'}: skipped, no stated capacity for a cell named 'other-cell'" in res.stderr
+    assert f"{data / 'lg-hg2'}: absent, lg-hg2 not run" in res.stderr
+    assert f"{data / 'panasonic-18650pf'}: absent, panasonic-18650pf not run" in res.stderr
+    assert "Traceback" not in res.stderr
