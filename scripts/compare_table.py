@@ -70,6 +70,9 @@ def drive_cycles(folder: Path) -> list[str]:
 def jobs(data: Path, files: str = "*/*", ocv_from: str | None = None) -> list[tuple]:
     out = []
     for cell in sorted(STATED_AH):
+        if not (data / cell).is_dir():
+            print(f"{data / cell}: absent, {cell} not run", file=sys.stderr)
+            continue
         for amb in sorted((d.name for d in (data / cell).iterdir() if d.is_dir()), key=ambient_c, reverse=True):
             if not fnmatch(f"{cell}/{amb}", files) or amb == ocv_from:
                 continue

@@ -159,3 +159,22 @@ def test_the_matrix_script_runs_the_cells_it_finds_and_names_the_rest(tmp_path):
     assert f"{data / 'lg-hg2'}: absent, lg-hg2 not run" in res.stderr
     assert f"{data / 'panasonic-18650pf'}: absent, panasonic-18650pf not run" in res.stderr
     assert "Traceback" not in res.stderr
+
+
+def test_the_compare_table_script_names_a_missing_cell_instead_of_stopping(tmp_path):
+    """scripts/compare_table.py stopped on a FileNotFoundError traceback at a data folder without one of the cells."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    (tmp_path / "data" / "other-cell").mkdir(parents=True)
+    repo = Path(__file__).resolve().parents[1]
+    res = subprocess.run([sys.executable, str(repo / "scripts" / "compare_table.py"), "--jobs", "1"],
+                         capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "BMS_SHARED_DATA": str(tmp_path / "data")})
+    assert res.returncode == 2, res.stderr
+    data = tmp_path / "data"
+    assert f"{data / 'lg-hg2'}: absent, lg-hg2 not run" in res.stderr
+    assert "no drive cycle pairs match --files '*/*'" in res.stderr
+    assert "Traceback" not in res.stderr
