@@ -51,7 +51,7 @@ from .data import load_recording
 from .gaps import RestPlan, recording_rest_plan
 from .scoring import SocReference, counted_soc, soc_error_figures, soc_reference
 
-__all__ = ["CELLS", "STARTS", "ambient_c", "ambient_table", "build_tables", "check_start", "file_reference", "run_cell", "start_point", "summary_lines", "summary_table",
+__all__ = ["CELLS", "STARTS", "ambient_c", "ambient_ocv", "ambient_table", "build_tables", "check_start", "file_reference", "run_cell", "start_point", "summary_lines", "summary_table",
            "markdown"]
 
 CELLS = {"lg-hg2": 3.0, "panasonic-18650pf": 2.9}  # stated (nominal) capacity, Ah
@@ -87,6 +87,20 @@ def ambient_table(amb_dir: Path) -> Table | None:
         return None
     t = float(np.median(r.temperature_c)) if r.temperature_c is not None else ambient_c(amb_dir.name)
     return Table(amb_dir.name, kind, curve, t)
+
+
+def ambient_ocv(cell_dir: Path, ambient: str) -> tuple[OcvCurve, str]:
+    """An ambient's OCV table and where it came from: its own C/20 test, else its HPPC rests, else
+    the C/20 test of the nearest ambient that has one (a recording at a temperature the cell was
+    not characterised at).  Raises FileNotFoundError when the cell has no C/20 test at all."""
+    table = ambient_table(cell_dir / ambient)
+    if table is not None:
+        return table.curve, "C/20" if table.kind == "c20" else "HPPC"
+    others = [d.name for d in cell_dir.iterdir() if (d / "c20_ocv.csv.gz").exists()]
+    if not others:
+        raise FileNotFoundError(f"{cell_dir / ambient}: no OCV test here, and {cell_dir} has no C/20 test at any ambient")
+    near = min(others, key=lambda a: abs(ambient_c(a) - ambient_c(ambient)))
+    return ambient_table(cell_dir / near).curve, f"C/20 at {near}"
 
 
 def build_tables(data: Path, cell: str) -> list[Table]:

@@ -178,3 +178,26 @@ def test_the_compare_table_script_names_a_missing_cell_instead_of_stopping(tmp_p
     assert f"{data / 'lg-hg2'}: absent, lg-hg2 not run" in res.stderr
     assert "no drive cycle pairs match --files '*/*'" in res.stderr
     assert "Traceback" not in res.stderr
+
+
+
+def test_an_ambient_without_a_table_takes_the_nearest_ambients_c20_and_says_so(tmp_path):
+    """``compare`` and the findings table at a recording's ambient with no OCV test of its own (the findings
+    table stopped on a FileNotFoundError there): the nearest ambient's C/20 test, named."""
+    from bms_estimator.soc_matrix import ambient_ocv
+    from tests.test_cli import _c20_file
+
+    s = np.linspace(0.0, 1.0, 11)
+    cell = tmp_path / "cell"
+    for amb, offset in (("0degC", -0.05), ("30degC", 0.05)):
+        (cell / amb).mkdir(parents=True)
+        _c20_file(cell / amb / "c20_ocv.csv.gz", OcvCurve(s, 3.3 + offset + 0.8 * s, np.full(11, 0.02)))
+    (cell / "10degC").mkdir()
+    curve, source = ambient_ocv(cell, "10degC")
+    assert source == "C/20 at 0degC" and float(curve.ocv(0.5)) == pytest.approx(3.65, abs=0.01)
+    curve, source = ambient_ocv(cell, "20degC")
+    assert source == "C/20 at 30degC" and float(curve.ocv(0.5)) == pytest.approx(3.75, abs=0.01)
+    assert ambient_ocv(cell, "0degC")[1] == "C/20"  # its own
+    (tmp_path / "bare" / "10degC").mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match="no OCV test here, and .*bare has no C/20 test at any ambient"):
+        ambient_ocv(tmp_path / "bare", "10degC")
