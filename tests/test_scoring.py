@@ -140,21 +140,26 @@ def test_a_file_without_a_reference_says_why_instead_of_stopping_the_matrix(c20_
         "no C/20 test at this ambient nor any other: no reference")
 
 
-def test_the_matrix_script_runs_the_cells_it_finds_and_names_the_rest(tmp_path):
-    """A data folder with one cell of its own and neither known cell: the script said nothing and
-    stopped on a traceback (FileNotFoundError) at the first known cell it could not find."""
+
+def _run_script(name, data, *args):
+    """One of scripts/ on the data folder ``data`` (BMS_SHARED_DATA)."""
     import os
     import subprocess
     import sys
     from pathlib import Path
 
-    (tmp_path / "data" / "other-cell" / "25degC").mkdir(parents=True)
     repo = Path(__file__).resolve().parents[1]
-    res = subprocess.run([sys.executable, str(repo / "scripts" / "soc_matrix.py"), "--methods", "ekf"],
-                         capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "BMS_SHARED_DATA": str(tmp_path / "data")})
-    assert res.returncode == 0, res.stderr
+    return subprocess.run([sys.executable, str(repo / "scripts" / name), *args], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "BMS_SHARED_DATA": str(data)})
+
+
+def test_the_matrix_script_runs_the_cells_it_finds_and_names_the_rest(tmp_path):
+    """A data folder with one cell of its own and neither known cell: the script said nothing and
+    stopped on a traceback (FileNotFoundError) at the first known cell it could not find."""
     data = tmp_path / "data"
+    (data / "other-cell" / "25degC").mkdir(parents=True)
+    res = _run_script("soc_matrix.py", data, "--methods", "ekf")
+    assert res.returncode == 0, res.stderr
     assert f"{data / 'other-cell'}: skipped, no stated capacity for a cell named 'other-cell'" in res.stderr
     assert f"{data / 'lg-hg2'}: absent, lg-hg2 not run" in res.stderr
     assert f"{data / 'panasonic-18650pf'}: absent, panasonic-18650pf not run" in res.stderr
@@ -163,23 +168,13 @@ def test_the_matrix_script_runs_the_cells_it_finds_and_names_the_rest(tmp_path):
 
 def test_the_compare_table_script_names_a_missing_cell_instead_of_stopping(tmp_path):
     """scripts/compare_table.py stopped on a FileNotFoundError traceback at a data folder without one of the cells."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    (tmp_path / "data" / "other-cell").mkdir(parents=True)
-    repo = Path(__file__).resolve().parents[1]
-    res = subprocess.run([sys.executable, str(repo / "scripts" / "compare_table.py"), "--jobs", "1"],
-                         capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "BMS_SHARED_DATA": str(tmp_path / "data")})
-    assert res.returncode == 2, res.stderr
     data = tmp_path / "data"
+    (data / "other-cell").mkdir(parents=True)
+    res = _run_script("compare_table.py", data, "--jobs", "1")
+    assert res.returncode == 2, res.stderr
     assert f"{data / 'lg-hg2'}: absent, lg-hg2 not run" in res.stderr
     assert "no drive cycle pairs match --files '*/*'" in res.stderr
     assert "Traceback" not in res.stderr
-
-
 
 def test_an_ambient_without_a_table_takes_the_nearest_ambients_c20_and_says_so(tmp_path):
     """``compare`` and the findings table at a recording's ambient with no OCV test of its own (the findings
