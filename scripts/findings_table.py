@@ -178,6 +178,9 @@ def main() -> int:
         print("../shared/data not found (set BMS_SHARED_DATA)", file=sys.stderr)
         return 2
     todo = jobs(root, args.quick)
+    if not todo:
+        print(f"no drive cycle of {' or '.join(NOMINAL_AH)} under {root}: nothing written", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = list(pool.map(one, todo, [args.capacity] * len(todo), [args.soc_min] * len(todo)))

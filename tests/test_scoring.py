@@ -196,3 +196,20 @@ def test_an_ambient_without_a_table_takes_the_nearest_ambients_c20_and_says_so(t
     (tmp_path / "bare" / "10degC").mkdir(parents=True)
     with pytest.raises(FileNotFoundError, match="no OCV test here, and .*bare has no C/20 test at any ambient"):
         ambient_ocv(tmp_path / "bare", "10degC")
+
+
+
+@pytest.mark.parametrize("script, args, code", [
+    ("paper_table.py", (), 2), ("pulse_resistance_table.py", (), 2), ("gap_figures.py", ("--out", "OUT"), 3),
+    ("findings_table.py", ("--out", "OUT/findings.md"), 2), ("sox_figures.py", ("--out", "OUT"), 2),
+    ("compare_table.py", ("--jobs", "1"), 2),
+])
+def test_a_readme_table_script_on_a_data_folder_without_the_cells_says_so_and_writes_nothing(
+        tmp_path, script, args, code):
+    """Each stopped on a traceback, or (the findings table) overwrote its output with an empty table, exit 0."""
+    data, out = tmp_path / "data", tmp_path / "out"
+    (data / "other-cell").mkdir(parents=True)
+    res = _run_script(script, data, *(a.replace("OUT", str(out)) for a in args))
+    assert res.returncode == code, res.stderr
+    assert "Traceback" not in res.stderr and res.stderr.strip()
+    assert not out.exists() or not any(out.iterdir())
