@@ -49,9 +49,9 @@ from .core.ocv_surface import OcvSurface
 from .core.soc import SocConfig, SocEstimator
 from .data import load_recording
 from .gaps import RestPlan, recording_rest_plan
-from .scoring import counted_soc, soc_error_figures, soc_reference
+from .scoring import SocReference, counted_soc, soc_error_figures, soc_reference
 
-__all__ = ["CELLS", "STARTS", "ambient_c", "ambient_table", "build_tables", "check_start", "run_cell", "start_point", "summary_lines", "summary_table",
+__all__ = ["CELLS", "STARTS", "ambient_c", "ambient_ocv", "ambient_table", "build_tables", "check_start", "file_reference", "run_cell", "start_point", "summary_lines", "summary_table",
            "markdown"]
 
 CELLS = {"lg-hg2": 3.0, "panasonic-18650pf": 2.9}  # stated (nominal) capacity, Ah
@@ -87,6 +87,20 @@ def ambient_table(amb_dir: Path) -> Table | None:
         return None
     t = float(np.median(r.temperature_c)) if r.temperature_c is not None else ambient_c(amb_dir.name)
     return Table(amb_dir.name, kind, curve, t)
+
+
+def ambient_ocv(cell_dir: Path, ambient: str) -> tuple[OcvCurve, str]:
+    """An ambient's OCV table and where it came from: its own C/20 test, else its HPPC rests, else
+    the C/20 test of the nearest ambient that has one (a recording at a temperature the cell was
+    not characterised at).  Raises FileNotFoundError when the cell has no C/20 test at all."""
+    table = ambient_table(cell_dir / ambient)
+    if table is not None:
+        return table.curve, "C/20" if table.kind == "c20" else "HPPC"
+    others = [d.name for d in cell_dir.iterdir() if (d / "c20_ocv.csv.gz").exists()]
+    if not others:
+        raise FileNotFoundError(f"{cell_dir / ambient}: no OCV test here, and {cell_dir} has no C/20 test at any ambient")
+    near = min(others, key=lambda a: abs(ambient_c(a) - ambient_c(ambient)))
+    return ambient_table(cell_dir / near).curve, f"C/20 at {near}"
 
 
 def build_tables(data: Path, cell: str) -> list[Table]:
@@ -231,6 +245,36 @@ def start_point(name: str, base_soc: np.ndarray, fed: np.ndarray | None = None) 
     return k, float(np.clip(base_soc[k] + err, 0.0, 1.0))  # (NaN for atPocv: read from the voltage there)
 
 
+def file_reference(tables: list[Table], ambient: str, rec) -> SocReference | str:
+    """A drive file's SOC reference (:func:`~bms_estimator.scoring.soc_reference`), or why it has none.
+
+    Read on its own ambient's C/20 test, the one reference that counts for pass/fail.  An ambient
+    with HPPC rests only gives the mean curve (no discharge branch); an ambient with neither (a
+    recording at a temperature the cell was never characterised at) gives the C/20 tests of the
+    other ambients read at the file's median cell temperature (interpolated between them, held
+    beyond them).  Both are approximate: reported, kept out of pass/fail."""
+    own = next((t for t in tables if t.ambient == ambient), None)
+    c20 = [t for t in tables if t.kind == "c20"]
+    try:
+        if own is not None:
+            ref = soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, own.curve)
+            if own.kind == "c20":
+                return ref
+            return replace(ref, relaxed=False, why_override="no C/20 test at this ambient: approximate reference "
+                                                           "from the HPPC rest table (no discharge branch), reported only")
+        if not c20:
+            return "no C/20 test at this ambient nor any other: no reference"
+        temps = rec.temperature_c[np.isfinite(rec.temperature_c)] if rec.temperature_c is not None else ()
+        t_c = float(np.median(temps)) if len(temps) else ambient_c(ambient)
+        ref = soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, make_ocv(c20), temperature_c=t_c)
+        at = ", ".join(f"{t.temperature_c:.1f}" for t in sorted(c20, key=lambda t: t.temperature_c))
+        return replace(ref, relaxed=False, why_override=f"no C/20 test at this ambient: approximate reference from "
+                                                       f"the C/20 tests at {at} degC read at the file's {t_c:.1f} "
+                                                       f"degC, reported only")
+    except ValueError as exc:  # no final rest, no net discharge, ends full
+        return f"no reference: {exc}"
+
+
 def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,
              overrides: dict | None = None, start_names: tuple[str, ...] = STARTS,
              rest_over_gaps: bool = True, current_gain: float = 1.0) -> list[dict]:
@@ -260,20 +304,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
     if not files:
         return rows
     plans = [recording_rest_plan(rec, rest_over_gaps) for _, _, rec in files]
-    own = {t.ambient: t for t in tables}
-    refs = []
-    for amb, name, rec in files:
-        table = own.get(amb)
-        if table is None:
-            refs.append(None)
-            continue
-        ref = soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, table.curve)
-        if table.kind != "c20":
-            # no C/20 test at this ambient: the HPPC rests give the mean curve only (no branches),
-            # so the reference is approximate and kept out of pass/fail
-            ref = replace(ref, relaxed=False, why_override="no C/20 test at this ambient: approximate reference "
-                                                          "from the HPPC rest table (no discharge branch), reported only")
-        refs.append(ref)
+    refs = [file_reference(tables, amb, rec) for amb, _, rec in files]
     variants = [("all tables", None)]
     if leave_out:
         variants.append(("own table out", "own"))
@@ -294,7 +325,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                     amb, name, rec = files[j]
                     ref = refs[j]
                     # no reference: a mid-file start is told the stated-capacity count
-                    base = ref.soc if ref is not None else counted_soc(rec.current_a, rec.dt_s, stated)
+                    base = ref.soc if isinstance(ref, SocReference) else counted_soc(rec.current_a, rec.dt_s, stated)
                     for start in start_names:
                         st = start_point(start, base, plans[j].fed)
                         recs.append(rec)
@@ -320,7 +351,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                         "elapsed_s_group": elapsed,
                         "logging_gaps_rested": plans[j].gaps, "rested_s": plans[j].rested_s,
                     }
-                    if ref is not None:
+                    if isinstance(ref, SocReference):
                         t = rec.time_s - rec.time_s[0]
                         figs = soc_error_figures(run.soc[:n, c], ref.soc, t, k0 * rec.dt_s)
                         # plain counting with the stated capacity from the same start
@@ -335,7 +366,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                         row.update(capacity_ah_reference=ref.capacity_ah, reference_relaxed=ref.relaxed,
                                    reference=ref.why)
                     else:
-                        row.update(reference_relaxed=False, reference="no C/20 test at this ambient: no reference")
+                        row.update(reference_relaxed=False, reference=ref)
                     rows.append(row)
     return rows
 
@@ -410,7 +441,7 @@ def summary_table(rows: list[dict]) -> str:
     for cell, amb, method, variant in keys:
         sel = [r for r in rows if (r["cell"], r["ambient"], r["method"], r["ocv"]) == (cell, amb, method, variant)]
         if "rmse_30min_pct" not in sel[0]:
-            out.append(f"| {cell} | {amb} | none (no C/20 test here) | {method} | {variant} | - | - | - | - |")
+            out.append(f"| {cell} | {amb} | {sel[0]['reference']} | {method} | {variant} | - | - | - | - |")
             continue
         e30 = np.array([r["rmse_30min_pct"] for r in sel])
         e1h = np.array([r["rmse_1h_pct"] for r in sel])
@@ -419,6 +450,7 @@ def summary_table(rows: list[dict]) -> str:
         cnt = np.median([r["counting_rmse_1h_pct"] for r in full]) if full else float("nan")
         ref = ("scored" if sel[0]["reference_relaxed"] else
                "HPPC table, approximate: reported only" if "HPPC" in sel[0]["reference"] else
+               "other ambients' C/20 tests, approximate: reported only" if "C/20 tests at" in sel[0]["reference"] else
                "end rest not relaxed: reported only")
         out.append(f"| {cell} | {amb} | {ref} | {method} | {variant} | {int(np.sum(e30 <= 2.0))} of {e30.size} | "
                    f"{np.median(e30):.2f} / {np.max(e30):.2f} | {np.nanmedian(e1h):.2f} | {est:.2f} / {cnt:.2f} |")

@@ -34,7 +34,7 @@ import numpy as np
 from bms_estimator.analysis import DEFAULT_METHODS, IDENTIFICATION_METHOD, rmse_mv, train_methods, validate_methods
 from bms_estimator.core.ocv import OcvCurve
 from bms_estimator.data import load_recording, shared_data_dir
-from bms_estimator.soc_matrix import ambient_c, ambient_table
+from bms_estimator.soc_matrix import ambient_c, ambient_ocv, ambient_table
 
 STATED_AH = {"panasonic-18650pf": 2.9, "lg-hg2": 3.0}
 NOT_DRIVE = ("c20_ocv", "hppc", "hppc_steps")
@@ -51,15 +51,7 @@ def ocv_for(cell_dir: Path, ambient: str, ocv_from: str | None = None) -> tuple[
         if not (cell_dir / ocv_from / "c20_ocv.csv.gz").exists():
             raise FileNotFoundError(f"{cell_dir / ocv_from}: no C/20 test")
         return ambient_table(cell_dir / ocv_from).curve, f"C/20 at {ocv_from}"
-    table = ambient_table(cell_dir / ambient)
-    if table is not None:
-        return table.curve, "C/20" if table.kind == "c20" else "HPPC"
-    others = [d.name for d in cell_dir.iterdir() if (d / "c20_ocv.csv.gz").exists()]
-    if not others:
-        raise FileNotFoundError(f"{cell_dir}: no C/20 test at any ambient")
-    near = min(others, key=lambda a: abs(ambient_c(a) - ambient_c(ambient)))
-    curve, _ = ocv_for(cell_dir, near)
-    return curve, f"C/20 at {near}"
+    return ambient_ocv(cell_dir, ambient)
 
 
 def drive_cycles(folder: Path) -> list[str]:
@@ -70,6 +62,9 @@ def drive_cycles(folder: Path) -> list[str]:
 def jobs(data: Path, files: str = "*/*", ocv_from: str | None = None) -> list[tuple]:
     out = []
     for cell in sorted(STATED_AH):
+        if not (data / cell).is_dir():
+            print(f"{data / cell}: absent, {cell} not run", file=sys.stderr)
+            continue
         for amb in sorted((d.name for d in (data / cell).iterdir() if d.is_dir()), key=ambient_c, reverse=True):
             if not fnmatch(f"{cell}/{amb}", files) or amb == ocv_from:
                 continue

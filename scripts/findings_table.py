@@ -39,7 +39,7 @@ from bms_estimator.analysis import reference_capacity  # noqa: E402
 from bms_estimator.core.ocv import OcvCurve  # noqa: E402
 from bms_estimator.data import load_recording, shared_data_dir  # noqa: E402
 from bms_estimator.diagnose import PHYSICS, DiagnoseConfig, Series, diagnose  # noqa: E402
-from bms_estimator.soc_matrix import ambient_table  # noqa: E402
+from bms_estimator.soc_matrix import ambient_ocv  # noqa: E402
 
 NOMINAL_AH = {"panasonic-18650pf": 2.9, "lg-hg2": 3.0}
 CAUSE_NAMES = ("hysteresis", "temperature", "soc_dependence", "current_nonlinearity", "direction_asymmetry",
@@ -49,16 +49,16 @@ SKIP = ("c20", "hppc")
 
 
 def ocv_for(cell_dir: Path) -> tuple[OcvCurve, str]:
-    """The ambient's own table: its C/20 test, else its HPPC rests."""
-    table = ambient_table(cell_dir)
-    if table is None:
-        raise FileNotFoundError(f"{cell_dir}: neither a C/20 test nor an HPPC test with its steps")
-    return table.curve, "C/20" if table.kind == "c20" else "HPPC"
+    """The ambient's own table (its C/20 test, else its HPPC rests), else the nearest ambient's C/20."""
+    return ambient_ocv(cell_dir.parent, cell_dir.name)
 
 
 def jobs(root: Path, quick: bool) -> list[tuple[str, str, str]]:
     out = []
     for cell in NOMINAL_AH:
+        if not (root / cell).is_dir():
+            print(f"{root / cell}: absent, {cell} not run", file=sys.stderr)
+            continue
         for amb_dir in sorted((root / cell).iterdir(), key=lambda p: AMBIENT_ORDER.get(p.name, 9)):
             files = sorted(p for p in amb_dir.glob("*.csv.gz") if not p.name.startswith(SKIP))
             if quick:
@@ -178,6 +178,9 @@ def main() -> int:
         print("../shared/data not found (set BMS_SHARED_DATA)", file=sys.stderr)
         return 2
     todo = jobs(root, args.quick)
+    if not todo:
+        print(f"no drive cycle of {' or '.join(NOMINAL_AH)} under {root}: nothing written", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = list(pool.map(one, todo, [args.capacity] * len(todo), [args.soc_min] * len(todo)))

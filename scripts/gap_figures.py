@@ -220,8 +220,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=REPO / "docs" / "gap")
     args = p.parse_args(argv)
     data = args.data or shared_data_dir()
-    if data is None or not (data / CELL / AMBIENT / "hppc.csv.gz").exists():
+    if data is None:
         print("the measured data set is not there (--data, or ../shared/data)", file=sys.stderr)
+        return 3
+    need = [Path(data) / CELL / AMBIENT / "hppc.csv.gz", Path(data) / "lg-hg2" / "25degC" / "udds.csv.gz"]
+    missing = [str(p) for p in need if not p.exists()]
+    if missing:
+        print(f"the figures need {', '.join(missing)} of the measured data set, not there", file=sys.stderr)
         return 3
     res = experiment(Path(data))
     res["drive_cut"] = drive_cut(Path(data))

@@ -65,8 +65,16 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--readme", action="store_true", help="write the table into README.md")
     args = ap.parse_args()
-    if shared_data_dir() is None:
+    data = shared_data_dir()
+    if data is None:
         print("../shared/data not found (set BMS_SHARED_DATA)", file=sys.stderr)
+        return 2
+    need = dict.fromkeys(data / cell / "25degC" / f"{name}.csv.gz" for cell, _, *pair in PAIRS
+                         for name in ("c20_ocv", *pair))
+    missing = [str(p) for p in need if not p.exists()]
+    if missing:
+        print(f"the table's {len(PAIRS)} pairs need {len(need)} files of the measured data; missing: "
+              f"{', '.join(missing)}", file=sys.stderr)
         return 2
     with ProcessPoolExecutor(2) as pool:
         rows = list(pool.map(one, PAIRS))

@@ -85,6 +85,9 @@ def main() -> int:
     if data is None:
         print("../shared/data not found (set BMS_SHARED_DATA)", file=sys.stderr)
         return 2
+    if not (data / CELL).is_dir():
+        print(f"{data / CELL}: absent; the table is the {CELL} HPPC tests'", file=sys.stderr)
+        return 2
     text = table(measure(data))
     print(text)
     if args.readme:

@@ -86,7 +86,15 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     rows = []
+    present = sorted(d.name for d in data.iterdir() if d.is_dir())
+    for name in present:
+        if name not in CELLS:
+            print(f"{data / name}: skipped, no stated capacity for a cell named {name!r} "
+                  f"(known: {', '.join(CELLS)})", file=sys.stderr)
     for cell in CELLS:
+        if cell not in present:
+            print(f"{data / cell}: absent, {cell} not run", file=sys.stderr)
+            continue
         rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides, starts,
                          args.rest_over_gaps, args.current_gain)
     for line in summary_lines(rows):

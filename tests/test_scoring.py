@@ -164,3 +164,138 @@ def test_the_largest_error_is_the_largest_in_size():
     ref = np.full(t.size, 0.5)
     est = ref + np.where(t < 5000, 0.01, -0.04)
     assert soc_error_figures(est, ref, t)["max_abs_pct"] == pytest.approx(4.0)
+
+
+# --- a drive at an ambient without a table of its own (the matrix's file_reference)
+
+
+def _table_at(ambient, t_c, offset_v, kind="c20"):
+    from bms_estimator.soc_matrix import Table
+
+    s = np.linspace(0.0, 1.0, 11)
+    curve = OcvCurve(s, 3.2 + offset_v + 0.9 * s + 0.1 * s**2, np.full(11, 0.02), temperature_c=t_c)
+    return Table(ambient, kind, curve, t_c)
+
+
+def _recording(i, v, t_c):
+    from bms_estimator.data import CellRecording
+
+    n = len(i)
+    return CellRecording(np.arange(n, dtype=float), i, v, np.full(n, t_c), "constructed")
+
+
+def test_an_ambient_without_its_own_c20_test_is_read_on_the_others_at_the_files_temperature():
+    """No C/20 test at 15 degC: the 0 and 30 degC tests, 40 mV apart, are read at the file's 15 degC,
+    halfway. The end rest on that branch gives the analytic Q_ref; it is reported, not scored."""
+    from bms_estimator.soc_matrix import file_reference
+
+    cold, warm = _table_at("0degC", 0.0, -0.02), _table_at("30degC", 30.0, +0.02)
+    mid = _table_at("15degC", 15.0, 0.0).curve  # the curve halfway between them
+    i, v, n_dis = _drive(mid, q_true=2.5, soc_end=0.1, rest_s=600)
+    ref = file_reference([cold, warm], "15degC", _recording(i, v, 15.0))
+    assert ref.soc_end == pytest.approx(0.1, abs=2e-3)
+    assert ref.capacity_ah == pytest.approx(2.5, rel=3e-3)
+    assert not ref.relaxed
+    assert ref.why == ("no C/20 test at this ambient: approximate reference from the C/20 tests at 0.0, 30.0 degC "
+                       "read at the file's 15.0 degC, reported only")
+    # read on the cold table alone the same rest is a different SOC: the temperature is what was used
+    assert file_reference([cold], "15degC", _recording(i, v, 15.0)).soc_end > ref.soc_end + 0.01
+
+
+def test_a_files_own_c20_test_is_the_scored_reference_and_hppc_rests_are_not():
+    from bms_estimator.soc_matrix import file_reference
+
+    own, other = _table_at("15degC", 15.0, 0.0), _table_at("30degC", 30.0, +0.02)
+    i, v, _ = _drive(own.curve, q_true=2.5, soc_end=0.1, rest_s=600)
+    ref = file_reference([own, other], "15degC", _recording(i, v, 15.0))
+    assert ref.relaxed and ref.capacity_ah == pytest.approx(2.5, rel=3e-3)
+    hppc = _table_at("15degC", 15.0, 0.0, kind="hppc")
+    approx = file_reference([hppc, other], "15degC", _recording(i, v, 15.0))
+    assert not approx.relaxed and "HPPC rest table" in approx.why
+
+
+def test_a_file_without_a_reference_says_why_instead_of_stopping_the_matrix(c20_table):
+    from bms_estimator.soc_matrix import file_reference
+
+    warm = _table_at("30degC", 30.0, 0.0)
+    i, v, _ = _drive(warm.curve, q_true=2.5, soc_end=0.1, rest_s=30)  # ends under load: no final rest
+    why = file_reference([warm], "30degC", _recording(i, v, 30.0))
+    assert why.startswith("no reference: the recording ends with 30 s of rest")
+    hppc_only = _table_at("30degC", 30.0, 0.0, kind="hppc")
+    assert file_reference([hppc_only], "15degC", _recording(i, v, 15.0)) == (
+        "no C/20 test at this ambient nor any other: no reference")
+
+
+
+def _run_script(name, data, *args):
+    """One of scripts/ on the data folder ``data`` (BMS_SHARED_DATA)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    return subprocess.run([sys.executable, str(repo / "scripts" / name), *args], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "BMS_SHARED_DATA": str(data)})
+
+
+def test_the_matrix_script_runs_the_cells_it_finds_and_names_the_rest(tmp_path):
+    """A data folder with one cell of its own and neither known cell: the script said nothing and
+    stopped on a traceback (FileNotFoundError) at the first known cell it could not find."""
+    data = tmp_path / "data"
+    (data / "other-cell" / "25degC").mkdir(parents=True)
+    res = _run_script("soc_matrix.py", data, "--methods", "ekf")
+    assert res.returncode == 0, res.stderr
+    assert f"{data / 'other-cell'}: skipped, no stated capacity for a cell named 'other-cell'" in res.stderr
+    assert f"{data / 'lg-hg2'}: absent, lg-hg2 not run" in res.stderr
+    assert f"{data / 'panasonic-18650pf'}: absent, panasonic-18650pf not run" in res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_the_compare_table_script_names_a_missing_cell_instead_of_stopping(tmp_path):
+    """scripts/compare_table.py stopped on a FileNotFoundError traceback at a data folder without one of the cells."""
+    data = tmp_path / "data"
+    (data / "other-cell").mkdir(parents=True)
+    res = _run_script("compare_table.py", data, "--jobs", "1")
+    assert res.returncode == 2, res.stderr
+    assert f"{data / 'lg-hg2'}: absent, lg-hg2 not run" in res.stderr
+    assert "no drive cycle pairs match --files '*/*'" in res.stderr
+    assert "Traceback" not in res.stderr
+
+def test_an_ambient_without_a_table_takes_the_nearest_ambients_c20_and_says_so(tmp_path):
+    """``compare`` and the findings table at a recording's ambient with no OCV test of its own (the findings
+    table stopped on a FileNotFoundError there): the nearest ambient's C/20 test, named."""
+    from bms_estimator.soc_matrix import ambient_ocv
+    from tests.test_cli import _c20_file
+
+    s = np.linspace(0.0, 1.0, 11)
+    cell = tmp_path / "cell"
+    for amb, offset in (("0degC", -0.05), ("30degC", 0.05)):
+        (cell / amb).mkdir(parents=True)
+        _c20_file(cell / amb / "c20_ocv.csv.gz", OcvCurve(s, 3.3 + offset + 0.8 * s, np.full(11, 0.02)))
+    (cell / "10degC").mkdir()
+    curve, source = ambient_ocv(cell, "10degC")
+    assert source == "C/20 at 0degC" and float(curve.ocv(0.5)) == pytest.approx(3.65, abs=0.01)
+    curve, source = ambient_ocv(cell, "20degC")
+    assert source == "C/20 at 30degC" and float(curve.ocv(0.5)) == pytest.approx(3.75, abs=0.01)
+    assert ambient_ocv(cell, "0degC")[1] == "C/20"  # its own
+    (tmp_path / "bare" / "10degC").mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match="no OCV test here, and .*bare has no C/20 test at any ambient"):
+        ambient_ocv(tmp_path / "bare", "10degC")
+
+
+
+@pytest.mark.parametrize("script, args, code", [
+    ("paper_table.py", (), 2), ("pulse_resistance_table.py", (), 2), ("gap_figures.py", ("--out", "OUT"), 3),
+    ("findings_table.py", ("--out", "OUT/findings.md"), 2), ("sox_figures.py", ("--out", "OUT"), 2),
+    ("compare_table.py", ("--jobs", "1"), 2),
+])
+def test_a_readme_table_script_on_a_data_folder_without_the_cells_says_so_and_writes_nothing(
+        tmp_path, script, args, code):
+    """Each stopped on a traceback, or (the findings table) overwrote its output with an empty table, exit 0."""
+    data, out = tmp_path / "data", tmp_path / "out"
+    (data / "other-cell").mkdir(parents=True)
+    res = _run_script(script, data, *(a.replace("OUT", str(out)) for a in args))
+    assert res.returncode == code, res.stderr
+    assert "Traceback" not in res.stderr and res.stderr.strip()
+    assert not out.exists() or not any(out.iterdir())
