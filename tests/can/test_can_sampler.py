@@ -292,3 +292,100 @@ def test_huge_sender_timestamps_are_refused_not_looped_on(huge):
     assert s.counters.bad_timestamps == 6
     assert len(out) == len(want) == 19
     same(out, want)
+
+
+# ------------------------------------------------ limits are inclusive
+def test_a_value_as_old_as_its_staleness_limit_is_still_fresh():
+    """A value OLDER than its staleness limit is stale: one exactly that old at a period's end is still used.
+    Voltage, temperature and pack voltage arrive once at t = 0; current every 0.25 s keeps the
+    samples coming. Cell voltage and pack voltage (its limit defaults to ``staleness_s`` = 2 s, not
+    the temperature's) are fresh at the ends 1 and 2 s, stale from 3 s; the temperature (4 s) is
+    kept up to the end 4 s and NaN from 5 s."""
+    s = SampleAssembler(1, period_s=1.0, staleness_s=2.0, temperature_staleness_s=4.0)
+    out = s.feed_frame([Event(I, -1, 1.0), Event(V, 0, 3.3), Event(T, 0, 25.0), Event(PV, -1, 400.0)], 0.0)
+    for k in range(1, 25):
+        out += s.feed_frame([Event(I, -1, 1.0)], 0.25 * k)
+    by_t = {o.t_s: o for o in out}
+    assert sorted(by_t) == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert [bool(by_t[t].valid[0]) for t in sorted(by_t)] == [True, True, False, False, False, False]
+    assert [by_t[t].pack_voltage_v == 400.0 for t in sorted(by_t)] == [True, True, False, False, False, False]
+    assert [by_t[t].cell_temperature_c[0] == 25.0 for t in sorted(by_t)] == [True] * 4 + [False] * 2
+
+
+def test_a_current_covering_exactly_the_minimum_coverage_is_valid():
+    """``current_valid`` is False if LESS than ``min_current_coverage`` of the period was covered:
+    two current frames at 0 and 0.25 s held 0.25 s each cover exactly half of [0, 1)."""
+    s = SampleAssembler(1, period_s=1.0, current_hold_s=0.25, min_current_coverage=0.5)
+    s.feed_frame([Event(I, -1, 2.0), Event(V, 0, 3.3)], 0.0)
+    s.feed_frame([Event(I, -1, 2.0)], 0.25)
+    (out,) = s.feed_frame([Event(V, 0, 3.3)], 1.0)
+    assert out.current_coverage == 0.5
+    assert out.current_valid and out.valid[0]
+    assert out.current_a == 2.0
+
+
+def test_mean_voltage_counts_only_the_values_within_the_period():
+    """``voltage_mode="mean"``: the mean of the values received WITHIN the period. A frame before
+    the first complete period [1, 2) only primes the latest value: (3.2 + 3.4) / 2 = 3.3, not
+    (3.0 + 3.2 + 3.4) / 3."""
+    s = SampleAssembler(1, period_s=1.0, voltage_mode="mean", current_hold_s=5.0)
+    s.feed_frame([Event(I, -1, 0.0), Event(V, 0, 3.0)], 0.25)
+    s.feed(Event(V, 0, 3.2), 1.25)
+    s.feed(Event(V, 0, 3.4), 1.75)
+    (out,) = s.feed(Event(I, -1, 0.0), 2.0)
+    assert out.t_s == 2.0
+    assert out.cell_voltage_v[0] == pytest.approx(3.3, abs=1e-12)
+
+
+def test_a_gap_of_exactly_max_gap_s_is_bridged_not_a_time_jump():
+    """Only a frame MORE than ``max_gap_s`` after the previous one is a time jump. 5 s after the last
+    frame at 0.5 s, the five periods ending 1 .. 5 s are all emitted by the frame at 5.5 s (the
+    first with the cell's data, the rest flagged stale) and the grid is not re-anchored."""
+    s = SampleAssembler(1, period_s=1.0, staleness_s=1.0, max_gap_s=5.0)
+    for k in range(6):
+        s.feed_frame([Event(I, -1, 1.0), Event(V, 0, 3.3)], 0.1 * k)
+    out = s.feed_frame([Event(I, -1, 1.0), Event(V, 0, 3.3)], 5.5)
+    assert [o.t_s for o in out] == [1.0, 2.0, 3.0, 4.0, 5.0]
+    assert [bool(o.valid[0]) for o in out] == [True, False, False, False, False]
+    assert s.counters.time_jumps == 0 and s.next_boundary_s == 6.0
+
+
+def test_a_frame_exactly_rewind_s_back_is_ignored_not_a_restart():
+    """Backward by UP TO ``rewind_s`` is ignored (``backward_frames``); only more is a rewind that drops
+    the state: 5 s back with ``rewind_s = 5`` keeps the cell's 3.3 V and the grid."""
+    s = SampleAssembler(1, period_s=1.0, rewind_s=5.0)
+    for k in range(5):
+        s.feed_frame([Event(I, -1, 1.0), Event(V, 0, 3.3)], 10.0 + 0.25 * k)
+    assert s.feed_frame([Event(V, 0, 9.9)], 6.0) == []
+    assert (s.counters.backward_frames, s.counters.rewinds) == (1, 0)
+    (out,) = s.feed_frame([Event(I, -1, 1.0)], 12.0)
+    assert out.t_s == 12.0 and out.cell_voltage_v[0] == 3.3
+
+
+def test_a_negative_cell_index_is_counted_and_never_lands_on_the_last_cell():
+    """Cell indices outside ``[0, n_cells)`` are ignored and counted: -1 must not be taken as Python's
+    "last element" (cell 1 of 2 would publish 9.9 V)."""
+    s = SampleAssembler(2, period_s=1.0)
+    s.feed_frame([Event(I, -1, 1.0), Event(V, 0, 3.3), Event(V, 1, 3.4)], 0.0)
+    s.feed_frame([Event(V, -1, 9.9), Event(T, -1, 99.0)], 0.5)
+    (out,) = s.feed_frame([Event(I, -1, 1.0)], 1.0)
+    assert s.counters.bad_cell_index == 2
+    assert list(out.cell_voltage_v) == [3.3, 3.4]
+    assert np.isnan(out.cell_temperature_c).all()
+
+
+def test_a_minimum_current_coverage_above_one_is_refused():
+    with pytest.raises(ValueError, match="min_current_coverage"):
+        SampleAssembler(1, min_current_coverage=1.5)
+
+
+def test_a_temperatures_age_counts_from_its_own_frame():
+    """A temperature's age is ``end - its frame's time``: received at 0.75 s, it is 1.25 s old at the
+    end 2 s (kept under a 1.5 s limit) and 2.25 s old at 3 s (NaN)."""
+    s = SampleAssembler(1, period_s=1.0, temperature_staleness_s=1.5)
+    out = s.feed_frame([Event(I, -1, 1.0), Event(V, 0, 3.3)], 0.0)
+    out += s.feed_frame([Event(T, 0, 25.0)], 0.75)
+    for k in range(1, 13):
+        out += s.feed_frame([Event(I, -1, 1.0), Event(V, 0, 3.3)], 0.25 * k)
+    assert [o.t_s for o in out] == [1.0, 2.0, 3.0]
+    assert [o.cell_temperature_c[0] == 25.0 for o in out] == [True, True, False]
