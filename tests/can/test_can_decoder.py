@@ -57,6 +57,11 @@ def test_presets_load_and_survive_a_dict_round_trip():
         ({"current": {"message": "X", "signal": "Y", "scale": 0}}, "non-zero"),
         ({"current": {"message": "X", "signal": "Y", "sign": 2}}, "sign"),
         ({"cell_voltages": []}, "cell_voltages"),
+        # [valid_min, valid_max] must be a range: a single point would drop almost every value
+        ({"current": {"message": "X", "signal": "Y", "valid_min": 5.0, "valid_max": 5.0}}, "valid_min must be < valid_max"),
+        ({"cell_voltages": [{"message": "M", "table": [{"signals": {"V": -1}}]}]}, "negative cell index"),
+        ({"cell_voltages": [{"message": "M", "signal_pattern": "(?P<cell>\\d)(?P<slot>\\d)"}]}, "exactly one of the named groups"),
+        ({"cell_voltages": [{"message": "M", "signal_pattern": "V(?P<slot>\\d)", "mux_stride": -1}]}, "mux_stride"),
     ],
 )
 def test_mapping_validation_names_the_problem(patch, needle):
@@ -242,6 +247,8 @@ def test_bad_input_is_counted_not_raised(project_db):
     good = own_voltage_frame(project_db, 0, [3.0, 3.1, 3.2])
     short = can.Message(arbitration_id=cv.frame_id, is_extended_id=True, data=good.data[:5])
     assert dec.decode(short) == [] and c.short_frame == 1
+    one_byte_short = can.Message(arbitration_id=cv.frame_id, is_extended_id=True, data=good.data[:7])
+    assert dec.decode(one_byte_short) == [] and c.short_frame == 2  # the DBC says 8 bytes
 
     bad_mux = can.Message(arbitration_id=cv.frame_id, is_extended_id=True,
                           data=(2500).to_bytes(2, "little") + good.data[2:])
@@ -367,3 +374,119 @@ def test_bit_fields_decode_as_cantools(request, layout):
     c = fast.counters
     assert c.events > 2000 and c.internal_error == 0
     assert c.bad_mux > 0 and c.flagged_invalid > 0 and c.out_of_range > 0 and c.unmapped > 0, c
+
+
+# ------------------------------------------------- conversion and limits
+def test_the_conversion_is_sign_scale_times_the_dbc_physical_value_plus_offset(project_db):
+    """``si = sign * scale * (raw * dbc_scale + dbc_offset) + offset``: a sender that puts degF
+    into the project DBC's temperatures (0.5 degC/bit, offset -40) is read with scale 5/9 and
+    offset -160/9; 77 degF (raw 234) is 25 degC and 32 degF (raw 144) is 0 degC."""
+    cfg = mapping_to_dict(load_mapping("default"))
+    cfg["cell_temperatures"][0].update(scale=5.0 / 9.0, offset=-160.0 / 9.0)
+    dec = FrameDecoder(project_db, cfg, 2)
+    (t0,) = [s for s in dec.layout() if s.kind == EventKind.CELL_TEMPERATURE and s.cell == 0]
+    assert t0.a == pytest.approx(0.5 * 5 / 9) and t0.b == pytest.approx(-40.0)
+    msg = frame(project_db, "CellTemperatures",
+                {"CellIndexBase": 0, **{f"CellTemperature{j}": 32.0 for j in range(6)}, "CellTemperature0": 77.0})
+    ev = dec.decode(msg)
+    assert [(e.cell, round(e.value, 9)) for e in ev] == [(0, 25.0), (1, 0.0)]
+
+
+def test_values_on_the_valid_range_bounds_are_kept(project_db):
+    """The value must lie IN ``[valid_min, valid_max]``: the preset's 0.5 V and 5.5 V (raw 5000 and
+    55000 at 0.1 mV) and +-5000 A (raw +-5e6 at 1 mA) are kept, 0.1 mV beyond is dropped."""
+    dec = FrameDecoder(project_db, "default", 3)
+    ev = dec.decode(own_voltage_frame(project_db, 0, [0.5, 5.5, 5.5001], t=0.0))
+    assert [(e.cell, e.value) for e in ev] == [(0, 0.5), (1, 5.5)]
+    ev = dec.decode(own_voltage_frame(project_db, 0, [0.4999, 3.0, 3.0], t=0.1))
+    assert [e.cell for e in ev] == [1, 2]
+    assert dec.counters.out_of_range == 2
+    for i in (5000.0, -5000.0):
+        ev = dec.decode(own_current_frame(project_db, i))
+        assert [(e.kind, e.value) for e in ev if e.kind == EventKind.CURRENT] == [(EventKind.CURRENT, i)]
+    assert dec.counters.out_of_range == 2
+    # a voltage group that names no limits takes the same 0.5 .. 5.5 V
+    cfg = mapping_to_dict(load_mapping("default"))
+    for key in ("valid_min", "valid_max"):
+        cfg["cell_voltages"][0].pop(key)
+    dec = FrameDecoder(project_db, cfg, 3)
+    ev = dec.decode(own_voltage_frame(project_db, 0, [0.4999, 0.5, 5.5001], t=0.2))
+    assert [(e.cell, e.value) for e in ev] == [(1, 0.5)]
+
+
+@pytest.mark.parametrize("stride,offset,base,want", [
+    (1, -1, 1, [(0, 3.0), (1, 3.1), (2, 3.2)]),  # CellIndexBase counts from 1
+    (1, -1, 0, [(0, 3.1), (1, 3.2)]),  # slot 0 of base 0 would be cell -1: left out
+    (3, 0, 2, [(6, 3.0), (7, 3.1), (8, 3.2)]),  # the multiplexer counts 3-cell groups
+])
+def test_slot_rule_cell_is_mux_times_stride_plus_slot_plus_offset(project_db, stride, offset, base, want):
+    cfg = mapping_to_dict(load_mapping("default"))
+    cfg["cell_voltages"][0].update(mux_stride=stride, index_offset=offset)
+    dec = FrameDecoder(project_db, cfg, 9)
+    ev = dec.decode(own_voltage_frame(project_db, base, [3.0, 3.1, 3.2]))
+    assert [(e.cell, round(e.value, 6)) for e in ev] == want
+
+
+def test_index_offset_shifts_the_cell_rule_and_the_table(foxbms_db):
+    """A second string's mapping: ``cell = int(cell) + index_offset`` (CellVoltage_004..007 of mux 1
+    are cells 20..23 with offset 16), and a table's cells shift the same way."""
+    cfg = mapping_to_dict(load_mapping("foxbms"))
+    cfg["cell_voltages"][0]["index_offset"] = 16
+    dec = FrameDecoder(foxbms_db, cfg, 32)
+    ev = dec.decode(fox_voltage_frame(foxbms_db, 1, [3100, 3200, 3300, 3400]))
+    assert [(e.cell, round(e.value, 6)) for e in ev] == [(20, 3.1), (21, 3.2), (22, 3.3), (23, 3.4)]
+    cfg["cell_voltages"] = [{"message": "AFE_CellVoltages", "scale": 0.001, "index_offset": 10,
+                             "table": [{"mux": 1, "signals": {"CellVoltage_005": 0}}]}]
+    dec = FrameDecoder(foxbms_db, cfg, 11)
+    ev = dec.decode(fox_voltage_frame(foxbms_db, 1, [3100, 3200, 3300, 3400]))
+    assert [(e.cell, round(e.value, 6)) for e in ev] == [(10, 3.2)]
+
+
+MIXED_DBC = """VERSION ""
+NS_ :
+BS_:
+BU_: X
+BO_ 512 Mixed: 8 X
+ SG_ Mux M : 0|8@1+ (1,0) [0|1] "" X
+ SG_ Current : 8|16@1- (0.01,0) [-327.68|327.67] "A" X
+ SG_ Status : 24|2@1+ (1,0) [0|3] "" X
+ SG_ Volt0 m0 : 32|16@1+ (0.001,0) [0|65.535] "V" X
+ SG_ Volt1 m1 : 32|16@1+ (0.001,0) [0|65.535] "V" X
+"""
+
+
+def test_a_multiplexed_frame_carries_its_common_signal_and_a_multi_bit_flag_drops_it():
+    """A current sent with every multiplexer value next to multiplexed cell voltages: each frame gives
+    both. ``invalid_if_nonzero``: ANY non-zero value of a 2-bit status drops the current (2 as well as 1)."""
+    db = cantools.database.load_string(MIXED_DBC, database_format="dbc", strict=True)
+    mapping = {"current": {"message": "Mixed", "signal": "Current", "invalid_if_nonzero": ["Status"]},
+               "cell_voltages": [{"message": "Mixed", "table": [{"mux": 0, "signals": {"Volt0": 0}},
+                                                                {"mux": 1, "signals": {"Volt1": 1}}]}]}
+    dec = FrameDecoder(db, mapping, 2)
+
+    def mixed(mux: int, status: int) -> list:
+        data = db.encode_message("Mixed", {"Mux": mux, "Current": 12.34, "Status": status, f"Volt{mux}": 3.3 + mux / 10})
+        return [(e.kind, e.cell, round(e.value, 6))
+                for e in dec.decode(can.Message(arbitration_id=512, is_extended_id=False, data=data))]
+
+    cur = [(EventKind.CURRENT, -1, 12.34)]
+    assert mixed(0, 0) == cur + [(EventKind.CELL_VOLTAGE, 0, 3.3)]
+    assert mixed(1, 0) == cur + [(EventKind.CELL_VOLTAGE, 1, 3.4)]
+    assert mixed(1, 2) == [(EventKind.CELL_VOLTAGE, 1, 3.4)]
+    assert mixed(0, 1) == [(EventKind.CELL_VOLTAGE, 0, 3.3)]
+    assert dec.counters.flagged_invalid == 2
+
+
+def test_a_cell_temperature_mapping_without_limits_keeps_minus_60_to_150_degc(foxbms_db):
+    """A temperature group that names no ``valid_min``/``valid_max`` takes -60 .. 150 degC: the foxBMS
+    DBC's signed 8-bit degC reach -128, and -61 degC (a sensor fault) is dropped, -60 degC kept."""
+    cfg = mapping_to_dict(load_mapping("foxbms"))
+    for key in ("valid_min", "valid_max"):
+        cfg["cell_temperatures"][0].pop(key, None)
+    dec = FrameDecoder(foxbms_db, cfg, 12)
+    values = {"AFE_CellTemperatures_Mux": 1, **{f"CellTemperature_{c:03d}_invalidFlag": 0 for c in range(6, 12)},
+              **{f"CellTemperature_{c:03d}": 20 for c in range(6, 12)},
+              "CellTemperature_006": -61, "CellTemperature_007": -60, "CellTemperature_008": 127}
+    ev = dec.decode(frame(foxbms_db, "AFE_CellTemperatures", values))
+    assert [(e.cell, e.value) for e in ev] == [(7, -60.0), (8, 127.0), (9, 20.0), (10, 20.0), (11, 20.0)]
+    assert dec.counters.out_of_range == 1

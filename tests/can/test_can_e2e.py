@@ -263,3 +263,21 @@ def test_e2e_mapping_problems_are_named(crc_db, project_db):
         load_mapping(_with_e2e("default", {"PackMeasurement": {}}))
     assert "name a counter, a crc, or both" in str(exc.value.problems)
 
+
+
+def test_a_frame_exactly_the_resync_time_after_the_previous_is_still_checked(project_db):
+    """Only a frame MORE than ``E2E_RESYNC_S`` after the previous one of its group starts afresh:
+    a restarted counter exactly 5 s later is a counter failure; one 5.5 s after that is accepted."""
+    from bms_estimator.can.e2e import E2E_RESYNC_S
+
+    dec = FrameDecoder(project_db, _with_e2e("default", {"PackMeasurement": {"counter": "MeasurementCounter"}}), 1)
+
+    def at(t: float, current_a: float, counter: int) -> can.Message:
+        m = _own(project_db, current_a, counter)
+        m.timestamp = t
+        return m
+
+    stream = [at(2.0, 1.0, 7), at(2.0 + E2E_RESYNC_S, 2.0, 0), at(2.0 + E2E_RESYNC_S + 5.5, 3.0, 9)]
+    got = [[e.value for e in dec.decode(m) if e.kind == EventKind.CURRENT] for m in stream]
+    assert got == [[1.0], [], [3.0]]
+    assert dec.counters.e2e_counter == 1
