@@ -209,3 +209,54 @@ def test_a_big_endian_cell_message_keeps_cantools(tmp_path):
     frames = enc.encode_cells([0, 1], 0.5, 0.01, 0.01, 1000.0, 0.004, 5000.0, 0.0)
     decoded = db.get_message_by_name("CellStateB").decode(frames[3].data)
     assert decoded["CellIndex"] == 1 and decoded["R2"] == pytest.approx(4.0, abs=0.002)
+
+
+def test_only_whole_cell_indices_within_the_multiplexer_are_sent(project_db):
+    """CellIndex is 0 .. 1999: -1 (which the 11-bit field would carry as 2047), 2000, 0.5 and NaN are
+    skipped and counted; 0 and 1999 are sent, each as its CellStateA + CellStateB pair."""
+    enc = StateEncoder(project_db)
+    msgs = enc.encode_cells([-1, 0, 1999, 2000, 0.5, math.nan], 0.5, 1e-3, 1e-3, 1000.0, 1e-3, 1000.0, 0.0)
+    cells = [project_db.decode_message(m.arbitration_id, m.data)["CellIndex"] for m in msgs]
+    assert cells == [0, 0, 1999, 1999]
+    assert enc.skipped_cells == 4
+
+
+def test_soc_in_percent_is_sent_as_is(project_db):
+    """``soc_unit="percent"``: 50 is 50 % (raw 2000 at 0.025 %), not 5000 % clamped to 102.35 %."""
+    enc = StateEncoder(project_db)
+    (a, _) = enc.encode_cells([3], 50.0, 1e-3, 1e-3, 1000.0, 1e-3, 1000.0, 0.0, soc_unit="percent")
+    assert project_db.decode_message(a.arbitration_id, a.data)["Soc"] == 50.0
+    summary, _ = enc.encode_pack_summary([40.0, 60.0], soc_unit="percent")
+    d = project_db.decode_message(summary.arbitration_id, summary.data)
+    assert (d["SocMin"], d["SocMean"], d["SocMax"]) == (40.0, 50.0, 60.0)
+
+
+def test_summary_counter_counts_through_all_sixteen_values(project_db):
+    """SummaryCounter is 4 bits: 0, 1, ..., 15, then 0 again (a receiver's alive check expects 15 before 0)."""
+    enc = StateEncoder(project_db)
+    seen = []
+    for _ in range(17):
+        summary, _ = enc.encode_pack_summary([0.5])
+        seen.append(project_db.decode_message(summary.arbitration_id, summary.data)["SummaryCounter"])
+    assert seen == list(range(16)) + [0]
+
+
+def test_cells_valid_is_the_count_it_is_given(project_db):
+    """PackElectrical.CellsValid: ``cells_valid`` when given (the snapshot's cells with fresh inputs:
+    two of three here, all three with a SOC), else the cells the statistics used."""
+    enc = StateEncoder(project_db)
+    _, el = enc.encode_pack_summary([0.4, 0.5, 0.6], -3.5, 11.1, cells_valid=2)
+    d = project_db.decode_message(el.arbitration_id, el.data)
+    assert (d["CellsValid"], d["PackCurrent"], d["PackVoltage"]) == (2, -3.5, 11.1)
+    _, el = enc.encode_pack_summary([0.4, math.nan, 0.6])
+    assert project_db.decode_message(el.arbitration_id, el.data)["CellsValid"] == 2
+
+
+def test_soh_fractions_are_sent_in_percent(project_db):
+    """PackHealth's SOH signals are in % (0.1 % steps): a fraction 0.953 is sent as 95.3 %."""
+    enc = StateEncoder(project_db)
+    frames = enc.encode_pack_sox({"soh_capacity_min": 0.953, "soh_resistance_max": 1.25, "capacity_ah_mean": 2.9})
+    (health,) = [m for m in frames if m.arbitration_id == project_db.get_message_by_name("PackHealth").frame_id]
+    d = project_db.decode_message(health.arbitration_id, health.data)
+    assert d["SohCapacity"] == pytest.approx(95.3) and d["SohResistance"] == pytest.approx(125.0)
+    assert d["CapacityMean"] == pytest.approx(2.9, abs=0.01)
