@@ -1,0 +1,123 @@
+"""The service's data path without the daemon: frames -> Pipeline -> Snapshot (its state, valid mask and
+status counters), on the project DBC and the 6-cell pack of test_daemon."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bms_estimator.can.decoder import FrameDecoder
+from bms_estimator.can.sampler import SampleAssembler
+from bms_estimator.core.soc import SocEstimator
+from bms_estimator.core.sox import SoxEstimator
+from bms_estimator.service.pipeline import Pipeline, Snapshot
+from bms_estimator.service.schema import EstimatorState
+
+from test_daemon import CAPACITY_AH, DB, N, current_frame, ocv, restamp, voltage_frame
+
+
+def _pipeline(sox: bool = False) -> tuple[Pipeline, list[Snapshot]]:
+    snaps: list[Snapshot] = []
+    pipe = Pipeline(FrameDecoder(DB, "default", N), SampleAssembler(N, 1.0, 2.5),
+                    SocEstimator(N, ocv(), CAPACITY_AH, 1.0), on_snapshot=snaps.append,
+                    sox=SoxEstimator(N, 1.0) if sox else None, clock=lambda: 0.0, wall_clock=lambda: 0.0)
+    return pipe, snaps
+
+
+def _seconds(t0: float, n: int, volts, current_a: float = -1.0) -> list:
+    """``n`` seconds of bus traffic from ``t0``: the current and every cell group each 0.1 s."""
+    out = []
+    for k in range(10 * n):
+        t = t0 + 0.1 * k
+        out.append(current_frame(t, current_a))
+        for base in range(0, N, 3):
+            out.append(voltage_frame(t + 0.002, base, volts[base:base + 3]))
+    return out
+
+
+def _feed(pipe: Pipeline, frames) -> None:
+    for f in restamp(frames):
+        pipe.process_frame(f)
+
+
+def test_a_cell_that_never_sent_a_usable_voltage_degrades_the_pack_not_back_to_init():
+    """Cell 5 reads 6 V (above valid_max 5.5 V, dropped) from the start: it has no SOC and is stale.
+    The pack is DEGRADED, not INIT (INIT is "no SOC yet": no cell has one); one stale cell is counted,
+    the other five are valid and have their SOC, and cell 5 publishes no voltage."""
+    pipe, snaps = _pipeline()
+    volts = [3.6] * (N - 1) + [6.0]
+    _feed(pipe, _seconds(100.0, 4, volts) + [current_frame(104.0, -1.0)])
+    assert [s.t_s for s in snaps] == [101.0, 102.0, 103.0, 104.0]
+    last = snaps[-1]
+    assert last.state == EstimatorState.DEGRADED and last.counters.estimator_state == int(EstimatorState.DEGRADED)
+    assert last.valid.tolist() == [True] * (N - 1) + [False]
+    assert last.counters.stale_cells == 1 and last.cells_valid == N - 1
+    assert np.isfinite(last.cells["soc"][:-1]).all() and np.isnan(last.cells["soc"][-1])
+    assert np.isnan(last.cells["voltage_v"][-1]) and last.soc.n == N - 1
+    # the status frame's DecodeErrors: every dropped value, here cell 5's 6 V in 4 s of frames every 0.1 s
+    assert last.counters.decode_errors == pipe.decoder.counters.out_of_range == 40
+
+
+def test_status_counters_count_rewinds_as_time_jumps():
+    """The status frame's TimeJumps is the sampler's time jumps plus its rewinds: a log that restarts
+    200 s back (a rewind) and then a 50 s silence (a time jump) count 2."""
+    pipe, snaps = _pipeline()
+    volts = [3.6] * N
+    _feed(pipe, _seconds(1000.0, 3, volts) + _seconds(800.0, 3, volts) + _seconds(853.0, 3, volts)
+          + [current_frame(856.0, -1.0)])
+    sc = pipe.sampler.counters
+    assert (sc.rewinds, sc.time_jumps) == (1, 1)
+    assert snaps[-1].counters.time_jumps == 2
+    assert snaps[-1].state == EstimatorState.RUNNING
+
+
+def test_a_second_without_a_valid_current_is_published_as_such():
+    """The second [102, 103) carries only flagged-invalid current frames (CurrentInvalid = 1): its snapshot
+    says ``current_valid`` False, no cell is valid (every one is counted stale) and the pack is DEGRADED;
+    the seconds around it are RUNNING with a valid current."""
+    pipe, snaps = _pipeline()
+    volts = [3.6] * N
+    frames = _seconds(100.0, 4, volts) + [current_frame(104.0, -1.0)]
+    frames = [current_frame(f.timestamp, -1.0, invalid=True)
+              if 102.0 <= f.timestamp < 103.0 and f.arbitration_id == frames[0].arbitration_id else f for f in frames]
+    _feed(pipe, frames)
+    by_t = {s.t_s: s for s in snaps}
+    assert sorted(by_t) == [101.0, 102.0, 103.0, 104.0]
+    lost = by_t[103.0]
+    assert not lost.current_valid and not lost.valid.any()
+    assert lost.state == EstimatorState.DEGRADED and lost.counters.stale_cells == N
+    for t in (102.0, 104.0):
+        assert by_t[t].current_valid and by_t[t].valid.all() and by_t[t].state == EstimatorState.RUNNING
+    assert pipe.counters.samples_current_invalid == 1
+
+
+def test_a_stale_cells_kept_voltage_counts_no_energy():
+    """The SOX part gets the sample's valid mask: cell 5's voltage is NotAvailable after the first
+    second, so it is stale from the end 104 s on (its last 3.6 V at 100.902 s, staleness 2.5 s) and its
+    kept voltage counts no energy. At -1 A and 3.6 V every valid second discharges 3.6 / 3600 Wh: six
+    for cells 0-4, three for cell 5."""
+    pipe, snaps = _pipeline(sox=True)
+    frames = []
+    for k in range(60):
+        t = 100.0 + 0.1 * k
+        frames.append(current_frame(t, -1.0))
+        frames.append(voltage_frame(t + 0.002, 0, [3.6] * 3))
+        frames.append(voltage_frame(t + 0.002, 3, [36000, 36000, 36000 if t < 101.0 else 0xFFFF], raw=True))
+    _feed(pipe, frames + [current_frame(106.0, -1.0)])
+    assert [s.t_s for s in snaps] == [101.0, 102.0, 103.0, 104.0, 105.0, 106.0]
+    assert [bool(s.valid[-1]) for s in snaps] == [True] * 3 + [False] * 3
+    e = pipe.sox.energy_discharged_wh
+    assert e[:-1] == pytest.approx(np.full(N - 1, 6 * 3.6 / 3600))
+    assert e[-1] == pytest.approx(3 * 3.6 / 3600)
+
+
+def test_a_wall_clock_step_whose_gap_never_came_does_not_hide_a_later_silence():
+    """A step the daemon reported but the sampler bridged (1 s, within its 5 s ``max_gap_s``: no gap
+    appears) is forgotten two periods later, so a real 100 s silence after it is rested over."""
+    pipe, snaps = _pipeline()
+    volts = [3.6] * N
+    _feed(pipe, _seconds(100.0, 3, volts))
+    pipe.clock_stepped(102.95, 1.0)
+    _feed(pipe, _seconds(103.0, 5, volts) + _seconds(208.0, 3, volts) + [current_frame(211.0, -1.0)])
+    assert pipe.counters.clock_steps == 1
+    assert pipe.counters.rests == 1 and pipe.counters.rest_s == pytest.approx(100.0)
