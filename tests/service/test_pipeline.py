@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bms_estimator.can.decoder import FrameDecoder
-from bms_estimator.can.sampler import SampleAssembler
+from bms_estimator.can.sampler import SampleAssembler, first_current, sample_current
 from bms_estimator.core.soc import SocEstimator
 from bms_estimator.core.sox import SoxEstimator
 from bms_estimator.service.pipeline import Pipeline, Snapshot
@@ -121,3 +121,26 @@ def test_a_wall_clock_step_whose_gap_never_came_does_not_hide_a_later_silence():
     _feed(pipe, _seconds(103.0, 5, volts) + _seconds(208.0, 3, volts) + [current_frame(211.0, -1.0)])
     assert pipe.counters.clock_steps == 1
     assert pipe.counters.rests == 1 and pipe.counters.rest_s == pytest.approx(100.0)
+
+
+def test_the_estimator_is_fed_from_the_first_valid_current_on():
+    """Before the first sample with a valid current there is nothing to count: those samples are not
+    fed (the state stays as it started), so the estimator ends bit for bit where one fed the samples
+    from the first valid current on ends (``first_current``, the fleet's rule), its identifier included.
+    The first 3 s carry only flagged-invalid current frames."""
+    pipe, snaps = _pipeline()
+    frames = _seconds(100.0, 8, [3.6 + 0.01 * c for c in range(N)], current_a=-2.0)
+    frames = [current_frame(f.timestamp, -2.0, invalid=True)
+              if f.timestamp < 103.0 and f.arbitration_id == frames[0].arbitration_id else f for f in frames]
+    _feed(pipe, frames + [current_frame(108.0, -2.0)])
+    samples = [s.sample for s in snaps]
+    k0 = first_current(np.array([s.current_a for s in samples]), np.array([s.current_valid for s in samples]))
+    assert k0 == 3 and [s.state for s in snaps[:3]] == [EstimatorState.INIT] * 3
+    ref = SocEstimator(N, ocv(), CAPACITY_AH, 1.0)
+    for s in samples[k0:]:
+        ref.update(sample_current(s.current_a, s.current_valid), s.cell_voltage_v, s.valid,
+                   temperature_c=s.cell_temperature_c)
+    got, want = pipe.estimator.state_dict(), ref.state_dict()
+    assert got.keys() == want.keys()
+    for key in want:
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)
