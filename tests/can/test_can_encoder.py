@@ -260,3 +260,28 @@ def test_soh_fractions_are_sent_in_percent(project_db):
     d = project_db.decode_message(health.arbitration_id, health.data)
     assert d["SohCapacity"] == pytest.approx(95.3) and d["SohResistance"] == pytest.approx(125.0)
     assert d["CapacityMean"] == pytest.approx(2.9, abs=0.01)
+
+
+def test_a_negative_value_below_the_top_of_the_frame_is_masked_to_its_bits(tmp_path):
+    """The packer masks each raw value to its length (two's complement for a signed one): on a DBC
+    whose signed C0 sits right after CellIndex (bits 11..25) instead of at the top of the word, -100 mV
+    must leave Soc, R0 and R1 above it intact, byte for byte as cantools builds the frame."""
+    text = (Path(__file__).resolve().parents[2] / "dbc" / "bms_estimator.dbc").read_text()
+    for old, new in ((" SG_ Soc m0 : 11|12@1+", " SG_ Soc m0 : 26|12@1+"), (" SG_ R0 m0 : 23|13@1+", " SG_ R0 m0 : 38|13@1+"),
+                     (" SG_ R1 m0 : 36|13@1+", " SG_ R1 m0 : 51|13@1+"), (" SG_ C0 m0 : 49|15@1-", " SG_ C0 m0 : 11|15@1-")):
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "c0_low.dbc"
+    path.write_text(text)
+    from bms_estimator.can.dbc import load_db
+
+    db = load_db(path)
+    vec, ref = StateEncoder(db), StateEncoder(db)
+    ref._packers = {name: None for name in ref._packers}  # cantools, frame by frame
+    assert vec._packers["CellStateA"] is not None
+    args = ([0, 7], [0.5, 0.25], 0.01, 0.02, 1000.0, 0.004, 5000.0, [-0.1, 0.05])
+    got, want = vec.encode_cells(*args), ref.encode_cells(*args)
+    assert [bytes(m.data) for m in got] == [bytes(m.data) for m in want]
+    d = db.decode_message(got[0].arbitration_id, got[0].data)
+    assert (d["CellIndex"], d["Soc"], d["C0"]) == (0, 50.0, pytest.approx(-100.0))
+    assert d["R0"] == pytest.approx(10.0, abs=0.008) and d["R1"] == pytest.approx(20.0, abs=0.008)
