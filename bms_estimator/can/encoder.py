@@ -363,10 +363,7 @@ class StateEncoder:
         """
         def raw(mname: str, sname: str, codec) -> int:
             key = CAN_STATUS_SIGNALS[sname]
-            if isinstance(counters, Mapping):
-                value = counters.get(key, counters.get(sname, 0))
-            else:
-                value = getattr(counters, key, getattr(counters, sname, 0))
+            value = counters.get(key, 0) if isinstance(counters, Mapping) else getattr(counters, key, 0)
             if isinstance(value, str) and value in codec.choices_by_name:
                 return codec.choices_by_name[value]
             return int(codec.raw(_to_float(value)))
