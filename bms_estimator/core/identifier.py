@@ -178,9 +178,7 @@ class Identifier:
         """The prior model's scaled theta with its resistances times ``factor`` (per cell)."""
         config = self.config
         q = self.i_ref_a
-        # the prior must itself pass the guard, whatever bounds the user set
-        tau2 = min(config.prior_tau2_s, 0.9 * config.tau_max_s)
-        tau1 = min(max(config.prior_tau1_s, 1.1 * config.tau_min_s, 1.5 * self.dt_s), 0.5 * tau2)
+        tau1, tau2 = self._prior_tau_s()
         return self._theta_s_from_physical(
             config.prior_r0_ohm_ah / q * factor,
             config.prior_r1_ohm_ah / q * factor,
@@ -189,6 +187,21 @@ class Identifier:
             np.full(self.n_cells, tau2),
             np.zeros(self.n_cells),
         )
+
+    def _prior_tau_s(self) -> tuple[float, float]:
+        """The prior's time constants, moved inside the guard's bounds: the prior must itself pass
+        the guard, whatever bounds the user set."""
+        config = self.config
+        tau2 = min(config.prior_tau2_s, 0.9 * config.tau_max_s)
+        tau1 = min(max(config.prior_tau1_s, 1.1 * config.tau_min_s, 1.5 * self.dt_s), 0.5 * tau2)
+        return tau1, tau2
+
+    def prior_slow_branch(self, temperature_c: np.ndarray, reference_c: float) -> tuple[np.ndarray, np.ndarray]:
+        """The prior's slow branch at ``temperature_c`` (per cell): ``(R2 [ohm], tau2 [s])``, the
+        resistance on the prior's Arrhenius line (module docstring), the time constant kept."""
+        factor = arrhenius_factor(temperature_c, reference_c, self.config.prior_activation_k)
+        r2 = self.config.prior_r2_ohm_ah / self.i_ref_a * factor
+        return r2, np.full(self.n_cells, self._prior_tau_s()[1])
 
     def _set_prior(self, factor: np.ndarray) -> None:
         """The prior model with its resistances times ``factor`` (per cell): where the block start pulls

@@ -339,6 +339,8 @@ class SocEstimator:
         self._start_hysteresis(np.isfinite(self.soc))
         self.ekf = (SocEkf(self.n_cells, self.dt_s, self.capacity_ah, config.ekf)
                     if config.soc_method == "ekf" else None)
+        self._slow_floor = self.ekf is not None and config.ekf.slow_branch_floor > 0.0
+        self._take_slow_branch_floor()
         # cells whose next valid sample follows a rest longer than the relaxation (rest())
         self._rest_due = np.zeros(self.n_cells, dtype=bool)
         self._any_rest_due = False
@@ -571,6 +573,16 @@ class SocEstimator:
         self.temperature_c = np.where(np.isfinite(t), t, self.temperature_c)
         if self._t_aware:
             self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
+        self._take_slow_branch_floor()
+
+    def _take_slow_branch_floor(self) -> None:
+        """The EKF's floor on the slow branch at :attr:`temperature_c` (``ekf.slow_branch_floor``):
+        ``(R2 [ohm], tau2 [s])``, the identifier's prior's at the cell temperature, R2 times the share."""
+        if not self._slow_floor:
+            return
+        r2, tau2 = self.identifier.prior_slow_branch(self.temperature_c, self.config.default_temperature_c)
+        self._r2_floor_ohm = self.config.ekf.slow_branch_floor * r2
+        self._tau2_floor_s = tau2
 
     def _take_start_temperature(self, t: np.ndarray, i_ok: np.ndarray) -> None:
         """A valid reading of a cell that has begun (a valid current, or an SOC) joins its start readings
@@ -628,13 +640,19 @@ class SocEstimator:
             self.ekf.set_soc_sigma(sigma, cells)
 
     def _rc_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """The identified RC pairs, ``(r_ohm, tau_s)``, each ``(N, 2)``."""
+        """The identified RC pairs the EKF runs, ``(r_ohm, tau_s)``, each ``(N, 2)``: a slow branch below
+        the floor (``ekf.slow_branch_floor``) is the floor's."""
         p = self.identifier.params
         r = np.empty((self.n_cells, 2))  # (N, 2) pairs, filled column by column (np.stack's values)
         r[:, 0], r[:, 1] = p.r1_ohm, p.r2_ohm
         tau = np.empty((self.n_cells, 2))  # p.tau1_s, p.tau2_s, multiplied into place
         np.multiply(p.r1_ohm, p.c1_f, out=tau[:, 0])
         np.multiply(p.r2_ohm, p.c2_f, out=tau[:, 1])
+        if self._slow_floor:
+            low = p.r2_ohm < self._r2_floor_ohm
+            if any_cell(low):
+                r[:, 1] = np.where(low, self._r2_floor_ohm, r[:, 1])
+                tau[:, 1] = np.where(low, self._tau2_floor_s, tau[:, 1])
         return r, tau
 
     def rest(self, gap_s: float, cells: np.ndarray | None = None) -> None:
@@ -1029,6 +1047,7 @@ class SocEstimator:
         self.temperature_c = np.asarray(s.get("temperature_c", self.temperature_c), dtype=float).copy()
         if self._t_aware:
             self._rel_q = np.asarray(self.ocv.relative_capacity(self.temperature_c), dtype=float)
+        self._take_slow_branch_floor()
         # states saved before the recount existed: count from where the cells are now
         self._soc_fix = np.asarray(s.get("soc_fix", self.soc), dtype=float).copy()
         self._q_fix = np.asarray(s.get("q_fix", self._charge_ref_ah), dtype=float).copy()

@@ -720,3 +720,52 @@ def test_a_start_temperature_check_in_progress_survives_the_state_file():
     assert a.ekf.r_diffusion_ohm[0] < 0.5 * float(arrhenius_factor(-40.0, 25.0, SocEkfConfig().diffusion_r_activation_k)) * 0.04 / STATED_AH
     np.testing.assert_array_equal(b.identifier.params.r0_ohm, a.identifier.params.r0_ohm)
     np.testing.assert_array_equal(b.ekf.r_diffusion_ohm, a.ekf.r_diffusion_ohm)
+
+
+def _collapsed_slow_branch(est: SocEstimator, r2_ohm: np.ndarray) -> None:
+    """The identifier frozen at a model whose slow branch is ``r2_ohm`` at tau2 = 50 s (as the equation-error
+    fit leaves it when c0 has taken the slow overpotential), so that only the filter's use of it is seen."""
+    ident, n = est.identifier, est.n_cells
+    ident.theta_good = ident._theta_s_from_physical(np.full(n, 0.02), np.full(n, 0.01), np.full(n, 10.0), r2_ohm,
+                                                    np.full(n, 50.0), np.zeros(n))
+    ident.params = ident._physical(ident.theta_good)
+    ident.identified[:] = True  # (its own model: the start temperature's prior does not replace it)
+    ident.update = lambda *args, **kwargs: None  # (the SOC's moves still shift its c0, not its R2)
+
+
+def test_the_filter_runs_a_slow_branch_no_smaller_than_the_identifiers_prior():
+    """``ekf.slow_branch_floor``: where the identified R2 is below the identifier's prior R2 at the cell
+    temperature (0.03 ohm Ah / 3 Ah = 10 mOhm at 25 degC, x2.16 at 0 degC), the filter's slow RC voltage is
+    the prior's branch (R2 and its tau2, 200 s); above it, the identified branch; the published R2 stays
+    the identifier's.  With the floor at 0 the filter runs the identified branch as it is."""
+    temps = np.array([25.0, 0.0, 25.0, 0.0])
+    r2_id = np.array([0.001, 0.001, 0.05, 0.05])
+    i_a, n_s = -3.0, 600
+    v2 = {}
+    for floor in (1.0, 0.0):
+        est = SocEstimator(4, _ocv(), STATED_AH, 1.0, initial_soc=0.9,
+                           config=SocConfig(ekf=SocEkfConfig(slow_branch_floor=floor)))
+        _collapsed_slow_branch(est, r2_id)
+        for _ in range(n_s):
+            est.update(i_a, np.full(4, 3.9), temperature_c=temps)
+        np.testing.assert_allclose(est.identifier.params.r2_ohm, r2_id, rtol=1e-12)  # published: the identifier's
+        v2[floor] = est.ekf.v_rc[:, 1]
+
+    def settled(r_ohm, tau_s):  # a branch driven by i_a for n_s - 1 periods (the first predicts from rest)
+        return r_ohm * i_a * (1.0 - np.exp(-(n_s - 1) / tau_s))
+
+    r2_prior = IdentifierConfig().prior_r2_ohm_ah / STATED_AH * np.array([1.0, _f(0.0)])
+    np.testing.assert_allclose(v2[1.0][:2], settled(r2_prior, 200.0), rtol=1e-6)
+    np.testing.assert_allclose(v2[1.0][2:], settled(0.05, 50.0), rtol=1e-6)
+    np.testing.assert_allclose(v2[0.0], settled(r2_id, 50.0), rtol=1e-6)
+
+
+def test_the_prior_slow_branch_follows_the_temperature_and_keeps_inside_the_guard():
+    from bms_estimator.core.identifier_methods import make_identifier
+
+    ident = make_identifier(3, 1.0, 3.0, IdentifierConfig())
+    r2, tau2 = ident.prior_slow_branch(np.array([25.0, 0.0, np.nan]), 25.0)
+    np.testing.assert_allclose(r2, 0.01 * np.array([1.0, _f(0.0), 1.0]), rtol=1e-12)  # no reading: the reference's
+    np.testing.assert_allclose(tau2, 200.0)
+    tight = make_identifier(1, 1.0, 3.0, IdentifierConfig(tau_max_s=150.0))
+    assert tight.prior_slow_branch(np.array([25.0]), 25.0)[1][0] == pytest.approx(135.0)  # 0.9 x the bound
