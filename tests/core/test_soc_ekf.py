@@ -112,8 +112,8 @@ def test_ekf_state_round_trips(capacity_cases):
     q_true, cur, vol = capacity_cases
     cfg = SocConfig(soc_method="ekf")
     a = SocEstimator(4, _ocv(), 3.0, 1.0, initial_soc=0.9, config=cfg)
-    for k in range(900):
-        a.update(cur[k], vol[k])
+    for k in range(900):  # at 5 degC, then without a temperature: the state carries what it set (the priors, the slow-branch floor)
+        a.update(cur[k], vol[k], temperature_c=5.0)
     b = SocEstimator(4, _ocv(), 3.0, 1.0, initial_soc=0.5, config=cfg)
     b.load_state_dict(a.state_dict())
     for k in range(900, 1200):
