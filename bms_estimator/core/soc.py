@@ -576,8 +576,9 @@ class SocEstimator:
         self._take_slow_branch_floor()
 
     def _take_slow_branch_floor(self) -> None:
-        """The EKF's floor on the slow branch at :attr:`temperature_c` (``ekf.slow_branch_floor``):
-        ``(R2 [ohm], tau2 [s])``, the identifier's prior's at the cell temperature, R2 times the share."""
+        """Sets the EKF's floor on the slow branch (``ekf.slow_branch_floor``) at :attr:`temperature_c`:
+        ``_r2_floor_ohm`` (the identifier's prior R2 at the cell temperature times the share) and
+        ``_tau2_floor_s`` (the prior's tau2), read by :meth:`_rc_pairs`."""
         if not self._slow_floor:
             return
         r2, tau2 = self.identifier.prior_slow_branch(self.temperature_c, self.config.default_temperature_c)
