@@ -769,3 +769,30 @@ def test_the_prior_slow_branch_follows_the_temperature_and_keeps_inside_the_guar
     np.testing.assert_allclose(tau2, 200.0)
     tight = make_identifier(1, 1.0, 3.0, IdentifierConfig(tau_max_s=150.0))
     assert tight.prior_slow_branch(np.array([25.0]), 25.0)[1][0] == pytest.approx(135.0)  # 0.9 x the bound
+
+
+def test_the_capacity_learns_once_the_soc_is_sure_apart_from_the_capacitys_share():
+    """The capacity row of K is held while the SOC's sigma *given dq*, sqrt(P_zz - P_zq^2 / P_qq), is above
+    ``capacity_learn_max_soc_sigma``, not while its whole sigma is: after a long discharge the capacity's
+    own share of P_zz keeps the whole sigma above the gate, and the capacity must learn exactly then.
+
+    Three cells, each with the whole SOC sigma 3 % (above the 2 % gate): the first all of it the capacity's
+    (given dq 0.5 %: learns), the second half of its variance (2.1 %: held), the third none (3 %: held)."""
+    from bms_estimator.core.soc_ekf import SocEkf
+
+    cfg = SocEkfConfig(capacity_learn_max_slope_v=100.0)
+    ekf = SocEkf(3, 1.0, np.full(3, 3.0), cfg)
+    sz, sq = 0.03, cfg.capacity_sigma
+    p = np.zeros((3, 5, 5))
+    p[:, 1, 1], p[:, 2, 2], p[:, 4, 4] = 1e-6, 1e-6, 1e-4
+    p[:, 0, 0], p[:, 3, 3] = sz**2, sq**2
+    rho = np.array([np.sqrt(1.0 - (0.005 / sz) ** 2), np.sqrt(0.5), 0.0])  # correlation of z and dq
+    p[:, 0, 3] = p[:, 3, 0] = rho * sz * sq
+    ekf.p = p
+    given_dq = np.sqrt(sz**2 - (rho * sz) ** 2)
+    np.testing.assert_allclose(given_dq, [0.005, 0.0212, 0.03], atol=1e-4)
+    assert np.all(ekf.soc_sigma > cfg.capacity_learn_max_soc_sigma)
+    _, d_q = ekf.correct(np.full(3, 0.02), np.full(3, 0.8), np.zeros(3), np.ones(3, bool), 0.0, np.zeros(3))
+    # a voltage above the prediction says the SOC is higher; with z and dq correlated positively (a
+    # discharge: a larger capacity would have counted less out) it says the capacity is larger
+    assert d_q[0] > 0.0 and d_q[1:].tolist() == [0.0, 0.0]
