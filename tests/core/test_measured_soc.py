@@ -47,10 +47,24 @@ def test_a_correct_start_beats_counting_wherever_the_stated_capacity_is_off(rows
     worse = {f"{r['cell']}/{r['ambient']}/{r['file']}": (round(r["rmse_1h_pct"], 2), round(r["counting_rmse_1h_pct"], 2))
              for r in off if not r["rmse_1h_pct"] < r["counting_rmse_1h_pct"]}
     assert not worse, worse
-    # and where counting is right, a correct start stays close: measured 0.28-2.12 % (median 0.87 %) on the
+    # and where counting is right, a correct start stays close: measured 0.28-1.92 % (median 0.88 %) on the
     # seven Panasonic files, where the count starts from the table's 3.00 Ah against a reference of 2.89-2.92
     right = np.array([r["rmse_1h_pct"] for r in full if r["counting_rmse_1h_pct"] <= 1.0])
     assert right.size == 7 and np.median(right) <= 1.2 and right.max() <= 2.5, right
+
+
+@needs_shared
+def test_the_capacity_learns_toward_the_reference_where_the_tables_is_off(rows):
+    """Panasonic's table counts 3.00 Ah against these files' 2.88-2.92 Ah (its reference): the filter learns
+    the capacity once the SOC is sure apart from the capacity's own share (core.soc_ekf).  Measured over
+    its 28 runs: median |Q - Q_ref| 1.19 % (1.89 % while the gate was on the SOC's whole sigma, which the
+    capacity's own share kept above 2 % on hwfet_a, cycle_1 and cycle_3); over all 72 runs mean 1.44 %."""
+    err = {r["cell"]: [] for r in rows}
+    for r in rows:
+        err[r["cell"]].append(100 * abs(r["capacity_ah_estimated"] / r["capacity_ah_reference"] - 1))
+    pan = np.array(err["panasonic-18650pf"])
+    assert pan.size == 28 and np.median(pan) <= 1.5, np.sort(pan)
+    assert np.mean(np.concatenate(list(err.values()))) <= 1.6, {k: np.mean(v) for k, v in err.items()}
 
 
 @needs_shared
@@ -68,7 +82,7 @@ def test_soc_from_any_start_at_0_degc(rows):
     read that as SOC (before the load-scaled voltage noise: median 5.1 %, worst 10.5 %)."""
     e30 = np.array([r["rmse_30min_pct"] for r in rows if r["ambient"] == "0degC"])
     assert e30.size == 4 * 4
-    assert np.median(e30) <= 2.0, np.median(e30)  # measured 1.23 % (1.06 % before the slow-branch floor, 1.3 % before the prior at the start temperature, 1.7 % before the diffusion prior)
+    assert np.median(e30) <= 2.0, np.median(e30)  # measured 1.22 % (1.23 % before the capacity's gate, 1.06 % before the slow-branch floor, 1.3 % before the prior at the start temperature, 1.7 % before the diffusion prior)
     assert np.mean(e30 <= 2.0) >= 0.9, np.sort(e30)  # measured 16 of 16 (14 before the slow-branch floor, 10 before the diffusion prior)
     assert e30.max() <= 2.5, e30.max()  # measured 1.91 % (2.54 % before the slow-branch floor, 2.74 % before the prior at the start temperature, 4.47 % before the diffusion prior)
 
