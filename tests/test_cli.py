@@ -421,6 +421,19 @@ def test_diagnose_on_too_few_samples_names_the_file(tmp_path, capsys):
         "needs 100" in capsys.readouterr().err
 
 
+def test_diagnose_on_a_window_passed_only_at_the_start_names_the_file(capsys):
+    """The Panasonic cycle_1 sample (Kollmeyer, CC BY 4.0) is above 0.95 SOC only in its first block, which is
+    never scored: numpy's 'Mean of empty slice' warnings, then a ZeroDivisionError traceback."""
+    data = str(drive_cycle("panasonic-18650pf", "cycle_1"))
+    for soc_min, soc_max, window in (("0.95", "0.99", "at least 0.95 and at most 0.99"), ("0.97", "1.0", "at least 0.97")):
+        assert main(["diagnose", data, "--ocv", PAN_OCV, "--capacity-ah", "2.9", "--soc-min", soc_min,
+                     "--soc-max", soc_max, "--no-lif"]) == 3
+        err = capsys.readouterr().err
+        assert err.startswith(f"bms-estimator diagnose: error: {data}: only 0 samples with the counted SOC {window} "
+                              "after the first "), err
+        assert err.endswith("to score; a diagnosis needs 100\n") and err.count("\n") == 1, err
+
+
 def test_short_files_and_late_starts_print_figures_not_nan(tmp_path, capsys, monkeypatch):
     """5 min of the LG drive (shipped sample, Kollmeyer, CC BY 4.0) never enters 20-90 % SOC: fit printed no
     parameters and 'simulation RMSE nan mV', compare a table of 'nan', both with the capacity at the low end of

@@ -48,13 +48,17 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _series(series_type, rec, ocv, args: argparse.Namespace, cfg):
-    """The file as the diagnosis reads it; too few samples in its SOC window is the file's fault (exit 3, named)."""
-    from ..diagnose.decide import window_mask
+def _series(series_type, rec, ocv, args: argparse.Namespace, cfg, *, cross_validated: bool):
+    """The file as the diagnosis reads it; too few samples in its SOC window, or (``cross_validated``: the
+    file both fitted and scored) too few of them after its first block, which is never scored, is the
+    file's fault (exit 3, named), said before the fits run."""
+    from ..diagnose.decide import scored_folds, window_mask
 
     s = series_type.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
     try:
         window_mask(s, cfg)
+        if cross_validated:
+            scored_folds(s, cfg, validation=False)
     except ValueError as exc:  # (it read "only 60 samples inside the SOC window -1..2", exit 2, no file)
         raise DataError(f"{rec.source}: {exc}") from None
     return s
@@ -70,12 +74,12 @@ def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     warn_if_start_is_not_initial_soc(rec, ocv, args)
-    data = _series(Series, rec, ocv, args, cfg)
+    data = _series(Series, rec, ocv, args, cfg, cross_validated=args.validate is None)
     val = None
     if args.validate is not None:
         rv = load(args.validate, args)
         warn_if_start_is_not_initial_soc(rv, ocv, args)
-        val = _series(Series, rv, ocv, args, cfg)
+        val = _series(Series, rv, ocv, args, cfg, cross_validated=False)
     d = diagnose(data, validate=val, config=cfg)
     out = d.to_json()
     out["data"] = str(args.data)
