@@ -638,6 +638,31 @@ def test_a_tuning_option_out_of_bounds_is_named_as_the_option(capsys):
         assert said in capsys.readouterr().err
 
 
+def test_adaptation_thresholds_are_used_as_given_or_refused_naming_both(capsys):
+    """--error-off-mv was clamped to --error-on-mv (min of the two) and both defaulted to 0, so that
+    '--error-on-mv 50' alone (adaptation never turns off) and '--error-off-mv 5' alone (clamped to 0) gave
+    the default result without a word."""
+    from bms_estimator.cli.__main__ import build_parser
+    from bms_estimator.cli.common import soc_config
+
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    drive = str(drive_cycle("lg-hg2", "la92"))
+    for command in ("soc", "fit", "sop-backtest"):
+        args = build_parser(command).parse_args([command, drive, *cell, "--error-on-mv", "3", "--error-off-mv", "1.5"])
+        ident = soc_config(args).identifier
+        assert (ident.error_on_v, ident.error_off_v) == pytest.approx((0.003, 0.0015))
+        args = build_parser(command).parse_args([command, drive, *cell])
+        assert (soc_config(args).identifier.error_on_v, soc_config(args).identifier.error_off_v) == (0.0, 0.0)
+    for options, said in (
+            (["--error-on-mv", "50"], "--error-on-mv 50 with --error-off-mv 0 (the default) changes nothing: "
+                                      "adaptation starts on and never turns off below 0 mV"),
+            (["--error-off-mv", "5"], "--error-off-mv 5 is above --error-on-mv 0 (the default)"),
+            (["--error-on-mv", "3", "--error-off-mv", "5"], "--error-off-mv 5 is above --error-on-mv 3")):
+        assert main(["soc", drive, *cell, *options]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"bms-estimator soc: error: {said}") and err.count("\n") == 1, err
+
+
 def test_soc_c0_warns_when_the_voltage_says_the_stated_capacity_is_5x_the_cells(tmp_path, capsys):
     """--soc-method c0 with an OCV table without capacity_ah (nothing to compare --capacity-ah with up front) and
     --capacity-ah 5x the LG HG2 cell's (shipped udds sample, Kollmeyer et al., CC BY 4.0): the c0 voltage line reads
