@@ -321,9 +321,10 @@ def warn_if_capacity_at_search_end(capacity_ah: float, searched_ah, source: str,
 
 
 def write_json(data: dict, path: Path | None) -> None:
+    """``data`` as indented JSON to ``path``, or to standard output for ``None`` or ``-``; the path's folder
+    must exist (the commands check their outputs first: :mod:`.outputs`)."""
     text = json.dumps(to_jsonable(data), indent=2)
     if path is None or str(path) == "-":
         print(text)
-    else:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    else:  # (its folder is there: check_outputs refused a missing one before the command ran)
         Path(path).write_text(text + "\n")

@@ -13,6 +13,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import DataError
+from .outputs import check_outputs, file_output, folder_output
 from .common import (add_cell_options, add_method_option, load, load_ocv, positive_float,
                      warn_if_start_is_not_initial_soc, write_json)
 
@@ -66,7 +67,11 @@ def _series(series_type, rec, ocv, args: argparse.Namespace, cfg, *, cross_valid
 
 def run(args: argparse.Namespace) -> int:
     from ..diagnose import DiagnoseConfig, Series, diagnose, write_report
+    from ..diagnose.report import REPORT_FILES
 
+    check_outputs([("DATA", args.data), ("--validate", args.validate), ("--ocv", args.ocv)],
+                  [file_output("--json", args.json, stdout=True),
+                   folder_output("--report", args.report, *REPORT_FILES)])
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip())
     cfg = DiagnoseConfig(candidates=causes, lif=not args.no_lif, method=args.method, pairs=not args.no_pairs,
                          soc_window=(-1.0 if args.soc_min is None else args.soc_min,
