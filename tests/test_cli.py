@@ -421,6 +421,19 @@ def test_diagnose_on_too_few_samples_names_the_file(tmp_path, capsys):
         "needs 100" in capsys.readouterr().err
 
 
+def test_diagnose_on_a_window_passed_only_at_the_start_names_the_file(capsys):
+    """The Panasonic cycle_1 sample (Kollmeyer, CC BY 4.0) is above 0.95 SOC only in its first block, which is
+    never scored: numpy's 'Mean of empty slice' warnings, then a ZeroDivisionError traceback."""
+    data = str(drive_cycle("panasonic-18650pf", "cycle_1"))
+    for soc_min, soc_max, window in (("0.95", "0.99", "at least 0.95 and at most 0.99"), ("0.97", "1.0", "at least 0.97")):
+        assert main(["diagnose", data, "--ocv", PAN_OCV, "--capacity-ah", "2.9", "--soc-min", soc_min,
+                     "--soc-max", soc_max, "--no-lif"]) == 3
+        err = capsys.readouterr().err
+        assert err.startswith(f"bms-estimator diagnose: error: {data}: only 0 samples with the counted SOC {window} "
+                              "after the first "), err
+        assert err.endswith("to score; a diagnosis needs 100\n") and err.count("\n") == 1, err
+
+
 def test_short_files_and_late_starts_print_figures_not_nan(tmp_path, capsys, monkeypatch):
     """5 min of the LG drive (shipped sample, Kollmeyer, CC BY 4.0) never enters 20-90 % SOC: fit printed no
     parameters and 'simulation RMSE nan mV', compare a table of 'nan', both with the capacity at the low end of
@@ -623,6 +636,31 @@ def test_a_tuning_option_out_of_bounds_is_named_as_the_option(capsys):
                                 ("--error-on-mv", "-5", "--error-on-mv must be a finite number >= 0, got -5")):
         assert main(["soc", drive, *cell, option, value]) == 2
         assert said in capsys.readouterr().err
+
+
+def test_adaptation_thresholds_are_used_as_given_or_refused_naming_both(capsys):
+    """--error-off-mv was clamped to --error-on-mv (min of the two) and both defaulted to 0, so that
+    '--error-on-mv 50' alone (adaptation never turns off) and '--error-off-mv 5' alone (clamped to 0) gave
+    the default result without a word."""
+    from bms_estimator.cli.__main__ import build_parser
+    from bms_estimator.cli.common import soc_config
+
+    cell = ["--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3"]
+    drive = str(drive_cycle("lg-hg2", "la92"))
+    for command in ("soc", "fit", "sop-backtest"):
+        args = build_parser(command).parse_args([command, drive, *cell, "--error-on-mv", "3", "--error-off-mv", "1.5"])
+        ident = soc_config(args).identifier
+        assert (ident.error_on_v, ident.error_off_v) == pytest.approx((0.003, 0.0015))
+        args = build_parser(command).parse_args([command, drive, *cell])
+        assert (soc_config(args).identifier.error_on_v, soc_config(args).identifier.error_off_v) == (0.0, 0.0)
+    for options, said in (
+            (["--error-on-mv", "50"], "--error-on-mv 50 with --error-off-mv 0 (the default) changes nothing: "
+                                      "adaptation starts on and never turns off below 0 mV"),
+            (["--error-off-mv", "5"], "--error-off-mv 5 is above --error-on-mv 0 (the default)"),
+            (["--error-on-mv", "3", "--error-off-mv", "5"], "--error-off-mv 5 is above --error-on-mv 3")):
+        assert main(["soc", drive, *cell, *options]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"bms-estimator soc: error: {said}") and err.count("\n") == 1, err
 
 
 def test_soc_c0_warns_when_the_voltage_says_the_stated_capacity_is_5x_the_cells(tmp_path, capsys):

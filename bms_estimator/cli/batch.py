@@ -12,6 +12,10 @@ from pathlib import Path
 from ..errors import DataError, UsageError
 from ..fleet.batch import DEFAULT_STACK
 from ..fleet.memory import MALLOC_ENV
+from .outputs import check_outputs, folder_output
+
+#: the files batch writes in --out (besides drives/)
+SUMMARY_FILES = ("summary.csv", "summary.parquet", "errors.csv")
 
 
 def _workers(text: str) -> int:
@@ -102,8 +106,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--workers sizes the local cluster; with --scheduler the cluster has its own workers")
     _check_config(args.config)
     logs, unmatched = expand_inputs(args.logs)
+    check_outputs([("--config", args.config), ("LOG_OR_GLOB", logs)],
+                  [folder_output("--out", args.out, *SUMMARY_FILES)])
     try:
-        args.out.mkdir(parents=True, exist_ok=True)
+        args.out.mkdir(exist_ok=True)
     except OSError as exc:
         raise UsageError(f"--out {args.out}: cannot create it: {exc.strerror or exc}") from None
     show = sys.stderr.isatty() and not args.no_progress

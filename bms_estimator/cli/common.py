@@ -119,10 +119,13 @@ def add_tuning_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--window", type=int, default=_ID.window, help=f"LIF window L in samples (default {_ID.window})")
     g.add_argument("--forgetting", type=float, default=_ID.forgetting,
                    help=f"RLS forgetting factor per sample (default {_ID.forgetting})")
-    g.add_argument("--error-on-mv", type=float, default=_ID.error_on_v * 1e3,
-                   help="turn adaptation on above this windowed RMS equation error, mV (default: always on)")
-    g.add_argument("--error-off-mv", type=float, default=_ID.error_off_v * 1e3,
-                   help="turn adaptation off below this windowed RMS equation error, mV")
+    g.add_argument("--error-on-mv", type=float, default=None,
+                   help="turn adaptation on above this windowed RMS equation error, mV (default "
+                        f"{_ID.error_on_v * 1e3:g}: always on); give --error-off-mv below it with it (the paper: 3 "
+                        "and 1.5)")
+    g.add_argument("--error-off-mv", type=float, default=None,
+                   help=f"turn adaptation off below this windowed RMS equation error, mV (default "
+                        f"{_ID.error_off_v * 1e3:g}: never off); at most --error-on-mv")
     g.add_argument("--tau-max-s", type=float, default=_ID.tau_max_s,
                    help=f"admissible slow time constant bound, s (default {_ID.tau_max_s:g})")
     g.add_argument("--soc-error-threshold", type=float, default=_SOC.soc_error_threshold,
@@ -139,16 +142,42 @@ _TUNING_OPTION = {"window": ("--window", 1.0), "forgetting": ("--forgetting", 1.
                   "tau_max_s": ("--tau-max-s", 1.0), "soc_error_threshold": ("--soc-error-threshold", 1.0)}
 
 
+def adaptation_thresholds_mv(args: argparse.Namespace) -> tuple[float, float]:
+    """``(--error-on-mv, --error-off-mv)``, the identifier's default for one not given.
+
+    Adaptation starts on, turns off when the windowed RMS error falls below the off threshold and on again
+    when it rises above the on threshold (:mod:`bms_estimator.core.rls`). An off threshold above the on
+    one is refused naming both options (it was clamped to the on one without a word), and so is an on
+    threshold without an off one above 0: adaptation would never turn off and the threshold change nothing
+    (``--error-on-mv 50`` alone gave the default's result). A negative or NaN value is left to the
+    config's bounds, which name its option.
+    """
+    on = _ID.error_on_v * 1e3 if args.error_on_mv is None else args.error_on_mv
+    off = _ID.error_off_v * 1e3 if args.error_off_mv is None else args.error_off_mv
+    if not (on >= 0 and off >= 0):  # (NaN too)
+        return on, off
+    said_on = f"--error-on-mv {on:g}" + (" (the default)" if args.error_on_mv is None else "")
+    said_off = f"--error-off-mv {off:g}" + (" (the default)" if args.error_off_mv is None else "")
+    if off > on:
+        raise UsageError(f"{said_off} is above {said_on}: adaptation turns off below the one and on above the "
+                         "other; give --error-off-mv at most --error-on-mv")
+    if on > 0 and off == 0:
+        raise UsageError(f"{said_on} with {said_off} changes nothing: adaptation starts on and never turns off "
+                         "below 0 mV; give --error-off-mv above 0 and at most --error-on-mv (the paper: 3 and 1.5)")
+    return on, off
+
+
 def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig:
     if args.window < 1:  # (IdentifierConfig refuses it too, but by its field's name, not the option's)
         raise ValueError(f"--window must be at least 1 sample, got {args.window}")
+    on_mv, off_mv = adaptation_thresholds_mv(args)
     try:
         ident = IdentifierConfig(
             method=method or getattr(args, "method", None) or _ID.method,
             window=args.window,
             forgetting=args.forgetting,
-            error_on_v=args.error_on_mv / 1e3,
-            error_off_v=min(args.error_off_mv, args.error_on_mv) / 1e3,
+            error_on_v=on_mv / 1e3,
+            error_off_v=off_mv / 1e3,
             tau_max_s=args.tau_max_s,
         )
         return SocConfig(
@@ -162,7 +191,7 @@ def soc_config(args: argparse.Namespace, method: str | None = None) -> SocConfig
         if field not in _TUNING_OPTION:
             raise
         option, scale = _TUNING_OPTION[field]
-        value = getattr(args, option[2:].replace("-", "_"))
+        value = {"error_on_v": on_mv, "error_off_v": off_mv}.get(field, getattr(args, option[2:].replace("-", "_")))
         rest = str(exc).split(" must ", 1)[1].rsplit(", got", 1)[0] if " must " in str(exc) else str(exc)
         if scale != 1.0:  # a bound in volts, the option in mV
             rest = re.sub(r"(-?\d+(?:\.\d+)?(?:e-?\d+)?)", lambda m: f"{float(m.group(1)) * scale:g}", rest)
@@ -292,9 +321,10 @@ def warn_if_capacity_at_search_end(capacity_ah: float, searched_ah, source: str,
 
 
 def write_json(data: dict, path: Path | None) -> None:
+    """``data`` as indented JSON to ``path``, or to standard output for ``None`` or ``-``; the path's folder
+    must exist (the commands check their outputs first: :mod:`.outputs`)."""
     text = json.dumps(to_jsonable(data), indent=2)
     if path is None or str(path) == "-":
         print(text)
-    else:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    else:  # (its folder is there: check_outputs refused a missing one before the command ran)
         Path(path).write_text(text + "\n")

@@ -12,6 +12,11 @@ from ..errors import UsageError
 from .common import (METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
                      non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc,
                      write_json)
+from .outputs import check_outputs, file_output, folder_output
+
+#: the figures --plots writes in its folder
+PLOTS = ("parameters_train.png", "osa_train.png", "simulation_train.png", "osa_validate.png",
+         "simulation_validate.png")
 
 
 def add_parser(sub) -> None:
@@ -42,6 +47,8 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs([("--train", args.train), ("--validate", args.validate), ("--ocv", args.ocv)],
+                  [file_output("--json", args.json, stdout=True), folder_output("--plots", args.plots, *PLOTS)])
     tr, va = load(args.train, args), load(args.validate, args)
     if abs(tr.dt_s - va.dt_s) > 1e-9:  # (it named neither file nor the way out)
         raise UsageError(f"--train {args.train} is sampled every {tr.dt_s:g} s, --validate {args.validate} every "
@@ -83,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
 def _plots(res, tr, va, folder: Path, window) -> None:
     from ..plots import plot_errors, plot_parameters
 
-    folder.mkdir(parents=True, exist_ok=True)
+    folder.mkdir(exist_ok=True)  # (its parent checked before the run: check_outputs)
     plot_parameters(tr.time_s, res.train.params, folder / "parameters_train.png", f"{res.train.name}: online parameters")
     for part, rec in (("train", res.train), ("validate", res.validate)):
         t = (tr if part == "train" else va).time_s

@@ -31,6 +31,7 @@ from ..errors import EXIT_RUNTIME
 from ..ocv_table import read_ocv_table
 from ..samples import CELLS, drive_cycle, ocv_table
 from .common import positive_float, write_json
+from .outputs import check_outputs, folder_output
 
 ATTRIBUTION = ("Data: P. Kollmeyer et al., Mendeley Data, CC BY 4.0 "
                "(see bms_estimator/samples/ATTRIBUTION.md)")
@@ -66,6 +67,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs([], [folder_output("--output", args.output)])
     if args.paper:
         return run_paper(args)
     return run_pack(args)
@@ -87,7 +89,7 @@ def run_pack(args: argparse.Namespace) -> int:
         raise ValueError(f"--cells must be 1..2000, got {args.cells}")
     speed = parse_speed(args.speed)
     out_dir: Path = args.output
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(exist_ok=True)  # (its parent checked: check_outputs)
     out = sys.stdout
     # the broker (a process of its own, or Mosquitto) starts while the pack is prepared
     with contextlib.ExitStack() as stack:
@@ -148,7 +150,7 @@ def run_paper(args: argparse.Namespace) -> int:
     from ..plots import plot_errors, plot_parameters, plot_soc
 
     out_dir: Path = args.output
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(exist_ok=True)  # (its parent checked: check_outputs)
     summary = {}
     t_start = time.perf_counter()
     for cell in args.cell or sorted(CELLS):

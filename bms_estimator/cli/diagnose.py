@@ -13,6 +13,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import DataError
+from .outputs import check_outputs, file_output, folder_output
 from .common import (add_cell_options, add_method_option, load, load_ocv, positive_float,
                      warn_if_start_is_not_initial_soc, write_json)
 
@@ -48,13 +49,17 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _series(series_type, rec, ocv, args: argparse.Namespace, cfg):
-    """The file as the diagnosis reads it; too few samples in its SOC window is the file's fault (exit 3, named)."""
-    from ..diagnose.decide import window_mask
+def _series(series_type, rec, ocv, args: argparse.Namespace, cfg, *, cross_validated: bool):
+    """The file as the diagnosis reads it; too few samples in its SOC window, or (``cross_validated``: the
+    file both fitted and scored) too few of them after its first block, which is never scored, is the
+    file's fault (exit 3, named), said before the fits run."""
+    from ..diagnose.decide import scored_folds, window_mask
 
     s = series_type.from_recording(rec, ocv, args.capacity_ah, args.initial_soc)
     try:
         window_mask(s, cfg)
+        if cross_validated:
+            scored_folds(s, cfg, validation=False)
     except ValueError as exc:  # (it read "only 60 samples inside the SOC window -1..2", exit 2, no file)
         raise DataError(f"{rec.source}: {exc}") from None
     return s
@@ -62,7 +67,11 @@ def _series(series_type, rec, ocv, args: argparse.Namespace, cfg):
 
 def run(args: argparse.Namespace) -> int:
     from ..diagnose import DiagnoseConfig, Series, diagnose, write_report
+    from ..diagnose.report import REPORT_FILES
 
+    check_outputs([("DATA", args.data), ("--validate", args.validate), ("--ocv", args.ocv)],
+                  [file_output("--json", args.json, stdout=True),
+                   folder_output("--report", args.report, *REPORT_FILES)])
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip())
     cfg = DiagnoseConfig(candidates=causes, lif=not args.no_lif, method=args.method, pairs=not args.no_pairs,
                          soc_window=(-1.0 if args.soc_min is None else args.soc_min,
@@ -70,12 +79,12 @@ def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     warn_if_start_is_not_initial_soc(rec, ocv, args)
-    data = _series(Series, rec, ocv, args, cfg)
+    data = _series(Series, rec, ocv, args, cfg, cross_validated=args.validate is None)
     val = None
     if args.validate is not None:
         rv = load(args.validate, args)
         warn_if_start_is_not_initial_soc(rv, ocv, args)
-        val = _series(Series, rv, ocv, args, cfg)
+        val = _series(Series, rv, ocv, args, cfg, cross_validated=False)
     d = diagnose(data, validate=val, config=cfg)
     out = d.to_json()
     out["data"] = str(args.data)

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from .common import positive_float, soc_fraction
+from .outputs import check_outputs, file_output
 
 
 def add_parser(sub) -> None:
@@ -48,6 +49,8 @@ def run(args: argparse.Namespace) -> int:
     from ..replay.encode_log import check_cells, encode_log, parse_spread
 
     check_cells(args.cells)  # before the file and the OCV table are read (it was said after them)
+    check_outputs([("DATA", args.data), ("--ocv", args.ocv)],
+                  [file_output("-o/--output", args.output, "{name}.truth.json")])
     spread = parse_spread(args.spread)
     show = sys.stderr.isatty() and not args.no_progress
     progress = None

@@ -13,6 +13,10 @@ from ..analysis import (
 )
 from .common import (add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv,
                      soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc, write_json)
+from .outputs import check_outputs, figure_output, file_output
+
+#: the second figure --plot writes, beside the first
+SIMULATION_FIGURE = "{stem}_simulation.png"
 
 
 def add_parser(sub) -> None:
@@ -32,6 +36,9 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs([("DATA", args.data), ("--ocv", args.ocv)],
+                  [file_output("--json", args.json, stdout=True),
+                   figure_output("--plot", args.plot, SIMULATION_FIGURE)])
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     warn_if_start_is_not_initial_soc(rec, ocv, args)
@@ -62,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
 
         base = Path(args.plot)
         plot_parameters(rec.time_s, {args.method: run_.params}, base, f"{args.data.name}: online parameters")
-        plot_errors(rec.time_s, rec.voltage_v, {args.method: sim}, base.with_name(base.stem + "_simulation.png"),
+        simulation = base.with_name(SIMULATION_FIGURE.format(stem=base.stem))
+        plot_errors(rec.time_s, rec.voltage_v, {args.method: sim}, simulation,
                     f"{args.data.name}: simulation", "simulation error [mV]", inside)
     if args.json is not None:
         write_json(out, args.json)

@@ -9,6 +9,7 @@ from ..core.ocv import CELL_TEMPERATURE_RANGE_C, OcvCurve
 from ..data import load_recording
 from ..errors import DataError
 from ..ocv_table import write_ocv_table
+from .outputs import check_outputs, file_output
 
 
 def add_parser(sub) -> None:
@@ -42,6 +43,7 @@ def _cell_temperature(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs([("DATA", args.data), ("--hppc-steps", args.hppc_steps)], [file_output("-o/--output", args.output)])
     rec = load_recording(args.data, resample_s=None)
     temperature = args.temperature_c if args.temperature_c is not None else rec.temperature_c
     if args.hppc_steps is not None:

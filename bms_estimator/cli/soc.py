@@ -17,6 +17,7 @@ from ..gaps import MAX_GAP_S, held_charge_in_gaps, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
                      load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
+from .outputs import check_outputs, figure_output, file_output
 
 
 
@@ -126,7 +127,6 @@ def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray
     cols = {"time_s": rec.time_s, "soc": run_.soc, "soc_sigma": run_.soc_sigma, "soc_reference": soc_ref,
             "soc_counted": counted, "capacity_ah": run_.capacity_ah,
             "temperature_c": temp if temp is not None else np.full(len(rec), np.nan), "fed": fed.astype(float)}
-    path.parent.mkdir(parents=True, exist_ok=True)
     np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
                comments="", fmt="%.6g")
 
@@ -163,6 +163,9 @@ def _score_text(figs: dict, base: dict, after_start_s: float, capacity_ah: float
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs([("DATA", args.data), ("--ocv", args.ocv), ("--reference-ocv", args.reference_ocv)],
+                  [file_output("--trace", args.trace), file_output("--json", args.json, stdout=True),
+                   figure_output("--plot", args.plot)])
     rec = load(args.data, args, identifies=False)  # a rest file: the SOC read on the OCV, counted
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     dt = rec.dt_s

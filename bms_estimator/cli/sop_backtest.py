@@ -15,6 +15,7 @@ from ..errors import UsageError
 from ..sop_backtest import run_backtest, summary
 from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
                      load_ocv, positive_float, soc_config, warn_if_start_is_not_initial_soc, write_json)
+from .outputs import check_outputs, file_output
 
 _SOP = SopConfig()
 #: from this many samples on, the command says at its start that it will take a while
@@ -58,6 +59,7 @@ def check_voltage_limits(v_min: float, v_max: float, ocv) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs([("DATA", args.data), ("--ocv", args.ocv)], [file_output("--json", args.json, stdout=True)])
     if not args.v_min < args.v_max:
         raise ValueError(f"--v-min {args.v_min:g} must be below --v-max {args.v_max:g}")
     rec = load(args.data, args)

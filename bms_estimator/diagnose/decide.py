@@ -88,7 +88,8 @@ from ..core.identifier import IdentifierConfig
 from ._blas import single_blas_thread
 from .extensions import BASELINE, CAUSES, FEATURES, Fit, Model, Series, fit_model
 
-__all__ = ["DiagnoseConfig", "Candidate", "Diagnosis", "diagnose", "fold_blocks", "tau_int", "noise_level"]
+__all__ = ["DiagnoseConfig", "Candidate", "Diagnosis", "diagnose", "fold_blocks", "scored_folds", "tau_int",
+           "noise_level"]
 
 
 @dataclass(frozen=True)
@@ -226,6 +227,31 @@ def window_mask(s: Series, cfg: DiagnoseConfig) -> np.ndarray:
     return m
 
 
+def scored_folds(target: Series, cfg: DiagnoseConfig, *, validation: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Block index and fold of every sample of the file that is scored (``target``), fold ``-1`` where it
+    is not scored; fewer than ``WINDOW_SAMPLES_MIN`` scored samples is a ``ValueError``.
+
+    Scored are the samples inside ``cfg.soc_window`` (:func:`window_mask`) and, when ``target`` is the
+    file the models are fitted on (cross-validation, ``validation=False``), outside its first block
+    (:func:`fold_blocks`: it tests the initial conditions, it is trained on and never scored).  A window
+    that the file's counted SOC passes only during that block leaves nothing to score (the Panasonic
+    cycle_1 at 0.95-0.99: the out-of-sample errors were means of nothing and the score divided by zero).
+    """
+    blocks, fold_of = fold_blocks(len(target), target.dt_s, cfg)
+    if validation:
+        fold_of = np.maximum(fold_of, 0)  # nothing was fitted on the validation file: score all of it
+    fold_of = np.where(window_mask(target, cfg), fold_of, -1)
+    n = int(np.count_nonzero(fold_of >= 0))
+    if n < WINDOW_SAMPLES_MIN:
+        lo, hi = cfg.soc_window
+        bounds = [f"at least {lo:g}"] * (lo > 0.0) + [f"at most {hi:g}"] * (hi < 1.0)
+        where = f" with the counted SOC {' and '.join(bounds)}" if bounds else ""
+        after = "" if validation else (f" after the first {np.count_nonzero(blocks == 0) * target.dt_s:.0f} s "
+                                       "(the start, trained on and never scored)")
+        raise ValueError(f"only {n} samples{where}{after} to score; a diagnosis needs {WINDOW_SAMPLES_MIN}")
+    return blocks, fold_of
+
+
 def tau_int(r: np.ndarray, c: float = 5.0) -> float:
     """Integrated autocorrelation time of ``r`` in samples (Sokal's automatic window, ``M >= c tau``)."""
     x = np.asarray(r, dtype=float)
@@ -289,10 +315,7 @@ class _Scorer:
         self.s, self.validate, self.config = s, validate, config
         self.window = window_mask(s, config)
         target = validate if validate is not None else s
-        blocks, fold_of = fold_blocks(len(target), target.dt_s, config)
-        if validate is not None:
-            fold_of = np.maximum(fold_of, 0)  # nothing was fitted on the validation file: score all of it
-        fold_of = np.where(window_mask(target, config), fold_of, -1)
+        blocks, fold_of = scored_folds(target, config, validation=validate is not None)
         self.blocks, self.fold_of = blocks, fold_of
         self.keep = fold_of >= 0
         self.fk = fold_of[self.keep]
@@ -379,6 +402,7 @@ def _diagnose(data: Series, validate: Series | None, config: DiagnoseConfig) -> 
             starts.insert(0, {"tau1_s": lif["tau1_s"], "tau2_s": lif["tau2_s"]})
     win = window_mask(s, config)
     mask = None if win.all() else win
+    scorer = _Scorer(s, validate, config)  # (before the fits: too little to score is a ValueError, scored_folds)
     base: Fit | None = None
     for st in starts:
         f = fit_model(BASELINE, s, mask=mask, start=st, max_iter=config.max_iter)
@@ -402,7 +426,6 @@ def _diagnose(data: Series, validate: Series | None, config: DiagnoseConfig) -> 
             fits[c] = fit_model(m, s, mask=mask, start=dict(taus), max_iter=config.max_iter)
     predictions = {c: models[c].predict(s, f) for c, f in fits.items()}
 
-    scorer = _Scorer(s, validate, config)
     oos = {c: scorer.oos(models[c], f) for c, f in fits.items()}
     stats = {c: scorer.stats(p) for c, p in oos.items()}
     ref = stats["none"]

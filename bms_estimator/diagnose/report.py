@@ -123,6 +123,10 @@ def _plots(d: Diagnosis, folder: Path) -> list[str]:
     return out
 
 
+#: every file :func:`write_report` may write in its folder
+REPORT_FILES = ("report.md", "residual.png", "voltage.png", "candidates.png")
+
+
 def write_report(d: Diagnosis, folder: str | Path, title: str = "diagnosis") -> Path:
     """Write ``folder/report.md`` and the figures; returns the markdown path."""
     folder = Path(folder)

@@ -139,3 +139,30 @@ def test_statistics_helpers():
     blocks, folds = fold_blocks(10000, 1.0, FAST)
     assert folds[0] == -1 and set(folds[blocks > 0]) == {0, 1, 2, 3}
     assert np.all(np.diff(blocks) >= 0)
+
+
+def test_a_window_the_file_passes_only_at_its_start_is_refused_before_any_fit():
+    """The Panasonic cycle_1 sample (Kollmeyer, CC BY 4.0) is above 0.95 SOC only in its first block, which
+    cross-validation trains on and never scores: 'Mean of empty slice' warnings, then a ZeroDivisionError
+    in the score (n_eff 0)."""
+    import time
+    import warnings
+
+    from bms_estimator.data import load_recording
+    from bms_estimator.ocv_table import read_ocv_table
+    from bms_estimator.samples import drive_cycle, ocv_table
+
+    rec = load_recording(drive_cycle("panasonic-18650pf", "cycle_1"))
+    s = Series.from_recording(rec, read_ocv_table(ocv_table("panasonic-18650pf")), 2.9, 1.0)
+    cfg = FAST.with_(soc_window=(0.95, 0.99))
+    said = r"only 0 samples with the counted SOC at least 0.95 and at most 0.99 after the first \d+ s"
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning on the way
+        with pytest.raises(ValueError, match=said):
+            diagnose(s, config=cfg)
+    assert time.perf_counter() - t0 < 5.0  # refused before the fits
+    from bms_estimator.diagnose.decide import scored_folds
+
+    blocks, fold_of = scored_folds(s, cfg.with_(soc_window=(0.2, 0.9)), validation=False)
+    assert np.all(fold_of[blocks == 0] == -1) and np.count_nonzero(fold_of >= 0) > 1000
