@@ -821,6 +821,19 @@ def test_broker_down_mid_run_keeps_can_output(broker_factory, tmp_path):
     assert_state_file_valid(Path(cfg.state.path), soc=soc)
 
 
+def test_pack_ocv_csv_takes_gzipped_tables(tmp_path, capsys):
+    """pack.ocv_csv, as --ocv, reads a .csv.gz table (before: "not UTF-8 text (invalid start byte at byte 1)")."""
+    import gzip
+
+    gz = tmp_path / "ocv.csv.gz"
+    gz.write_bytes(gzip.compress(ocv_table("panasonic-18650pf").read_bytes()))
+    config = tmp_path / "gz.toml"
+    config.write_text(f"[pack]\nn_cells = 4\nocv_csv = ['{gz}']\n[state]\npath = '{tmp_path / 'state.npz'}'\n")
+    assert cli_main(["run", "--config", str(config), "--check-config"]) == 0, capsys.readouterr().err
+    config.write_text(f"[pack]\nn_cells = 4\nocv_csv = '{gz}'\n[state]\npath = '{tmp_path / 'state.npz'}'\n")
+    assert cli_main(["run", "--config", str(config), "--check-config"]) == 0, capsys.readouterr().err
+
+
 def test_bad_config_exits_2_naming_each_field(tmp_path, capsys):
     state = tmp_path / "state.npz"
     bad = tmp_path / "bad.toml"
