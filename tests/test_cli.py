@@ -180,7 +180,10 @@ def test_bench_prints_the_figures(capsys):
     assert set(figures) == {"cell_updates_per_s", "tick_ms_200_cells"}
     assert figures["cell_updates_per_s"] > 0 and figures["tick_ms_200_cells"] > 0
     assert main(["bench", "--figures", "warp_speed"]) == 2
-    assert "warp_speed" in capsys.readouterr().err
+    assert "--figures: unknown figure(s) warp_speed" in capsys.readouterr().err
+    for empty in ("", " , "):  # printed nothing, exit 0
+        assert main(["bench", "--figures", empty]) == 2
+        assert f"--figures {empty!r} names no figure; choose from cell_updates_per_s" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:  # printed 'cell_updates_per_s 0.000' with exit 0
         main(["bench", "--figures", "cell_updates_per_s", "--seconds", "0"])
     assert exc.value.code == 2 and "argument --seconds" in capsys.readouterr().err
