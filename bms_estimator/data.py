@@ -206,7 +206,8 @@ class CellRecording:
 # loading
 
 
-def _read_text(path: Path) -> str:
+def _read_text(path: Path) -> tuple[str, bytes]:
+    """The file's text, and its (decompressed) bytes."""
     try:
         if path.name.endswith(".gz"):
             with gzip.open(path, "rb") as fh:
@@ -221,7 +222,7 @@ def _read_text(path: Path) -> str:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise DataError(f"{path}: not UTF-8 text ({exc})") from exc
-    return text
+    return text, raw
 
 
 def _split_fields(line: str) -> list[str]:
@@ -306,16 +307,33 @@ def _locate_bad_value(path: Path, text: str, header_line: int, names: list[str],
     return DataError(f"{path}: could not parse the numeric rows")
 
 
+#: every byte but a comma and a line end (``bytes.translate``'s delete argument)
+_NOT_COMMA_OR_LINE_END = bytes(c for c in range(256) if c not in b",\n")
+
+
 def _field_count_error(path: Path, lineno: int, found: int, expected: int) -> DataError:
     return DataError(f"{path}: line {lineno} has {found} fields, the header has {expected}")
 
 
-def _check_field_counts(path: Path, text: str, header_line: int, n: int) -> None:
+def _check_field_counts(path: Path, encoded: bytes, header_line: int, n: int) -> None:
     """Refuse a data row with more (or fewer) fields than the ``n`` of the header, which
     ``np.loadtxt(usecols=...)`` reads without a word when the columns it uses are there: the row's values
-    would be read under the wrong names.  The commas are counted per line (vectorised), and the few lines whose
-    count differs (blank, comments, quoted commas, or wrong) are split one by one."""
-    raw = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
+    would be read under the wrong names.
+
+    Fast path (the usual file: no quote, no comment, no blank line): its rows' commas and line ends, all other
+    bytes deleted (``bytes.translate``, one pass in C), read ``(n - 1)`` commas and a line end per row.  Else
+    the commas are counted per line (vectorised), and the few lines whose count differs (blank, comments,
+    quoted commas, or wrong) are split one by one."""
+    body = 0
+    for _ in range(header_line):  # (the header is on line header_line: the rows start after its line end)
+        body = encoded.find(b"\n", body) + 1
+    if body and encoded.find(b'"', body) < 0 and encoded.find(b"#", body) < 0:
+        structure = encoded[body:].translate(None, _NOT_COMMA_OR_LINE_END)
+        if not structure.endswith(b"\n"):
+            structure += b"\n"
+        if structure == (b"," * (n - 1) + b"\n") * structure.count(b"\n"):
+            return
+    raw = np.frombuffer(encoded, dtype=np.uint8)
     ends = np.flatnonzero(raw == ord("\n"))
     if ends.size == 0 or ends[-1] != raw.size - 1:
         ends = np.r_[ends, raw.size]
@@ -366,7 +384,7 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     path = Path(path)
     if resample_s is not None and not (math.isfinite(resample_s) and resample_s > 0):
         raise ValueError(f"resample_s must be a positive number or None, got {resample_s!r}")
-    text = _read_text(path)
+    text, encoded = _read_text(path)
     names, header_line = _parse_header(path, text)
     _check_columns(path, names, header_line)
     wanted = list(REQUIRED_COLUMNS) + [c for c in OPTIONAL_COLUMNS if c in names]
@@ -391,7 +409,7 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     except ValueError:
         raise _locate_bad_value(path, text, header_line, names, usecols) from None
     if not every_column:
-        _check_field_counts(path, text, header_line, len(names))
+        _check_field_counts(path, encoded, header_line, len(names))
     elif data.shape[0]:
         if data.shape[1] != len(names):  # every row has the same wrong count (else loadtxt refused it)
             lineno = int(_data_line_numbers(text, header_line)[0])

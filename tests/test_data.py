@@ -273,6 +273,10 @@ def test_a_duplicated_unused_column_and_case_of_other_columns_are_no_error(tmp_p
     """Only the columns the loader reads must be unique; the others stay ignored."""
     path = _write(tmp_path / "n.csv", "time_s,current_a,voltage_v,Note,note,note\n0,1,4,a,b,c\n1,1,4,a,b,c\n")
     np.testing.assert_array_equal(load_recording(path, resample_s=None).time_s, [0.0, 1.0])
+    # an unused column, with a last line without its line end, a comment or blank lines: read as before
+    for rows in ("0,1,4,a\n1,1,4,b", "# x,y\n0,1,4,a\n\n1,1,4,b # z,w\n\n"):
+        path = _write(tmp_path / "u.csv", "time_s,current_a,voltage_v,note\n" + rows)
+        np.testing.assert_array_equal(load_recording(path, resample_s=None).time_s, [0.0, 1.0])
 
 
 def test_rfc4180_quoted_values_load_as_the_plain_file(tmp_path: Path) -> None:
