@@ -7,14 +7,18 @@ File layout (``<cell>/<ambient>/<test>.csv[.gz]`` in the shared data set)::
     ...
 
 A header row is required; ``time_s``, ``current_a`` and ``voltage_v`` must be
-present, ``temperature_c`` is optional, any other column is ignored.  Current is
-positive for charge.
+present (once each: names are case-sensitive), ``temperature_c`` is optional, any
+other column is ignored.  Current is positive for charge.  Values are comma-separated,
+RFC 4180 quoting allowed (``"0.000000","-0.08877",...``); ``#`` starts a comment.
+Every data row has as many fields as the header.
 
 Loading (:func:`load_recording`)
 --------------------------------
 1. Parse with ``np.loadtxt`` (vectorised C parser).  Only when that fails is the
    file scanned line by line, so that the :class:`DataError` can name the line
-   and the column that is wrong.
+   and the column that is wrong.  A file with columns the loader does not use
+   has its rows' field counts checked after it (loadtxt reads only the used
+   columns of a row); with every column used, loadtxt checks them itself.
 2. Validate: every used value finite, at least 2 rows, time never decreasing
    (``t[k] < t[k-1]`` is an error naming line ``k``), the voltage a single cell's
    (within ``CELL_VOLTAGE_RANGE_V``: a column in mV, or a pack's voltage, is an
@@ -81,6 +85,7 @@ under which the coulomb count is ``Q = sum_k I[k] (t_{k+1} - t_k)``.  With bins
 
 from __future__ import annotations
 
+import csv
 import gzip
 import io
 import math
@@ -201,7 +206,8 @@ class CellRecording:
 # loading
 
 
-def _read_text(path: Path) -> str:
+def _read_text(path: Path) -> tuple[str, bytes]:
+    """The file's text, and its (decompressed) bytes."""
     try:
         if path.name.endswith(".gz"):
             with gzip.open(path, "rb") as fh:
@@ -216,7 +222,16 @@ def _read_text(path: Path) -> str:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise DataError(f"{path}: not UTF-8 text ({exc})") from exc
-    return text
+    return text, raw
+
+
+def _split_fields(line: str) -> list[str]:
+    """The fields of one CSV line as ``np.loadtxt(..., quotechar='"', comments="#")`` reads them: RFC 4180
+    quoting (``"0.5"``, ``"a,b"``, ``""""``), and a ``#`` outside quotes starts a comment."""
+    if '"' not in line:
+        return line.split("#", 1)[0].split(",")
+    hashes = (k for k, c in enumerate(line) if c == "#" and line.count('"', 0, k) % 2 == 0)
+    return next(csv.reader([line[:next(hashes, len(line))]]), [""])
 
 
 def _parse_header(path: Path, text: str) -> tuple[list[str], int]:
@@ -229,7 +244,7 @@ def _parse_header(path: Path, text: str) -> tuple[list[str], int]:
         stripped = line.strip()
         if not stripped or stripped.startswith("#"):
             continue
-        names = [c.strip().strip('"').strip() for c in stripped.split(",")]
+        names = [c.strip() for c in next(csv.reader([stripped]))]
         try:
             float(names[0])
         except ValueError:
@@ -241,6 +256,32 @@ def _parse_header(path: Path, text: str) -> tuple[list[str], int]:
     raise DataError(f"{path}: file is empty (no header row)")
 
 
+def _check_columns(path: Path, names: list[str], header_line: int) -> None:
+    """Refuse a header without a required column (with a hint when it is only the delimiter or the case that
+    differs) or with a column this loader reads given twice."""
+    missing = [c for c in REQUIRED_COLUMNS if c not in names]
+    if missing:
+        hint = ""
+        joined = ",".join(names)
+        delimiter = next((name for d, name in ((";", "semicolon"), ("\t", "tab")) if d in joined), None)
+        if delimiter:
+            hint = f"; the header looks {delimiter}-delimited: this tool reads comma-separated values"
+        else:
+            lower = {n.lower(): n for n in names}
+            near = [f"{lower[c]!r} to {c}" for c in missing if c in lower]
+            if near:
+                hint = f"; column names are case-sensitive: rename {', '.join(near)}"
+        raise DataError(
+            f"{path}: missing column(s) {', '.join(missing)} "
+            f"(header has: {', '.join(names)}){hint}"
+        )
+    for c in (*REQUIRED_COLUMNS, *OPTIONAL_COLUMNS):
+        if names.count(c) > 1:
+            columns = ", ".join(str(k + 1) for k, n in enumerate(names) if n == c)
+            raise DataError(f"{path}: line {header_line}: column '{c}' appears {names.count(c)} times in the "
+                            f"header (columns {columns}): which one holds the data is ambiguous; rename or drop one")
+
+
 def _locate_bad_value(path: Path, text: str, header_line: int, names: list[str],
                       usecols: list[int]) -> DataError:
     """Slow path: find the first line that np.loadtxt could not parse."""
@@ -250,11 +291,9 @@ def _locate_bad_value(path: Path, text: str, header_line: int, names: list[str],
         stripped = line.strip()
         if not stripped or stripped.startswith("#"):
             continue
-        fields = line.split(",")
+        fields = _split_fields(line)
         if len(fields) != len(names):
-            return DataError(
-                f"{path}: line {lineno} has {len(fields)} fields, the header has {len(names)}"
-            )
+            return _field_count_error(path, lineno, len(fields), len(names))
         for col in usecols:
             value = fields[col].strip()
             if value == "":
@@ -266,6 +305,50 @@ def _locate_bad_value(path: Path, text: str, header_line: int, names: list[str],
                     f"{path}: line {lineno}: non-numeric value {value!r} in column '{names[col]}'"
                 )
     return DataError(f"{path}: could not parse the numeric rows")
+
+
+#: every byte but a comma and a line end (``bytes.translate``'s delete argument)
+_NOT_COMMA_OR_LINE_END = bytes(c for c in range(256) if c not in b",\n")
+
+
+def _field_count_error(path: Path, lineno: int, found: int, expected: int) -> DataError:
+    return DataError(f"{path}: line {lineno} has {found} fields, the header has {expected}")
+
+
+def _check_field_counts(path: Path, encoded: bytes, header_line: int, n: int) -> None:
+    """Refuse a data row with more (or fewer) fields than the ``n`` of the header, which
+    ``np.loadtxt(usecols=...)`` reads without a word when the columns it uses are there: the row's values
+    would be read under the wrong names.
+
+    Fast path (the usual file: no quote, no comment, no blank line): its rows' commas and line ends, all other
+    bytes deleted (``bytes.translate``, one pass in C), read ``(n - 1)`` commas and a line end per row.  Else
+    the commas are counted per line (vectorised), and the few lines whose count differs (blank, comments,
+    quoted commas, or wrong) are split one by one."""
+    body = 0
+    for _ in range(header_line):  # (the header is on line header_line: the rows start after its line end)
+        body = encoded.find(b"\n", body) + 1
+    if body and encoded.find(b'"', body) < 0 and encoded.find(b"#", body) < 0:
+        structure = encoded[body:].translate(None, _NOT_COMMA_OR_LINE_END)
+        if not structure.endswith(b"\n"):
+            structure += b"\n"
+        if structure == (b"," * (n - 1) + b"\n") * structure.count(b"\n"):
+            return
+    raw = np.frombuffer(encoded, dtype=np.uint8)
+    ends = np.flatnonzero(raw == ord("\n"))
+    if ends.size == 0 or ends[-1] != raw.size - 1:
+        ends = np.r_[ends, raw.size]
+    starts = np.r_[0, ends[:-1] + 1]
+    commas = np.diff(np.searchsorted(np.flatnonzero(raw == ord(",")), ends), prepend=0)
+    for k in np.flatnonzero(commas != n - 1):
+        if k < header_line:  # (k: the 0-based index of line k + 1; the header is line header_line)
+            continue
+        line = raw[starts[k]:ends[k]].tobytes().decode("utf-8")
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        found = len(_split_fields(line))
+        if found != n:
+            raise _field_count_error(path, int(k) + 1, found, n)
 
 
 def _data_line_numbers(text: str, header_line: int) -> np.ndarray:
@@ -301,17 +384,14 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     path = Path(path)
     if resample_s is not None and not (math.isfinite(resample_s) and resample_s > 0):
         raise ValueError(f"resample_s must be a positive number or None, got {resample_s!r}")
-    text = _read_text(path)
+    text, encoded = _read_text(path)
     names, header_line = _parse_header(path, text)
-
-    missing = [c for c in REQUIRED_COLUMNS if c not in names]
-    if missing:
-        raise DataError(
-            f"{path}: missing column(s) {', '.join(missing)} "
-            f"(header has: {', '.join(names)})"
-        )
+    _check_columns(path, names, header_line)
     wanted = list(REQUIRED_COLUMNS) + [c for c in OPTIONAL_COLUMNS if c in names]
     usecols = [names.index(c) for c in wanted]
+    # with every column used, loadtxt reads them all and refuses a row with a field more or less itself (at no
+    # cost); with unused columns it reads only the used ones, and the rows' field counts are checked after it
+    every_column = sorted(usecols) == list(range(len(names)))
 
     try:
         with warnings.catch_warnings():  # a header without rows is reported below, not as numpy's warning
@@ -320,13 +400,22 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
                 io.StringIO(text),
                 delimiter=",",
                 skiprows=header_line,
-                usecols=usecols,
+                usecols=None if every_column else usecols,
                 dtype=np.float64,
                 ndmin=2,
                 comments="#",
+                quotechar='"',  # RFC 4180: "0.5" is 0.5
             )
     except ValueError:
         raise _locate_bad_value(path, text, header_line, names, usecols) from None
+    if not every_column:
+        _check_field_counts(path, encoded, header_line, len(names))
+    elif data.shape[0]:
+        if data.shape[1] != len(names):  # every row has the same wrong count (else loadtxt refused it)
+            lineno = int(_data_line_numbers(text, header_line)[0])
+            raise _field_count_error(path, lineno, data.shape[1], len(names))
+        if usecols != list(range(len(names))):
+            data = data[:, usecols]
 
     if data.shape[0] < 2:
         raise DataError(f"{path}: needs at least 2 data rows, found {data.shape[0]}")

@@ -8,7 +8,9 @@ here, so the core takes no path.  Every error names the file.
 
 from __future__ import annotations
 
+import gzip
 import os
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -21,15 +23,24 @@ PathLike = str | os.PathLike
 
 
 def read_ocv_table(path: PathLike) -> OcvCurve:
-    """The OCV table in the file ``path`` (``OcvCurve.from_csv_text``: its columns and checks).
+    """The OCV table in the file ``path`` (``OcvCurve.from_csv_text``: its columns and checks); a name ending
+    in ``.gz`` is read gzip-compressed, as the recordings are.
 
     Raises:
-        ValueError: naming the file: not UTF-8 text, or what the table's checks found.
+        ValueError: naming the file: not UTF-8 text, not gzip data, or what the table's checks found.
         OSError: the file cannot be read (missing, a directory, no permission).
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        if path.name.lower().endswith(".gz"):
+            with gzip.open(path, "rb") as fh:
+                raw = fh.read()
+        else:
+            raw = path.read_bytes()
+    except (gzip.BadGzipFile, EOFError, zlib.error) as exc:  # (not OSError's "cannot be read": its content)
+        raise ValueError(f"{path}: not a gzip file, or a truncated one ({exc})") from None
+    try:
+        text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:  # (a binary file's error named no file)
         raise ValueError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     return OcvCurve.from_csv_text(text, str(path))

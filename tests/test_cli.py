@@ -150,6 +150,20 @@ def test_bad_data_gives_a_clear_error_and_exit_3(tmp_path, capsys, content, mess
     assert rc == 3 and "bad.csv" in err and message in err, err  # a data error, not a usage error
 
 
+def test_every_command_reads_a_gzipped_ocv_table(tmp_path, capsys):
+    """--ocv took .csv only ("not UTF-8 text (invalid start byte at byte 1)") while the recordings take .csv.gz."""
+    import gzip
+
+    gz = tmp_path / "ocv.csv.gz"
+    gz.write_bytes(gzip.compress(Path(PAN_OCV).read_bytes()))
+    data = str(drive_cycle("panasonic-18650pf", "cycle_1"))
+    plain_json, gz_json = tmp_path / "plain.json", tmp_path / "gz.json"
+    assert main(["soc", data, "--ocv", PAN_OCV, "--capacity-ah", "2.9", "--json", str(plain_json)]) == 0
+    assert main(["soc", data, "--ocv", str(gz), "--capacity-ah", "2.9", "--json", str(gz_json)]) == 0, \
+        capsys.readouterr().err
+    assert json.loads(gz_json.read_text()) == json.loads(plain_json.read_text())
+
+
 def test_bad_options_are_named(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["soc", "x.csv", "--ocv", PAN_OCV, "--capacity-ah", "-1"])
@@ -166,7 +180,10 @@ def test_bench_prints_the_figures(capsys):
     assert set(figures) == {"cell_updates_per_s", "tick_ms_200_cells"}
     assert figures["cell_updates_per_s"] > 0 and figures["tick_ms_200_cells"] > 0
     assert main(["bench", "--figures", "warp_speed"]) == 2
-    assert "warp_speed" in capsys.readouterr().err
+    assert "--figures: unknown figure(s) warp_speed" in capsys.readouterr().err
+    for empty in ("", " , "):  # printed nothing, exit 0
+        assert main(["bench", "--figures", empty]) == 2
+        assert f"--figures {empty!r} names no figure; choose from cell_updates_per_s" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:  # printed 'cell_updates_per_s 0.000' with exit 0
         main(["bench", "--figures", "cell_updates_per_s", "--seconds", "0"])
     assert exc.value.code == 2 and "argument --seconds" in capsys.readouterr().err

@@ -124,6 +124,34 @@ def test_dashboard_that_never_connected_fails(tmp_path, capsys):
     assert f"never connected to the broker at 127.0.0.1:{port} (" in err and "refused" in err, err
 
 
+def test_dashboard_names_a_ca_file_that_is_missing_or_no_certificate(tmp_path, capsys):
+    """Before: 'error: [Errno 2] No such file or directory' and a raw SSLError, neither naming --ca-file."""
+    missing = tmp_path / "missing.pem"
+    assert main(["dashboard", "--tls", "--ca-file", str(missing), "--duration-s", "1"]) == EXIT_DATA
+    assert capsys.readouterr().err == f"bms-estimator dashboard: error: --ca-file {missing}: no such file or directory\n"
+    not_pem = tmp_path / "good.csv"
+    not_pem.write_text("time_s,current_a,voltage_v\n0,1,3.7\n")
+    assert main(["dashboard", "--tls", "--ca-file", str(not_pem), "--duration-s", "1"]) == EXIT_DATA
+    err = capsys.readouterr().err
+    assert err.startswith(f"bms-estimator dashboard: error: --ca-file {not_pem}: not a CA certificate in PEM format")
+    assert "SSLError" not in err and len(err.splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("option, value, why", [
+    ("--pack", "a/#", "is not a pack id"), ("--pack", "+", "is not a pack id"), ("--pack", "a/b", "is not a pack id"),
+    ("--base-topic", "#", "must not contain MQTT wildcards"), ("--base-topic", "site/+", "must not contain MQTT"),
+    ("--base-topic", "bms/", "must not start or end with '/'"),
+])
+def test_dashboard_refuses_topic_parts_that_are_no_topic_level_before_it_starts(capsys, option, value, why):
+    """'Invalid subscription filter.' came only after the live view had started, naming no option; the service's
+    pack.pack_id and mqtt.base_topic refuse the same values."""
+    with pytest.raises(SystemExit) as exc:
+        main(["dashboard", option, value, "--broker", "127.0.0.1:1", "--duration-s", "1"])
+    assert exc.value.code == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert f"argument {option}: {value!r} {why}" in err, err
+
+
 def test_unit_does_not_restart_on_configuration_or_data_errors():
     unit = (REPO / "deploy" / "bms-estimator.service").read_text()
     assert f"RestartPreventExitStatus={EXIT_USAGE} {EXIT_DATA}" in unit

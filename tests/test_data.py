@@ -237,6 +237,26 @@ def test_load_is_fast_for_160k_rows(tmp_path: Path) -> None:
         ("time_s,current_a,voltage_v\n0,1,4\n5,1,4\n3,1,4\n", r"time goes backwards at data row 2 \(line 4\)"),
         ("0,1,4\n1,1,4\n", r"no header row"),
         ("time_s,current_a,voltage_v\n0,1,4\n1,1\n", r"line 3 has 2 fields, the header has 3"),
+        # a row with a field more than the header: its values would be read under the wrong names
+        ("time_s,current_a,voltage_v\n0,1,4\n1,1,4,7\n2,1,4\n", r"line 3 has 4 fields, the header has 3"),
+        ("time_s,current_a,voltage_v\n0,1,4,7\n1,1,4,7\n", r"line 2 has 4 fields, the header has 3"),
+        ("time_s,current_a,voltage_v,temperature_c\n0,1,4,25\n1,1,4,25,\n", r"line 3 has 5 fields, the header has 4"),
+        # with an unused column, loadtxt reads only the used ones: a row with one more or one fewer is refused too
+        ("time_s,current_a,voltage_v,note\n0,1,4,a\n1,1,4,b,c\n", r"line 3 has 5 fields, the header has 4"),
+        ("time_s,current_a,voltage_v,note\n0,1,4,a\n\n1,1,4\n2,1,4,b\n", r"line 4 has 3 fields, the header has 4"),
+        ('time_s,current_a,voltage_v,note\n0,1,4,"a,b"\n1,1,4,"c",d\n', r"line 3 has 5 fields, the header has 4"),
+        # a column the loader reads, given twice: which one is the data is ambiguous
+        ("time_s,current_a,voltage_v,voltage_v\n0,1,4,4\n1,1,4,4\n",
+         r"line 1: column 'voltage_v' appears 2 times in the header \(columns 3, 4\)"),
+        ("time_s,current_a,voltage_v,temperature_c,temperature_c\n0,1,4,25,25\n1,1,4,25,25\n",
+         r"column 'temperature_c' appears 2 times"),
+        # another delimiter, or upper-case names: the missing-column error says why
+        ("time_s;current_a;voltage_v\n0;1;4\n1;1;4\n", r"missing column.*the header looks semicolon-delimited"),
+        ("time_s\tcurrent_a\tvoltage_v\n0\t1\t4\n1\t1\t4\n", r"missing column.*the header looks tab-delimited"),
+        ('"time_s";"current_a";"voltage_v"\n0;1;4\n1;1;4\n', r"the header looks semicolon-delimited"),
+        ("TIME_S,Current_A,voltage_v\n0,1,4\n1,1,4\n",
+         r"missing column\(s\) time_s, current_a .*column names are case-sensitive: rename 'TIME_S' to time_s, "
+         r"'Current_A' to current_a$"),
         ("", r"empty"),
         ("time_s,current_a,voltage_v\n5,1,4\n5,2,4\n", r"2 distinct timestamps"),
     ],
@@ -247,6 +267,44 @@ def test_errors_name_file_and_problem(tmp_path: Path, text: str, pattern: str) -
         load_recording(path)
     assert str(path) in str(exc.value)
     assert isinstance(exc.value, ValueError)
+
+
+def test_a_duplicated_unused_column_and_case_of_other_columns_are_no_error(tmp_path: Path) -> None:
+    """Only the columns the loader reads must be unique; the others stay ignored."""
+    path = _write(tmp_path / "n.csv", "time_s,current_a,voltage_v,Note,note,note\n0,1,4,a,b,c\n1,1,4,a,b,c\n")
+    np.testing.assert_array_equal(load_recording(path, resample_s=None).time_s, [0.0, 1.0])
+    # an unused column, with a last line without its line end, a comment or blank lines: read as before
+    for rows in ("0,1,4,a\n1,1,4,b", "# x,y\n0,1,4,a\n\n1,1,4,b # z,w\n\n"):
+        path = _write(tmp_path / "u.csv", "time_s,current_a,voltage_v,note\n" + rows)
+        np.testing.assert_array_equal(load_recording(path, resample_s=None).time_s, [0.0, 1.0])
+
+
+def test_rfc4180_quoted_values_load_as_the_plain_file(tmp_path: Path) -> None:
+    """A CSV written with every field quoted (csv.QUOTE_ALL, spreadsheet exports) is the same data: before,
+    its header's quotes were stripped but its values refused as non-numeric ('"0.000000"')."""
+    import csv
+
+    rec = _jittered_recording(n=200)
+    plain = save_recording(rec, tmp_path / "plain.csv")
+    rows = list(csv.reader(plain.read_text().splitlines()))
+    rows[0].append("comment")
+    for k, row in enumerate(rows[1:]):
+        row.append(f'note {k}, with a comma and a ""quote"" # and a hash')
+    for name in ("quoted.csv", "quoted.csv.gz"):
+        quoted = tmp_path / name
+        with (gzip.open(quoted, "wt", newline="") if name.endswith(".gz") else open(quoted, "w", newline="")) as fh:
+            csv.writer(fh, quoting=csv.QUOTE_ALL).writerows(rows)
+        assert quoted.name.endswith(".gz") or quoted.read_text().startswith('"time_s","current_a"')
+        want, got = load_recording(plain), load_recording(quoted)
+        for field in ("time_s", "current_a", "voltage_v", "temperature_c"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+    # a quoted value that is not a number is still named with its line and column
+    bad = _write(tmp_path / "bad.csv", '"time_s","current_a","voltage_v"\n"0","1","4"\n"1","x","4"\n')
+    with pytest.raises(DataError, match=r"bad.csv: line 3: non-numeric value 'x' in column 'current_a'"):
+        load_recording(bad)
+    # a comment after a quoted row is a comment, as in a plain row
+    ok = _write(tmp_path / "ok.csv", 'time_s,current_a,voltage_v,note\n0,1,4,"a"  # x,y\n1,1,4,"b,c"\n')
+    np.testing.assert_array_equal(load_recording(ok, resample_s=None).time_s, [0.0, 1.0])
 
 
 def test_values_in_errors_are_plain_numbers(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import re
 import warnings
 from pathlib import Path
@@ -13,7 +14,7 @@ from hypothesis import strategies as st
 
 from bms_estimator.core.ocv import MIN_SLOPE_V, OcvCurve
 from bms_estimator.data import load_recording
-from bms_estimator.ocv_table import read_ocv_table, write_ocv_table
+from bms_estimator.ocv_table import read_ocv_table, read_ocv_tables, write_ocv_table
 from tests.conftest import shared_file
 
 
@@ -418,6 +419,30 @@ def test_csv_that_is_not_text_names_the_file(tmp_path: Path) -> None:
     p.write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(ValueError, match=r"binary.csv: not UTF-8 text \(invalid start byte at byte 0\)$"):
         read_ocv_table(p)
+
+
+def test_a_gzipped_table_reads_as_the_plain_one(tmp_path: Path) -> None:
+    """Recordings are read as .csv.gz; an OCV table so compressed read "not UTF-8 text (invalid start byte at
+    byte 1)" from every command's --ocv and the service's pack.ocv_csv."""
+    c = knot_curve(31, hysteresis=True)
+    plain = write_ocv_table(OcvCurve(c.soc, c.ocv_v, c.hysteresis_v, temperature_c=10.0), tmp_path / "ocv.csv")
+    gz = tmp_path / "ocv.csv.gz"
+    gz.write_bytes(gzip.compress(plain.read_bytes()))
+    want, got = read_ocv_table(plain), read_ocv_table(gz)
+    np.testing.assert_array_equal(got.soc, want.soc)
+    np.testing.assert_array_equal(got.ocv_v, want.ocv_v)
+    np.testing.assert_array_equal(got.hysteresis_v, want.hysteresis_v)
+    assert got.temperature_c == 10.0
+    assert list(read_ocv_tables([gz]).temperatures_c) == [10.0]
+    # a .gz name on a file that is not gzip data, or a truncated one, is named, not a traceback
+    fake = tmp_path / "fake.csv.gz"
+    fake.write_bytes(plain.read_bytes())
+    with pytest.raises(ValueError, match=r"fake.csv.gz: not a gzip file, or a truncated one"):
+        read_ocv_table(fake)
+    cut = tmp_path / "cut.csv.gz"
+    cut.write_bytes(gz.read_bytes()[:-20])
+    with pytest.raises(ValueError, match=r"cut.csv.gz: not a gzip file, or a truncated one"):
+        read_ocv_table(cut)
 
 
 def test_csv_small_dip_is_repaired_with_warning(tmp_path: Path) -> None:

@@ -14,7 +14,7 @@ from ..fleet.batch import DEFAULT_STACK
 from ..fleet.memory import MALLOC_ENV
 from .outputs import check_outputs, folder_output
 
-#: the files batch writes in --out (besides drives/)
+#: what a batch writes at the top of --out, beside drives/<vehicle>/*.parquet
 SUMMARY_FILES = ("summary.csv", "summary.parquet", "errors.csv")
 
 
@@ -79,8 +79,42 @@ def add_parser(sub) -> None:
                    help="unchained drives per task, estimated side by side as one vectorised estimator (each drive's "
                         f"results are its own, bit for bit; it shares the per-sample overhead; default {DEFAULT_STACK}, "
                         "1 = one drive per task)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="--out may hold an earlier batch's results: delete them first (its summary.csv, "
+                        "summary.parquet, errors.csv and the Parquet files under drives/); without it such an --out "
+                        "is refused")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def _earlier_results(out: Path) -> list[Path]:
+    """The files of an earlier batch in ``out``: its summary and error list, and its drives' Parquet."""
+    found = [out / name for name in SUMMARY_FILES if (out / name).is_file()]
+    drives = out / "drives"
+    if drives.is_dir():
+        found += sorted(p for p in drives.rglob("*") if p.is_file() and p.name.endswith((".parquet", ".parquet.tmp")))
+    return found
+
+
+def _clear_out(out: Path, overwrite: bool) -> None:
+    """Refuse an ``out`` that holds an earlier batch's results, or (``overwrite``) delete them.
+
+    A batch into such a folder rewrote summary.csv for its own drives and left the earlier batch's Parquet
+    of other drives beside it, as if they were its own."""
+    earlier = _earlier_results(out)
+    if not earlier:
+        return
+    if not overwrite:
+        shown = ", ".join(str(p.relative_to(out)) for p in earlier[:3]) + (", ..." if len(earlier) > 3 else "")
+        raise UsageError(f"--out {out}: holds an earlier batch's results ({len(earlier)} files: {shown}), which this "
+                         "batch's would be mixed with: choose an empty directory, or give --overwrite to delete them")
+    for path in earlier:
+        path.unlink()
+    drives = out / "drives"
+    if drives.is_dir():  # the vehicle folders left empty (anything else in them is not the batch's: kept)
+        for folder in sorted((p for p in drives.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+            if not any(folder.iterdir()):
+                folder.rmdir()
 
 
 def _check_config(path: Path) -> None:
@@ -112,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
         args.out.mkdir(exist_ok=True)
     except OSError as exc:
         raise UsageError(f"--out {args.out}: cannot create it: {exc.strerror or exc}") from None
+    _clear_out(args.out, args.overwrite)
     show = sys.stderr.isatty() and not args.no_progress
     bar = task = None
     if show:

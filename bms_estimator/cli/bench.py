@@ -260,12 +260,14 @@ def run(args: argparse.Namespace) -> int:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core, as the goals state
     except (AttributeError, OSError):
         pass
+    from ..errors import UsageError
+
     names = list(FIGURES) if args.figures is None else [f.strip() for f in args.figures.split(",") if f.strip()]
+    if not names:  # ('--figures ""' printed nothing, exit 0)
+        raise UsageError(f"--figures {args.figures!r} names no figure; choose from {', '.join(FIGURES)}")
     unknown = [n for n in names if n not in FIGURES]
     if unknown:
-        from ..errors import UsageError
-
-        raise UsageError(f"unknown figure(s) {', '.join(unknown)}; choose from {', '.join(FIGURES)}")
+        raise UsageError(f"--figures: unknown figure(s) {', '.join(unknown)}; choose from {', '.join(FIGURES)}")
     out: dict[str, float] = {}
     for name in names:
         value = FIGURES[name](args)

@@ -5,11 +5,33 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import re
 import sys
 import time
 
-from ..errors import EXIT_RUNTIME
+from ..errors import EXIT_RUNTIME, DataError
 from .common import positive_float
+
+
+def pack_id(text: str) -> str:
+    """``--pack``: a pack id as the service's ``pack.pack_id`` takes it (one MQTT topic level, no wildcard)."""
+    from ..service.config import _ID_PATTERN
+
+    if not re.fullmatch(_ID_PATTERN, text):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a pack id: a letter or digit, then up to 63 letters, digits, '_', '.' or '-' "
+            "(as the service's pack.pack_id; no '/' and no MQTT wildcard '+' or '#')")
+    return text
+
+
+def base_topic(text: str) -> str:
+    """``--base-topic``: a topic prefix as the service's ``mqtt.base_topic`` takes it."""
+    from ..service.config import _check_topic_part
+
+    try:
+        return _check_topic_part(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} {exc} (as the service's mqtt.base_topic)") from None
 
 
 def add_parser(sub) -> None:
@@ -21,8 +43,9 @@ def add_parser(sub) -> None:
                     "each cell's last message. Unknown topics and garbage payloads are ignored and counted.",
     )
     p.add_argument("--broker", default="localhost:1883", help="HOST[:PORT] of the MQTT broker (default localhost:1883)")
-    p.add_argument("--pack", default=None, help="pack id to show (default: every pack seen)")
-    p.add_argument("--base-topic", default="bms", help="topic prefix of the service (default bms)")
+    p.add_argument("--pack", type=pack_id, default=None, help="pack id to show (default: every pack seen)")
+    p.add_argument("--base-topic", type=base_topic, default="bms",
+                   help="topic prefix of the service (default bms)")
     p.add_argument("--username", default=None)
     p.add_argument("--password-env", default=None, metavar="VAR",
                    help="name of an environment variable holding the password (not on the command line)")
@@ -55,7 +78,13 @@ async def _main(args: argparse.Namespace) -> int:
     if args.tls or args.ca_file:
         import ssl
 
-        tls = ssl.create_default_context(cafile=args.ca_file)
+        try:
+            tls = ssl.create_default_context(cafile=args.ca_file)
+        except ssl.SSLError as exc:  # (its message names neither the option nor the file)
+            raise DataError(f"--ca-file {args.ca_file}: not a CA certificate in PEM format "
+                            f"({exc.reason or exc})") from None
+        except OSError as exc:
+            raise DataError(f"--ca-file {args.ca_file}: {(exc.strerror or str(exc)).lower()}") from None
     state = DashboardState(args.pack, args.base_topic)
     console = Console()
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import DataError
+from ..errors import DataError, UsageError
 from .outputs import check_outputs, file_output, folder_output
 from .common import (add_cell_options, add_method_option, load, load_ocv, positive_float,
                      warn_if_start_is_not_initial_soc, write_json)
@@ -66,13 +66,15 @@ def _series(series_type, rec, ocv, args: argparse.Namespace, cfg, *, cross_valid
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..diagnose import DiagnoseConfig, Series, diagnose, write_report
+    from ..diagnose import CAUSES, DiagnoseConfig, Series, diagnose, write_report
     from ..diagnose.report import REPORT_FILES
 
     check_outputs([("DATA", args.data), ("--validate", args.validate), ("--ocv", args.ocv)],
                   [file_output("--json", args.json, stdout=True),
                    folder_output("--report", args.report, *REPORT_FILES)])
     causes = tuple(c.strip() for c in args.causes.split(",") if c.strip())
+    if not causes:  # (it ran the baseline alone, and named its cause 'none')
+        raise UsageError(f"--causes {args.causes!r} names no cause; choose from {', '.join(CAUSES)}")
     cfg = DiagnoseConfig(candidates=causes, lif=not args.no_lif, method=args.method, pairs=not args.no_pairs,
                          soc_window=(-1.0 if args.soc_min is None else args.soc_min,
                                      2.0 if args.soc_max is None else args.soc_max))  # ValueError: an unknown cause

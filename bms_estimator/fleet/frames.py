@@ -138,8 +138,11 @@ def check_log_complete(path: Path, kind: str) -> None:
     BLF: the header states the file size its writer closed it with; ASC: writers close the
     file with ``End TriggerBlock``; candump: every writer ends each line with a line end, so a
     last byte that is not one is a cut line (python-can read it as a shortened frame, or failed
-    with "not enough values to unpack"). A ``.gz`` file is not checked (its own CRC finds a cut).
+    with "not enough values to unpack"). A ``.gz`` file is not checked (its own CRC finds a cut). An empty
+    file is refused as one (a ``.blf`` read "unpack requires a buffer of 72 bytes").
     """
+    if path.stat().st_size == 0:  # (a .blf read "unpack requires a buffer of 72 bytes")
+        raise DataError(f"{path}: empty log (the file is 0 bytes): no CAN frame in it")
     if path.name.lower().endswith(".gz"):
         return
     if kind == ".log":

@@ -80,8 +80,10 @@ The truth (every injected number) goes to ``<out>.truth.json`` (:func:`truth_pat
 
 from __future__ import annotations
 
+import errno
 import json
 import math
+import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -732,6 +734,12 @@ def encode_log(
     _check_suffix(out)
     if not (0.0 <= initial_soc <= 1.0):
         raise ValueError(f"initial SOC must be in [0, 1], got {initial_soc}")
+    data = Path(data)
+    # said first: a missing file was told to give --ocv and --capacity-ah for it
+    if not data.exists():
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(data))
+    if data.is_dir():
+        raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(data))
     curve, ocv_source, q = resolve_cell_defaults(data, ocv, capacity_ah)
     rec = load_recording(data)
     check_charge_span(rec, q, "--capacity-ah" if capacity_ah is not None else "the shipped cell's capacity")

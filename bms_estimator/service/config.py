@@ -17,7 +17,9 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import ipaddress
+import json
 import os
+import re
 import tomllib
 import typing
 from collections.abc import Mapping
@@ -36,7 +38,8 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from pydantic_settings import BaseSettings, NestedSecretsSettingsSource, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic_settings import (BaseSettings, NestedSecretsSettingsSource, PydanticBaseSettingsSource, SettingsConfigDict,
+                               SettingsError)
 
 from ..core.identifier import IdentifierConfig
 from ..core.soc_ekf import SocEkfConfig
@@ -522,11 +525,40 @@ def load_config(path: Path | str | None = None) -> ServiceConfig:
         cfg = ServiceConfig(**data)
     except ValidationError as exc:
         raise ConfigError(f"invalid configuration ({where}):", problems + _problems(exc)) from None
+    except SettingsError as exc:  # a value pydantic-settings could not parse: its source is at fault, not the file
+        source, lines = _settings_error_problems(exc, os.environ)
+        raise ConfigError(f"invalid configuration ({source}):", problems + lines) from None
     except (ValueError, TypeError) as exc:  # e.g. an env value that is not valid JSON for a dict field
         raise ConfigError(f"invalid configuration ({where}):", problems + [str(exc)]) from None
     if problems:
         raise ConfigError(f"invalid configuration ({where}):", problems)
     return cfg
+
+
+def _settings_error_problems(exc: SettingsError, environ: Mapping[str, str]) -> tuple[str, list[str]]:
+    """(where, problem lines) of pydantic-settings' 'error parsing value for field "estimator" from source
+    "EnvSettingsSource"': the ``BMS_`` variables of that section, the one whose value is not JSON where one is
+    found (a list or table value is read as JSON), never their values (one may be a password)."""
+    why = str(exc.__cause__ or exc).strip().splitlines()[0]
+    m = re.search(r'field "([^"]+)" from source "(\w+)"', str(exc))
+    field, source = (m.group(1), m.group(2)) if m else ("", "")
+    if source == "EnvSettingsSource":
+        head = f"{ENV_PREFIX}{field}".upper()
+        keys = sorted(k for k in environ if k.upper() == head or k.upper().startswith(head + "__"))
+
+        def not_json(key: str) -> bool:
+            try:
+                json.loads(environ[key])
+            except ValueError:
+                return environ[key].lstrip()[:1] in ("[", "{")
+            return False
+
+        keys = [k for k in keys if not_json(k)] or keys
+        what = f"not valid JSON ({why})" if isinstance(exc.__cause__, json.JSONDecodeError) else why
+        return "environment", [f"{', '.join(keys) or head} (environment): {what}"]
+    if "Secrets" in source:
+        return f"secret files in {secrets_dir()}", [f"{field}: {why}"]
+    return source or "settings", [f"{field or '<root>'}: {why}"]
 
 
 #: ``BMS_*`` variables that are not service settings: the offline tools' data location

@@ -171,6 +171,8 @@ class Service:
                     self.ocv_source = ", ".join(str(p) for p in paths)
                     # several tables: OCV(soc, T), read at each cell's temperature from CAN
                     self.ocv = read_ocv_table(paths[0]) if len(paths) == 1 else read_ocv_tables(paths)
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError) as exc:  # the key names no file: its fault
+            problems.append(f"pack.ocv_csv: {exc.filename}: {exc.strerror.lower()}")
         except (OSError, ValueError) as exc:  # the table itself: a data error, not the configuration's
             data_problems.append(f"pack.ocv_csv: {exc}")
         self.soc_config = cfg.estimator.soc_config

@@ -31,3 +31,11 @@ def test_diagnose_rejects_an_unknown_cause(capsys):
                "--capacity-ah", "3.0", "--causes", "hysteresis,gremlins"])
     assert rc == 2
     assert "gremlins" in capsys.readouterr().err
+
+
+def test_diagnose_refuses_an_empty_list_of_causes(capsys):
+    """'--causes ""' fitted the baseline alone and named its cause 'none', exit 0."""
+    rc = main(["diagnose", str(drive_cycle("lg-hg2", "la92")), "--ocv", str(ocv_table("lg-hg2")),
+               "--capacity-ah", "3.0", "--causes", ""])
+    assert rc == 2
+    assert "--causes '' names no cause; choose from hysteresis" in capsys.readouterr().err

@@ -91,6 +91,29 @@ def test_cli_errors_name_the_problem(fleet, tmp_path, capsys):
     assert "empty log" in err and "nope.toml: no such file" in err
 
 
+def test_an_out_holding_an_earlier_batch_is_refused_unless_overwrite(fleet, capsys):
+    """'batch car1 --out DIR' after 'batch car2 --out DIR' rewrote summary.csv for car1 alone and left
+    drives/car2/*.parquet beside it, as if of this batch: refused now, or with --overwrite cleared first."""
+    d, cfg = fleet
+    out = d / "out-again"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")  # a folder with other files is no earlier batch
+    args = ["--config", str(cfg), "--out", str(out), "--workers", "1", "--no-progress"]
+    assert main(["batch", str(d / "logs" / "car2" / "drive1.log"), *args]) == 0
+    assert (out / "drives" / "car2" / "drive1.log.parquet").is_file()
+    capsys.readouterr()
+    assert main(["batch", str(d / "logs" / "car1" / "drive1.log"), *args]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert (f"--out {out}: holds an earlier batch's results (4 files: summary.csv, summary.parquet, errors.csv, ...), "
+            "which this batch's would be mixed with: choose an empty directory, or give --overwrite") in err, err
+    assert (out / "drives" / "car2" / "drive1.log.parquet").is_file()  # nothing touched
+    assert main(["batch", str(d / "logs" / "car1" / "drive1.log"), *args, "--overwrite"]) == 0
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == [
+        "drives/car1/drive1.log.parquet", "errors.csv", "notes.txt", "summary.csv", "summary.parquet"]
+    with (out / "summary.csv").open() as fh:
+        assert {r["vehicle"] for r in csv.DictReader(fh)} == {"car1"}
+
+
 def test_two_worker_processes_give_the_one_worker_results(fleet):
     """A real LocalCluster on loopback, 2 worker processes, drives unchained and chained."""
     from dask.distributed import Client, LocalCluster
@@ -129,7 +152,7 @@ def test_scheduler_address_puts_the_work_on_that_cluster(fleet, capsys):
     assert rc == 0
     assert "1 of 1 drives estimated" in capsys.readouterr().out
     assert (out / "drives" / "car1" / "drive0.log.parquet").is_file()
-    assert main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out),
+    assert main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out) + "-2",
                  "--scheduler", "tcp://127.0.0.1:9", "--no-progress"]) == EXIT_USAGE
     assert "cannot reach the Dask scheduler" in capsys.readouterr().err
 

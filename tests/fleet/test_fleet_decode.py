@@ -266,6 +266,17 @@ def test_corrupt_log_is_a_data_error(tmp_path, content, problem):
         read_frames(path)
 
 
+@pytest.mark.parametrize("name", ["empty.blf", "empty.asc", "empty.log", "empty.mf4", "empty.log.gz"])
+def test_an_empty_log_is_said_to_be_empty(tmp_path, name):
+    """batch read an empty .blf as 'cannot read the log: error: unpack requires a buffer of 72 bytes'."""
+    from bms_estimator.errors import DataError
+
+    path = tmp_path / name
+    path.write_bytes(b"")
+    with pytest.raises(DataError, match=rf"{name}: empty log \(the file is 0 bytes\): no CAN frame in it$"):
+        read_frames(path)
+
+
 def test_mf4_bus_logging_reads_back_the_frames(tmp_path):
     """An MF4 bus-logging file (asammdf's CAN_DataFrame layout) gives the frames it was written from."""
     from asammdf import MDF

@@ -251,6 +251,16 @@ def test_missing_ocv_for_an_unknown_cell_is_a_clear_error(tmp_path, capsys):
     assert rc == 2 and ".log" in capsys.readouterr().err
 
 
+def test_a_missing_input_is_said_before_the_options_it_would_need(tmp_path, capsys):
+    """'encode-log nonexist.csv' asked for --ocv and --capacity-ah (exit 2) before saying the file is not there."""
+    missing = tmp_path / "nonexist.csv"
+    rc = main(["encode-log", str(missing), "--cells", "2", "-o", str(tmp_path / "x.log"), "--no-progress"])
+    assert (rc, capsys.readouterr().err) == (3, f"bms-estimator encode-log: error: {missing}: No such file or directory\n")
+    rc = main(["encode-log", str(tmp_path), "--cells", "2", "-o", str(tmp_path / "x.log"), "--no-progress"])
+    assert (rc, capsys.readouterr().err) == (3, f"bms-estimator encode-log: error: {tmp_path}: Is a directory\n")
+    assert not (tmp_path / "x.log").exists()
+
+
 def test_a_recording_in_milliamps_is_refused_not_encoded(tmp_path, capsys):
     """A current in mA was encoded as a pack 'with model RMSE 515808 mV' and exit 0."""
     rec = load_recording(drive_cycle("lg-hg2", "udds"))

@@ -168,7 +168,11 @@ def test_replay_command_on_a_virtual_bus(encoded, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("name, content, message", [
-    ("empty.log", b"", "empty.log: no CAN frame in the log"),
+    ("empty.log", b"", "empty.log: empty log (the file is 0 bytes): no CAN frame in it"),
+    # python-can's BLF reader said "unpack requires a buffer of 72 bytes"
+    ("empty.blf", b"", "empty.blf: empty log (the file is 0 bytes): no CAN frame in it"),
+    ("empty.asc", b"", "empty.asc: empty log (the file is 0 bytes): no CAN frame in it"),
+    ("blank.log", b"\n", "blank.log: no CAN frame in the log"),
     ("words.log", b"hello world\n", "words.log: unreadable after 0 frames at line 1, 'hello world', not a candump -L "
                                      "frame '(time) channel id#data' (ValueError: "),
     ("bad.blf", b"garbage\n", "bad.blf: unreadable as a CAN log ("),

@@ -319,6 +319,23 @@ def test_core_parameter_named_once_with_the_cores_bound(tmp_path, monkeypatch):
     assert exc.value.problems == ["estimator.core: tau_min_s must be below tau_max_s, got 600.0 and 500.0"]
 
 
+def test_an_environment_value_that_is_not_json_names_the_variable_not_the_file(tmp_path, monkeypatch):
+    """It read 'invalid configuration (ok.toml): error parsing value for field "estimator" from source
+    "EnvSettingsSource"': the file blamed, the variable not named."""
+    path = tmp_path / "ok.toml"
+    path.write_text("[pack]\nn_cells = 4\n")
+    monkeypatch.setenv("BMS_ESTIMATOR__CORE__WINDOW", "25")  # a fine variable of the same section is not blamed
+    monkeypatch.setenv("BMS_ESTIMATOR__CORE__CAPACITY_BOUNDS", "[1,2")
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert exc.value.header == "invalid configuration (environment):"
+    assert exc.value.problems == ["BMS_ESTIMATOR__CORE__CAPACITY_BOUNDS (environment): not valid JSON "
+                                  "(Expecting ',' delimiter: line 1 column 5 (char 4))"]
+    assert "ok.toml" not in str(exc.value)
+    monkeypatch.setenv("BMS_ESTIMATOR__CORE__CAPACITY_BOUNDS", "[0.8, 1.1]")
+    assert load_config(path).pack.n_cells == 4
+
+
 def test_secrets_come_from_systemd_credentials(tmp_path, monkeypatch):
     """LoadCredential= puts a file per secret in $CREDENTIALS_DIRECTORY, named like the setting
     (mqtt__password); it wins over the file, the environment wins over it; other credentials

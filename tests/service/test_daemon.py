@@ -46,7 +46,6 @@ from bms_estimator.data import load_recording
 from bms_estimator.ocv_table import read_ocv_table, read_ocv_tables, write_ocv_table
 from bms_estimator.samples import drive_cycle, ocv_table
 from bms_estimator.service.config import ConfigError, ServiceConfig, soc_config_from_core
-from bms_estimator.errors import DataError
 from bms_estimator.service.daemon import Service, run_service
 from bms_estimator.service.state import load_state, save_state
 
@@ -495,7 +494,10 @@ def test_ocv_tables_at_several_temperatures_are_read_at_each_cells_temperature(t
     sigma = np.asarray(snap.cells["soc_sigma"])
     assert sigma.shape == (N,) and np.all((sigma > 0) & (sigma < 0.2))
     bad = config_data(tmp_path, channel(), pack={"ocv_csv": [paths[0], str(tmp_path / "missing.csv")]})
-    with pytest.raises(DataError, match="pack.ocv_csv"):  # the file, not the configuration, is at fault
+    with pytest.raises(ConfigError, match="pack.ocv_csv"):  # a path to no file is the configuration's mistake
+        Service(ServiceConfig(**bad))
+    bad = config_data(tmp_path, channel(), pack={"ocv_csv": [paths[0], str(tmp_path / "cold.csv" / "x.csv")]})
+    with pytest.raises(ConfigError, match=r"pack.ocv_csv: .*cold.csv/x.csv: not a directory"):
         Service(ServiceConfig(**bad))
     # a table of another cell (the LG HG2 sample's, labelled 20 degC, beside the Panasonic one): each file is fine,
     # the list doubtful: the service starts and says so in one warning naming both files (core.ocv_surface, item 9)
@@ -821,6 +823,19 @@ def test_broker_down_mid_run_keeps_can_output(broker_factory, tmp_path):
     assert_state_file_valid(Path(cfg.state.path), soc=soc)
 
 
+def test_pack_ocv_csv_takes_gzipped_tables(tmp_path, capsys):
+    """pack.ocv_csv, as --ocv, reads a .csv.gz table (before: "not UTF-8 text (invalid start byte at byte 1)")."""
+    import gzip
+
+    gz = tmp_path / "ocv.csv.gz"
+    gz.write_bytes(gzip.compress(ocv_table("panasonic-18650pf").read_bytes()))
+    config = tmp_path / "gz.toml"
+    config.write_text(f"[pack]\nn_cells = 4\nocv_csv = ['{gz}']\n[state]\npath = '{tmp_path / 'state.npz'}'\n")
+    assert cli_main(["run", "--config", str(config), "--check-config"]) == 0, capsys.readouterr().err
+    config.write_text(f"[pack]\nn_cells = 4\nocv_csv = '{gz}'\n[state]\npath = '{tmp_path / 'state.npz'}'\n")
+    assert cli_main(["run", "--config", str(config), "--check-config"]) == 0, capsys.readouterr().err
+
+
 def test_bad_config_exits_2_naming_each_field(tmp_path, capsys):
     state = tmp_path / "state.npz"
     bad = tmp_path / "bad.toml"
@@ -843,6 +858,12 @@ def test_bad_config_exits_2_naming_each_field(tmp_path, capsys):
     assert cli_main(["run", "--config", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "pack.ocv_csv:" in err and "can.mapping:" in err
+    # a path to no table, or to a folder, alone is a configuration mistake too (exit 2, not 3), naming key and path
+    for where, what in ((tmp_path / "missing.csv", "no such file"), (tmp_path, "is a directory")):
+        bad.write_text(f"[pack]\nn_cells = 4\nocv_csv = '{where}'\n[state]\npath = '{state}'\n")
+        assert cli_main(["run", "--config", str(bad), "--check-config"]) == 2
+        err = capsys.readouterr().err
+        assert f"pack.ocv_csv: {where}: {what}" in err and "Errno" not in err, err
     # a malformed OCV table alone is a data error: exit 3, naming the file, line and column
     table = tmp_path / "bad_ocv.csv"
     table.write_text("soc,ocv_v\n0,abc\n1,4.1\n")
