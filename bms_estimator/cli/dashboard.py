@@ -15,9 +15,9 @@ from .common import positive_float
 
 def pack_id(text: str) -> str:
     """``--pack``: a pack id as the service's ``pack.pack_id`` takes it (one MQTT topic level, no wildcard)."""
-    from ..service.config import _ID_PATTERN
+    from ..service.config import ID_PATTERN
 
-    if not re.fullmatch(_ID_PATTERN, text):
+    if not re.fullmatch(ID_PATTERN, text):
         raise argparse.ArgumentTypeError(
             f"{text!r} is not a pack id: a letter or digit, then up to 63 letters, digits, '_', '.' or '-' "
             "(as the service's pack.pack_id; no '/' and no MQTT wildcard '+' or '#')")
@@ -26,10 +26,10 @@ def pack_id(text: str) -> str:
 
 def base_topic(text: str) -> str:
     """``--base-topic``: a topic prefix as the service's ``mqtt.base_topic`` takes it."""
-    from ..service.config import _check_topic_part
+    from ..service.config import check_topic_part
 
     try:
-        return _check_topic_part(text)
+        return check_topic_part(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"{text!r} {exc} (as the service's mqtt.base_topic)") from None
 

@@ -53,6 +53,7 @@ __all__ = [
     "CanOutputConfig",
     "ConfigError",
     "EstimatorConfig",
+    "ID_PATTERN",
     "HealthConfig",
     "LoggingConfig",
     "MqttConfig",
@@ -60,6 +61,7 @@ __all__ = [
     "ServiceConfig",
     "StateConfig",
     "TlsConfig",
+    "check_topic_part",
     "load_config",
     "soc_config_from_core",
 ]
@@ -68,7 +70,8 @@ ENV_PREFIX = "BMS_"
 REDACTED = "**********"
 
 _TOPIC_FORBIDDEN = set("+#\x00")
-_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+#: a pack id (an MQTT topic level and a Home Assistant id part): the service's and the dashboard's rule
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 
 
 class _Strict(BaseModel):
@@ -77,7 +80,7 @@ class _Strict(BaseModel):
 
 # --------------------------------------------------------------------------- pack
 class PackConfig(_Strict):
-    pack_id: str = Field("pack0", pattern=_ID_PATTERN, description="used in MQTT topics and HA ids")
+    pack_id: str = Field("pack0", pattern=ID_PATTERN, description="used in MQTT topics and HA ids")
     n_cells: int = Field(16, ge=1, le=1024)
     capacity_ah: float = Field(50.0, gt=0, le=1e5)
     ocv_csv: Path | list[Path] | None = Field(
@@ -286,7 +289,9 @@ class TlsConfig(_Strict):
         return v
 
 
-def _check_topic_part(value: str, *, allow_empty: bool = False) -> str:
+def check_topic_part(value: str, *, allow_empty: bool = False) -> str:
+    """``value`` as a part of an MQTT topic (no wildcard ``+`` / ``#`` or NUL, no empty level), else a
+    ``ValueError``; the service's rule for ``mqtt.base_topic``, and the dashboard's for ``--base-topic``."""
     if not value and not allow_empty:
         raise ValueError("must not be empty")
     if _TOPIC_FORBIDDEN & set(value):
@@ -320,7 +325,7 @@ class MqttConfig(_Strict):
     @field_validator("base_topic", "discovery_prefix")
     @classmethod
     def _topic(cls, v: str) -> str:
-        return _check_topic_part(v)
+        return check_topic_part(v)
 
     @field_validator("reconnect_max_s")
     @classmethod
