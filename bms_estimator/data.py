@@ -105,6 +105,7 @@ __all__ = [
     "check_charge_span",
     "DataError",
     "load_recording",
+    "read_file_bytes",
     "save_recording",
     "shared_data_dir",
 ]
@@ -206,14 +207,20 @@ class CellRecording:
 # loading
 
 
+def read_file_bytes(path: Path) -> bytes:
+    """The bytes of the file ``path``, decompressed where its name ends in ``.gz`` (any case): the one reader
+    of recordings and OCV tables.  Raises what reading raises (``OSError``; ``EOFError`` / ``zlib.error`` /
+    ``gzip.BadGzipFile`` for a cut or non-gzip ``.gz``); each caller says it in its own terms."""
+    if path.name.lower().endswith(".gz"):
+        with gzip.open(path, "rb") as fh:
+            return fh.read()
+    return path.read_bytes()
+
+
 def _read_text(path: Path) -> tuple[str, bytes]:
     """The file's text, and its (decompressed) bytes."""
     try:
-        if path.name.endswith(".gz"):
-            with gzip.open(path, "rb") as fh:
-                raw = fh.read()
-        else:
-            raw = path.read_bytes()
+        raw = read_file_bytes(path)
     except FileNotFoundError:
         raise
     except (OSError, EOFError) as exc:  # corrupt gzip, unreadable file

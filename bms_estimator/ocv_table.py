@@ -16,6 +16,7 @@ from pathlib import Path
 
 from .core.ocv import OcvCurve
 from .core.ocv_surface import REFERENCE_TEMPERATURE_C, OcvSurface
+from .data import read_file_bytes
 
 __all__ = ["read_ocv_table", "read_ocv_tables", "write_ocv_table"]
 
@@ -32,11 +33,7 @@ def read_ocv_table(path: PathLike) -> OcvCurve:
     """
     path = Path(path)
     try:
-        if path.name.lower().endswith(".gz"):
-            with gzip.open(path, "rb") as fh:
-                raw = fh.read()
-        else:
-            raw = path.read_bytes()
+        raw = read_file_bytes(path)
     except (gzip.BadGzipFile, EOFError, zlib.error) as exc:  # (not OSError's "cannot be read": its content)
         raise ValueError(f"{path}: not a gzip file, or a truncated one ({exc})") from None
     try:
