@@ -86,7 +86,7 @@ from . import systemd
 from .config import ConfigError, ServiceConfig
 from .health import HealthServer, Heartbeat
 from .metrics import ServiceMetrics
-from .mqtt import MqttPublisher
+from .mqtt import MqttPublisher, tls_context
 from .pipeline import Pipeline, Snapshot
 from .schema import EstimatorState
 from .state import _move_aside, estimator_state, load_state, resume_sox, save_state
@@ -156,6 +156,11 @@ class Service:
             for err in exc.errors(include_url=False):
                 loc = ".".join(str(p) for p in err.get("loc", ()))
                 problems.append(f"can.bus.{loc}: {err.get('msg', 'invalid')}")
+        if cfg.mqtt.enabled:
+            try:
+                tls_context(cfg.mqtt.tls)  # its files: the client makes it again at its first connect
+            except ConfigError as exc:
+                problems.extend(exc.problems)
         self.ocv: OcvCurve | OcvSurface | None = None
         try:
             if cfg.pack.ocv_csv is None:

@@ -1,0 +1,47 @@
+"""What ``bms-estimator run`` refuses before it starts (exit 2, one line per problem naming the key and
+the path), where the service would otherwise run on a configuration that can never work."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from bms_estimator.cli.__main__ import main as cli_main
+
+
+def write_config(tmp_path: Path, extra: str = "", *, state: Path | None = None) -> Path:
+    state = state if state is not None else tmp_path / "state" / "state.npz"
+    path = tmp_path / "bms.toml"
+    path.write_text("[pack]\nn_cells = 4\n"
+                    "[can]\ninterface = 'virtual'\nchannel = 'check-config'\n"
+                    f"[state]\npath = '{state}'\n" + extra)
+    return path
+
+
+def check_config(path: Path, capsys) -> tuple[int, str]:
+    code = cli_main(["run", "--config", str(path), "--check-config"])
+    return code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("key", ["ca_file", "cert_file"])
+def test_a_tls_file_that_is_missing_or_not_pem_is_named_before_the_start(tmp_path, capsys, key):
+    """It passed --check-config, and the running service logged 'mqtt client setup failed:
+    FileNotFoundError: [Errno 2] No such file or directory' at every reconnect, naming neither
+    the key nor the file."""
+    missing = tmp_path / "tls" / "missing.pem"
+    code, err = check_config(write_config(tmp_path, f"[mqtt.tls]\nenabled = true\n{key} = '{missing}'\n"), capsys)
+    assert code == 2, err
+    assert f"mqtt.tls.{key}: {missing}: no such file or directory" in err and "Errno" not in err, err
+
+    garbage = tmp_path / "garbage.pem"
+    garbage.write_text("not a certificate\n")
+    code, err = check_config(write_config(tmp_path, f"[mqtt.tls]\nenabled = true\n{key} = '{garbage}'\n"), capsys)
+    assert code == 2, err
+    assert f"mqtt.tls.{key}: {garbage}:" in err and "Traceback" not in err, err
+
+
+def test_tls_files_are_not_read_while_mqtt_is_off(tmp_path, capsys):
+    extra = f"[mqtt]\nenabled = false\n[mqtt.tls]\nenabled = true\nca_file = '{tmp_path / 'missing.pem'}'\n"
+    code, err = check_config(write_config(tmp_path, extra), capsys)
+    assert code == 0, err
