@@ -156,6 +156,9 @@ class Service:
             for err in exc.errors(include_url=False):
                 loc = ".".join(str(p) for p in err.get("loc", ()))
                 problems.append(f"can.bus.{loc}: {err.get('msg', 'invalid')}")
+        state_problem = cfg.state.path_problem()
+        if state_problem is not None:
+            problems.append(f"state.path: {state_problem}")
         if cfg.mqtt.enabled:
             try:
                 tls_context(cfg.mqtt.tls)  # its files: the client makes it again at its first connect

@@ -45,3 +45,29 @@ def test_tls_files_are_not_read_while_mqtt_is_off(tmp_path, capsys):
     extra = f"[mqtt]\nenabled = false\n[mqtt.tls]\nenabled = true\nca_file = '{tmp_path / 'missing.pem'}'\n"
     code, err = check_config(write_config(tmp_path, extra), capsys)
     assert code == 0, err
+
+
+def test_a_state_path_that_is_a_directory_is_refused_and_left_alone(tmp_path, capsys):
+    """``state.path = '/var/lib/bms-estimator'`` (the StateDirectory, not a file in it) passed
+    --check-config; the running service then renamed the operator's directory, contents and all,
+    to ``<dir>.corrupt-<time>`` ("not a regular file") and wrote its state file in its place."""
+    folder = tmp_path / "var-lib"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("keep")
+    code, err = check_config(write_config(tmp_path, state=folder), capsys)
+    assert code == 2, err
+    assert f"state.path: {folder} is a directory" in err and str(folder / "state.npz") in err, err
+    assert cli_main(["run", "--config", str(write_config(tmp_path, state=folder))]) == 2
+    assert (folder / "notes.txt").read_text() == "keep"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("var-lib")] == ["var-lib"]
+
+
+def test_a_state_path_through_a_file_is_refused(tmp_path, capsys):
+    """A state file under a path that is a file: every save failed ('File exists'), found at the first one."""
+    afile = tmp_path / "hostname"
+    afile.write_text("x")
+    code, err = check_config(write_config(tmp_path, state=afile / "state.npz"), capsys)
+    assert code == 2, err
+    assert f"state.path: {afile} is not a directory" in err, err
+    code, err = check_config(write_config(tmp_path, state=tmp_path / "not" / "yet" / "state.npz"), capsys)
+    assert code == 0, err  # a directory that does not exist yet is made by the first save
