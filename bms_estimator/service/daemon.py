@@ -164,6 +164,10 @@ class Service:
                 tls_context(cfg.mqtt.tls)  # its files: the client makes it again at its first connect
             except ConfigError as exc:
                 problems.extend(exc.problems)
+            if cfg.mqtt.buffer_max < n + 1:  # a sample queues all its topics at once; a full buffer evicts the oldest
+                problems.append(f"mqtt.buffer_max: {cfg.mqtt.buffer_max} is less than the {n + 1} topics of one sample "
+                                f"(pack.n_cells {n} and the pack): its first cells would be evicted unsent, every "
+                                f"sample; give at least {n + 1}")
         self.ocv: OcvCurve | OcvSurface | None = None
         try:
             if cfg.pack.ocv_csv is None:

@@ -71,3 +71,16 @@ def test_a_state_path_through_a_file_is_refused(tmp_path, capsys):
     assert f"state.path: {afile} is not a directory" in err, err
     code, err = check_config(write_config(tmp_path, state=tmp_path / "not" / "yet" / "state.npz"), capsys)
     assert code == 0, err  # a directory that does not exist yet is made by the first save
+
+
+def test_an_mqtt_buffer_smaller_than_one_sample_is_refused(tmp_path, capsys):
+    """Each sample queues its pack.n_cells + 1 topics at once, and a full buffer evicts the oldest:
+    with ``mqtt.buffer_max`` below that, the first cells of every sample were evicted unsent, never
+    published while the broker was up, counted only as ``bms_mqtt_dropped_total``."""
+    code, err = check_config(write_config(tmp_path, "[mqtt]\nbuffer_max = 3\n"), capsys)
+    assert code == 2, err
+    assert "mqtt.buffer_max: 3 is less than the 5 topics of one sample (pack.n_cells 4 and the pack)" in err, err
+    code, err = check_config(write_config(tmp_path, "[mqtt]\nbuffer_max = 5\n"), capsys)
+    assert code == 0, err
+    code, err = check_config(write_config(tmp_path, "[mqtt]\nenabled = false\nbuffer_max = 3\n"), capsys)
+    assert code == 0, err
