@@ -355,6 +355,20 @@ class StateConfig(_Strict):
     save_interval_s: float = Field(60.0, gt=0, le=86400)
     max_age_s: float | None = Field(7 * 86400.0, gt=0, description="older saved state is ignored (and one saved this far ahead of the clock); None = no limit")
 
+    def path_problem(self) -> str | None:
+        """Why no state can ever be saved at ``path``, where that can be told without writing: it is a
+        directory (which the service would set aside as a corrupt state file), or the nearest part of
+        it that exists is a file; None otherwise (missing directories are made by the first save)."""
+        try:
+            if self.path.is_dir():
+                return f"{self.path} is a directory: name the state file in it (e.g. {self.path / 'state.npz'})"
+            existing = next((p for p in self.path.parents if p.exists()), None)
+        except OSError:  # not ours to tell (permissions): the saves say so
+            return None
+        if existing is not None and not existing.is_dir():
+            return f"{existing} is not a directory"
+        return None
+
 
 # ------------------------------------------------------------------------- health
 def _is_loopback(host: str) -> bool:

@@ -46,8 +46,8 @@ Reload (SIGHUP, ``systemctl reload``): :func:`serve` builds a new :class:`Servic
 configuration as it is now, in a thread of its own while the running one goes on. One that does not
 build (:class:`ConfigError`, :class:`DataError`, or anything else) is logged with every problem and
 the running service keeps its configuration. Otherwise the running service stops as on SIGTERM but
-says ``RELOADING=1`` (the state saved), and the new one starts from that state (``READY=1``); a stop
-requested meanwhile ends there instead.
+says ``RELOADING=1`` (the state saved), and the new one starts from that state (``READY=1``), from memory
+where that save failed (:meth:`Service.takes_over`); a stop requested meanwhile ends there instead.
 """
 
 from __future__ import annotations
@@ -86,10 +86,10 @@ from . import systemd
 from .config import ConfigError, ServiceConfig
 from .health import HealthServer, Heartbeat
 from .metrics import ServiceMetrics
-from .mqtt import MqttPublisher
+from .mqtt import MqttPublisher, tls_context
 from .pipeline import Pipeline, Snapshot
 from .schema import EstimatorState
-from .state import _move_aside, estimator_state, load_state, resume_sox, save_state
+from .state import StateDict, _move_aside, estimator_state, load_state, resume_sox, save_state
 
 __all__ = ["DEFAULT_OCV_CELL", "ClockStepGuard", "Service", "ServiceMetrics", "run_service", "serve"]
 
@@ -156,6 +156,18 @@ class Service:
             for err in exc.errors(include_url=False):
                 loc = ".".join(str(p) for p in err.get("loc", ()))
                 problems.append(f"can.bus.{loc}: {err.get('msg', 'invalid')}")
+        state_problem = cfg.state.path_problem()
+        if state_problem is not None:
+            problems.append(f"state.path: {state_problem}")
+        if cfg.mqtt.enabled:
+            try:
+                tls_context(cfg.mqtt.tls)  # its files: the client makes it again at its first connect
+            except ConfigError as exc:
+                problems.extend(exc.problems)
+            if cfg.mqtt.buffer_max < n + 1:  # a sample queues all its topics at once; a full buffer evicts the oldest
+                problems.append(f"mqtt.buffer_max: {cfg.mqtt.buffer_max} is less than the {n + 1} topics of one sample "
+                                f"(pack.n_cells {n} and the pack): its first cells would be evicted unsent, every "
+                                f"sample; give at least {n + 1}")
         self.ocv: OcvCurve | OcvSurface | None = None
         try:
             if cfg.pack.ocv_csv is None:
@@ -243,6 +255,8 @@ class Service:
         self._no_input_logged = False
         self._last_frame_mono: float | None = None
         self.reloading = False  # set by serve(): the stop ahead is a reload (RELOADING=1, not STOPPING=1)
+        self.unsaved: StateDict | None = None  # the state the final save could not write (set at the stop)
+        self.handover: StateDict | None = None  # set by serve(): the unsaved state of the service this one follows
         self.clock_guard = ClockStepGuard(self.sampler.max_gap_s)
 
     @property
@@ -274,7 +288,9 @@ class Service:
         """Load the saved state if it is fresh and fits; True when resumed. Never raises."""
         st = self.cfg.state
         pack_id = self.cfg.pack.pack_id
-        saved = load_state(st.path, pack_id=pack_id, n_cells=self.n_cells, max_age_s=st.max_age_s)
+        saved = self.handover
+        if saved is None:
+            saved = load_state(st.path, pack_id=pack_id, n_cells=self.n_cells, max_age_s=st.max_age_s)
         if saved is None:
             return False
         meta = getattr(saved, "meta", {}) or {}
@@ -291,7 +307,8 @@ class Service:
                 self.pipeline.estimator = est
                 self._restore_sox(saved)
         if reason is not None:
-            aside = _move_aside(Path(st.path), "foreign") if Path(st.path).exists() else None
+            on_disk = self.handover is None and Path(st.path).exists()  # a state handed over is not the file's
+            aside = _move_aside(Path(st.path), "foreign") if on_disk else None
             log.warning("saved estimator state not used; starting fresh", path=str(st.path), reason=reason,
                         moved_to=str(aside) if aside else None)
             self.pipeline.estimator = self._new_estimator()
@@ -396,6 +413,24 @@ class Service:
             return False
         self.metrics.state_saves.inc()
         log.debug("state saved", path=str(path), t_s=meta.get("t_s"))
+        return True
+
+    def _unsaved_state(self) -> StateDict:
+        """The current state as :func:`load_state` would return it had it been saved now (for :func:`serve`)."""
+        state, meta, saved_at = self._state_to_save()
+        out = StateDict(state)
+        out.meta = {**meta, "saved_at": saved_at, "age_s": max(0.0, time.time() - saved_at)}
+        return out
+
+    def takes_over(self, old: Service) -> bool:
+        """Whether this service, started by a reload after ``old``, resumes ``old``'s state from memory: its
+        final save failed (the file on disk is older, or absent), and it has this pack, size and estimator
+        configuration (the :meth:`_fingerprint` a state file must have been made with)."""
+        unsaved = old.unsaved
+        if unsaved is None or (old.cfg.pack.pack_id, old.n_cells, old.fingerprint) != (
+                self.cfg.pack.pack_id, self.n_cells, self.fingerprint):
+            return False
+        self.handover = unsaved
         return True
 
     async def save_now(self) -> bool:
@@ -597,6 +632,8 @@ class Service:
                 await consume
         ok = await self.save_now()
         log.info("estimator state saved" if ok else "final state save failed", path=str(self.cfg.state.path))
+        if not ok and self.reloading:
+            self.unsaved = self._unsaved_state()
         if self.cfg.mqtt.enabled and self.pipeline.last is not None:
             # with publish_period_s/soc_deadband the newest state may not have gone out yet
             self.publisher.submit_snapshot(self.pipeline.last, final=True)
@@ -719,6 +756,9 @@ async def serve(svc: Service, stop: asyncio.Event, reload: asyncio.Event, rebuil
         await task
         if not svc.reloading:
             return svc
+        if new.takes_over(svc):
+            log.warning("the state was not saved: the reloaded service resumes it from memory",
+                        path=str(svc.cfg.state.path))
         svc = new
         if reloaded is not None:
             reloaded(svc)

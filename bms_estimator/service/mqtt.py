@@ -28,6 +28,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import aiomqtt
@@ -35,16 +36,17 @@ import numpy as np
 import structlog
 
 from .. import aio, package_version
+from ..errors import ConfigError
 from ..jsonsafe import to_jsonable
 from . import schema
 from .mqtt_client import MqttClient
 
 if TYPE_CHECKING:
-    from .config import MqttConfig
+    from .config import MqttConfig, TlsConfig
     from .metrics import ServiceMetrics
     from .pipeline import Snapshot
 
-__all__ = ["MqttCounters", "MqttPublisher"]
+__all__ = ["MqttCounters", "MqttPublisher", "tls_context"]
 
 log = structlog.get_logger("bms.mqtt")
 
@@ -371,19 +373,8 @@ class MqttPublisher:
 
     # ----------------------------------------------------------------- session
     def _tls_context(self) -> ssl.SSLContext | None:
-        t = self.cfg.tls
-        if not t.enabled:
-            return None
         if self._tls is None:
-            ctx = ssl.create_default_context(
-                ssl.Purpose.SERVER_AUTH, cafile=str(t.ca_file) if t.ca_file else None
-            )
-            if t.cert_file is not None:
-                ctx.load_cert_chain(str(t.cert_file), str(t.key_file) if t.key_file else None)
-            if t.insecure:
-                ctx.check_hostname = False
-                ctx.verify_mode = ssl.CERT_NONE
-            self._tls = ctx
+            self._tls = tls_context(self.cfg.tls)
         return self._tls
 
     def _make_client(self) -> aiomqtt.Client:
@@ -409,7 +400,8 @@ class MqttPublisher:
             client = self._make_client()
         except (OSError, ValueError, ssl.SSLError) as exc:
             self._count("connect_failures")
-            log.error("mqtt client setup failed", error=f"{type(exc).__name__}: {exc}")
+            why = "; ".join(exc.problems) if isinstance(exc, ConfigError) else f"{type(exc).__name__}: {exc}"
+            log.error("mqtt client setup failed", error=why)
             return False
         entered = False
         try:
@@ -627,6 +619,43 @@ class MqttPublisher:
             if ok:
                 self._count("published", ok)
         return failed
+
+
+def tls_context(t: TlsConfig) -> ssl.SSLContext | None:
+    """The client's SSL context for ``mqtt.tls`` (None when off). A file it names that cannot be used
+    (missing, unreadable, not PEM, a key that is not the certificate's) raises :class:`ConfigError`
+    naming the key and the path: ssl's own errors name neither (``[Errno 2] No such file or directory``)."""
+    if not t.enabled:
+        return None
+    files = {"ca_file": t.ca_file, "cert_file": t.cert_file, "key_file": t.key_file}
+    problems = [p for key, path in files.items() if path is not None and (p := _tls_file_problem(key, path))]
+    if problems:
+        raise ConfigError("invalid configuration:", problems)
+    try:
+        ctx = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=str(t.ca_file) if t.ca_file else None)
+    except ssl.SSLError as exc:
+        raise ConfigError("invalid configuration:", [f"mqtt.tls.ca_file: {t.ca_file}: not a PEM CA certificate "
+                                                     f"({exc.reason or exc})"]) from None
+    if t.cert_file is not None:
+        try:
+            ctx.load_cert_chain(str(t.cert_file), str(t.key_file) if t.key_file else None)
+        except ssl.SSLError as exc:
+            what = f"{t.cert_file}" + (f", mqtt.tls.key_file: {t.key_file}" if t.key_file else "")
+            raise ConfigError("invalid configuration:", [f"mqtt.tls.cert_file: {what}: not a PEM certificate and its "
+                                                         f"key ({exc.reason or exc})"]) from None
+    if t.insecure:
+        ctx.check_hostname = False
+        ctx.verify_mode = ssl.CERT_NONE
+    return ctx
+
+
+def _tls_file_problem(key: str, path: Path) -> str | None:
+    """``mqtt.tls.<key>: <path>: <why>`` when the file cannot be read, else None."""
+    try:
+        with open(path, "rb"):
+            return None
+    except OSError as exc:
+        return f"mqtt.tls.{key}: {path}: {(exc.strerror or str(exc)).lower()}"
 
 
 def _text(payload: Any) -> str:

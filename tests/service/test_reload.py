@@ -224,3 +224,57 @@ def test_after_a_reload_the_service_before_is_collected_and_the_new_one_frozen()
         assert kept() is not None  # the new one frozen in its turn
     finally:
         gc.unfreeze()  # the test process as it was
+
+
+def test_a_reload_whose_state_save_fails_resumes_the_state_from_memory(tmp_path, monkeypatch):
+    """A reload hands the state over through the state file. Where that save failed (a read-only
+    remount, a full disk), the new service resumed the last file that was written, up to hours
+    old, or started fresh: the coulomb count since then was lost without a word beyond the failed
+    save. Now the new service resumes the old one's state from memory, when it has the same
+    estimator configuration (the fingerprint a file must have been made with)."""
+    import asyncio
+    import errno
+
+    import numpy as np
+    from service_helpers import run_async, wait_until
+    from test_daemon import VBus, make_cfg, rows, wait_samples
+
+    from bms_estimator.service import daemon as daemon_mod
+    from bms_estimator.service.daemon import Service, serve
+
+    def read_only(*_a, **_kw):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(daemon_mod, "save_state", read_only)
+    ch = f"bmsr-{uuid.uuid4().hex[:8]}"
+    cfg = make_cfg(tmp_path, ch, health={"enabled": False})
+    built: list[Service] = []
+
+    def rebuild() -> Service:
+        built.append(Service(cfg))
+        return built[-1]
+
+    async def main():
+        vb = VBus(ch)
+        svc = Service(cfg)
+        stop, reload = asyncio.Event(), asyncio.Event()
+        task = asyncio.create_task(serve(svc, stop, reload, rebuild))
+        try:
+            await wait_until(svc.ready.is_set, 10, "ready")
+            vb.send(rows(0, 30))
+            await wait_samples(svc, 30)
+            before = (svc.estimator.soc.copy(), svc.estimator.samples)
+            reload.set()
+            await wait_until(lambda: built and built[0].ready.is_set(), 10, "the reloaded service ready")
+            after = (built[0].estimator.soc.copy(), built[0].estimator.samples)
+            restored = built[0].restored
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 15)
+            vb.shutdown()
+        return before, after, restored
+
+    before, after, restored = run_async(main(), 40)
+    assert not cfg.state.path.exists()  # no save ever reached the disk
+    assert restored and after[1] == before[1] == 30
+    np.testing.assert_array_equal(after[0], before[0])
