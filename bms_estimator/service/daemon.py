@@ -631,7 +631,10 @@ class Service:
             with contextlib.suppress(BaseException):
                 await consume
         ok = await self.save_now()
-        log.info("estimator state saved" if ok else "final state save failed", path=str(self.cfg.state.path))
+        if ok:
+            log.info("estimator state saved", path=str(self.cfg.state.path))
+        else:  # the count since the last save is lost at exit (kept in memory across a reload)
+            log.warning("final state save failed", path=str(self.cfg.state.path))
         if not ok and self.reloading:
             self.unsaved = self._unsaved_state()
         if self.cfg.mqtt.enabled and self.pipeline.last is not None:
