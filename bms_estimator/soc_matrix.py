@@ -277,7 +277,7 @@ def file_reference(tables: list[Table], ambient: str, rec) -> SocReference | str
 
 def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,
              overrides: dict | None = None, start_names: tuple[str, ...] = STARTS,
-             rest_over_gaps: bool = True, current_gain: float = 1.0) -> list[dict]:
+             rest_over_gaps: bool = True, current_gain: float = 1.0, current_offset_a: float = 0.0) -> list[dict]:
     """Every drive cycle of ``cell`` under ``data`` matching ``pattern`` (cell/ambient/file), each of
     ``start_names``, per SOC method: one row of figures per run.  ``rest_over_gaps``: the files' logging
     gaps rested over (:func:`run_group`), else fed as ``load_recording`` fills them.
@@ -285,9 +285,14 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
     ``current_gain`` multiplies every file's current before the estimator and the reference see it:
     a cell whose capacity is that many times its files' against unchanged OCV tables (the reference's
     Q_ref scales with it, the tables' C/20 capacities do not), or a current sensor's gain error.  A
-    stress test of how the figures carry to a cell that is not the one the tables were measured on."""
+    stress test of how the figures carry to a cell that is not the one the tables were measured on.
+
+    ``current_offset_a`` is added to the current the estimator and plain counting see, not to the
+    reference's: a current sensor's zero offset (the reference is the true charge; charge positive)."""
     if not (np.isfinite(current_gain) and current_gain > 0):
         raise ValueError(f"current_gain must be a positive number, got {current_gain!r}")
+    if not np.isfinite(current_offset_a):
+        raise ValueError(f"current_offset_a must be a finite number, got {current_offset_a!r}")
     stated = CELLS[cell]
     tables = build_tables(data, cell)
     rows = []
@@ -303,7 +308,10 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
             files.append((amb_dir.name, name, rec))
     if not files:
         return rows
-    plans = [recording_rest_plan(rec, rest_over_gaps) for _, _, rec in files]
+    # what the estimator and counting read: the current through a sensor with a zero offset
+    sensed = [replace(rec, current_a=rec.current_a + current_offset_a) if current_offset_a else rec
+              for _, _, rec in files]
+    plans = [recording_rest_plan(rec, rest_over_gaps) for rec in sensed]
     refs = [file_reference(tables, amb, rec) for amb, _, rec in files]
     variants = [("all tables", None)]
     if leave_out:
@@ -328,7 +336,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                     base = ref.soc if isinstance(ref, SocReference) else counted_soc(rec.current_a, rec.dt_s, stated)
                     for start in start_names:
                         st = start_point(start, base, plans[j].fed)
-                        recs.append(rec)
+                        recs.append(sensed[j])
                         rec_plans.append(plans[j])
                         starts.append(st)
                         meta.append((j, start))
@@ -356,7 +364,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                         figs = soc_error_figures(run.soc[:n, c], ref.soc, t, k0 * rec.dt_s)
                         # plain counting with the stated capacity from the same start
                         cnt = np.full(n, np.nan)
-                        cnt[k0:] = counted_soc(rec.current_a[k0:], rec.dt_s, stated, s0)
+                        cnt[k0:] = counted_soc(sensed[j].current_a[k0:], rec.dt_s, stated, s0)
                         base = soc_error_figures(cnt, ref.soc, t, k0 * rec.dt_s)
                         row.update({k: v for k, v in figs.items()})
                         row["within_sigma_pct"], row["within_2sigma_pct"] = _sigma_coverage(

@@ -3,6 +3,7 @@
 
     python scripts/soc_matrix.py [--readme] [--json OUT] [--methods c0,ekf] [--files GLOB] [--set KEY=VALUE]
                                  [--starts full,full-20,mid+10,mid-10,at50+20,at75-5,...] [--no-rest-over-gaps]
+                                 [--current-gain G] [--current-offset-a B]
 """
 
 from __future__ import annotations
@@ -53,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="stress test: every file's current times G before the estimator and the reference see it "
                          "(a cell G times the capacity its OCV tables were measured on, or a current sensor's gain "
                          "error); default 1")
+    ap.add_argument("--current-offset-a", type=float, default=0.0, metavar="B",
+                    help="stress test: B amperes added to the current the estimator and plain counting read, not "
+                         "to the reference's (a current sensor's zero offset; charge positive); default 0")
     ap.add_argument("--no-rest-over-gaps", dest="rest_over_gaps", action="store_false",
                     help="feed the files' logging gaps as load_recording fills them, instead of resting over them "
                          "as the service does at a time jump")
@@ -77,9 +81,12 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.current_gain > 0 and args.current_gain < float("inf")):
         print(f"--current-gain: a positive number, got {args.current_gain}", file=sys.stderr)
         return 2
-    if args.readme and (starts != STARTS or args.current_gain != 1.0):
+    if not abs(args.current_offset_a) < float("inf"):
+        print(f"--current-offset-a: a finite number, got {args.current_offset_a}", file=sys.stderr)
+        return 2
+    if args.readme and (starts != STARTS or args.current_gain != 1.0 or args.current_offset_a != 0.0):
         print("--readme writes the README's four starts at the files' own current only; drop --starts / "
-              "--current-gain or --readme", file=sys.stderr)
+              "--current-gain / --current-offset-a or --readme", file=sys.stderr)
         return 2
     if args.readme and not args.rest_over_gaps:
         print("--readme writes the default run (the logging gaps rested over); drop --no-rest-over-gaps or --readme",
@@ -96,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{data / cell}: absent, {cell} not run", file=sys.stderr)
             continue
         rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides, starts,
-                         args.rest_over_gaps, args.current_gain)
+                         args.rest_over_gaps, args.current_gain, args.current_offset_a)
     for line in summary_lines(rows):
         print(line)
     if args.json:
