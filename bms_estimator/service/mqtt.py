@@ -637,9 +637,17 @@ def tls_context(t: TlsConfig) -> ssl.SSLContext | None:
         raise ConfigError("invalid configuration:", [f"mqtt.tls.ca_file: {t.ca_file}: not a PEM CA certificate "
                                                      f"({exc.reason or exc})"]) from None
     if t.cert_file is not None:
+        key_path = t.key_file if t.key_file is not None else t.cert_file
         try:
-            ctx.load_cert_chain(str(t.cert_file), str(t.key_file) if t.key_file else None)
+            # no passphrase: OpenSSL would otherwise ask for one on the terminal, at every (re)connect
+            ctx.load_cert_chain(str(t.cert_file), str(t.key_file) if t.key_file else None, password=_no_passphrase)
         except ssl.SSLError as exc:
+            if _encrypted_pem(key_path):
+                key = "key_file" if t.key_file is not None else "cert_file"
+                raise ConfigError("invalid configuration:", [
+                    f"mqtt.tls.{key}: {key_path}: the private key is encrypted and a service has no one to type "
+                    f"its passphrase: store it unencrypted (openssl pkey -in KEY -out KEY.plain), readable by the "
+                    f"service's user only"]) from None
             what = f"{t.cert_file}" + (f", mqtt.tls.key_file: {t.key_file}" if t.key_file else "")
             raise ConfigError("invalid configuration:", [f"mqtt.tls.cert_file: {what}: not a PEM certificate and its "
                                                          f"key ({exc.reason or exc})"]) from None
@@ -647,6 +655,20 @@ def tls_context(t: TlsConfig) -> ssl.SSLContext | None:
         ctx.check_hostname = False
         ctx.verify_mode = ssl.CERT_NONE
     return ctx
+
+
+def _no_passphrase() -> bytes:
+    """The passphrase of an encrypted key: none (a daemon cannot prompt; the load then fails)."""
+    return b""
+
+
+def _encrypted_pem(path: Path) -> bool:
+    """Whether a PEM file holds an encrypted private key (PKCS#8 or the legacy Proc-Type header)."""
+    try:
+        text = Path(path).read_bytes()
+    except OSError:
+        return False
+    return b"ENCRYPTED PRIVATE KEY" in text or b"Proc-Type: 4,ENCRYPTED" in text
 
 
 def _tls_file_problem(key: str, path: Path) -> str | None:

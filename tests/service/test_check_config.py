@@ -3,6 +3,8 @@ the path), where the service would otherwise run on a configuration that can nev
 
 from __future__ import annotations
 
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -39,6 +41,28 @@ def test_a_tls_file_that_is_missing_or_not_pem_is_named_before_the_start(tmp_pat
     code, err = check_config(write_config(tmp_path, f"[mqtt.tls]\nenabled = true\n{key} = '{garbage}'\n"), capsys)
     assert code == 2, err
     assert f"mqtt.tls.{key}: {garbage}:" in err and "Traceback" not in err, err
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make a test key")
+@pytest.mark.parametrize("separate_key", [True, False])
+def test_an_encrypted_tls_key_is_named_as_such_and_never_prompts(tmp_path, capsys, separate_key):
+    """An encrypted client key made OpenSSL ask for its passphrase on the terminal (a daemon has none), and
+    without one the error said 'not a PEM certificate and its key'. Now it is loaded with an empty
+    passphrase and the error says the key is encrypted, naming the key and the file."""
+    key, cert = tmp_path / "client.key", tmp_path / "client.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-keyout", str(key), "-out", str(cert),
+                    "-days", "1", "-subj", "/CN=bms-test", "-passout", "pass:secret"],
+                   check=True, capture_output=True, stdin=subprocess.DEVNULL)
+    if separate_key:
+        tls = f"cert_file = '{cert}'\nkey_file = '{key}'\n"
+        named = f"mqtt.tls.key_file: {key}:"
+    else:  # certificate and key in one file
+        cert.write_text(cert.read_text() + key.read_text())
+        tls = f"cert_file = '{cert}'\n"
+        named = f"mqtt.tls.cert_file: {cert}:"
+    code, err = check_config(write_config(tmp_path, f"[mqtt.tls]\nenabled = true\n{tls}"), capsys)
+    assert code == 2, err
+    assert named in err and "encrypted" in err and "Traceback" not in err, err
 
 
 def test_tls_files_are_not_read_while_mqtt_is_off(tmp_path, capsys):
