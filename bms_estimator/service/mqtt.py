@@ -533,7 +533,8 @@ class MqttPublisher:
         log.info("home assistant discovery published", sensors=len(msgs))
 
     def _is_ours(self, topic: str) -> bool:
-        """A discovery config topic of this pack (``<prefix>/<component>/bms_<pack>_{pack|cell<i>}_*/config``)."""
+        """A discovery config topic of this pack (``<prefix>/<component>/bms_<pack>_{pack|cell<i>}_<uid>/config``
+        with a ``<uid>`` of the schema's: ``bms_rack_pack_pack_soc_min`` is pack "rack_pack"'s, not "rack"'s)."""
         parts = topic.split("/")
         if len(parts) < 4 or parts[-1] != "config":
             return False
@@ -541,8 +542,8 @@ class MqttPublisher:
         prefix = self.topics.unique_id_prefix
         if not rest.startswith(prefix):
             return False
-        rest = rest[len(prefix):]
-        return bool(re.match(r"^(pack|cell\d+)_", rest))
+        m = re.fullmatch(r"(pack|cell\d+)_(.+)", rest[len(prefix):])
+        return m is not None and m[2] in (schema.PACK_ENTITY_UIDS if m[1] == "pack" else schema.CELL_ENTITY_UIDS)
 
     async def remove_orphans(self, client: aiomqtt.Client) -> int:
         """Remove this pack's retained discovery configs that the current configuration does not

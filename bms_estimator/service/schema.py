@@ -202,6 +202,11 @@ PACK_SOX_FIELDS: tuple[PackField, ...] = _limit_fields(PackField, SOX_HORIZONS_S
 )
 PACK_FIELDS = PACK_FIELDS + PACK_SOX_FIELDS
 
+#: the unique id suffixes of the Home Assistant entities (``bms_<pack>_pack_<uid>``, ``bms_<pack>_cell<i>_<uid>``):
+#: what tells a pack's own discovery configs from those of a pack whose id extends its id ("rack", "rack_pack")
+PACK_ENTITY_UIDS: frozenset[str] = frozenset(f.uid or f.key for f in PACK_FIELDS if f.ha is not None)
+CELL_ENTITY_UIDS: frozenset[str] = frozenset(f.uid or f.key for f in CELL_FIELDS if f.ha is not None)
+
 #: CAN output message -> {signal: pack SOX key}; sent when the DBC has the message (SI in, the
 #: encoder scales to the signal's unit)
 CAN_PACK_SOX_SIGNALS: Mapping[str, Mapping[str, str]] = {

@@ -159,3 +159,6 @@ def test_unique_ids_are_unique_and_stable_across_cells_and_packs():
     assert all(c["unique_id"].startswith("bms_packA_") for c in a.values())
     assert "homeassistant/sensor/bms_packB_cell11_soc/config" in b
     assert {c["device"]["identifiers"][0] for c in b.values()} == {"bms_estimator_packB"}
+    # what tells pack "rack"'s entities from pack "rack_pack"'s (MqttPublisher._is_ours, the orphan removal)
+    for uid in schema.PACK_ENTITY_UIDS | schema.CELL_ENTITY_UIDS:
+        assert not re.search(r"(^|_)(pack|cell\d+)_", uid), uid
