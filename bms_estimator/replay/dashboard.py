@@ -14,8 +14,10 @@ message on this side). Nothing beyond these topics is assumed of the broker.
 Testable without a broker: :meth:`DashboardState.apply` takes one message
 ``(topic, payload, now)``, :func:`render` turns the state into a rich renderable.
 Unknown topics and unusable payloads (not UTF-8, not JSON, not an object, an
-unknown availability word) are ignored and counted; a cell payload's field that is
-not a finite number counts as missing (``invalid_fields``).
+unknown availability word, an object with none of the keys this version reads: another
+schema's) are ignored and counted; a cell payload's field that is not a finite number
+counts as missing (``invalid_fields``). The view names the last topics skipped and why
+(:attr:`DashboardState.skipped`).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from rich.table import Table
 from rich.text import Text
 
 from .. import aio
-from ..service.schema import CELL_KEYS, PACK_SOX_FIELDS
+from ..service.schema import CELL_KEYS, PACK_FIELDS, PACK_SOX_FIELDS
 
 __all__ = [
     "CellView",
@@ -53,7 +55,9 @@ CELL_NUMBERS = tuple(k for k in CELL_KEYS if k != "stale") + ("t_s",)
 PACK_NUMBERS = ("t_s", "soc_min", "soc_mean", "soc_max", "current_a", "cells_stale")
 #: the pack's SOP/SOE/SOH figures, shown on a line of their own
 PACK_SOX_KEYS = tuple(f.key for f in PACK_SOX_FIELDS)
+PACK_KEYS = tuple(f.key for f in PACK_FIELDS)
 MAX_CELL_INDEX = 100_000  # a larger index in a topic is treated as garbage
+SKIPPED_SHOWN = 3  # the last topics skipped that the view names
 
 
 @dataclass
@@ -120,6 +124,7 @@ class DashboardState:
         self.status: str = "not connected"
         self.last_error: str = ""  # why the broker was last out of reach, for the exit message
         self.broker: str = ""
+        self.skipped: dict[str, str] = {}  # topic -> why its last message was skipped (or a field), newest last
 
     # ---------------------------------------------------------------- topics
     def subscriptions(self) -> list[str]:
@@ -130,6 +135,15 @@ class DashboardState:
     def tick(self, now: float) -> None:
         """Advance the clock the ages are measured against."""
         self.now = max(self.now, now)
+
+    def _skip(self, counter: str, topic: str, why: str) -> bool:
+        """Count a message (or a field) skipped and remember why, for the view; False."""
+        setattr(self.counters, counter, getattr(self.counters, counter) + 1)
+        self.skipped.pop(topic, None)
+        self.skipped[topic] = why
+        while len(self.skipped) > 32:
+            del self.skipped[next(iter(self.skipped))]
+        return False
 
     def _pack(self, pack_id: str) -> PackView:
         view = self.packs.get(pack_id)
@@ -145,20 +159,18 @@ class DashboardState:
         self.tick(now)
         try:
             return self._apply(str(topic), payload, now)
-        except Exception:  # noqa: BLE001 - a dashboard never dies of a message
-            c.invalid_payload += 1
-            return False
+        except Exception as exc:  # noqa: BLE001 - a dashboard never dies of a message
+            return self._skip("invalid_payload", str(topic), f"unusable ({type(exc).__name__})")
 
     def _apply(self, topic: str, payload: Any, now: float) -> bool:
         c = self.counters
         prefix = self.base_topic + "/"
+        layout = "not a topic of the service's layout"
         if not topic.startswith(prefix):
-            c.unknown_topic += 1
-            return False
+            return self._skip("unknown_topic", topic, layout)
         parts = topic[len(prefix):].split("/")
         if len(parts) < 2 or not parts[0]:
-            c.unknown_topic += 1
-            return False
+            return self._skip("unknown_topic", topic, layout)
         pack_id, rest = parts[0], parts[1:]
         if rest == ["availability"]:
             kind = "availability"
@@ -167,20 +179,17 @@ class DashboardState:
         elif len(rest) == 3 and rest[0] == "cell" and rest[2] == "state":
             kind = "cell"
         else:
-            c.unknown_topic += 1
-            return False
+            return self._skip("unknown_topic", topic, layout)
         if self.pack_id is not None and pack_id != self.pack_id:
             c.other_pack += 1
             return False
         text = _text(payload)
         if text is None:
-            c.invalid_payload += 1
-            return False
+            return self._skip("invalid_payload", topic, "not UTF-8 text")
         if kind == "availability":
             word = text.strip().lower()
             if word not in ("online", "offline", ""):
-                c.invalid_payload += 1
-                return False
+                return self._skip("invalid_payload", topic, f"not online or offline ({_shown(text)!r})")
             view = self._pack(pack_id)
             view.availability = word or None  # empty retained payload = cleared
             view.availability_received = now
@@ -189,16 +198,17 @@ class DashboardState:
         if kind == "cell":
             idx_text = rest[1]
             if not idx_text.isdigit() or int(idx_text) > MAX_CELL_INDEX:
-                c.unknown_topic += 1
-                return False
+                return self._skip("unknown_topic", topic, f"cell index {_shown(idx_text)!r} is not 0..{MAX_CELL_INDEX:,}")
         try:
             data = json.loads(text)
-        except (ValueError, RecursionError):
-            c.invalid_payload += 1
-            return False
+        except (ValueError, RecursionError) as exc:
+            return self._skip("invalid_payload", topic, f"not JSON ({_shown(str(exc))})")
         if not isinstance(data, dict):
-            c.invalid_payload += 1
-            return False
+            return self._skip("invalid_payload", topic, f"a JSON {type(data).__name__}, not an object")
+        known = CELL_KEYS + ("t_s",) if kind == "cell" else PACK_KEYS
+        if data and not any(k in data for k in known):  # another schema's payload (an older service's?)
+            return self._skip("invalid_payload", topic, "none of the keys of this version's payload "
+                                                        f"(has {_shown(', '.join(map(str, data)))})")
         view = self._pack(pack_id)
         if kind == "cell":
             values: dict[str, float | None] = {}
@@ -206,14 +216,14 @@ class DashboardState:
                 raw = data.get(key)
                 values[key] = _number(raw)
                 if raw is not None and values[key] is None:
-                    c.invalid_fields += 1
+                    self._skip("invalid_fields", topic, f"{key!r} is not a number ({_shown(json.dumps(raw))})")
             for tau, r, cap in (("tau1_s", "r1_ohm", "c1_f"), ("tau2_s", "r2_ohm", "c2_f")):
                 if values[tau] is None and values[r] is not None and values[cap] is not None:
                     values[tau] = values[r] * values[cap]
             stale = data.get("stale")
             stale_v = stale if isinstance(stale, bool) else None
             if stale is not None and stale_v is None:
-                c.invalid_fields += 1
+                self._skip("invalid_fields", topic, f"'stale' is not true or false ({_shown(json.dumps(stale))})")
             idx = int(rest[1])
             old = view.cells.get(idx)
             view.cells[idx] = CellView(values, stale_v, now, (old.messages + 1) if old else 1)
@@ -223,7 +233,7 @@ class DashboardState:
                 if key in PACK_NUMBERS or key in PACK_SOX_KEYS:
                     summary[key] = _number(raw)
                     if raw is not None and summary[key] is None:
-                        c.invalid_fields += 1
+                        self._skip("invalid_fields", topic, f"{key!r} is not a number ({_shown(json.dumps(raw))})")
                 elif isinstance(raw, (int, float, str, bool)) or raw is None:
                     summary[str(key)] = raw
             view.summary = summary
@@ -233,6 +243,11 @@ class DashboardState:
 
     def apply_many(self, messages: Iterable[tuple[str, Any, float]]) -> int:
         return sum(1 for t, p, n in messages if self.apply(t, p, n))
+
+
+def _shown(text: str, limit: int = 60) -> str:
+    """``text`` cut to ``limit`` characters, for the view."""
+    return text if len(text) <= limit else text[:limit] + "..."
 
 
 # --------------------------------------------------------------------- render
@@ -317,6 +332,9 @@ def render(state: DashboardState, *, max_rows: int | None = None, stale_after_s:
                 f"fields {c.invalid_fields}" + (f", other packs {c.other_pack}" if c.other_pack else ""),
                 style="dim")
     parts: list[RenderableType] = [head]
+    if state.skipped:
+        shown = list(state.skipped.items())[-SKIPPED_SHOWN:]
+        parts.append(Text("  skipped: " + "; ".join(f"{t}: {why}" for t, why in reversed(shown)), style="yellow"))
     if not state.packs:
         parts.append(Text("waiting for messages on " + ", ".join(state.subscriptions()), style="dim"))
     for pack_id in sorted(state.packs):

@@ -304,6 +304,9 @@ class ReplayStats:
         return self.log_duration_s / self.wall_s
 
 
+#: the longest single sleep of a paced replay (time.sleep and Event.wait refuse ~292 years and more)
+_MAX_WAIT_S = 86400.0
+
 #: ``progress(sent, log_elapsed_s)``, called about every 0.1 s of wall time and at the end
 ProgressCallback = Callable[[int, float], None]
 
@@ -345,14 +348,17 @@ def replay_messages(
             stats.first_log_s = t
             next_report = t0_wall + 0.1
         if paced:
-            delay = t0_wall + (t - t0_log) / rate - clock()
-            if delay > 0:
+            due = t0_wall + (t - t0_log) / rate
+            # in slices: one wait beyond what the clock can sleep (a tiny speed, a clock jump) raised OverflowError
+            while (delay := due - clock()) > 0:
                 if stop is not None:
-                    if stop.wait(delay):
+                    if stop.wait(min(delay, _MAX_WAIT_S)):
                         stats.stopped = True
                         break
                 else:
-                    time.sleep(delay)
+                    time.sleep(min(delay, _MAX_WAIT_S))
+            if stats.stopped:
+                break
         if msg.channel is not None:
             msg.channel = None
         try:

@@ -236,7 +236,8 @@ class Service:
         m = cfg.mqtt
         longest_gap_s = max(self.period_s, m.publish_period_s, m.max_period_s if m.soc_deadband > 0 else 0.0)
         self.publisher = MqttPublisher(m, cfg.pack.pack_id, n, metrics=self.metrics,
-                                       expire_after_s=max(10.0, 3.0 * longest_gap_s))
+                                       expire_after_s=max(10.0, 3.0 * longest_gap_s),
+                                       sop_horizons_s=cfg.estimator.sox_config.sop.horizons_s)
         self.pipeline.add_hook(self._on_snapshot)
         self._bus_factory = bus_factory if bus_factory is not None else open_bus
         self.bus: ResilientBus | None = None

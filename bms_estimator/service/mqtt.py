@@ -130,6 +130,7 @@ class MqttPublisher:
         metrics: ServiceMetrics | None = None,
         sw_version: str | None = None,
         expire_after_s: float | None = None,
+        sop_horizons_s: Iterable[float] = schema.SOX_HORIZONS_S,
     ) -> None:
         self.cfg = cfg
         self.pack_id = pack_id
@@ -159,6 +160,7 @@ class MqttPublisher:
         self._tls: ssl.SSLContext | None = None
         self._submit_error_logged = 0
         self.expire_after_s = expire_after_s
+        self.sop_horizons_s = tuple(sop_horizons_s)  # the SOP limit entities announced (estimator.sop.horizons_s)
         self._last_t: np.ndarray | None = None  # per cell: frame time, SOC and stale flag last queued
         self._last_soc: np.ndarray | None = None
         self._last_stale: np.ndarray | None = None
@@ -301,7 +303,8 @@ class MqttPublisher:
     # --------------------------------------------------------------- discovery
     def discovery_messages(self) -> list[tuple[str, str]]:
         """Home Assistant discovery (topic, JSON config) pairs (see ``schema.discovery_messages``)."""
-        return schema.discovery_messages(self.topics, sw_version=self.sw_version, expire_after_s=self.expire_after_s)
+        return schema.discovery_messages(self.topics, sw_version=self.sw_version, expire_after_s=self.expire_after_s,
+                                         sop_horizons_s=self.sop_horizons_s)
 
     # -------------------------------------------------------------------- run
     async def run(self) -> None:
@@ -530,7 +533,8 @@ class MqttPublisher:
         log.info("home assistant discovery published", sensors=len(msgs))
 
     def _is_ours(self, topic: str) -> bool:
-        """A discovery config topic of this pack (``<prefix>/<component>/bms_<pack>_{pack|cell<i>}_*/config``)."""
+        """A discovery config topic of this pack (``<prefix>/<component>/bms_<pack>_{pack|cell<i>}_<uid>/config``
+        with a ``<uid>`` of the schema's: ``bms_rack_pack_pack_soc_min`` is pack "rack_pack"'s, not "rack"'s)."""
         parts = topic.split("/")
         if len(parts) < 4 or parts[-1] != "config":
             return False
@@ -538,8 +542,8 @@ class MqttPublisher:
         prefix = self.topics.unique_id_prefix
         if not rest.startswith(prefix):
             return False
-        rest = rest[len(prefix):]
-        return bool(re.match(r"^(pack|cell\d+)_", rest))
+        m = re.fullmatch(r"(pack|cell\d+)_(.+)", rest[len(prefix):])
+        return m is not None and m[2] in (schema.PACK_ENTITY_UIDS if m[1] == "pack" else schema.CELL_ENTITY_UIDS)
 
     async def remove_orphans(self, client: aiomqtt.Client) -> int:
         """Remove this pack's retained discovery configs that the current configuration does not

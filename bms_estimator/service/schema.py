@@ -110,7 +110,8 @@ CELL_FIELDS: tuple[CellField, ...] = (
 )
 
 #: SOP horizons whose keys the schema names (core.sop.SopConfig's defaults); other configured
-#: horizons are published under the same key pattern but have no HA entity or CAN signal
+#: horizons are published under the same key pattern but have no HA entity or CAN signal, and a
+#: horizon named here but not configured has no HA entity (discovery_messages' sop_horizons_s)
 SOX_HORIZONS_S: tuple[float, ...] = (2.0, 10.0, 30.0)
 _POWER = {"device_class": "power", "unit_of_measurement": "W", "state_class": "measurement"}
 _CURRENT = {"device_class": "current", "unit_of_measurement": "A", "state_class": "measurement"}
@@ -200,6 +201,11 @@ PACK_SOX_FIELDS: tuple[PackField, ...] = _limit_fields(PackField, SOX_HORIZONS_S
     PackField("soh_resistance_max", "Resistance SOH (weakest cell)", _SOH, 100.0, 1),
 )
 PACK_FIELDS = PACK_FIELDS + PACK_SOX_FIELDS
+
+#: the unique id suffixes of the Home Assistant entities (``bms_<pack>_pack_<uid>``, ``bms_<pack>_cell<i>_<uid>``):
+#: what tells a pack's own discovery configs from those of a pack whose id extends its id ("rack", "rack_pack")
+PACK_ENTITY_UIDS: frozenset[str] = frozenset(f.uid or f.key for f in PACK_FIELDS if f.ha is not None)
+CELL_ENTITY_UIDS: frozenset[str] = frozenset(f.uid or f.key for f in CELL_FIELDS if f.ha is not None)
 
 #: CAN output message -> {signal: pack SOX key}; sent when the DBC has the message (SI in, the
 #: encoder scales to the signal's unit)
@@ -420,13 +426,19 @@ def _template(key: str, scale: float) -> str:
 
 
 def discovery_messages(
-    topics: Topics, *, sw_version: str, expire_after_s: float | None = None
+    topics: Topics, *, sw_version: str, expire_after_s: float | None = None,
+    sop_horizons_s: Any = SOX_HORIZONS_S,
 ) -> list[tuple[str, str]]:
     """Home Assistant discovery (topic, JSON config) pairs for the pack and every cell.
 
     Pack entities are enabled; per-cell entities are disabled by default (a 200-cell pack
-    would otherwise add a thousand), and each is unavailable while its cell is stale.
+    would otherwise add a thousand), and each is unavailable while its cell is stale. The SOP
+    limit entities are those of the horizons both named here (:data:`SOX_HORIZONS_S`) and
+    configured (``sop_horizons_s``, ``estimator.sop.horizons_s``): another horizon's keys are
+    never in a payload, and its entity would read "unknown" for ever.
     """
+    configured = {k for h in sop_horizons_s for k in sox_limit_keys(float(h))}
+    unpublished = {k for h in SOX_HORIZONS_S for k in sox_limit_keys(h)} - configured
     pid = topics.ha_id
     device = {
         "identifiers": [f"bms_estimator_{pid}"],
@@ -459,7 +471,7 @@ def discovery_messages(
         out.append((f"{topics.discovery_prefix}/sensor/{uid}/config", json.dumps(cfg)))
 
     for f in PACK_FIELDS:
-        if f.ha is not None:
+        if f.ha is not None and f.key not in unpublished:
             add(f"{topics.unique_id_prefix}pack_{f.uid or f.key}", f.name, topics.pack, f.key, f.ha, f.ha_scale, f.precision)
     for i, topic in enumerate(topics.cells):
         stale = {
@@ -473,7 +485,7 @@ def discovery_messages(
         if expire_after_s is not None:
             stale["expire_after"] = max(1, int(round(expire_after_s)))
         for f in CELL_FIELDS:
-            if f.ha is not None:
+            if f.ha is not None and f.key not in unpublished:
                 uid = f"{topics.unique_id_prefix}cell{i}_{f.uid or f.key}"
                 add(uid, f"Cell {i} {f.name}", topic, f.key, f.ha, f.ha_scale, f.precision, **stale)
     return out

@@ -108,6 +108,22 @@ def test_garbage_is_ignored_and_counted():
     assert "payload 4" in text(state) and before.splitlines()[0] != text(state).splitlines()[0]
 
 
+def test_what_the_dashboard_skips_is_named_with_its_topic_and_why():
+    """A retained payload of another schema (none of the keys this version reads: an older service's, or
+    another program's) is skipped, not shown as a row of dashes, and the view names the topics it skipped
+    and why; before, only counts were shown ("payload 1") and the old-schema cell was a row of '-'."""
+    state = DashboardState()
+    state.apply_many(recorded())
+    assert state.apply("bms/p1/cell/7/state", json.dumps({"soc_pct": 55.0, "r0": 0.0012}), 3.0) is False
+    assert state.apply("bms/p1/pack/state", b'{"soc_min": 0.5,', 3.0) is False
+    assert state.apply("bms/p1/cell/1/state", json.dumps({"soc": "0.5", "t_s": 3.0}), 3.0) is True
+    assert 7 not in state.packs["p1"].cells and state.counters.invalid_payload == 2
+    out = " ".join(text(state, width=400).split())
+    assert "bms/p1/cell/7/state: none of the keys of this version's payload" in out
+    assert "bms/p1/pack/state: not JSON" in out
+    assert "bms/p1/cell/1/state: 'soc' is not a number (\"0.5\")" in out
+
+
 def test_many_cells_are_split_into_side_by_side_tables():
     state = DashboardState()
     for i in range(10):

@@ -130,6 +130,24 @@ def test_stop_event_ends_a_real_time_replay(encoded):
     assert time.monotonic() - t0 < 5
 
 
+@pytest.mark.parametrize("speed", [1e-300, 1e-12], ids=["tiny-speed", "slow-speed-over-a-clock-jump"])
+def test_a_wait_longer_than_the_clock_can_sleep_is_waited_not_a_traceback(speed):
+    """A frame due further ahead than time.sleep/Event.wait accept (about 292 years: a tiny --speed, or a
+    log whose clock jumps from boot time to epoch time at a slow one) is waited for, in slices, until the
+    stop event; before, the wait raised OverflowError ("timestamp out of range for platform time_t") and
+    the command ended in a traceback."""
+    jump = 1.0 if speed < 1e-100 else 1.7e9  # 1e300 s ahead, or 1.7e21 s
+    msgs = [can.Message(timestamp=t, arbitration_id=0x100, data=b"\x01") for t in (5.0, 5.0 + jump)]
+    stop = threading.Event()
+    threading.Timer(0.2, stop.set).start()
+    tx = open_replay_bus("virtual", _channel())
+    try:
+        stats = replay_messages(msgs, tx, speed, stop=stop)
+    finally:
+        tx.shutdown()
+    assert stats.stopped and stats.sent == 1 and stats.send_errors == 0
+
+
 def test_progress_callback_and_speed_parsing(encoded):
     log = _first(encoded["log"], 5.0)
     calls = []

@@ -254,6 +254,29 @@ def test_orphan_entities_are_removed(mosquitto):
     run_async(main())
 
 
+def test_a_pack_whose_id_extends_another_keeps_its_entities(mosquitto):
+    """Pack "rack" must not take pack "rack_pack"'s entities (bms_rack_pack_pack_*) or pack "rack_cell1"'s
+    (bms_rack_cell1_pack_*) for its own orphans. Before, a unique id counted as a pack's when it went on with
+    "pack_" or "cell<i>_" after the pack's prefix, so a start of "rack" cleared both other packs' entities
+    from Home Assistant."""
+    port = mosquitto.port
+
+    async def publish_once(pack: str, n: int) -> MqttPublisher:
+        pub = MqttPublisher(mqtt_cfg(port), pack, n)
+        async with running(pub):
+            await wait_until(lambda: pub.counters.published >= 1 + len(pub.discovery_messages()), 5, "discovery")
+        return pub
+
+    async def main():
+        others = [await publish_once("rack_pack", 1), await publish_once("rack_cell1", 1)]
+        rack = await publish_once("rack", 2)
+        after = await _retained_configs(port)
+        for pub in (*others, rack):
+            assert {t for t, _ in pub.discovery_messages()} <= set(after), pub.pack_id
+
+    run_async(main())
+
+
 def test_publish_period_and_soc_deadband():
     """Telemetry thinning on the frames' time: a period per topic, and a SOC deadband with a
     longest silence; a stale flag that changes is always sent."""
