@@ -45,7 +45,7 @@ Time anomalies (counted in :class:`SamplerCounters`, logged)
   (``time_jumps``). So at most ``max_gap_s / period_s + 1`` samples are ever
   emitted for a stretch without frames, and those are flagged stale.
 * Backward timestamp by up to ``rewind_s``: the frame is ignored
-  (``backward_frames``).
+  (``backward_frames``; logged at the 1st, 10th, 100th, ... such frame).
 * Backward by more than ``rewind_s``: a new log or a clock reset; all state is
   dropped and the grid re-anchored at that frame (``rewinds``).
 * Non-finite timestamps, timestamps so large that a double no longer resolves a
@@ -296,7 +296,7 @@ class SampleAssembler:
                     self._reset()
                     self._anchor(t)
                 else:
-                    self.counters.backward_frames += 1
+                    self._count_backward(self._t_last - t)
                     return out
             elif t >= self._t_next:
                 if t - self._t_last > self.max_gap_s:
@@ -316,6 +316,15 @@ class SampleAssembler:
             self.counters.internal_errors += 1
             log.exception("can.sampler.internal_error")
         return out
+
+    def _count_backward(self, behind_s: float) -> None:
+        """Count a frame dropped for being older than the newest one; say it at the 1st, 10th, 100th,
+        1000th... (one line a decade: two senders whose clocks disagree drop every frame of one of them)."""
+        n = self.counters.backward_frames = self.counters.backward_frames + 1
+        if n == 10 ** (len(str(n)) - 1):
+            log.warning("can.sampler.backward_frames", behind_s=round(behind_s, 6), backward_frames=n,
+                        hint="frames older than the newest one are dropped: two senders (gateways) whose "
+                             "clocks disagree, or one frame stamped ahead of the others")
 
     def _apply(self, events: Iterable[Event], t: float) -> None:
         n = self.n_cells

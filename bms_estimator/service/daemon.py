@@ -226,6 +226,7 @@ class Service:
             log.warning(self.capacity_note, stated_ah=cfg.pack.capacity_ah, config_key="pack.capacity_ah")
         if getattr(self.ocv, "mixed_cells", None):  # tables of two cells? (core.ocv_surface, item 9)
             log.warning(self.ocv.mixed_cells, config_key="pack.ocv_csv")
+        self._check_staleness(cfg.estimator.staleness_s, self.decoder.mapping.cell_cycle_s)
 
         assert self.decoder is not None
         self.pipeline = Pipeline(self.decoder, self.sampler, estimator, sox=self._new_sox())
@@ -263,6 +264,17 @@ class Service:
     @property
     def estimator(self) -> SocEstimator:
         return self.pipeline.estimator
+
+    @staticmethod
+    def _check_staleness(staleness_s: float, cell_cycle_s: float | None) -> None:
+        """One WARNING at start when a cell's value is refreshed (the mapping's ``cell_cycle_s``: foxBMS'
+        5.4 s) no sooner than ``estimator.staleness_s`` ages it: every cell would read stale between its
+        frames on a healthy bus."""
+        if cell_cycle_s is not None and staleness_s <= cell_cycle_s:
+            log.warning(f"estimator.staleness_s {staleness_s:g} s is not above the CAN mapping's cell_cycle_s "
+                        f"{cell_cycle_s:g} s: cells will read stale between their frames; set it to about "
+                        f"{2 * cell_cycle_s:g} s", staleness_s=staleness_s, cell_cycle_s=cell_cycle_s,
+                        config_key="estimator.staleness_s")
 
     # ------------------------------------------------------------- estimator
     def _new_estimator(self) -> SocEstimator:

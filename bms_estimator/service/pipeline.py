@@ -58,6 +58,7 @@ __all__ = ["Pipeline", "PipelineCounters", "Snapshot", "StatusCounters"]
 log = structlog.get_logger("bms.pipeline")
 
 _LOG_EVERY = 1000  # after the first few, log every n-th repeated error
+_STALE_LINES = 20  # changes of the stale cells logged before only every _LOG_EVERY-th is
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,6 +121,7 @@ class PipelineCounters:
     rests: int = 0  # gaps without samples the estimator rested over (a time jump, a restart)
     rest_s: float = 0.0  # their total length, seconds
     clock_steps: int = 0  # time jumps that were the wall clock stepped, not a silence: not rested over
+    stale_changes: int = 0  # samples whose set of stale cells differed from the previous one's (logged: the first 20)
 
 
 class Pipeline:
@@ -159,6 +161,8 @@ class Pipeline:
         self._at_bound = np.zeros(self.n_cells, dtype=np.int8)  # capacity_at_bound last logged, per cell
         self._fed = False  # a valid current seen: the estimator is fed every sample from then on
         self._stepped_at: float | None = None  # frame time of a wall clock step whose gap is not yet seen
+        self._stale = np.zeros(self.n_cells, dtype=bool)  # cells last logged stale
+        self._lost_since: int | None = None  # samples_current_invalid when the current was logged lost
 
     def add_hook(self, hook: Callable[[Snapshot], None]) -> None:
         self.hooks.append(hook)
@@ -203,6 +207,7 @@ class Pipeline:
                 if self.sox is not None:
                     self.sox.update(est, current, sample.cell_voltage_v, sample.valid)
             self._log_capacity_bounds()
+            self._log_input_losses(sample, lost)
             snap = self._snapshot(sample)
             self.last = snap
             for hook in self.hooks:
@@ -244,6 +249,38 @@ class Pipeline:
         back = np.flatnonzero(changed & (side == 0))
         if back.size:
             log.info("capacity estimate back inside its bounds", cells=back[:20].tolist(), n_cells=int(back.size))
+
+    def _log_input_losses(self, sample: Sample, lost: bool) -> None:
+        """One WARNING when the pack current is lost (counted with its running mean) and one when cells go
+        stale (naming them), one INFO when each comes back; nothing while nothing changes. A sample without
+        a current marks every cell invalid, so the stale cells are followed on samples with one."""
+        c = self.counters
+        if lost and self._lost_since is None:
+            self._lost_since = c.samples_current_invalid - 1
+            log.warning("pack current lost: the SOC is counted with the current's running mean and the cell "
+                        "voltages are not read until it is back", t_s=sample.t_s,
+                        samples_current_invalid=c.samples_current_invalid)
+        elif not lost and self._lost_since is not None:
+            log.info("pack current back", t_s=sample.t_s, lost_samples=c.samples_current_invalid - self._lost_since)
+            self._lost_since = None
+        if lost:
+            return
+        stale = ~np.asarray(sample.valid, dtype=bool)
+        if np.array_equal(stale, self._stale):
+            return
+        gone, back = np.flatnonzero(stale & ~self._stale), np.flatnonzero(~stale & self._stale)
+        self._stale = stale
+        c.stale_changes += 1
+        if c.stale_changes > _STALE_LINES and c.stale_changes % _LOG_EVERY:
+            return  # a cell at the edge of its staleness flips every few samples: not a line each time
+        if gone.size:
+            log.warning("cells stale: no usable voltage within estimator.staleness_s; their SOC is counted "
+                        "without the voltage's correction", cells=gone[:20].tolist(), n_cells=int(gone.size),
+                        staleness_s=self.sampler.staleness_s, config_key="estimator.staleness_s", t_s=sample.t_s,
+                        stale_changes=c.stale_changes)
+        if back.size:
+            log.info("cells no longer stale", cells=back[:20].tolist(), n_cells=int(back.size), t_s=sample.t_s,
+                     stale_changes=c.stale_changes)
 
     def clock_stepped(self, t: float, step_s: float) -> None:
         """The frames' time jumped by ``step_s`` at the frame of time ``t`` because the wall clock that

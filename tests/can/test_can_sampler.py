@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from structlog.testing import capture_logs
 
 from bms_estimator.can.decoder import Event, EventKind
 from bms_estimator.can.sampler import Sample, SampleAssembler
@@ -348,6 +349,24 @@ def test_a_gap_of_exactly_max_gap_s_is_bridged_not_a_time_jump():
     assert [o.t_s for o in out] == [1.0, 2.0, 3.0, 4.0, 5.0]
     assert [bool(o.valid[0]) for o in out] == [True, False, False, False, False]
     assert s.counters.time_jumps == 0 and s.next_boundary_s == 6.0
+
+
+def test_frames_dropped_as_backward_are_said_in_the_log_not_once_per_frame():
+    """Two senders whose clocks disagree by 0.3 s (the current through a gateway ahead of the cell
+    frames' one): every cell frame is older than the newest current frame and is dropped, so every
+    cell is stale. The counter alone did not say why; a log line does, with how far back and a hint,
+    at the 1st, 10th, 100th, 1000th... dropped frame, not at each."""
+    s = SampleAssembler(2, period_s=1.0, staleness_s=2.5, rewind_s=5.0)
+    with capture_logs() as logs:
+        for k in range(300):  # 30 s
+            t = 100.0 + 0.1 * k
+            s.feed(Event(I, -1, 1.0), t + 0.3)
+            s.feed_frame([Event(V, 0, 3.6), Event(V, 1, 3.6)], t + 0.002)
+    assert s.counters.backward_frames == 300
+    said = [e for e in logs if e["event"] == "can.sampler.backward_frames"]
+    assert [e["backward_frames"] for e in said] == [1, 10, 100]
+    assert said[0]["log_level"] == "warning" and said[0]["behind_s"] == pytest.approx(0.298)
+    assert "clock" in said[0]["hint"]
 
 
 def test_a_frame_exactly_rewind_s_back_is_ignored_not_a_restart():

@@ -823,6 +823,27 @@ def test_broker_down_mid_run_keeps_can_output(broker_factory, tmp_path):
     assert_state_file_valid(Path(cfg.state.path), soc=soc)
 
 
+FOXBMS_DBC = Path("/work/shared/dbc/foxbms/foxbms.dbc")
+
+
+@pytest.mark.skipif(not FOXBMS_DBC.is_file(), reason="foxBMS DBC not found")
+@pytest.mark.parametrize("staleness_s, warned", [(5.0, True), (8.0, False)])
+def test_a_staleness_shorter_than_the_mappings_cell_cycle_is_said_at_start(tmp_path, staleness_s, warned):
+    """The foxBMS preset's cell frames come round every 5.4 s (``cell_cycle_s``, the DBC's cycle time);
+    with the default ``estimator.staleness_s`` of 5 s every cell read stale in about one sample of 13 on a
+    healthy bus (its SOC then goes without the voltage's correction), with nothing saying why. The
+    service says it once at start, naming both settings; a staleness above the cycle is quiet."""
+    cfg = make_cfg(tmp_path, channel(), can={"dbc": str(FOXBMS_DBC), "mapping": "foxbms", "output": {"enabled": False}},
+                   estimator={"staleness_s": staleness_s})
+    with capture_logs() as logs:
+        Service(cfg)
+    said = [e for e in logs if e.get("config_key") == "estimator.staleness_s"]
+    assert len(said) == int(warned)
+    if warned:
+        assert said[0]["log_level"] == "warning"
+        assert (said[0]["staleness_s"], said[0]["cell_cycle_s"]) == (5.0, 5.4)
+
+
 def test_pack_ocv_csv_takes_gzipped_tables(tmp_path, capsys):
     """pack.ocv_csv, as --ocv, reads a .csv.gz table (before: "not UTF-8 text (invalid start byte at byte 1)")."""
     import gzip

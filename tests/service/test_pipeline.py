@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from structlog.testing import capture_logs
 
 from bms_estimator.can.decoder import FrameDecoder
 from bms_estimator.can.sampler import SampleAssembler, first_current, sample_current
@@ -144,3 +145,43 @@ def test_the_estimator_is_fed_from_the_first_valid_current_on():
     assert got.keys() == want.keys()
     for key in want:
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+
+
+def test_a_lost_current_and_cells_gone_stale_are_said_once_each_way():
+    """30 s of traffic: cells 3-5 send nothing in [105, 115), the pack current nothing in [120, 125).
+    Both were only counted (``stale_cells``, ``samples_current_invalid``), nothing in the log said a
+    cell had gone silent or that the SOC was being counted with a guessed current. Now one WARNING
+    when it starts (naming the cells and the setting), one INFO when it ends, none in between."""
+    pipe, snaps = _pipeline()
+    volts = [3.6] * N
+    frames = [f for f in _seconds(100.0, 30, volts) + [current_frame(130.0, -1.0)]
+              if not (f.arbitration_id == voltage_frame(0, 0, volts[:3]).arbitration_id and f.data[0] == 3
+                      and 105.0 <= f.timestamp < 115.0)
+              and not (f.arbitration_id == current_frame(0, -1.0).arbitration_id and 120.0 <= f.timestamp < 125.0)]
+    with capture_logs() as logs:
+        _feed(pipe, frames)
+    assert len(snaps) == 30
+    said = [(e["log_level"], e["event"].split(":")[0], e.get("cells")) for e in logs
+            if e["event"].startswith(("cells stale", "cells no longer stale", "pack current"))]
+    assert said == [("warning", "cells stale", [3, 4, 5]), ("info", "cells no longer stale", [3, 4, 5]),
+                    ("warning", "pack current lost", None), ("info", "pack current back", None)]
+    stale = next(e for e in logs if e["event"].startswith("cells stale"))
+    assert stale["config_key"] == "estimator.staleness_s" and stale["staleness_s"] == 2.5
+    back = next(e for e in logs if e["event"].startswith("pack current back"))
+    assert back["lost_samples"] == pipe.counters.samples_current_invalid > 0
+
+
+def test_a_cell_flapping_at_its_staleness_edge_does_not_flood_the_log():
+    """A cell refreshed just slower than ``staleness_s`` is stale every other sample: the first 20 changes
+    are said, then one in 1000, with the count."""
+    from bms_estimator.can.sampler import Sample
+
+    pipe, _ = _pipeline()
+    with capture_logs() as logs:
+        for k in range(200):
+            valid = np.ones(N, dtype=bool)
+            valid[5] = k % 2 == 0
+            pipe.tick(Sample(101.0 + k, -1.0, np.full(N, 3.6), np.full(N, 25.0), valid, 3.6 * N))
+    said = [e for e in logs if e["event"].startswith(("cells stale", "cells no longer stale"))]
+    assert len(said) == 20 and pipe.counters.stale_changes == 199
+    assert said[-1]["stale_changes"] == 20
