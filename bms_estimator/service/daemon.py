@@ -83,7 +83,7 @@ from ..core.sox import SoxEstimator
 from ..errors import BmsEstimatorError, DataError, one_line_error
 from ..ocv_table import read_ocv_table, read_ocv_tables
 from . import systemd
-from .config import ConfigError, ServiceConfig
+from .config import ConfigError, EstimatorConfig, ServiceConfig
 from .health import HealthServer, Heartbeat
 from .metrics import ServiceMetrics
 from .mqtt import MqttPublisher, tls_context
@@ -204,10 +204,12 @@ class Service:
                     f"{float(np.median(table_capacities_ah(self.ocv))):.3f} Ah of pack.ocv_csv: counting with "
                     "pack.capacity_ah (a table of one cell of a parallel group: scale its capacity_ah column; "
                     "another cell's table, or a wrong pack.capacity_ah: fix it)")
+        cell_cycle_s = self.decoder.mapping.cell_cycle_s if self.decoder is not None else None
+        self.staleness_s = staleness_for(cfg.estimator, cell_cycle_s)
         try:
             self.sampler = SampleAssembler(
-                n, period_s=self.period_s, staleness_s=cfg.estimator.staleness_s,
-                max_gap_s=max(5.0, cfg.estimator.staleness_s, 2.0 * self.period_s),
+                n, period_s=self.period_s, staleness_s=self.staleness_s,
+                max_gap_s=max(5.0, self.staleness_s, 2.0 * self.period_s),
                 rewind_s=max(5.0, 2.0 * self.period_s),
             )
         except ValueError as exc:
@@ -226,7 +228,7 @@ class Service:
             log.warning(self.capacity_note, stated_ah=cfg.pack.capacity_ah, config_key="pack.capacity_ah")
         if getattr(self.ocv, "mixed_cells", None):  # tables of two cells? (core.ocv_surface, item 9)
             log.warning(self.ocv.mixed_cells, config_key="pack.ocv_csv")
-        self._check_staleness(cfg.estimator.staleness_s, self.decoder.mapping.cell_cycle_s)
+        self._check_staleness(self.staleness_s, cell_cycle_s)
 
         assert self.decoder is not None
         self.pipeline = Pipeline(self.decoder, self.sampler, estimator, sox=self._new_sox())
@@ -269,7 +271,8 @@ class Service:
     def _check_staleness(staleness_s: float, cell_cycle_s: float | None) -> None:
         """One WARNING at start when a cell's value is refreshed (the mapping's ``cell_cycle_s``: foxBMS'
         5.4 s) no sooner than ``estimator.staleness_s`` ages it: every cell would read stale between its
-        frames on a healthy bus."""
+        frames on a healthy bus (only a staleness the configuration sets can be that short:
+        :func:`staleness_for`)."""
         if cell_cycle_s is not None and staleness_s <= cell_cycle_s:
             log.warning(f"estimator.staleness_s {staleness_s:g} s is not above the CAN mapping's cell_cycle_s "
                         f"{cell_cycle_s:g} s: cells will read stale between their frames; set it to about "
@@ -558,7 +561,7 @@ class Service:
     async def _monitor(self) -> None:
         """Loop lag, and 'no input' status frames while no sample arrives (wall clock)."""
         interval = min(0.25, self.period_s / 4)
-        silent_after = max(self.cfg.estimator.staleness_s, 3.0 * self.period_s)
+        silent_after = max(self.staleness_s, 3.0 * self.period_s)
         out_period = self.cfg.can.output.period_s
         next_status = time.monotonic() + silent_after
         next_sd_status = time.monotonic() + 10.0
@@ -669,6 +672,15 @@ class Service:
             with contextlib.suppress(Exception):
                 await self.health.close()
         log.info("service stopped", samples=self.pipeline.counters.samples)
+
+
+def staleness_for(estimator: EstimatorConfig, cell_cycle_s: float | None) -> float:
+    """The cells' staleness limit: ``estimator.staleness_s`` where the configuration sets it, else its
+    default (5 s) or, for a mapping whose cell frames come round slower (``cell_cycle_s``: foxBMS' 5.4 s),
+    twice that cycle, so that a healthy bus never reads stale between two frames of a cell."""
+    if "staleness_s" in estimator.model_fields_set or cell_cycle_s is None:
+        return estimator.staleness_s
+    return max(estimator.staleness_s, 2.0 * cell_cycle_s)
 
 
 def _rested_until(meta: dict[str, Any], saved_at: float) -> float:

@@ -827,16 +827,20 @@ FOXBMS_DBC = Path("/work/shared/dbc/foxbms/foxbms.dbc")
 
 
 @pytest.mark.skipif(not FOXBMS_DBC.is_file(), reason="foxBMS DBC not found")
-@pytest.mark.parametrize("staleness_s, warned", [(5.0, True), (8.0, False)])
-def test_a_staleness_shorter_than_the_mappings_cell_cycle_is_said_at_start(tmp_path, staleness_s, warned):
+@pytest.mark.parametrize("staleness_s, used_s, warned", [(None, 10.8, False), (5.0, 5.0, True), (8.0, 8.0, False)])
+def test_the_staleness_follows_the_mappings_cell_cycle_unless_set(tmp_path, staleness_s, used_s, warned):
     """The foxBMS preset's cell frames come round every 5.4 s (``cell_cycle_s``, the DBC's cycle time);
     with the default ``estimator.staleness_s`` of 5 s every cell read stale in about one sample of 13 on a
-    healthy bus (its SOC then goes without the voltage's correction), with nothing saying why. The
-    service says it once at start, naming both settings; a staleness above the cycle is quiet."""
-    cfg = make_cfg(tmp_path, channel(), can={"dbc": str(FOXBMS_DBC), "mapping": "foxbms", "output": {"enabled": False}},
-                   estimator={"staleness_s": staleness_s})
+    healthy bus (its SOC then goes without the voltage's correction), with nothing saying why. Unset, the
+    staleness is now twice the mapping's cell cycle; set below the cycle, the service says so once at start,
+    naming both settings; set above it, it is used and quiet."""
+    data = config_data(tmp_path, channel(), can={"dbc": str(FOXBMS_DBC), "mapping": "foxbms",
+                                                  "output": {"enabled": False}})
+    data["estimator"] = {} if staleness_s is None else {"staleness_s": staleness_s}  # None: not in the file
+    cfg = ServiceConfig(**data)
     with capture_logs() as logs:
-        Service(cfg)
+        svc = Service(cfg)
+    assert svc.sampler.staleness_s == pytest.approx(used_s)
     said = [e for e in logs if e.get("config_key") == "estimator.staleness_s"]
     assert len(said) == int(warned)
     if warned:
