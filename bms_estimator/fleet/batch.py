@@ -48,27 +48,38 @@ def vehicle_of(path: str | Path) -> str:
 
 
 def expand_inputs(items: Iterable[str]) -> tuple[list[str], list[DriveResult]]:
-    """Files named or matched (globs, ``**`` allowed; a directory = its logs, recursively), and what matched nothing."""
+    """Files named or matched (globs, ``**`` allowed; a directory = its logs, recursively; a file that exists is
+    itself, whatever its name), and the skipped: what matched nothing, and a log whose results would overwrite an
+    earlier one's (the same vehicle folder name and file name: :func:`~.drive.parquet_path`)."""
     found: list[str] = []
     seen: set[str] = set()
-    missing: list[DriveResult] = []
+    owners: dict[tuple[str, str], str] = {}  # (vehicle, file name) -> the log whose Parquet that is
+    skipped: list[DriveResult] = []
     for item in items:
         p = Path(item)
         if p.is_dir():
             hits = [str(f) for f in sorted(p.rglob("*")) if f.is_file() and _is_log(f)]
-        elif any(ch in item for ch in "*?["):
+        elif not p.is_file() and any(ch in item for ch in "*?["):
             hits = [h for h in sorted(glob.glob(item, recursive=True)) if Path(h).is_file()]
         else:
             hits = [item]
         if not hits:
-            missing.append(DriveResult(vehicle=vehicle_of(item), path=item, status="skipped",
+            skipped.append(DriveResult(vehicle=vehicle_of(item), path=item, status="skipped",
                                        error=f"{item}: matches no file"))
         for h in hits:
             real = str(Path(h).resolve())
-            if real not in seen:
-                seen.add(real)
-                found.append(h)
-    return found, missing
+            if real in seen:
+                continue
+            seen.add(real)
+            vehicle, name = vehicle_of(h), Path(h).name
+            owner = owners.setdefault((vehicle, name), h)
+            if owner != h:
+                skipped.append(DriveResult(vehicle=vehicle, path=h, status="skipped", error=(
+                    f"{h}: drives/{vehicle}/{name}.parquet is already {owner}'s (a vehicle folder and a file of the "
+                    "same names): rename one, or batch them separately")))
+                continue
+            found.append(h)
+    return found, skipped
 
 
 def _is_log(path: Path) -> bool:

@@ -172,3 +172,37 @@ def test_cells_the_log_does_not_carry_are_no_data_not_ok(fleet, tmp_path):
     assert all(np.isfinite(r["soc_final"]) and not r["error"] for r in rows[:N_CELLS])
     assert rows[N_CELLS]["error"] == f"no valid sample of cell {N_CELLS} in the log (pack.n_cells {N_CELLS + 2}: " \
                                       "more cells than the log's pack?)"
+
+
+def test_logs_of_one_vehicle_name_and_file_name_do_not_overwrite_each_other(fleet, tmp_path, capsys):
+    """2023/car1/drive0.log and 2024/car1/drive0.log both wrote drives/car1/drive0.log.parquet: the second
+    overwrote the first while the summary listed both drives as estimated. Now the second is skipped, saying why."""
+    d, cfg = fleet
+    first, second = tmp_path / "2023" / "car1" / "drive0.log", tmp_path / "2024" / "car1" / "drive0.log"
+    for src, dst in ((d / "logs" / "car1" / "drive0.log", first), (d / "logs" / "car2" / "drive0.log", second)):
+        dst.parent.mkdir(parents=True)
+        shutil.copy(src, dst)
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "2023"), str(tmp_path / "2024"), "--config", str(cfg), "--out", str(out),
+                 "--workers", "1", "--no-progress"]) == 0
+    assert "1 of 2 drives estimated" in capsys.readouterr().out
+    with (out / "errors.csv").open() as fh:
+        errors = list(csv.DictReader(fh))
+    assert [(r["vehicle"], r["log"]) for r in errors] == [("car1", str(second))]
+    assert errors[0]["error"] == (f"{second}: drives/car1/drive0.log.parquet is already {first}'s (a vehicle folder and "
+                                  "a file of the same names): rename one, or batch them separately")
+    with (out / "summary.csv").open() as fh:
+        ok = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
+    table = pq.read_table(out / "drives" / "car1" / "drive0.log.parquet").to_pandas()
+    last = table[table["t_s"] == table["t_s"].max()].sort_values("cell")
+    assert [float(r["soc_final"]) for r in ok] == last["soc"].tolist()  # the summary's drive is the Parquet's
+
+
+def test_an_existing_file_named_like_a_glob_is_that_file(tmp_path):
+    """A log named 'drive[1].log' given by name was taken as a glob (matching 'drive1.log'): 'matches no file'."""
+    from bms_estimator.fleet.batch import expand_inputs
+
+    log = tmp_path / "car1" / "drive[1].log"
+    log.parent.mkdir()
+    log.write_text("(0.000000) can0 123#00\n")
+    assert expand_inputs([str(log)]) == ([str(log)], [])
