@@ -126,7 +126,9 @@ def _client(scheduler: str | None, workers: int | None):
     n = workers or os.cpu_count() or 1
     # worker processes that keep freed memory for the next drive's arrays (memory.py: values unaffected)
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **MALLOC_ENV}
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+    # and that leave Ctrl-C to this process (worker_setup.py: they died of it, printing tracebacks)
+    preload = [*dask.config.get("distributed.worker.preload", []), "bms_estimator.fleet.worker_setup"]
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ, "distributed.worker.preload": preload}):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, silence_logs=logging.ERROR)
     return Client(cluster), cluster

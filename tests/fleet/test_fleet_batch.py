@@ -206,3 +206,22 @@ def test_an_existing_file_named_like_a_glob_is_that_file(tmp_path):
     log.parent.mkdir()
     log.write_text("(0.000000) can0 123#00\n")
     assert expand_inputs([str(log)]) == ([str(log)], [])
+
+
+def test_ctrl_c_reaches_the_batch_not_its_local_workers():
+    """Ctrl-C signals the terminal's whole process group: batch's local worker processes too, which died printing
+    KeyboardInterrupt tracebacks (asyncio's, the nanny's) while batch closed the cluster. They now ignore SIGINT
+    (fleet/worker_setup.py): batch alone stops (exit 130) and closes them."""
+    import signal
+
+    from bms_estimator.fleet.batch import _client
+
+    before = signal.getsignal(signal.SIGINT)
+    client, cluster = _client(None, 1)
+    try:
+        seen = client.run(lambda: signal.getsignal(signal.SIGINT) == signal.SIG_IGN)
+    finally:
+        client.close()
+        cluster.close()
+    assert list(seen.values()) == [True]
+    assert signal.getsignal(signal.SIGINT) is before  # this process's own: Ctrl-C stops the batch
