@@ -162,6 +162,11 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
             client, own = _client(scheduler, workers)
         except OSError as exc:
             raise UsageError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}") from None
+        except (ValueError, TypeError) as exc:  # an address Dask cannot use (tls:// without its TLS settings)
+            if not scheduler:
+                raise
+            raise UsageError(f"cannot reach the Dask scheduler {scheduler!r}: {one_line_error(exc)} (an address is "
+                             "tcp://host:port; tls:// needs Dask's TLS settings)") from None
     try:
         n_workers = len(client.scheduler_info().get("workers", {}))
         if chain:

@@ -225,3 +225,19 @@ def test_ctrl_c_reaches_the_batch_not_its_local_workers():
         cluster.close()
     assert list(seen.values()) == [True]
     assert signal.getsignal(signal.SIGINT) is before  # this process's own: Ctrl-C stops the batch
+
+
+@pytest.mark.parametrize("address, said", [
+    ("tls://127.0.0.1:9", "TypeError: TLS expects a `ssl_context` argument"),
+    ("inproc://x", "ValueError: "), ("foo", "ValueError: missing port number in address 'foo'")])
+def test_a_scheduler_address_dask_cannot_use_is_a_usage_error(fleet, tmp_path, capsys, address, said):
+    """--scheduler tls://... without Dask's TLS settings ended in a TypeError traceback (exit 1); inproc://x said
+    only 'not enough values to unpack'. Now each is a usage error naming the scheduler, and nothing is written."""
+    d, cfg = fleet
+    out = tmp_path / "out"
+    assert main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out),
+                 "--scheduler", address, "--no-progress"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert f"cannot reach the Dask scheduler {address!r}: {said}" in err, err
+    assert "an address is tcp://host:port; tls:// needs Dask's TLS settings" in err
+    assert not (out / "summary.csv").exists()
