@@ -260,7 +260,16 @@ def summary_rows(drives: list[DriveResult], sox: bool = False) -> list[dict[str,
                     row[key] = d.cells[key][c]
             if valid is not None and valid[c] == 0:  # a cell the log never carried: not an estimate
                 row["status"] = "no data"
-                row["error"] = (f"no valid sample of cell {c} in the log (pack.n_cells {n}: more cells than "
-                                "the log's pack?)")
+                row["error"] = _no_data_reason(d, c, n)
             rows.append(row)
     return [{k: r.get(k) for k in columns} for r in rows]
+
+
+def _no_data_reason(d: DriveResult, cell: int, n: int) -> str:
+    """Why ``cell`` has no valid sample in drive ``d`` of ``n`` cells: no valid current at all (every cell's
+    samples need one), else the cell never came (the configuration's pack larger than the logged one)."""
+    samples = d.counters.get("samples", 0)
+    if samples and d.counters.get("current_invalid_samples", 0) >= samples:
+        return (f"no sample of the log has a valid current ({samples} without one: its current message missing, "
+                "or flagged invalid?)")
+    return f"no valid sample of cell {cell} in the log (pack.n_cells {n}: more cells than the log's pack?)"

@@ -241,3 +241,22 @@ def test_a_scheduler_address_dask_cannot_use_is_a_usage_error(fleet, tmp_path, c
     assert f"cannot reach the Dask scheduler {address!r}: {said}" in err, err
     assert "an address is tcp://host:port; tls:// needs Dask's TLS settings" in err
     assert not (out / "summary.csv").exists()
+
+
+def test_cells_of_a_log_without_a_valid_current_are_no_data_for_that_reason(fleet, tmp_path):
+    """A log without its current message (PackMeasurement) has every cell's voltage but no valid sample: its
+    cells were 'no data' blamed on pack.n_cells ('more cells than the log's pack?'), sending the user to the
+    wrong setting. Now the reason is the missing current."""
+    from bms_estimator.fleet.drive import run_drive
+
+    d, cfg = fleet
+    log = tmp_path / "car1" / "nocurrent.log"
+    log.parent.mkdir()
+    lines = (d / "logs" / "car1" / "drive0.log").read_text().splitlines(keepends=True)
+    log.write_text("".join(line for line in lines if " 1B5E0010#" not in line))
+    res, _, _ = run_drive(log, str(cfg), tmp_path / "out", "car1")
+    assert res.status == "ok", res.error
+    rows = summary_rows([res])
+    assert [r["status"] for r in rows] == ["no data"] * N_CELLS
+    assert {r["error"] for r in rows} == {f"no sample of the log has a valid current ({res.samples} without one: "
+                                          "its current message missing, or flagged invalid?)"}
