@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scheduler and args.workers:
         raise UsageError("--workers sizes the local cluster; with --scheduler the cluster has its own workers")
     _check_config(args.config)
-    logs, unmatched = expand_inputs(args.logs)
+    logs, skipped = expand_inputs(args.logs)
     check_outputs([("--config", args.config), ("LOG_OR_GLOB", logs)],
                   [folder_output("--out", args.out, *SUMMARY_FILES)])
     try:
@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.stop()
     wall = time.perf_counter() - t0
-    drives = (result.drives if result is not None else []) + unmatched
+    drives = (result.drives if result is not None else []) + skipped
     rows = summary_rows(drives, sox=args.sox)
     _write_csv(args.out / "summary.csv", rows, summary_columns(args.sox))
     import pyarrow as pa

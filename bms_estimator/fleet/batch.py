@@ -48,27 +48,38 @@ def vehicle_of(path: str | Path) -> str:
 
 
 def expand_inputs(items: Iterable[str]) -> tuple[list[str], list[DriveResult]]:
-    """Files named or matched (globs, ``**`` allowed; a directory = its logs, recursively), and what matched nothing."""
+    """Files named or matched (globs, ``**`` allowed; a directory = its logs, recursively; a file that exists is
+    itself, whatever its name), and the skipped: what matched nothing, and a log whose results would overwrite an
+    earlier one's (the same vehicle folder name and file name: :func:`~.drive.parquet_path`)."""
     found: list[str] = []
     seen: set[str] = set()
-    missing: list[DriveResult] = []
+    owners: dict[tuple[str, str], str] = {}  # (vehicle, file name) -> the log whose Parquet that is
+    skipped: list[DriveResult] = []
     for item in items:
         p = Path(item)
         if p.is_dir():
             hits = [str(f) for f in sorted(p.rglob("*")) if f.is_file() and _is_log(f)]
-        elif any(ch in item for ch in "*?["):
+        elif not p.is_file() and any(ch in item for ch in "*?["):
             hits = [h for h in sorted(glob.glob(item, recursive=True)) if Path(h).is_file()]
         else:
             hits = [item]
         if not hits:
-            missing.append(DriveResult(vehicle=vehicle_of(item), path=item, status="skipped",
+            skipped.append(DriveResult(vehicle=vehicle_of(item), path=item, status="skipped",
                                        error=f"{item}: matches no file"))
         for h in hits:
             real = str(Path(h).resolve())
-            if real not in seen:
-                seen.add(real)
-                found.append(h)
-    return found, missing
+            if real in seen:
+                continue
+            seen.add(real)
+            vehicle, name = vehicle_of(h), Path(h).name
+            owner = owners.setdefault((vehicle, name), h)
+            if owner != h:
+                skipped.append(DriveResult(vehicle=vehicle, path=h, status="skipped", error=(
+                    f"{h}: drives/{vehicle}/{name}.parquet is already {owner}'s (a vehicle folder and a file of the "
+                    "same names): rename one, or batch them separately")))
+                continue
+            found.append(h)
+    return found, skipped
 
 
 def _is_log(path: Path) -> bool:
@@ -115,7 +126,9 @@ def _client(scheduler: str | None, workers: int | None):
     n = workers or os.cpu_count() or 1
     # worker processes that keep freed memory for the next drive's arrays (memory.py: values unaffected)
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **MALLOC_ENV}
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+    # and that leave Ctrl-C to this process (worker_setup.py: they died of it, printing tracebacks)
+    preload = [*dask.config.get("distributed.worker.preload", []), "bms_estimator.fleet.worker_setup"]
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ, "distributed.worker.preload": preload}):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, silence_logs=logging.ERROR)
     return Client(cluster), cluster
@@ -149,6 +162,11 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
             client, own = _client(scheduler, workers)
         except OSError as exc:
             raise UsageError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}") from None
+        except (ValueError, TypeError) as exc:  # an address Dask cannot use (tls:// without its TLS settings)
+            if not scheduler:
+                raise
+            raise UsageError(f"cannot reach the Dask scheduler {scheduler!r}: {one_line_error(exc)} (an address is "
+                             "tcp://host:port; tls:// needs Dask's TLS settings)") from None
     try:
         n_workers = len(client.scheduler_info().get("workers", {}))
         if chain:
@@ -242,7 +260,16 @@ def summary_rows(drives: list[DriveResult], sox: bool = False) -> list[dict[str,
                     row[key] = d.cells[key][c]
             if valid is not None and valid[c] == 0:  # a cell the log never carried: not an estimate
                 row["status"] = "no data"
-                row["error"] = (f"no valid sample of cell {c} in the log (pack.n_cells {n}: more cells than "
-                                "the log's pack?)")
+                row["error"] = _no_data_reason(d, c, n)
             rows.append(row)
     return [{k: r.get(k) for k in columns} for r in rows]
+
+
+def _no_data_reason(d: DriveResult, cell: int, n: int) -> str:
+    """Why ``cell`` has no valid sample in drive ``d`` of ``n`` cells: no valid current at all (every cell's
+    samples need one), else the cell never came (the configuration's pack larger than the logged one)."""
+    samples = d.counters.get("samples", 0)
+    if samples and d.counters.get("current_invalid_samples", 0) >= samples:
+        return (f"no sample of the log has a valid current ({samples} without one: its current message missing, "
+                "or flagged invalid?)")
+    return f"no valid sample of cell {cell} in the log (pack.n_cells {n}: more cells than the log's pack?)"

@@ -30,13 +30,15 @@ cut without a word (an empty file gives an empty table, which the caller reports
 
 from __future__ import annotations
 
+import gc
 import gzip
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, one_line_error
 
 __all__ = ["FRAME_SUFFIXES", "FrameTable", "read_frames", "write_mf4"]
 
@@ -318,12 +320,33 @@ def _candump_block(buf, starts, dots, close, id_start, hashes, frame_end):
     return t, key.astype(np.int64), (data_len // 2).astype(np.int16), data
 
 
-def _read_mf4(path: Path) -> FrameTable:
-    """Raw CAN frames of the bus-logging groups of an MF4 file (asammdf)."""
+def _open_mdf(path: Path):
+    """asammdf's reader of ``path``; :class:`DataError` when it cannot open the file (a truncated one: "seek out
+    of range"). The reader asammdf leaves half-built then fails again in its ``__del__`` when the garbage
+    collector frees it, which Python printed as a traceback per file (from the worker): collected here, muted."""
     from asammdf import MDF
 
+    try:
+        return MDF(str(path))
+    except Exception as exc:  # noqa: BLE001 - asammdf raises its own kinds, and ValueError, on a bad file
+        problem = one_line_error(exc)
+    hook = sys.unraisablehook
+    sys.unraisablehook = lambda u: None if _from_asammdf(u.object) else hook(u)
+    try:
+        gc.collect()
+    finally:
+        sys.unraisablehook = hook
+    raise DataError(f"{path}: cannot read the MF4 file (truncated or corrupt?): {problem}")
+
+
+def _from_asammdf(obj) -> bool:
+    return str(getattr(obj, "__module__", "")).startswith("asammdf")
+
+
+def _read_mf4(path: Path) -> FrameTable:
+    """Raw CAN frames of the bus-logging groups of an MF4 file (asammdf)."""
     ts_parts, key_parts, len_parts, data_parts = [], [], [], []
-    with MDF(str(path)) as mdf:
+    with _open_mdf(path) as mdf:
         for index, group in enumerate(mdf.groups):
             names = {ch.name for ch in group.channels}
             if "CAN_DataFrame.ID" not in names or "CAN_DataFrame.DataBytes" not in names:

@@ -172,3 +172,91 @@ def test_cells_the_log_does_not_carry_are_no_data_not_ok(fleet, tmp_path):
     assert all(np.isfinite(r["soc_final"]) and not r["error"] for r in rows[:N_CELLS])
     assert rows[N_CELLS]["error"] == f"no valid sample of cell {N_CELLS} in the log (pack.n_cells {N_CELLS + 2}: " \
                                       "more cells than the log's pack?)"
+
+
+def test_logs_of_one_vehicle_name_and_file_name_do_not_overwrite_each_other(fleet, tmp_path, capsys):
+    """2023/car1/drive0.log and 2024/car1/drive0.log both wrote drives/car1/drive0.log.parquet: the second
+    overwrote the first while the summary listed both drives as estimated. Now the second is skipped, saying why."""
+    d, cfg = fleet
+    first, second = tmp_path / "2023" / "car1" / "drive0.log", tmp_path / "2024" / "car1" / "drive0.log"
+    for src, dst in ((d / "logs" / "car1" / "drive0.log", first), (d / "logs" / "car2" / "drive0.log", second)):
+        dst.parent.mkdir(parents=True)
+        shutil.copy(src, dst)
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "2023"), str(tmp_path / "2024"), "--config", str(cfg), "--out", str(out),
+                 "--workers", "1", "--no-progress"]) == 0
+    assert "1 of 2 drives estimated" in capsys.readouterr().out
+    with (out / "errors.csv").open() as fh:
+        errors = list(csv.DictReader(fh))
+    assert [(r["vehicle"], r["log"]) for r in errors] == [("car1", str(second))]
+    assert errors[0]["error"] == (f"{second}: drives/car1/drive0.log.parquet is already {first}'s (a vehicle folder and "
+                                  "a file of the same names): rename one, or batch them separately")
+    with (out / "summary.csv").open() as fh:
+        ok = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
+    table = pq.read_table(out / "drives" / "car1" / "drive0.log.parquet").to_pandas()
+    last = table[table["t_s"] == table["t_s"].max()].sort_values("cell")
+    assert [float(r["soc_final"]) for r in ok] == last["soc"].tolist()  # the summary's drive is the Parquet's
+
+
+def test_an_existing_file_named_like_a_glob_is_that_file(tmp_path):
+    """A log named 'drive[1].log' given by name was taken as a glob (matching 'drive1.log'): 'matches no file'."""
+    from bms_estimator.fleet.batch import expand_inputs
+
+    log = tmp_path / "car1" / "drive[1].log"
+    log.parent.mkdir()
+    log.write_text("(0.000000) can0 123#00\n")
+    assert expand_inputs([str(log)]) == ([str(log)], [])
+
+
+def test_ctrl_c_reaches_the_batch_not_its_local_workers():
+    """Ctrl-C signals the terminal's whole process group: batch's local worker processes too, which died printing
+    KeyboardInterrupt tracebacks (asyncio's, the nanny's) while batch closed the cluster. They now ignore SIGINT
+    (fleet/worker_setup.py): batch alone stops (exit 130) and closes them."""
+    import signal
+
+    from bms_estimator.fleet.batch import _client
+
+    before = signal.getsignal(signal.SIGINT)
+    client, cluster = _client(None, 1)
+    try:
+        seen = client.run(lambda: signal.getsignal(signal.SIGINT) == signal.SIG_IGN)
+    finally:
+        client.close()
+        cluster.close()
+    assert list(seen.values()) == [True]
+    assert signal.getsignal(signal.SIGINT) is before  # this process's own: Ctrl-C stops the batch
+
+
+@pytest.mark.parametrize("address, said", [
+    ("tls://127.0.0.1:9", "TypeError: TLS expects a `ssl_context` argument"),
+    ("inproc://x", "ValueError: "), ("foo", "ValueError: missing port number in address 'foo'")])
+def test_a_scheduler_address_dask_cannot_use_is_a_usage_error(fleet, tmp_path, capsys, address, said):
+    """--scheduler tls://... without Dask's TLS settings ended in a TypeError traceback (exit 1); inproc://x said
+    only 'not enough values to unpack'. Now each is a usage error naming the scheduler, and nothing is written."""
+    d, cfg = fleet
+    out = tmp_path / "out"
+    assert main(["batch", str(d / "logs" / "car1" / "drive0.log"), "--config", str(cfg), "--out", str(out),
+                 "--scheduler", address, "--no-progress"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert f"cannot reach the Dask scheduler {address!r}: {said}" in err, err
+    assert "an address is tcp://host:port; tls:// needs Dask's TLS settings" in err
+    assert not (out / "summary.csv").exists()
+
+
+def test_cells_of_a_log_without_a_valid_current_are_no_data_for_that_reason(fleet, tmp_path):
+    """A log without its current message (PackMeasurement) has every cell's voltage but no valid sample: its
+    cells were 'no data' blamed on pack.n_cells ('more cells than the log's pack?'), sending the user to the
+    wrong setting. Now the reason is the missing current."""
+    from bms_estimator.fleet.drive import run_drive
+
+    d, cfg = fleet
+    log = tmp_path / "car1" / "nocurrent.log"
+    log.parent.mkdir()
+    lines = (d / "logs" / "car1" / "drive0.log").read_text().splitlines(keepends=True)
+    log.write_text("".join(line for line in lines if " 1B5E0010#" not in line))
+    res, _, _ = run_drive(log, str(cfg), tmp_path / "out", "car1")
+    assert res.status == "ok", res.error
+    rows = summary_rows([res])
+    assert [r["status"] for r in rows] == ["no data"] * N_CELLS
+    assert {r["error"] for r in rows} == {f"no sample of the log has a valid current ({res.samples} without one: "
+                                          "its current message missing, or flagged invalid?)"}

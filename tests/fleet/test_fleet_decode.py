@@ -372,6 +372,31 @@ def test_truncated_logs_are_data_errors(tmp_path, suffix):
         read_frames(path)
 
 
+
+@pytest.mark.parametrize("keep", [64, 200, 0.3, 0.95])
+def test_a_truncated_mf4_is_a_data_error_without_a_traceback(tmp_path, monkeypatch, keep):
+    """A cut .mf4 was skipped as 'cannot read the log: ValueError: seek out of range', and asammdf's half-built
+    reader then failed again in its __del__: an 'Exception ignored ... AttributeError' traceback on the worker's
+    stderr per file. Now the error says what the file may be, and nothing else is printed."""
+    import gc
+    import sys
+
+    from bms_estimator.errors import DataError
+    from bms_estimator.fleet.frames import write_mf4
+
+    m = 2000
+    frames = FrameTable(np.arange(m) * 0.01, np.full(m, PACK.frame_id | EXTENDED_FLAG, np.int64),
+                        np.full(m, 8, np.int16), np.zeros((m, 8), np.uint8), np.zeros(m, bool))
+    raw = write_mf4(frames, tmp_path / "whole.mf4").read_bytes()
+    path = tmp_path / "cut.mf4"
+    path.write_bytes(raw[: keep if isinstance(keep, int) else int(len(raw) * keep)])
+    printed = []
+    monkeypatch.setattr(sys, "unraisablehook", printed.append)
+    with pytest.raises(DataError, match=r"cut\.mf4: cannot read the MF4 file \(truncated or corrupt\?\): "):
+        read_frames(path)
+    gc.collect()
+    assert [u.exc_type for u in printed] == []
+
 def test_signal_columns_assemble_as_the_merged_events():
     """On a clean log (every frame accepted) assembly takes decode's signal columns as they are; the
     samples equal those assembled from the same events merged into frame order and sorted back,
