@@ -728,3 +728,20 @@ def test_ocv_tables_of_two_cells_are_named_in_one_warning(tmp_path, capsys):
     assert main(["soc", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(lg5), "--capacity-ah", "2.8",
                  "--json", str(out)]) == 0
     assert "tables of one cell" not in capsys.readouterr().err
+
+
+def test_python_dash_m_runs_the_command_line():
+    """``python -m bms_estimator`` is the command where the console script is not on PATH (a venv not
+    activated, a systemd unit naming the interpreter); before, it said 'No module named bms_estimator.__main__'."""
+    import subprocess
+    import sys
+
+    from bms_estimator import package_version
+
+    out = subprocess.run([sys.executable, "-m", "bms_estimator", "--version"], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert package_version() in out.stdout
+    bad = subprocess.run([sys.executable, "-m", "bms_estimator", "no-such-command"], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and "bms-estimator: error:" in bad.stderr and "Traceback" not in bad.stderr
