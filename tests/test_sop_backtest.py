@@ -64,6 +64,32 @@ def test_backtest_on_a_known_ecm_scores_every_pulse_and_every_window(tmp_path, n
     assert strict["windows_within_limit"] < 12  # the limit shrank where the cell came close to 3.9 V
 
 
+def test_a_drive_cycle_whose_rests_carry_sensor_noise_is_back_tested_as_a_drive_cycle(tmp_path, nmc_like_ocv, capsys):
+    """20 mA of current-sensor noise on a 2.5 Ah cell (C/125) crosses the C/50 rest threshold now and then:
+    single samples after a rest, not pulses a window can score.  The default mode takes the file for the
+    drive cycle it is (before: ten such samples in its final 30 min rest made it an HPPC file, refused with
+    "no pulse of the recording is as long as the horizon", exit 2)."""
+    q = 2.5
+    rng = np.random.default_rng(3)
+    levels = np.repeat(rng.uniform(-2.0, 0.5, 200), 30) * q  # a drive: 30 s levels for 100 min
+    i = np.concatenate([levels - (levels.mean() + 0.6 * q * 3600 / levels.size), np.zeros(1800)])
+    v = simulate_ecm(i, 1.0, EcmParams.from_rc(0.02, [0.01, 0.015], [12.0, 250.0]), nmc_like_ocv.ocv, soc0=0.9,
+                     capacity_ah=q, output="mean").voltage_v
+    i_meas = i + 0.02 * rng.standard_normal(i.size)
+    assert len(find_pulses(i_meas, 1.0, q)) >= 3  # the noise's runs after a rest
+    data = tmp_path / "drive.csv"
+    np.savetxt(data, np.column_stack([np.arange(i.size, dtype=float), i_meas, v + 2e-3 * rng.standard_normal(i.size),
+                                      np.full(i.size, 25.0)]),
+               delimiter=",", header="time_s,current_a,voltage_v,temperature_c", comments="", fmt="%.6f")
+    ocv = write_ocv_table(nmc_like_ocv, tmp_path / "ocv.csv")
+    base = ["sop-backtest", str(data), "--ocv", str(ocv), "--capacity-ah", str(q), "--initial-soc", "0.9"]
+    assert main(base + ["--json", "-"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["mode"] == "drive" and r["windows"] == (i.size - 1) // 10
+    assert main(base + ["--mode", "hppc"]) == 2  # asked for pulses, it has none to score: said so
+    assert "no pulse of the recording is as long as the horizon" in capsys.readouterr().err
+
+
 def test_bad_input_exit_codes(tmp_path, nmc_like_ocv, capsys):
     data, ocv, _ = _recording(tmp_path, nmc_like_ocv, pulses=4)
     base = ["sop-backtest", str(data), "--ocv", str(ocv), "--capacity-ah", str(Q)]
