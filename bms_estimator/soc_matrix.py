@@ -114,6 +114,20 @@ def make_ocv(tables: list[Table]) -> OcvSurface:
     return OcvSurface([t.curve for t in tables], [t.temperature_c for t in tables])
 
 
+def jittered(table: Table, sigma_v: float, seed: int) -> Table:
+    """``table`` with every OCV knot moved by an independent normal error of ``sigma_v`` (the seed and the
+    table's ambient pick the draw), kept strictly increasing (a knot that would fall to or below the one
+    before it is set a microvolt above it); the hysteresis and capacities as they are."""
+    c = table.curve
+    rng = np.random.default_rng([seed, int(round(100 * abs(table.temperature_c))), len(c.ocv_v)])
+    v = c.ocv_v + sigma_v * rng.standard_normal(c.ocv_v.size)
+    for k in range(1, v.size):
+        v[k] = max(v[k], v[k - 1] + 1e-6)
+    curve = OcvCurve(c.soc, v, c.hysteresis_v, capacity_discharge_ah=c.capacity_discharge_ah,
+                     capacity_charge_ah=c.capacity_charge_ah, temperature_c=c.temperature_c)
+    return replace(table, curve=curve)
+
+
 def estimator_config(method: str, overrides: dict | None = None) -> SocConfig:
     """The default SocConfig with ``soc_method`` and settings to try (``"ekf.voltage_sigma_v": 0.01``)."""
     cfg = SocConfig(soc_method=method)
@@ -277,7 +291,8 @@ def file_reference(tables: list[Table], ambient: str, rec) -> SocReference | str
 
 def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leave_out: bool = True,
              overrides: dict | None = None, start_names: tuple[str, ...] = STARTS,
-             rest_over_gaps: bool = True, current_gain: float = 1.0, current_offset_a: float = 0.0) -> list[dict]:
+             rest_over_gaps: bool = True, current_gain: float = 1.0, current_offset_a: float = 0.0,
+             ocv_jitter_v: float = 0.0, seed: int = 0) -> list[dict]:
     """Every drive cycle of ``cell`` under ``data`` matching ``pattern`` (cell/ambient/file), each of
     ``start_names``, per SOC method: one row of figures per run.  ``rest_over_gaps``: the files' logging
     gaps rested over (:func:`run_group`), else fed as ``load_recording`` fills them.
@@ -288,7 +303,11 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
     stress test of how the figures carry to a cell that is not the one the tables were measured on.
 
     ``current_offset_a`` is added to the current the estimator and plain counting see, not to the
-    reference's: a current sensor's zero offset (the reference is the true charge; charge positive)."""
+    reference's: a current sensor's zero offset (the reference is the true charge; charge positive).
+
+    ``ocv_jitter_v`` moves every knot of the estimator's OCV tables by an independent normal error of
+    that sigma (``seed``; :func:`jittered`), not the reference's: the same C/20 test measured again.  How
+    far a figure hangs on the tables' last tenth of a millivolt."""
     if not (np.isfinite(current_gain) and current_gain > 0):
         raise ValueError(f"current_gain must be a positive number, got {current_gain!r}")
     if not np.isfinite(current_offset_a):
@@ -327,7 +346,7 @@ def run_cell(data: Path, cell: str, methods: list[str], pattern: str = "*", leav
                 groups.setdefault(key, []).append(j)
             for key, idx in groups.items():
                 tabs = [t for t in tables if t.ambient != key]
-                ocv = make_ocv(tabs)
+                ocv = make_ocv([jittered(t, ocv_jitter_v, seed) for t in tabs] if ocv_jitter_v else tabs)
                 recs, starts, meta, rec_plans = [], [], [], []
                 for j in idx:
                     amb, name, rec = files[j]

@@ -3,7 +3,7 @@
 
     python scripts/soc_matrix.py [--readme] [--json OUT] [--methods c0,ekf] [--files GLOB] [--set KEY=VALUE]
                                  [--starts full,full-20,mid+10,mid-10,at50+20,at75-5,...] [--no-rest-over-gaps]
-                                 [--current-gain G] [--current-offset-a B]
+                                 [--current-gain G] [--current-offset-a B] [--ocv-jitter-mv J --seed S]
 """
 
 from __future__ import annotations
@@ -57,6 +57,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--current-offset-a", type=float, default=0.0, metavar="B",
                     help="stress test: B amperes added to the current the estimator and plain counting read, not "
                          "to the reference's (a current sensor's zero offset; charge positive); default 0")
+    ap.add_argument("--ocv-jitter-mv", type=float, default=0.0, metavar="J",
+                    help="robustness: every knot of the estimator's OCV tables moved by a normal error of sigma J mV "
+                         "(not the reference's), drawn with --seed; default 0")
+    ap.add_argument("--seed", type=int, default=0, help="the draw of --ocv-jitter-mv (default 0)")
     ap.add_argument("--no-rest-over-gaps", dest="rest_over_gaps", action="store_false",
                     help="feed the files' logging gaps as load_recording fills them, instead of resting over them "
                          "as the service does at a time jump")
@@ -84,9 +88,13 @@ def main(argv: list[str] | None = None) -> int:
     if not abs(args.current_offset_a) < float("inf"):
         print(f"--current-offset-a: a finite number, got {args.current_offset_a}", file=sys.stderr)
         return 2
-    if args.readme and (starts != STARTS or args.current_gain != 1.0 or args.current_offset_a != 0.0):
-        print("--readme writes the README's four starts at the files' own current only; drop --starts / "
-              "--current-gain / --current-offset-a or --readme", file=sys.stderr)
+    if not (0.0 <= args.ocv_jitter_mv < float("inf")):
+        print(f"--ocv-jitter-mv: a number >= 0, got {args.ocv_jitter_mv}", file=sys.stderr)
+        return 2
+    if args.readme and (starts != STARTS or args.current_gain != 1.0 or args.current_offset_a != 0.0
+                        or args.ocv_jitter_mv != 0.0):
+        print("--readme writes the README's four starts at the files' own current and tables only; drop --starts / "
+              "--current-gain / --current-offset-a / --ocv-jitter-mv or --readme", file=sys.stderr)
         return 2
     if args.readme and not args.rest_over_gaps:
         print("--readme writes the default run (the logging gaps rested over); drop --no-rest-over-gaps or --readme",
@@ -103,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{data / cell}: absent, {cell} not run", file=sys.stderr)
             continue
         rows += run_cell(data, cell, methods, args.files, not args.no_leave_out, overrides, starts,
-                         args.rest_over_gaps, args.current_gain, args.current_offset_a)
+                         args.rest_over_gaps, args.current_gain, args.current_offset_a, 1e-3 * args.ocv_jitter_mv,
+                         args.seed)
     for line in summary_lines(rows):
         print(line)
     if args.json:

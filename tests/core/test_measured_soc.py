@@ -229,6 +229,26 @@ def test_a_current_offset_that_is_not_finite_is_refused():
         run_cell(SHARED, "lg-hg2", [DEFAULT], "nothing/matches/*", current_offset_a=float("nan"))
 
 
+def test_a_jittered_table_moves_each_knot_by_its_sigma_and_stays_a_table():
+    """``scripts/soc_matrix.py --ocv-jitter-mv``: every knot moved by an independent normal error, the
+    same draw for the same seed and table, another for another seed; the curve still strictly increasing,
+    its hysteresis and capacities as they were."""
+    from bms_estimator.core.ocv import OcvCurve
+    from bms_estimator.soc_matrix import Table, jittered
+
+    soc = np.linspace(0.0, 1.0, 2001)
+    curve = OcvCurve(soc, 3.0 + 1.2 * soc + 0.002 * soc**2, np.full(soc.size, 0.015), capacity_discharge_ah=2.9)
+    table = Table("25degC", "c20", curve, 25.0)
+    a, b, c = (jittered(table, 1e-4, s).curve for s in (1, 1, 2))
+    np.testing.assert_array_equal(a.ocv_v, b.ocv_v)
+    assert not np.array_equal(a.ocv_v, c.ocv_v)
+    d = a.ocv_v - curve.ocv_v
+    assert 0.8e-4 < np.std(d) < 1.2e-4 and abs(np.mean(d)) < 2e-5, (np.std(d), np.mean(d))
+    assert np.all(np.diff(a.ocv_v) > 0)  # knots 0.6 mV apart, moved by 0.1 mV: still a table
+    np.testing.assert_array_equal(a.hysteresis_v, curve.hysteresis_v)
+    assert a.capacity_discharge_ah == curve.capacity_discharge_ah
+
+
 def test_a_current_gain_that_is_not_positive_is_refused():
     with pytest.raises(ValueError, match="current_gain"):
         run_cell(SHARED, "lg-hg2", [DEFAULT], "nothing/matches/*", current_gain=0.0)
