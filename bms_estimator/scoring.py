@@ -77,6 +77,35 @@ def soc_on_branch(v: float, ocv, temperature_c: float | None = None, side: float
     return soc, max(slope, 1e-3)
 
 
+#: A noisy current sensor's rest: the current's mean over this long below the rest current (and no sample
+#: above ``REST_SPIKE_FACTOR`` times it) where single samples cross it.
+REST_MEAN_S = 30.0
+REST_SPIKE_FACTOR = 5.0
+
+
+def final_rest_samples(current_a: np.ndarray, dt_s: float, rest_current_a: float = 0.05) -> int:
+    """How many samples at the end of a recording are its final rest.
+
+    The samples after the last one with ``|i| >= rest_current_a``; where that is shorter than 120 s (a
+    sensor whose noise crosses the threshold now and then: 20 mA of noise does, at 50 mA), the samples
+    after the last one whose ``REST_MEAN_S`` trailing mean is at or above it in size, or that is above
+    ``REST_SPIKE_FACTOR`` times it (a load, not noise).  The second rule starts a rest up to
+    ``REST_MEAN_S`` later than the first would on a clean sensor, so it is used only where the first
+    finds too short a rest (the longer of the two is returned): a clean recording's reference is the first
+    rule's."""
+    i = np.asarray(current_a, dtype=float)
+    quiet = np.abs(i) < rest_current_a
+    n_rest = len(i) - (int(np.flatnonzero(~quiet)[-1]) + 1 if (~quiet).any() else 0)
+    if n_rest * dt_s >= 120.0:
+        return n_rest
+    w = max(1, int(round(REST_MEAN_S / dt_s)))
+    c = np.concatenate([[0.0], np.cumsum(i)])
+    k = np.arange(1, len(i) + 1)
+    mean = (c[k] - c[np.maximum(k - w, 0)]) / np.minimum(k, w)  # trailing mean ending at each sample
+    loaded = (np.abs(mean) >= rest_current_a) | (np.abs(i) > REST_SPIKE_FACTOR * rest_current_a)
+    return max(n_rest, len(i) - (int(np.flatnonzero(loaded)[-1]) + 1 if loaded.any() else 0))
+
+
 def soc_reference(
     current_a: np.ndarray,
     voltage_v: np.ndarray,
@@ -99,11 +128,11 @@ def soc_reference(
     v = np.asarray(voltage_v, dtype=float)
     if i.shape != v.shape or i.ndim != 1:
         raise ValueError(f"current and voltage must be 1-D of one length, got {i.shape} and {v.shape}")
-    quiet = np.abs(i) < rest_current_a
-    n_rest = len(i) - (int(np.flatnonzero(~quiet)[-1]) + 1 if (~quiet).any() else 0)
+    n_rest = final_rest_samples(i, dt_s, rest_current_a)
     if n_rest * dt_s < 120.0:
         raise ValueError(f"the recording ends with {n_rest * dt_s:.0f} s of rest; the reference needs a final rest "
-                         f"of at least 120 s (|current| < {rest_current_a} A)")
+                         f"of at least 120 s (|current| < {rest_current_a} A, or its {REST_MEAN_S:.0f} s mean "
+                         f"for a noisy sensor)")
     ah_out = -float(np.sum(i)) * dt_s / 3600.0
     if ah_out <= 0:
         raise ValueError("the recording has no net discharge: no capacity to measure")

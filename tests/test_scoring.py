@@ -47,6 +47,26 @@ def test_reference_reads_the_end_rest_on_the_discharge_branch(c20_table):
     assert ref.soc[n_dis - 1] == pytest.approx(0.1, abs=2e-3)
 
 
+def test_a_noisy_current_sensors_final_rest_is_still_a_rest(c20_table):
+    """20 mA of noise on the current (a logger's, found on a synthetic LFP cell) crosses the 50 mA rest
+    threshold now and then, and the 600 s rest was read as a few seconds ("the recording ends with 10 s of
+    rest"). Where the strict rule finds under 120 s, the rest is where the current's 30 s mean is under the
+    threshold; a clean recording keeps the strict rule's rest to the sample."""
+    i, v, n_dis = _drive(c20_table, q_true=2.5, soc_end=0.1, rest_s=600)
+    clean = soc_reference(i, v, 1.0, c20_table)
+    assert clean.rest_s == 600.0
+    noisy_i = i + 0.02 * np.random.default_rng(3).standard_normal(i.size)
+    assert np.any(np.abs(noisy_i[-600:]) >= 0.05)  # single samples do cross it
+    ref = soc_reference(noisy_i, v, 1.0, c20_table)
+    assert 570.0 <= ref.rest_s <= 600.0 and ref.relaxed
+    assert ref.capacity_ah == pytest.approx(clean.capacity_ah, rel=2e-3)
+    # a real load in the last minutes is no rest, however the means fall
+    loaded = noisy_i.copy()
+    loaded[-100] = -1.0
+    with pytest.raises(ValueError, match="ends with 99 s of rest"):
+        soc_reference(loaded, v, 1.0, c20_table)
+
+
 def test_a_rest_still_recovering_is_reported_but_not_scored(c20_table):
     # 10 mV per ln(t) on a 1.1 V per SOC slope: 0.63 % SOC per doubling - relaxed enough
     i, v, _ = _drive(c20_table, 2.5, 0.1, 600, relax_mv_per_ln=10.0)
