@@ -114,6 +114,32 @@ class BatchResult:
         return [d for d in self.drives if d.status != "ok"]
 
 
+def scheduler_problem(address: str) -> str | None:
+    """Why Dask cannot use ``address`` as a scheduler to reach, told before a ``Client`` is made (None: it
+    may): a ``Client`` whose start fails is closed by its ``__del__`` whenever the garbage collector gets to
+    it, which can be in the middle of the next ``Client``'s start, and there it deadlocks (seen in a test
+    process that made three in a row).  An unreachable but well-formed address is still the ``Client``'s
+    to find (an ``OSError`` after its timeout)."""
+    import dask
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+    except ValueError as exc:
+        return f"ValueError: {exc}"
+    if scheme == "inproc":
+        return "inproc:// is an address inside one process, not a scheduler to reach"
+    if scheme not in ("tcp", "tls"):
+        return f"the scheme {scheme}:// is not one batch reaches a scheduler by (tcp:// or tls://)"
+    if scheme == "tls" and not dask.config.get("distributed.comm.tls.ca-file", None):
+        return "tls:// without Dask's TLS settings (distributed.comm.tls.ca-file, .client.cert, .client.key)"
+    try:
+        parse_host_port(location)
+    except ValueError as exc:
+        return f"ValueError: {exc}"
+    return None
+
+
 def _client(scheduler: str | None, workers: int | None):
     import dask
     from dask.distributed import Client, LocalCluster
@@ -158,6 +184,10 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
     own = None
     own_client = client is None
     if client is None:
+        problem = scheduler_problem(scheduler) if scheduler else None
+        if problem is not None:
+            raise UsageError(f"cannot reach the Dask scheduler {scheduler!r}: {problem} (an address is "
+                             "tcp://host:port; tls:// needs Dask's TLS settings)")
         try:
             client, own = _client(scheduler, workers)
         except OSError as exc:
