@@ -23,6 +23,7 @@ Vehicles: a log's vehicle is its parent directory's name (``fleet/<vehicle>/<dri
 
 from __future__ import annotations
 
+import gc
 import glob
 import logging
 import os
@@ -191,6 +192,9 @@ def run_batch(logs: list[str], config: str | None, out_dir: str | Path, *, chain
         try:
             client, own = _client(scheduler, workers)
         except OSError as exc:
+            # the half-made Client is closed by its __del__: let that run now, not inside a later Client's start
+            # (scheduler_problem's docstring)
+            gc.collect()
             raise UsageError(f"cannot reach the Dask scheduler {scheduler!r}: {exc}") from None
         except (ValueError, TypeError) as exc:  # an address Dask cannot use (tls:// without its TLS settings)
             if not scheduler:
