@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,15 @@ SHARED = shared_data_dir()
 needs_shared = pytest.mark.skipif(
     SHARED is None, reason="../shared/data (the full measured data set) is absent; CI has it"
 )
+
+
+def foxbms_dbc_path() -> Path | None:
+    """foxBMS' DBC (``$BMS_FOXBMS_DBC``, else ``../shared/dbc/foxbms/foxbms.dbc``), None where absent."""
+    env = os.environ.get("BMS_FOXBMS_DBC")
+    candidates = [Path(env)] if env else []
+    candidates += [Path(__file__).resolve().parents[2] / "shared" / "dbc" / "foxbms" / "foxbms.dbc",
+                   Path("/work/shared/dbc/foxbms/foxbms.dbc")]
+    return next((p for p in candidates if p.is_file()), None)
 
 
 def shared_file(rel: str) -> Path:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -13,16 +12,7 @@ if str(REPO_ROOT) not in sys.path:  # the package may not be installed
     sys.path.insert(0, str(REPO_ROOT))
 
 from bms_estimator.can.dbc import load_db, load_project_db  # noqa: E402
-
-
-def foxbms_dbc_path() -> Path | None:
-    env = os.environ.get("BMS_FOXBMS_DBC")
-    candidates = [Path(env)] if env else []
-    candidates += [
-        REPO_ROOT.parent / "shared" / "dbc" / "foxbms" / "foxbms.dbc",
-        Path("/work/shared/dbc/foxbms/foxbms.dbc"),
-    ]
-    return next((p for p in candidates if p.is_file()), None)
+from tests.conftest import foxbms_dbc_path  # noqa: E402
 
 
 @pytest.fixture(scope="session")

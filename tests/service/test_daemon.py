@@ -48,6 +48,7 @@ from bms_estimator.samples import drive_cycle, ocv_table
 from bms_estimator.service.config import ConfigError, ServiceConfig, soc_config_from_core
 from bms_estimator.service.daemon import Service, run_service
 from bms_estimator.service.state import load_state, save_state
+from tests.conftest import foxbms_dbc_path
 
 from service_helpers import Collector, NotifySocket, free_port, retained, run_async, wait_until
 
@@ -823,10 +824,10 @@ def test_broker_down_mid_run_keeps_can_output(broker_factory, tmp_path):
     assert_state_file_valid(Path(cfg.state.path), soc=soc)
 
 
-FOXBMS_DBC = Path("/work/shared/dbc/foxbms/foxbms.dbc")
+FOXBMS_DBC = foxbms_dbc_path()  # (tests.conftest)
 
 
-@pytest.mark.skipif(not FOXBMS_DBC.is_file(), reason="foxBMS DBC not found")
+@pytest.mark.skipif(FOXBMS_DBC is None, reason="foxBMS DBC not found (../shared/dbc/foxbms/foxbms.dbc or $BMS_FOXBMS_DBC)")
 @pytest.mark.parametrize("staleness_s, used_s, warned", [(None, 10.8, False), (5.0, 5.0, True), (8.0, 8.0, False)])
 def test_the_staleness_follows_the_mappings_cell_cycle_unless_set(tmp_path, staleness_s, used_s, warned):
     """The foxBMS preset's cell frames come round every 5.4 s (``cell_cycle_s``, the DBC's cycle time);
