@@ -401,7 +401,8 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
         sox_est = resume_sox(svc._new_sox, state or {}) if sox else None  # noqa: SLF001 - likewise
         if state is not None:
             res.rested_s, res.chain = rest_between_drives(est, previous_end_s, samples, sox_est)
-        out = estimate_drive(samples, est, svc.decoder, svc.sampler, sox=sox_est)
+        out = estimate_drive(samples, est, svc.decoder, svc.sampler, sox=sox_est,
+                             n_parallel=svc.cfg.estimator.sop.n_parallel)
         res.seconds["estimate"] = time.perf_counter() - t3
         res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
         _finish(res, log, svc, samples, out, out_dir, vehicle, write, diagnose)
@@ -465,7 +466,8 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
         together = 1
         try:
             outs = estimate_stacked([g[3] for g in group], _stack_factory(svc),
-                                    _stack_sox_factory(svc) if sox else None)
+                                    _stack_sox_factory(svc) if sox else None,
+                                    n_parallel=svc.cfg.estimator.sop.n_parallel)
             wall, cpu = (time.perf_counter() - t0) / len(group), (time.process_time() - c0) / len(group)
             together = len(group)
         except (StackError, MemoryError) as exc:  # then one by one (each with the service's error handling)
@@ -476,7 +478,8 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
                 if out is None:
                     t0, c0 = time.perf_counter(), time.process_time()
                     out = estimate_drive(samples, svc._new_estimator(),  # noqa: SLF001
-                                         sox=svc._new_sox() if sox else None)  # noqa: SLF001
+                                         sox=svc._new_sox() if sox else None,  # noqa: SLF001
+                                         n_parallel=svc.cfg.estimator.sop.n_parallel)
                     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
                 res.seconds["estimate"] = wall
                 res.seconds["cpu"] += cpu
