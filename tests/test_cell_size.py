@@ -52,3 +52,24 @@ def test_fit_prints_a_large_cells_resistances_to_three_digits(tmp_path, capsys):
     for name in ("R0", "R1", "R2"):
         printed = float(re.search(rf"{name} ([-0-9.]+) mOhm", line).group(1))
         assert printed == pytest.approx(1e3 * f[f"{name.lower()}_ohm"], rel=0.01), (name, line)
+
+
+def test_sop_backtest_says_when_its_default_ratings_are_not_the_cells(tmp_path, capsys):
+    """The rating defaults (20 A / 6 A) are an 18650's: on a 57 Ah cell every limit sat at 0.33 C and the
+    back-test scored that cap, with nothing to say so.  Given ratings, or a cell near 3 Ah: no warning."""
+    data, table = scaled_cell(tmp_path, 20.0, seconds=900)
+    cell = ["--ocv", str(table), "--capacity-ah", "60"]
+    assert main(["sop-backtest", str(data), *cell, "--json", str(tmp_path / "a.json")]) == 0
+    err = capsys.readouterr().err
+    assert "--i-discharge-max-a and --i-charge-max-a not given" in err and "0.33 C / 0.1 C of --capacity-ah 60" in err
+    assert main(["sop-backtest", str(data), *cell, "--i-discharge-max-a", "400", "--i-charge-max-a", "120",
+                 "--json", str(tmp_path / "b.json")]) == 0
+    assert "not given" not in capsys.readouterr().err
+    limits = json.loads((tmp_path / "b.json").read_text())["discharge_limit_a"]["model"]
+    one, one_table = scaled_cell(tmp_path, 1.0, seconds=900)
+    assert main(["sop-backtest", str(one), "--ocv", str(one_table), "--capacity-ah", "3",
+                 "--json", str(tmp_path / "c.json")]) == 0
+    assert "not given" not in capsys.readouterr().err
+    # the limits of the 57 Ah cell are 20 x the 3 Ah cell's (its ratings 20 x too)
+    small = json.loads((tmp_path / "c.json").read_text())["discharge_limit_a"]["model"]
+    assert limits["median"] == pytest.approx(20.0 * small["median"], rel=1e-6)
