@@ -11,7 +11,7 @@ import numpy as np
 
 from ..core.identifier import IdentifierConfig
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C
-from ..core.sop import SopConfig
+from ..core.sop import SopConfig, default_ratings_note
 from ..errors import UsageError
 from ..sop_backtest import run_backtest, summary
 from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
@@ -21,8 +21,6 @@ from .outputs import check_outputs, file_output
 _SOP = SopConfig()
 #: from this many samples on, the command says at its start that it will take a while
 LONG_RUN_SAMPLES = 30_000
-#: the cell whose ratings the defaults of --i-discharge-max-a / --i-charge-max-a are (an 18650, LG HG2: 20 A / 6 A)
-DEFAULT_RATINGS_CELL_AH = 3.0
 
 
 def add_parser(sub) -> None:
@@ -69,12 +67,9 @@ def current_ratings(args: argparse.Namespace) -> tuple[float, float]:
     defaulted = [name for name, v in (("--i-discharge-max-a", i_dis), ("--i-charge-max-a", i_chg)) if v is None]
     i_dis = _SOP.i_discharge_max_a if i_dis is None else i_dis
     i_chg = _SOP.i_charge_max_a if i_chg is None else i_chg
-    ratio = args.capacity_ah / DEFAULT_RATINGS_CELL_AH
-    if defaulted and not 0.5 <= ratio <= 2.0:
-        warnings.warn(f"{' and '.join(defaulted)} not given: the defaults {_SOP.i_discharge_max_a:g} A / "
-                      f"{_SOP.i_charge_max_a:g} A are a {DEFAULT_RATINGS_CELL_AH:g} Ah 18650's ratings, "
-                      f"{_SOP.i_discharge_max_a / args.capacity_ah:.2g} C / {_SOP.i_charge_max_a / args.capacity_ah:.2g} C "
-                      f"of --capacity-ah {args.capacity_ah:g}: give the cell's", stacklevel=2)
+    note = default_ratings_note(args.capacity_ah, defaulted, "--capacity-ah")
+    if note is not None:
+        warnings.warn(note, stacklevel=2)
     return i_dis, i_chg
 
 
