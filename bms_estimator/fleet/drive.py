@@ -147,7 +147,10 @@ def is_recording(path: str | Path) -> bool:
 def _recording_samples(log: Path, svc) -> SampleArrays:
     try:
         rec = load_recording(log, resample_s=svc.period_s)
-        check_charge_span(rec, svc.cfg.pack.capacity_ah, "pack.capacity_ah")
+        # the recording's current is the pack's: n_parallel cells of pack.capacity_ah share it (sample_current)
+        n_par = svc.cfg.estimator.sop.n_parallel
+        check_charge_span(rec, svc.cfg.pack.capacity_ah * n_par,
+                          "pack.capacity_ah" if n_par == 1 else f"{n_par} x pack.capacity_ah (estimator.sop.n_parallel)")
         return SampleArrays.from_recording(rec, svc.period_s)
     except ValueError as exc:  # DataError is one; the step check another
         raise DataError(str(exc).splitlines()[0]) from None
@@ -280,7 +283,9 @@ def _diagnose_cells(est: DriveEstimate, svc, period_s: float) -> list[str]:
             continue
         temp = est.cells["temperature_c"][a:b, c]
         try:
-            series = Series(est.current_a[a:b], est.cells["voltage_v"][a:b, c], svc.ocv, float(svc.cfg.pack.capacity_ah),
+            # the cell's current: the pack's over the cells in parallel (can.sampler.sample_current)
+            series = Series(est.current_a[a:b] / svc.cfg.estimator.sop.n_parallel, est.cells["voltage_v"][a:b, c],
+                            svc.ocv, float(svc.cfg.pack.capacity_ah),
                             float(est.cells["soc"][a, c]), float(period_s), temp if np.isfinite(temp).all() else None)
             out.append(str(diagnose(series).cause))
         except Exception as exc:  # noqa: BLE001 - a diagnosis that fails is reported in its cell, not fatal

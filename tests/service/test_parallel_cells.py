@@ -51,3 +51,32 @@ def test_k_cells_in_parallel_are_k_times_one_cell():
     # the pack's current limits and energy are twice the one cell's
     for key in ("i_discharge_max_10s_a", "i_charge_max_10s_a", "energy_left_wh", "energy_discharged_wh"):
         assert pack2[key] == pytest.approx(2.0 * pack1[key], rel=1e-6), key
+
+
+def test_batch_takes_a_parallel_groups_pack_current(tmp_path):
+    """``batch`` on a recording of the pack current of 2 cells in parallel (n_parallel = 2, pack.capacity_ah
+    one cell's): it refused the 2.8 h drive ('its coulomb count spans 5.2 Ah, 1.9 times pack.capacity_ah'),
+    and would have counted the SOC twice too fast.  Now the measured cell's SOC, and twice its pack limits."""
+    import gzip
+
+    from bms_estimator.fleet.drive import run_drive
+
+    from tests.fleet.fleet_helpers import write_batch_config
+
+    lines = gzip.open(SAMPLES / "lg-hg2_25degC_la92_1s.csv.gz", "rt").read().splitlines()
+    runs = {}
+    for k in (1, 2):
+        d = tmp_path / f"k{k}"
+        (d / "car1").mkdir(parents=True)
+        rows = [lines[0]] + [",".join([r[0], f"{k * float(r[1]):.9g}", *r[2:]]) for r in
+                             (line.split(",") for line in lines[1:])]
+        log = d / "car1" / "drive.csv"
+        log.write_text("\n".join(rows) + "\n")
+        cfg = write_batch_config(d, 1, f"par{k}")
+        cfg.write_text(cfg.read_text() + f"[estimator.sop]\nn_parallel = {k}\n")
+        res, _, est = run_drive(log, str(cfg), d / "out", "car1", write=False, sox=True)
+        assert res.status == "ok", res
+        runs[k] = est
+    np.testing.assert_allclose(runs[2].cells["soc"], runs[1].cells["soc"], atol=1e-9)
+    np.testing.assert_allclose(runs[2].pack["i_discharge_max_10s_a"], 2.0 * runs[1].pack["i_discharge_max_10s_a"],
+                               rtol=1e-9)
