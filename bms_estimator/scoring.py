@@ -81,6 +81,28 @@ def soc_on_branch(v: float, ocv, temperature_c: float | None = None, side: float
 #: above ``REST_SPIKE_FACTOR`` times it) where single samples cross it.
 REST_MEAN_S = 30.0
 REST_SPIKE_FACTOR = 5.0
+#: The final rest's current threshold as a C-rate [1/h] of the C/20 table's capacity (or, where the table has
+#: none, the reference's own capacity: the charge out over the SOC used): 0.05 A on a 3 Ah cell.  As a fixed 0.05 A it was C/1200 on a
+#: 60 Ah cell, whose current sensor's noise and offset scale with its range (20 mA on a 3 Ah cell is 0.4 A on
+#: 60 Ah): no rest was found and ``soc`` had no reference; and C/18 on a 0.9 Ah cell.
+REST_CURRENT_C = 0.05 / 3.0
+
+
+def rest_current_for(c20_ocv, current_a: np.ndarray, voltage_v: np.ndarray, dt_s: float,
+                     temperature_c: float | None = None) -> float:
+    """The final rest's current threshold [A] for a recording scored on ``c20_ocv`` (``REST_CURRENT_C``)."""
+    q = getattr(c20_ocv, "capacity_discharge_ah", None)
+    if q is None and callable(getattr(c20_ocv, "capacity_ah", None)):  # an OcvSurface
+        q = c20_ocv.capacity_ah(temperature_c)
+    try:
+        q = float(q)
+    except (TypeError, ValueError):
+        q = float("nan")
+    if not (np.isfinite(q) and q > 0):  # no capacity in the table: the reference's own (charge out / SOC used)
+        i = np.asarray(current_a, dtype=float)
+        soc_end = soc_on_branch(float(voltage_v[-1]), c20_ocv, temperature_c)[0] if len(i) else 1.0
+        q = -float(np.sum(i)) * dt_s / 3600.0 / (1.0 - soc_end) if soc_end < 1.0 else float("nan")
+    return REST_CURRENT_C * q if np.isfinite(q) and q > 0 else 0.05
 
 
 def final_rest_samples(current_a: np.ndarray, dt_s: float, rest_current_a: float = 0.05) -> int:
@@ -113,13 +135,14 @@ def soc_reference(
     c20_ocv,
     *,
     temperature_c: float | None = None,
-    rest_current_a: float = 0.05,
+    rest_current_a: float | None = None,
     max_pct_per_doubling: float = MAX_PCT_PER_DOUBLING,
 ) -> SocReference:
     """The reference SOC of a recording that starts full (module docstring).
 
     ``c20_ocv`` is the same cell's C/20 OCV table at the recording's ambient
-    (an ``OcvCurve``, or an ``OcvSurface`` read at ``temperature_c``).
+    (an ``OcvCurve``, or an ``OcvSurface`` read at ``temperature_c``).  ``rest_current_a``: the final rest's
+    current threshold, by default ``REST_CURRENT_C`` of the cell's capacity (:func:`rest_current_for`).
 
     Raises:
         ValueError: no final rest, or no net discharge to measure a capacity on.
@@ -128,10 +151,12 @@ def soc_reference(
     v = np.asarray(voltage_v, dtype=float)
     if i.shape != v.shape or i.ndim != 1:
         raise ValueError(f"current and voltage must be 1-D of one length, got {i.shape} and {v.shape}")
+    if rest_current_a is None:
+        rest_current_a = rest_current_for(c20_ocv, i, v, dt_s, temperature_c)
     n_rest = final_rest_samples(i, dt_s, rest_current_a)
     if n_rest * dt_s < 120.0:
         raise ValueError(f"the recording ends with {n_rest * dt_s:.0f} s of rest; the reference needs a final rest "
-                         f"of at least 120 s (|current| < {rest_current_a} A, or its {REST_MEAN_S:.0f} s mean "
+                         f"of at least 120 s (|current| < {rest_current_a:.3g} A, or its {REST_MEAN_S:.0f} s mean "
                          f"for a noisy sensor)")
     ah_out = -float(np.sum(i)) * dt_s / 3600.0
     if ah_out <= 0:

@@ -571,3 +571,22 @@ def test_the_slope_is_floored_beyond_a_flat_end_for_a_float_as_for_an_array():
     """Below the knots the slope is the first secant floored at ``MIN_SLOPE_V``, a float in as an array in."""
     flat = OcvCurve([0.0, 0.5, 1.0], [3.0, 3.0 + 1e-4, 4.0])  # first secant 2e-4 V per unit SOC
     assert flat.docv_dsoc(-0.1) == MIN_SLOPE_V == flat.docv_dsoc(np.array([-0.1]))[0]
+
+
+@pytest.mark.parametrize("k", [20.0, 0.3])
+def test_from_hppc_rests_scale_with_the_cells_size(k) -> None:
+    """The same HPPC test on a cell k times the size (current x k) with a current sensor whose zero offset
+    scales with its range (2 mA at rest on the 3 Ah cell, 40 mA on 60 Ah): the same table, capacity x k.
+    A fixed 0.01 A rest threshold read every rest of the 60 Ah cell as a current run."""
+    h, s, socs = make_hppc()
+
+    def sized(log, factor):
+        t, i, v = log
+        return t, factor * np.where(i == 0.0, 0.002, i), v
+
+    one = OcvCurve.from_hppc(sized(h, 1.0), sized(s, 1.0))
+    big = OcvCurve.from_hppc(sized(h, k), sized(s, k))
+    np.testing.assert_allclose(one.soc, np.sort(socs), atol=2e-3)
+    np.testing.assert_allclose(big.soc, one.soc, atol=1e-9)
+    np.testing.assert_allclose(big.ocv_v, one.ocv_v, atol=1e-12)
+    assert big.capacity_discharge_ah == pytest.approx(k * one.capacity_discharge_ah, rel=1e-9)

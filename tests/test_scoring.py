@@ -309,3 +309,23 @@ def test_a_readme_table_script_on_a_data_folder_without_the_cells_says_so_and_wr
     assert res.returncode == code, res.stderr
     assert "Traceback" not in res.stderr and res.stderr.strip()
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("k", [20.0, 0.3])
+def test_the_final_rest_scales_with_the_cells_capacity(c20_table, k):
+    """k cells in parallel are one cell with k times the current, on a sensor whose noise scales with its
+    range.  With a fixed 0.05 A threshold a 20 x 2.5 Ah cell with 0.4 A of noise (20 mA on the 2.5 Ah cell)
+    had no final rest ("the recording ends with 0 s of rest"), and a 0.3 x cell read a C/20 tail as rest."""
+    i, v, n_dis = _drive(c20_table, q_true=2.5, soc_end=0.1, rest_s=600)
+    noisy_i = i + 0.02 * np.random.default_rng(3).standard_normal(i.size)
+    one = soc_reference(noisy_i, v, 1.0, c20_table)
+    scaled = OcvCurve(c20_table.soc, c20_table.ocv_v, c20_table.hysteresis_v, capacity_discharge_ah=2.5 * k)
+    ref = soc_reference(k * noisy_i, v, 1.0, scaled)
+    assert ref.rest_s == one.rest_s and ref.capacity_ah == pytest.approx(k * one.capacity_ah, rel=1e-12)
+    # the table without a capacity: the scale is the reference's own capacity
+    assert soc_reference(k * noisy_i, v, 1.0, c20_table).rest_s == one.rest_s
+    # a C/20 discharge to the end is no rest on any cell
+    tail = i.copy()
+    tail[-600:] = -2.5 / 20.0
+    with pytest.raises(ValueError, match="ends with 0 s of rest"):
+        soc_reference(k * tail, v, 1.0, scaled)

@@ -28,6 +28,12 @@ Value policy - the encoder never raises for any float input:
   table, or the raw value of ``minimum`` when the signal has none;
 * counters saturate at the signal maximum.
 
+A finite value clamped (a cell the DBC's range was not made for: the project DBC's C1 ends at 13106.8 F,
+C2 at 131068 F, CapacityMean at 65.534 Ah, R0/R1 step 8 uOhm; a 57 Ah cell's C1 is about 30000 F) is
+counted in ``clamped_values`` and logged once per signal (WARNING ``can.encode.clamped``, naming the
+signal, the value and the range): before, the frame carried the range's end with nothing to say so.
+The remedy is a DBC scaled for the cell (``can.dbc``; units such as ``kF`` and ``uOhm`` are followed).
+
 Cells without a usable index (NaN, negative, above the multiplexer's range)
 are skipped and counted in ``skipped_cells``.
 
@@ -176,7 +182,26 @@ class StateEncoder:
                                f"(known: {', '.join(CAN_PACK_SOX_SIGNALS[name])})")
         self.skipped_cells = 0
         self.encode_failures = 0
+        self.clamped_values = 0  # finite values beyond their signal's range, sent as its end
+        self._clamp_logged: set[tuple[str, str]] = set()
         self._summary_counter = 0
+
+    def _checked(self, message: str, codec: SignalCodec, values: Any) -> Any:
+        """``values`` as given; those :meth:`SignalCodec.raw` will clamp are counted and logged (once per signal)."""
+        out = codec.beyond(values)
+        if out.any():
+            self.clamped_values += int(np.count_nonzero(out))
+            if (message, codec.name) not in self._clamp_logged:
+                self._clamp_logged.add((message, codec.name))
+                x = np.asarray(values, dtype=float)
+                worst = float(np.reshape(x, -1)[int(np.argmax(np.reshape(np.where(out, np.abs(x), -1.0), -1)))])
+                sig = self._msgs[message].get_signal_by_name(codec.name)
+                lo, hi = (codec.raw_min * codec.scale + codec.offset), (codec.raw_max * codec.scale + codec.offset)
+                log.warning("can.encode.clamped: a value beyond its DBC signal's range is sent as the range's end "
+                            "(a cell the DBC was not scaled for? can.dbc takes one that is)", message=message,
+                            signal=codec.name, value=worst * codec.unit_factor, range=f"{lo:g}..{hi:g}",
+                            unit=sig.unit or "")
+        return values
 
     @staticmethod
     def _codec(sig) -> SignalCodec:
@@ -237,13 +262,16 @@ class StateEncoder:
             a, b = self._codecs[self.CELL_A], self._codecs[self.CELL_B]
             with np.errstate(all="ignore"):  # huge * 100 -> inf is fine (clamped); never a warning
                 cols["soc"] = cols["soc"] * soc_scale
+            ca, cb = self.CELL_A, self.CELL_B
             raw_a = {
                 "Soc": a["Soc"].raw(cols["soc"]),
-                "R0": a["R0"].raw(cols["r0"]),
-                "R1": a["R1"].raw(cols["r1"]),
-                "C0": a["C0"].raw(cols["c0"]),
+                "R0": a["R0"].raw(self._checked(ca, a["R0"], cols["r0"])),
+                "R1": a["R1"].raw(self._checked(ca, a["R1"], cols["r1"])),
+                "C0": a["C0"].raw(self._checked(ca, a["C0"], cols["c0"])),
             }
-            raw_b = {"C1": b["C1"].raw(cols["c1"]), "R2": b["R2"].raw(cols["r2"]), "C2": b["C2"].raw(cols["c2"])}
+            raw_b = {"C1": b["C1"].raw(self._checked(cb, b["C1"], cols["c1"])),
+                     "R2": b["R2"].raw(self._checked(cb, b["R2"], cols["r2"])),
+                     "C2": b["C2"].raw(self._checked(cb, b["C2"], cols["c2"]))}
             mux_max = min(a["CellIndex"].raw_max, b["CellIndex"].raw_max)
             with np.errstate(invalid="ignore"):
                 usable = np.isfinite(idx) & (idx == np.floor(idx)) & (idx >= 0) & (idx <= mux_max)
@@ -394,7 +422,7 @@ class StateEncoder:
             value = _to_float(values.get(CAN_PACK_SOX_SIGNALS[name][sname], math.nan))
             if self._msgs[name].get_signal_by_name(sname).unit == "%":
                 value *= 100.0
-            return int(codec.raw(value))
+            return int(codec.raw(self._checked(name, codec, value)))
 
         return self._encode_each(self._sox_msgs, raw, timestamp, "can.encode_pack_sox.failed")
 

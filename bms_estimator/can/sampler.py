@@ -91,16 +91,21 @@ class Sample:
     period_s: float = 1.0
 
 
-def sample_current(current_a, current_valid):
+def sample_current(current_a, current_valid, n_parallel: int = 1):
     """The current the estimator takes for a sample (or an array of them): ``current_a`` where it is
     valid and finite, else NaN, which the estimator counts with the current's running mean
     (:meth:`~bms_estimator.core.soc.SocEstimator.update`, "A lost current"). The service and the
-    fleet's re-estimation both take it from here."""
+    fleet's re-estimation both take it from here.
+
+    ``current_a`` is the pack's; the estimator models one cell, which carries ``1 / n_parallel`` of it
+    (``estimator.sop.n_parallel`` cells in parallel per series element, ``pack.capacity_ah`` one
+    cell's: core.sop's module docstring).  Fed the pack current undivided, k cells in parallel counted
+    their SOC k times too fast and their pack limits and energy came out k times the truth."""
     if np.ndim(current_a) == 0:
         c = float(current_a)
-        return c if current_valid and math.isfinite(c) else math.nan
+        return c / n_parallel if current_valid and math.isfinite(c) else math.nan
     c = np.asarray(current_a, dtype=float)
-    return np.where(np.asarray(current_valid, dtype=bool) & np.isfinite(c), c, np.nan)
+    return np.where(np.asarray(current_valid, dtype=bool) & np.isfinite(c), c / n_parallel, np.nan)
 
 
 def first_current(current_a: np.ndarray, current_valid: np.ndarray) -> int:

@@ -58,6 +58,13 @@ class SignalCodec:
             choices_by_name={str(n): int(r) for r, n in (sig.choices or {}).items()},
         )
 
+    def beyond(self, values: Any) -> np.ndarray:
+        """Finite physical values (times ``unit_factor``) outside the signal's range: :meth:`raw` clamps them."""
+        x = np.asarray(values, dtype=float)
+        with np.errstate(all="ignore"):
+            r = np.rint((x * self.unit_factor - self.offset) / self.scale)
+            return np.isfinite(x) & ((r < self.raw_min) | (r > self.raw_max))
+
     def raw(self, values: Any) -> np.ndarray:
         """Physical (times ``unit_factor``) -> raw int64, vectorised; never raises, never warns."""
         x = np.asarray(values, dtype=float)

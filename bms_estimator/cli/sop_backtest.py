@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..core.identifier import IdentifierConfig
 from ..core.ocv_surface import REFERENCE_TEMPERATURE_C
-from ..core.sop import SopConfig
+from ..core.sop import SopConfig, default_ratings_note
 from ..errors import UsageError
 from ..sop_backtest import run_backtest, summary
 from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
@@ -36,10 +37,10 @@ def add_parser(sub) -> None:
     p.add_argument("--horizon-s", type=positive_float, default=10.0, help="prediction horizon = window length (default 10 s)")
     p.add_argument("--v-min", type=positive_float, default=_SOP.v_min, help=f"cell discharge cut-off, V (default {_SOP.v_min:g})")
     p.add_argument("--v-max", type=positive_float, default=_SOP.v_max, help=f"cell charge cut-off, V (default {_SOP.v_max:g})")
-    p.add_argument("--i-discharge-max-a", type=positive_float, default=_SOP.i_discharge_max_a,
-                   help=f"the cell's discharge current rating, A (default {_SOP.i_discharge_max_a:g})")
-    p.add_argument("--i-charge-max-a", type=positive_float, default=_SOP.i_charge_max_a,
-                   help=f"the cell's charge current rating, A (default {_SOP.i_charge_max_a:g})")
+    p.add_argument("--i-discharge-max-a", type=positive_float, default=None,
+                   help=f"the cell's discharge current rating, A (default {_SOP.i_discharge_max_a:g}, an 18650's)")
+    p.add_argument("--i-charge-max-a", type=positive_float, default=None,
+                   help=f"the cell's charge current rating, A (default {_SOP.i_charge_max_a:g}, an 18650's)")
     p.add_argument("--mode", choices=("auto", "hppc", "drive"), default="auto",
                    help="windows at the pulses (hppc), every horizon (drive), or whichever the file is (default auto)")
     add_method_option(p, IdentifierConfig().method, "(the online estimator's identification)")
@@ -58,6 +59,20 @@ def check_voltage_limits(v_min: float, v_max: float, ocv) -> None:
                          f"OCV range {lo:.3f}..{hi:.3f} V: give the cell's cut-off voltages")
 
 
+def current_ratings(args: argparse.Namespace) -> tuple[float, float]:
+    """The cell's current ratings: as given, else the defaults (an 18650's), with a warning where those are not
+    this cell's size (--capacity-ah more than 2 times from the 3 Ah cell they are for): on a 60 Ah cell they
+    are 0.33 C / 0.1 C, every limit sat at them and the back-test scored a cap, not the model."""
+    i_dis, i_chg = args.i_discharge_max_a, args.i_charge_max_a
+    defaulted = [name for name, v in (("--i-discharge-max-a", i_dis), ("--i-charge-max-a", i_chg)) if v is None]
+    i_dis = _SOP.i_discharge_max_a if i_dis is None else i_dis
+    i_chg = _SOP.i_charge_max_a if i_chg is None else i_chg
+    note = default_ratings_note(args.capacity_ah, defaulted, "--capacity-ah")
+    if note is not None:
+        warnings.warn(note, stacklevel=2)
+    return i_dis, i_chg
+
+
 def run(args: argparse.Namespace) -> int:
     check_outputs([("DATA", args.data), ("--ocv", args.ocv)], [file_output("--json", args.json, stdout=True)])
     if not args.v_min < args.v_max:
@@ -69,8 +84,8 @@ def run(args: argparse.Namespace) -> int:
     if len(rec) >= LONG_RUN_SAMPLES:  # minutes of silence otherwise (27 h of HPPC: 2 min 18 s on 2 shared cores)
         print(f"bms-estimator sop-backtest: {len(rec):,} samples ({rec.duration_s / 3600:.1f} h) through the "
               "estimator and the SOP, one at a time: this takes minutes", file=sys.stderr, flush=True)
-    sop = SopConfig(v_min=args.v_min, v_max=args.v_max, i_discharge_max_a=args.i_discharge_max_a,
-                    i_charge_max_a=args.i_charge_max_a)
+    i_dis, i_chg = current_ratings(args)
+    sop = SopConfig(v_min=args.v_min, v_max=args.v_max, i_discharge_max_a=i_dis, i_charge_max_a=i_chg)
     res = run_backtest(rec.current_a, rec.voltage_v, rec.temperature_c, rec.dt_s, ocv, args.capacity_ah,
                        horizon_s=args.horizon_s, initial_soc=args.initial_soc, soc_config=soc_config(args),
                        sop_config=sop, mode=args.mode, time_s=rec.time_s, unlogged=rec.filled,

@@ -451,7 +451,7 @@ class OcvCurve:
         steps: Any | None = None,
         *,
         capacity_ah: float | None = None,
-        current_threshold_a: float = 0.01,
+        current_threshold_a: float | None = None,
         ocv_window_s: float = 10.0,
         temperature_c: Any = None,
     ) -> "OcvCurve":
@@ -474,7 +474,8 @@ class OcvCurve:
         is first logged at end + 300 s; a 10 s pulse is 100 records 0.1 s apart
         spanning 9.9 s; each step start found by the alignment of step 4 is
         ``Delta`` = 60 s before its first record, to 0.01 s.)  So a run of
-        same-sign current records (``|I| >= current_threshold_a``) carries::
+        same-sign current records (``|I| >= current_threshold_a``; by default
+        :func:`hppc_rest_current_a`, a share of the largest pulse, so a cell of any size) carries::
 
             Q_run = I_first Delta + trapezoid over the run's own records      (Ah after / 3600)
 
@@ -519,6 +520,8 @@ class OcvCurve:
                 aligned with the ``hppc`` gaps or that leave most of them empty.
         """
         t, i, v = _check_arrays(*_unpack(hppc, "hppc"))
+        if current_threshold_a is None:
+            current_threshold_a = hppc_rest_current_a(i)
         gaps, gap_s = _hppc_gaps(t)  # gap between sample g and g+1
         block_starts = np.r_[0, gaps + 1]
         block_ends = np.r_[gaps + 1, t.size]
@@ -937,11 +940,25 @@ def _hppc_gaps(t: np.ndarray) -> tuple[np.ndarray, float]:
     return np.flatnonzero(dt > gap_s), gap_s
 
 
-def hppc_gap_charges(hppc: Any, steps: Any, current_threshold_a: float = 0.01) -> tuple[np.ndarray, np.ndarray, float]:
+#: An HPPC test's rest is ``|I|`` below this share of its largest pulse (Panasonic 18650PF: 0.087 A of 17.4 A,
+#: 0.03 C; its discharge steps are 0.87 A, its rests log 0 A).  A fixed 0.01 A was C/300 on a 3 Ah cell and
+#: C/6000 on a 60 Ah one, whose sensor's offset or noise (scaled with its range) made every rest a current run.
+HPPC_REST_FRACTION = 0.005
+
+
+def hppc_rest_current_a(current_a: np.ndarray) -> float:
+    """The current below which an HPPC test's sample is at rest: ``HPPC_REST_FRACTION`` of its largest |I|."""
+    peak = float(np.nanmax(np.abs(current_a))) if np.size(current_a) else 0.0
+    return HPPC_REST_FRACTION * peak if np.isfinite(peak) and peak > 0 else 0.01
+
+
+def hppc_gap_charges(hppc: Any, steps: Any, current_threshold_a: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """Where an ``hppc`` log pauses for the discharge steps ``steps`` logs, and how much charge each
     pause removed: ``(gap indices g (between samples g and g+1), charge per gap [Ah, signed], charge
     after the end [Ah])``, by the alignment of :meth:`OcvCurve.from_hppc` (steps 1, 3, 4).  Both as logged."""
     t, i, _ = _check_arrays(*_unpack(hppc, "hppc"))
+    if current_threshold_a is None:
+        current_threshold_a = hppc_rest_current_a(i)
     gaps, _ = _hppc_gaps(t)
     gap_q, tail_q = _steps_charge(_check_arrays(*_unpack(steps, "steps")), gap_start=t[gaps], gap_end=t[gaps + 1],
                                   t_end=float(t[-1]), threshold=current_threshold_a)

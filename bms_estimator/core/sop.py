@@ -78,6 +78,23 @@ __all__ = ["SopConfig", "SopResult", "derate", "predict_voltage", "sop_limits", 
 OcvFn = Callable[[np.ndarray], np.ndarray]
 
 
+#: the cell whose ratings the defaults of ``i_discharge_max_a`` / ``i_charge_max_a`` are (an 18650, the LG
+#: HG2: 20 A / 6 A); a cell more than 2 times that size or less than half of it is told they are not its own
+DEFAULT_RATINGS_CELL_AH = 3.0
+
+
+def default_ratings_note(capacity_ah: float, defaulted: list[str], where: str) -> str | None:
+    """What to say when the defaults of the current ratings (``defaulted``: the names left at them) are not
+    the size of a cell of ``capacity_ah`` (None when they are, or none is defaulted)."""
+    ratio = float(capacity_ah) / DEFAULT_RATINGS_CELL_AH
+    if not defaulted or 0.5 <= ratio <= 2.0:
+        return None
+    d = SopConfig()
+    return (f"{' and '.join(defaulted)} not given: the defaults {d.i_discharge_max_a:g} A / {d.i_charge_max_a:g} A are "
+            f"a {DEFAULT_RATINGS_CELL_AH:g} Ah 18650's ratings, {d.i_discharge_max_a / capacity_ah:.2g} C / "
+            f"{d.i_charge_max_a / capacity_ah:.2g} C of {where} {capacity_ah:g}: give the cell's")
+
+
 @dataclass(frozen=True)
 class SopConfig:
     """Cell limits and derating (defaults: an 18650 NCA/NMC cell's datasheet figures)."""

@@ -147,7 +147,10 @@ def is_recording(path: str | Path) -> bool:
 def _recording_samples(log: Path, svc) -> SampleArrays:
     try:
         rec = load_recording(log, resample_s=svc.period_s)
-        check_charge_span(rec, svc.cfg.pack.capacity_ah, "pack.capacity_ah")
+        # the recording's current is the pack's: n_parallel cells of pack.capacity_ah share it (sample_current)
+        n_par = svc.cfg.estimator.sop.n_parallel
+        check_charge_span(rec, svc.cfg.pack.capacity_ah * n_par,
+                          "pack.capacity_ah" if n_par == 1 else f"{n_par} x pack.capacity_ah (estimator.sop.n_parallel)")
         return SampleArrays.from_recording(rec, svc.period_s)
     except ValueError as exc:  # DataError is one; the step check another
         raise DataError(str(exc).splitlines()[0]) from None
@@ -280,7 +283,9 @@ def _diagnose_cells(est: DriveEstimate, svc, period_s: float) -> list[str]:
             continue
         temp = est.cells["temperature_c"][a:b, c]
         try:
-            series = Series(est.current_a[a:b], est.cells["voltage_v"][a:b, c], svc.ocv, float(svc.cfg.pack.capacity_ah),
+            # the cell's current: the pack's over the cells in parallel (can.sampler.sample_current)
+            series = Series(est.current_a[a:b] / svc.cfg.estimator.sop.n_parallel, est.cells["voltage_v"][a:b, c],
+                            svc.ocv, float(svc.cfg.pack.capacity_ah),
                             float(est.cells["soc"][a, c]), float(period_s), temp if np.isfinite(temp).all() else None)
             out.append(str(diagnose(series).cause))
         except Exception as exc:  # noqa: BLE001 - a diagnosis that fails is reported in its cell, not fatal
@@ -401,7 +406,8 @@ def run_drive(log: str | Path, config: str | None, out_dir: str | Path, vehicle:
         sox_est = resume_sox(svc._new_sox, state or {}) if sox else None  # noqa: SLF001 - likewise
         if state is not None:
             res.rested_s, res.chain = rest_between_drives(est, previous_end_s, samples, sox_est)
-        out = estimate_drive(samples, est, svc.decoder, svc.sampler, sox=sox_est)
+        out = estimate_drive(samples, est, svc.decoder, svc.sampler, sox=sox_est,
+                             n_parallel=svc.cfg.estimator.sop.n_parallel)
         res.seconds["estimate"] = time.perf_counter() - t3
         res.seconds["cpu"] = time.process_time() - res.seconds["cpu"]
         _finish(res, log, svc, samples, out, out_dir, vehicle, write, diagnose)
@@ -465,7 +471,8 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
         together = 1
         try:
             outs = estimate_stacked([g[3] for g in group], _stack_factory(svc),
-                                    _stack_sox_factory(svc) if sox else None)
+                                    _stack_sox_factory(svc) if sox else None,
+                                    n_parallel=svc.cfg.estimator.sop.n_parallel)
             wall, cpu = (time.perf_counter() - t0) / len(group), (time.process_time() - c0) / len(group)
             together = len(group)
         except (StackError, MemoryError) as exc:  # then one by one (each with the service's error handling)
@@ -476,7 +483,8 @@ def run_drives(logs: list[tuple[str, str]], config: str | None, out_dir: str | P
                 if out is None:
                     t0, c0 = time.perf_counter(), time.process_time()
                     out = estimate_drive(samples, svc._new_estimator(),  # noqa: SLF001
-                                         sox=svc._new_sox() if sox else None)  # noqa: SLF001
+                                         sox=svc._new_sox() if sox else None,  # noqa: SLF001
+                                         n_parallel=svc.cfg.estimator.sop.n_parallel)
                     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
                 res.seconds["estimate"] = wall
                 res.seconds["cpu"] += cpu

@@ -190,9 +190,12 @@ def finish_estimate(samples: SampleArrays, cells: dict[str, np.ndarray], state: 
 
 
 def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None, sampler=None,
-                   sox: SoxEstimator | None = None) -> DriveEstimate:
+                   sox: SoxEstimator | None = None, n_parallel: int | None = None) -> DriveEstimate:
     """Run ``estimator`` (and ``sox`` after it, when given) over every sample of one drive; row k of each
     output is the service's snapshot after sample k.
+
+    ``n_parallel``: cells in parallel per series element, each fed the pack current / n_parallel, as the
+    service (:class:`~bms_estimator.service.pipeline.Pipeline`); None: ``sox``'s ``sop.n_parallel`` (1 without).
 
     (``decoder``/``sampler`` are accepted for the callers of the snapshot-based version and not used.)
     """
@@ -209,7 +212,9 @@ def estimate_drive(samples: SampleArrays, estimator: SocEstimator, decoder=None,
     pack_targets = list(pack.items())
     nan = math.nan
     # Python floats, as Sample carries them; NaN where not valid (counted with its running mean, as the service)
-    current = sample_current(samples.current_a, samples.current_valid).tolist()
+    if n_parallel is None:
+        n_parallel = sox.config.sop.n_parallel if sox is not None else 1
+    current = sample_current(samples.current_a, samples.current_valid, n_parallel).tolist()
     first = first_current(samples.current_a, samples.current_valid)
     volts, temps, valid = samples.cell_voltage_v, samples.cell_temperature_c, samples.valid
     update = est.update

@@ -123,13 +123,15 @@ def _slice_state(state: dict[str, np.ndarray], axes: dict[str, int | None], cols
 
 
 def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int], SocEstimator],
-                     make_sox: Callable[[int], SoxEstimator] | None = None) -> list[DriveEstimate]:
+                     make_sox: Callable[[int], SoxEstimator] | None = None,
+                     n_parallel: int | None = None) -> list[DriveEstimate]:
     """Each drive's :func:`~.estimate.estimate_drive` result from a fresh ``make_estimator(n)`` (and a
     fresh ``make_sox(n)`` after it, when given), run stacked.
 
     ``make_estimator(n_cells)`` builds a fresh estimator of ``n_cells`` cells (the same
     configuration for every size), ``make_sox`` likewise. All drives must have the same number of
     cells and sample period. Raises :class:`StackError` when they cannot run stacked.
+    ``n_parallel`` as :func:`~.estimate.estimate_drive`'s (None: the SOX part's, 1 without one).
     """
     if not drives:
         return []
@@ -145,6 +147,8 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
     solo_sox = sox = None
     if make_sox is not None:
         solo_sox, sox = make_sox(n), make_sox(big)
+    if n_parallel is None:
+        n_parallel = sox.config.sop.n_parallel if sox is not None else 1
     if s > 1:
         if not hasattr(est.identifier, "set_groups"):
             raise StackError("the identifier cannot keep the drives apart")
@@ -164,7 +168,7 @@ def estimate_stacked(drives: list[SampleArrays], make_estimator: Callable[[int],
     valid = np.zeros((length, big), dtype=bool)
     for d, (dr, u) in enumerate(zip(drives, steps)):
         cols, m = slice(d * n, (d + 1) * n), u.size
-        current[:m, cols] = sample_current(dr.current_a, dr.current_valid)[u][:, None]
+        current[:m, cols] = sample_current(dr.current_a, dr.current_valid, n_parallel)[u][:, None]
         volts[:m, cols] = dr.cell_voltage_v[u]
         temps[:m, cols] = dr.cell_temperature_c[u]
         valid[:m, cols] = dr.valid[u]

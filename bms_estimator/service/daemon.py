@@ -79,6 +79,7 @@ from ..can.sampler import SampleAssembler
 from ..core.ocv import OcvCurve
 from ..core.ocv_surface import OcvSurface, stated_capacity_ratio, table_capacities_ah
 from ..core.soc import SocEstimator
+from ..core.sop import default_ratings_note
 from ..core.sox import SoxEstimator
 from ..errors import BmsEstimatorError, DataError, one_line_error
 from ..ocv_table import read_ocv_table, read_ocv_tables
@@ -226,6 +227,13 @@ class Service:
             log.warning("pack.ocv_csv not set: using the built-in sample OCV curve", cell=DEFAULT_OCV_CELL)
         if self.capacity_note is not None:
             log.warning(self.capacity_note, stated_ah=cfg.pack.capacity_ah, config_key="pack.capacity_ah")
+        # the SOP's current ratings left at an 18650's (20 A / 6 A) for a cell of another size: a 50 Ah cell's
+        # limits sat at 0.4 C / 0.12 C (times n_parallel) with nothing to say so
+        ratings = [f"estimator.sop.{k}" for k in ("i_discharge_max_a", "i_charge_max_a")
+                   if k not in cfg.estimator.sop.model_fields_set]
+        ratings_note = default_ratings_note(cfg.pack.capacity_ah, ratings, "pack.capacity_ah")
+        if ratings_note is not None:
+            log.warning(ratings_note, stated_ah=cfg.pack.capacity_ah, config_key="estimator.sop")
         if getattr(self.ocv, "mixed_cells", None):  # tables of two cells? (core.ocv_surface, item 9)
             log.warning(self.ocv.mixed_cells, config_key="pack.ocv_csv")
         self._check_staleness(self.staleness_s, cell_cycle_s)

@@ -141,8 +141,13 @@ class Pipeline:
         sox: SoxEstimator | None = None,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
+        n_parallel: int | None = None,
     ) -> None:
         self.decoder = decoder
+        # cells in parallel per series element: each carries the pack current / n_parallel (sample_current);
+        # None: the SOX part's ``sop.n_parallel`` (1 without one)
+        self.n_parallel = int(n_parallel if n_parallel is not None else
+                              (sox.config.sop.n_parallel if sox is not None else 1))
         self.sampler = sampler
         self.estimator = estimator
         self.sox = sox
@@ -195,7 +200,7 @@ class Pipeline:
                 self.rest(gap, "time jump")
             if stepped is not None and (gap or sample.t_s > stepped + 2.0 * sample.period_s):
                 self._stepped_at = None  # its gap (the first sample after the step) is not rested over
-            current = sample_current(sample.current_a, sample.current_valid)
+            current = sample_current(sample.current_a, sample.current_valid, self.n_parallel)
             lost = math.isnan(current)
             if lost:
                 c.samples_current_invalid += 1

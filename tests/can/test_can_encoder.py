@@ -285,3 +285,27 @@ def test_a_negative_value_below_the_top_of_the_frame_is_masked_to_its_bits(tmp_p
     d = db.decode_message(got[0].arbitration_id, got[0].data)
     assert (d["CellIndex"], d["Soc"], d["C0"]) == (0, 50.0, pytest.approx(-100.0))
     assert d["R0"] == pytest.approx(10.0, abs=0.008) and d["R1"] == pytest.approx(20.0, abs=0.008)
+
+
+def test_a_large_cells_value_beyond_a_signal_is_counted_and_logged_once():
+    """A 57 Ah cell (the LG HG2's identified model with current x 20: R1 0.33 mOhm, C1 30,400 F, C2 83,600 F)
+    sent C1 as 13106.8 F, the DBC's end, with nothing to say so; CapacityMean ends at 65.534 Ah (a 100 Ah
+    cell).  The frames still carry the range's end (the value policy), and the clamp is counted and logged
+    once per signal."""
+    from structlog.testing import capture_logs
+
+    enc = StateEncoder(DB)
+    with capture_logs() as logs:
+        for _ in range(3):
+            frames = enc.encode_cells([0, 1], 0.5, 1.0e-3, 3.3e-4, [30400.0, 2000.0], 1.0e-3, 83600.0, 0.0)
+        enc.encode_pack_sox({"capacity_ah_mean": 100.0})
+    c1 = DB.decode_message(frames[1].arbitration_id, frames[1].data)["C1"]
+    assert c1 == pytest.approx(13106.8)  # still clamped, as documented
+    assert enc.clamped_values == 3 + 1
+    clamped = [e for e in logs if e["event"].startswith("can.encode.clamped")]
+    assert [(e["signal"], e["log_level"]) for e in clamped] == [("C1", "warning"), ("CapacityMean", "warning")]
+    assert clamped[0]["value"] == pytest.approx(30400.0) and clamped[0]["range"] == "0..13106.8"
+    # an 18650's model is within every range: nothing counted
+    quiet = StateEncoder(DB)
+    quiet.encode_cells([0], 0.5, 0.0203, 0.0065, 1518.0, 0.0192, 4179.0, 0.005)
+    assert quiet.clamped_values == 0

@@ -104,3 +104,23 @@ def test_the_c0_voltage_lines_capacity_is_named_in_the_warning(tmp_path):
     warned = _bound_warnings(logs)
     assert len(warned) == 1 and warned[0]["cells"] == list(range(N)) and warned[0]["bound"] == "low"
     assert warned[0]["voltage_line_ah"] == pytest.approx(0.58)
+
+
+def test_sop_ratings_left_at_an_18650s_are_named_for_a_cell_of_another_size(tmp_path):
+    """estimator.sop's current ratings default to an 18650's 20 A / 6 A: a 50 Ah cell's limits sat at 0.4 C /
+    0.12 C with nothing to say so.  Now one warning at start names them in C; given ratings, or a cell near
+    3 Ah (CAPACITY_AH 2.9), none."""
+    def notes(**kw):
+        with capture_logs() as logs:
+            Service(make_cfg(tmp_path, channel(), **kw))
+        return [r for r in logs if r["log_level"] == "warning" and "18650's ratings" in r["event"]]
+
+    big = {"capacity_ah": 50.0, "ocv_csv": None}
+    warned = notes(pack=big)
+    assert len(warned) == 1 and warned[0]["config_key"] == "estimator.sop"
+    assert ("estimator.sop.i_discharge_max_a and estimator.sop.i_charge_max_a not given: the defaults 20 A / 6 A "
+            "are a 3 Ah 18650's ratings, 0.4 C / 0.12 C of pack.capacity_ah 50") in warned[0]["event"]
+    estimator = {"sample_period_s": 1.0, "staleness_s": 2.5,
+                 "sop": {"i_discharge_max_a": 150.0, "i_charge_max_a": 50.0}}
+    assert notes(pack=big, estimator=estimator) == []
+    assert notes() == []
