@@ -102,7 +102,8 @@ class CanConfig(_Strict):
     data_bitrate: int | None = Field(None, gt=0, le=16_000_000, description="CAN FD data phase")
     fd: bool = False
     bus: dict[str, Any] = Field(default_factory=dict, description="further BusConfig options, checked by the CAN module")
-    dbc: Path | None = Field(None, description="None = the project's DBC")
+    dbc: Path | None = Field(None, description="None = the project's DBC (an 18650's ranges); \"large-cell\" = its "
+                             "variant for cells of 20 Ah and up (bms_estimator.can.dbc); else a DBC file")
     # Input mapping: preset name ("default", "foxbms"), a TOML file path, or an
     # inline table; validated by bms_estimator.can.mapping.load_mapping.
     mapping: str | dict[str, Any] = "default"

@@ -71,7 +71,7 @@ from pydantic import ValidationError
 
 from .. import aio
 from ..can.bus import BusConfig, ResilientBus, open_bus
-from ..can.dbc import load_db
+from ..can.dbc import dbc_size_note, load_db
 from ..can.decoder import FrameDecoder
 from ..can.encoder import StateEncoder
 from ..can.mapping import MappingError
@@ -234,6 +234,10 @@ class Service:
         ratings_note = default_ratings_note(cfg.pack.capacity_ah, ratings, "pack.capacity_ah")
         if ratings_note is not None:
             log.warning(ratings_note, stated_ah=cfg.pack.capacity_ah, config_key="estimator.sop")
+        # the shipped DBC's ranges against the cell's size (a 57 Ah cell's C1 went out clamped at 13,106.8 F)
+        dbc_note = dbc_size_note(cfg.pack.capacity_ah, cfg.can.dbc) if cfg.can.output.enabled else None
+        if dbc_note is not None:
+            log.warning(dbc_note, stated_ah=cfg.pack.capacity_ah, config_key="can.dbc")
         if getattr(self.ocv, "mixed_cells", None):  # tables of two cells? (core.ocv_surface, item 9)
             log.warning(self.ocv.mixed_cells, config_key="pack.ocv_csv")
         self._check_staleness(self.staleness_s, cell_cycle_s)

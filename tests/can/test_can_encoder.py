@@ -309,3 +309,60 @@ def test_a_large_cells_value_beyond_a_signal_is_counted_and_logged_once():
     quiet = StateEncoder(DB)
     quiet.encode_cells([0], 0.5, 0.0203, 0.0065, 1518.0, 0.0192, 4179.0, 0.005)
     assert quiet.clamped_values == 0
+
+
+def test_the_large_cell_dbc_is_the_project_dbc_with_a_large_cells_scalings():
+    """``can.dbc = "large-cell"`` is the project DBC frame for frame and bit for bit (a receiver switches by its
+    scalings alone); only R0, R1, R2, C1, C2 and CapacityMean differ, and there only in factor and range."""
+    from bms_estimator.can.dbc import load_db
+
+    large = load_db("large-cell")
+    assert [(m.name, m.frame_id, m.length) for m in large.messages] == \
+        [(m.name, m.frame_id, m.length) for m in DB.messages]
+    scaled = set()
+    for m in DB.messages:
+        for sig in m.signals:
+            other = large.get_message_by_name(m.name).get_signal_by_name(sig.name)
+            assert (other.start, other.length, other.is_signed, other.byte_order, other.unit, other.offset) == \
+                (sig.start, sig.length, sig.is_signed, sig.byte_order, sig.unit, sig.offset)
+            assert other.choices == sig.choices  # the same NotAvailable raw values
+            if (other.scale, other.maximum) != (sig.scale, sig.maximum):
+                scaled.add(sig.name)
+                raw_top = round(sig.maximum / sig.scale)
+                assert round(other.maximum / other.scale) == raw_top  # the same raw range, another step
+    assert scaled == {"R0", "R1", "R2", "C1", "C2", "CapacityMean"}
+
+
+def test_a_large_cell_goes_out_unclamped_and_fine_on_the_large_cell_dbc():
+    """A 57 Ah cell (the LG HG2 model with current x 20: R0 1.0145 mOhm, R1 0.33 mOhm, C1 30,400 F, R2 0.96 mOhm,
+    C2 83,600 F; 56 Ah capacity) was clamped (C1) or coarse (R1 in 8 uOhm steps, 2.4 %) on the project DBC; on the
+    large-cell one every value is within one step of 2 uOhm / 0.5 uOhm / 5 F / 50 F / 10 mAh, none clamped."""
+    from bms_estimator.can.dbc import load_db
+
+    large = load_db("large-cell")
+    enc = StateEncoder(large)
+    frames = enc.encode_cells([7], 0.5, 1.0145e-3, 3.3e-4, 30400.0, 9.6e-4, 83600.0, 0.002)
+    a = large.decode_message(frames[0].arbitration_id, frames[0].data)
+    b = large.decode_message(frames[1].arbitration_id, frames[1].data)
+    assert a["R0"] == pytest.approx(1.0145, abs=0.001) and a["R1"] == pytest.approx(0.33, abs=0.001)
+    assert b["C1"] == pytest.approx(30400.0, abs=2.5) and b["C2"] == pytest.approx(83600.0, abs=25.0)
+    assert b["R2"] == pytest.approx(0.96, abs=0.00025)
+    pack = enc.encode_pack_sox({"capacity_ah_mean": 56.01})
+    health = [large.decode_message(f.arbitration_id, f.data) for f in pack
+              if f.arbitration_id == large.get_message_by_name("PackHealth").frame_id]
+    assert health and health[0]["CapacityMean"] == pytest.approx(56.01, abs=0.005)
+    assert enc.clamped_values == 0
+    # the same cell on the project DBC: C1 clamped, R1 off by a step of 8 uOhm
+    small = StateEncoder(DB)
+    frames = small.encode_cells([7], 0.5, 1.0145e-3, 3.3e-4, 30400.0, 9.6e-4, 83600.0, 0.002)
+    assert small.clamped_values == 1
+    assert DB.decode_message(frames[0].arbitration_id, frames[0].data)["R1"] == pytest.approx(0.328)
+
+
+def test_an_unknown_file_name_is_still_a_file_and_a_shipped_name_is_found_from_anywhere(tmp_path, monkeypatch):
+    from bms_estimator.can.dbc import load_db
+
+    monkeypatch.chdir(tmp_path)
+    assert load_db("large-cell").get_message_by_name("CellStateB").get_signal_by_name("C1").scale == 5
+    with pytest.raises(OSError):
+        load_db("larger-cell")

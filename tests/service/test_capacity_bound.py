@@ -124,3 +124,21 @@ def test_sop_ratings_left_at_an_18650s_are_named_for_a_cell_of_another_size(tmp_
                  "sop": {"i_discharge_max_a": 150.0, "i_charge_max_a": 50.0}}
     assert notes(pack=big, estimator=estimator) == []
     assert notes() == []
+
+
+def test_the_shipped_dbc_is_named_when_it_is_not_the_cells_size(tmp_path):
+    """A 50 Ah cell on the project DBC (an 18650's ranges: its C1 of ~30,000 F went out as 13,106.8 F) is told to
+    use can.dbc = "large-cell" at start; a 2.9 Ah cell on that variant (R0 ends at 16.38 mOhm) is told to leave it
+    unset; the right DBC for the cell, or CAN output off, says nothing."""
+    def notes(**kw):
+        with capture_logs() as logs:
+            Service(make_cfg(tmp_path, channel(), **kw))
+        return [r for r in logs if r["log_level"] == "warning" and r.get("config_key") == "can.dbc"]
+
+    big = {"capacity_ah": 50.0, "ocv_csv": None}
+    warned = notes(pack=big)
+    assert len(warned) == 1 and 'set can.dbc = "large-cell"' in warned[0]["event"]
+    assert notes(pack=big, can={"dbc": "large-cell"}) == []
+    small = notes(can={"dbc": "large-cell"})
+    assert len(small) == 1 and "leave can.dbc unset" in small[0]["event"]
+    assert notes() == []
