@@ -127,8 +127,10 @@ def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray
     cols = {"time_s": rec.time_s, "soc": run_.soc, "soc_sigma": run_.soc_sigma, "soc_reference": soc_ref,
             "soc_counted": counted, "capacity_ah": run_.capacity_ah,
             "temperature_c": temp if temp is not None else np.full(len(rec), np.nan), "fed": fed.astype(float)}
+    # time_s to the microsecond, as the recordings are saved: at 6 significant digits a log stamped in Unix
+    # time read 1.7e+09 on every row, and a 12 day one lost its seconds
     np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
-               comments="", fmt="%.6g")
+               comments="", fmt=["%.6f"] + ["%.6g"] * (len(cols) - 1))
 
 
 #: a logging gap whose held current counts less than this SOC (a fraction) in the reference is not worth a word
