@@ -238,6 +238,24 @@ def test_from_c20_needs_both_branches() -> None:
         OcvCurve.from_c20(t, np.abs(i), v)
 
 
+def test_from_c20_of_a_test_that_starts_empty_and_charges_first() -> None:
+    """A C/20 test that starts at the cut-off charges first, rests, then discharges: it was refused ('no
+    charge segment after the discharge', with a hint at HPPC) though it holds both branches. The same
+    branches give the same table, with a common Ah scale too."""
+    t, i, v = make_c20(cap_d=3.0, cap_c=3.0)
+    k_c = np.flatnonzero(i > 0)[0] - 30  # from the rest after the discharge on: rest, charge, rest
+    t2 = np.r_[t[k_c:] - t[k_c], t[k_c:][-1] - t[k_c] + t[:k_c] - t[0] + 60.0]
+    i2, v2 = np.r_[i[k_c:], i[:k_c]], np.r_[v[k_c:], v[:k_c]]
+    assert np.all(np.diff(t2) > 0)
+    for cap in (None, 3.0):
+        a = OcvCurve.from_c20(t, i, v, capacity_ah=cap)
+        b = OcvCurve.from_c20(t2, i2, v2, capacity_ah=cap)
+        np.testing.assert_allclose(b.soc, a.soc)
+        np.testing.assert_allclose(b.ocv_v, a.ocv_v, atol=1e-9)
+        np.testing.assert_allclose(b.hysteresis_v, a.hysteresis_v, atol=1e-9)
+        assert (b.capacity_discharge_ah, b.capacity_charge_ah) == pytest.approx((3.0, 3.0))
+
+
 # --------------------------------------------------------------------------- HPPC
 
 

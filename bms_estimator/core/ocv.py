@@ -347,7 +347,10 @@ class OcvCurve:
         1. Segments.  Samples with ``I < -I_th`` form discharge runs, ``I > I_th``
            charge runs (``I_th`` = 20 % of the 90th percentile of ``|I|``, i.e. of
            the C/20 current, unless given).  The discharge branch is the run with
-           the largest charge; the charge branch the largest charge run after it.
+           the largest charge; the charge branch the largest charge run after it,
+           or, in a test that starts empty and charges first (no charge run after
+           the discharge), the largest one before it, which ends full where the
+           discharge starts.
         2. Coulomb counting: trapezoid over the branch's records plus the lead
            ``I_first Delta`` before its first record (logger model of
            :meth:`from_hppc`; ``Delta`` = spacing of the branch's records, at most
@@ -401,8 +404,12 @@ class OcvCurve:
         kd = int(np.argmax([-q[-1] for q in qd]))
         d0, d1 = runs_d[kd]
         later = [(a, b) for a, b in runs_c if a >= d1]
+        # a test that starts empty charges first: its charge branch ends full where the discharge starts
+        charge_first = not later
+        if charge_first:
+            later = [(a, b) for a, b in runs_c if b <= d0]
         if not later:
-            raise ValueError("no charge segment (I > threshold) after the discharge in the C/20 data")
+            raise ValueError("no charge segment (I > threshold) before or after the discharge in the C/20 data")
         qc = [_branch_charge(t, i, a, b) for a, b in later]
         kc = int(np.argmax([q[-1] for q in qc]))
         c0, c1 = later[kc]
@@ -425,7 +432,7 @@ class OcvCurve:
             if not capacity_ah > 0:
                 raise ValueError(f"capacity_ah must be positive, got {capacity_ah!r}")
             soc_d = 1.0 - q_d / capacity_ah
-            soc_c = 1.0 - cap_d / capacity_ah + q_c / capacity_ah
+            soc_c = (1.0 - cap_c / capacity_ah if charge_first else 1.0 - cap_d / capacity_ah) + q_c / capacity_ah
         lo = max(0.0, soc_d.min(), soc_c.min())
         hi = min(1.0, soc_d.max(), soc_c.max())
         if capacity_ah is None:
