@@ -4,6 +4,8 @@ reads back (LG HG2 sample, Kollmeyer et al., CC BY 4.0)."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -31,3 +33,31 @@ def test_the_soc_trace_keeps_an_absolute_time_base(tmp_path, capsys):
     np.testing.assert_allclose(rows["time_s"], rec.time_s, rtol=0, atol=1e-6)
     assert np.all(np.diff(rows["time_s"]) == pytest.approx(1.0))
     assert np.isnan(rows["soc"][rows["time_s"] < rec.time_s[0] + 100 - 1e-6]).all()
+
+
+def test_soc_of_a_log_that_starts_mid_drive_counts_its_reference_from_initial_soc(tmp_path, capsys):
+    """The LG la92 drive from its 4000th second (SOC 0.627 on the full file's reference): the reference was
+    counted from full whatever --initial-soc said, 1.68 Ah, and scored the estimator's right 2.82 Ah run at
+    14 % SOC RMSE, without a word. Now --initial-soc is the reference's start, and a reference far from the
+    C/20 table's capacity is warned about, naming --initial-soc."""
+    from bms_estimator.ocv_table import read_ocv_table
+    from bms_estimator.scoring import soc_reference
+
+    full = load_recording(drive_cycle("lg-hg2", "la92"))
+    table = read_ocv_table(ocv_table("lg-hg2"))
+    whole = soc_reference(full.current_a, full.voltage_v, full.dt_s, table)
+    k = 4000
+    part = CellRecording(full.time_s[k:] - full.time_s[k], full.current_a[k:], full.voltage_v[k:],
+                         full.temperature_c[k:], "part")
+    data = save_recording(part, tmp_path / "part2.csv")
+    args = ["soc", str(data), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0", "--soc-method", "c0"]
+    out = tmp_path / "out.json"
+    assert main([*args, "--initial-soc", f"{whole.soc[k]:.4f}", "--json", str(out)]) == 0
+    got = json.loads(out.read_text())
+    assert got["capacity_ah_reference"] == pytest.approx(whole.capacity_ah, rel=0.005)
+    assert "--initial-soc" not in capsys.readouterr().err
+    assert main([*args, "--json", str(out)]) == 0  # from full: warned, one line, naming the way out
+    err = capsys.readouterr().err
+    assert json.loads(out.read_text())["capacity_ah_reference"] < 0.7 * whole.capacity_ah
+    line = next(x for x in err.splitlines() if "reference reads a capacity" in x)
+    assert "0.60 x its C/20 table's" in line and "give its start SOC with --initial-soc" in line
