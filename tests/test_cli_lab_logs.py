@@ -61,3 +61,25 @@ def test_soc_of_a_log_that_starts_mid_drive_counts_its_reference_from_initial_so
     assert json.loads(out.read_text())["capacity_ah_reference"] < 0.7 * whole.capacity_ah
     line = next(x for x in err.splitlines() if "reference reads a capacity" in x)
     assert "0.60 x its C/20 table's" in line and "give its start SOC with --initial-soc" in line
+
+
+def test_a_temperature_in_fahrenheit_is_named_as_such(tmp_path, capsys):
+    """The LG 25 degC drive with its temperature in degF (75.3): inside a cell's range, so read as a 52 K warmer
+    cell; the warning asked for 'a table measured near 76 degC' and soc's error for --reference-ocv, neither
+    naming the unit. Both now ask whether the column is in degF, with its value in degC."""
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    n = 1500
+    data = save_recording(CellRecording(rec.time_s[:n], rec.current_a[:n], rec.voltage_v[:n],
+                                        rec.temperature_c[:n] * 9 / 5 + 32, "f"), tmp_path / "degf.csv")
+    args = ["soc", str(data), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0"]
+    hint = "or is temperature_c in degF? 75.3 degF is 24.1 degC, the tables' ambient: convert the column to degC"
+    assert main(args) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(hint in line for line in err), err
+    assert main([*args, "--reference-capacity-ah", "2.8"]) == 0
+    assert hint in capsys.readouterr().err
+    cold = save_recording(CellRecording(rec.time_s[:n], rec.current_a[:n], rec.voltage_v[:n],
+                                        rec.temperature_c[:n] - 25.0, "c"), tmp_path / "cold.csv")
+    assert main(["soc", str(cold), *args[2:], "--reference-capacity-ah", "2.8"]) == 0
+    err = capsys.readouterr().err
+    assert "near -1 degC" in err and "degF" not in err  # a cold cell is not taken for degF

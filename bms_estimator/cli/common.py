@@ -281,7 +281,19 @@ def _warn_if_outside_the_tables(rec: CellRecording, median_c: float, surface: Oc
         span = f"{lo:.1f}" if hi - lo < 0.05 else f"{lo:.1f}..{hi:.1f}"
         warnings.warn(f"{rec.source}: its median cell temperature {median_c:.1f} degC is {off:.0f} K outside the "
                       f"--ocv table(s) at {span} degC, read there (held, not extrapolated): give a table measured "
-                      f"near {round(median_c)} degC", UserWarning, stacklevel=3)  # an int: -0.3 reads 0, not -0
+                      f"near {round(median_c)} degC{fahrenheit_hint(median_c, lo, hi)}", UserWarning,
+                      stacklevel=3)  # an int: -0.3 reads 0, not -0
+
+
+def fahrenheit_hint(median_c: float, lo: float, hi: float) -> str:
+    """``'; or is temperature_c in degF? ...'`` when the median read as Fahrenheit lies within ``SAME_AMBIENT_K`` of
+    the tables' ``lo..hi`` degC, else ``''``: a column in degF (77 at 25 degC, 32 at 0 degC) lies inside a cell's
+    range and was read as a 52 K warmer cell, the warning asking for a table 'measured near 76 degC'."""
+    as_c = (median_c - 32.0) * 5.0 / 9.0
+    if lo - SAME_AMBIENT_K <= as_c <= hi + SAME_AMBIENT_K:
+        return (f"; or is temperature_c in degF? {median_c:.1f} degF is {as_c:.1f} degC, the tables' ambient: "
+                "convert the column to degC")
+    return ""
 
 
 def warn_if_start_is_not_initial_soc(rec: CellRecording, ocv: OcvSurface, args: argparse.Namespace) -> None:

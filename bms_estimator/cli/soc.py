@@ -16,7 +16,7 @@ from ..errors import DataError
 from ..gaps import MAX_GAP_S, held_charge_in_gaps, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
-                     load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction,
+                     fahrenheit_hint, load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction,
                      warn_if_start_is_not_initial_soc, write_json)
 from .outputs import check_outputs, figure_output, file_output
 
@@ -73,12 +73,21 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def curves_of(ocv) -> list:
+    """The tables of an OCV surface (one curve: itself)."""
+    return list(getattr(ocv, "curves", None) or [ocv])
+
+
+def temperatures_of(ocv) -> list:
+    """The tables' temperatures, ``None`` where unknown, one per :func:`curves_of`."""
+    return list(getattr(ocv, "temperatures_c", [None] * len(curves_of(ocv))))
+
+
 def _reference_table(args: argparse.Namespace, ocv, temp_c: float | None):
     """The C/20 table of the recording's ambient: --reference-ocv, else the nearest --ocv table with hysteresis."""
     if args.reference_ocv is not None:
         return load_ocv([args.reference_ocv]), "given"
-    curves = getattr(ocv, "curves", None) or [ocv]
-    temps = list(getattr(ocv, "temperatures_c", [None] * len(curves)))
+    curves, temps = curves_of(ocv), temperatures_of(ocv)
     best = None
     for c, t in zip(curves, temps):
         if not c.has_hysteresis:
@@ -101,9 +110,11 @@ def _reference(args: argparse.Namespace, rec, ocv) -> tuple[float, str, bool, np
     temp_c = float(np.nanmedian(temp)) if temp is not None and np.isfinite(temp).any() else None
     table, _ = _reference_table(args, ocv, temp_c)
     if table is None:
+        temps = [t for c, t in zip(curves_of(ocv), temperatures_of(ocv)) if c.has_hysteresis and t is not None]
+        hint = "" if temp_c is None or not temps else fahrenheit_hint(temp_c, min(temps), max(temps))
         raise ValueError(f"{args.data}: no C/20 table (with hysteresis) within {SAME_AMBIENT_K:g} K of the "
                          f"recording's {'unknown' if temp_c is None else f'{temp_c:.1f}'} degC among --ocv: give "
-                         "--reference-ocv or --reference-capacity-ah")
+                         f"--reference-ocv or --reference-capacity-ah{hint}")
     try:
         # from --initial-soc, the file's start (1.0: the data set's full starts); a log that starts mid-drive
         # was counted from full whatever --initial-soc said: the LG la92 drive from 0.63 read a 1.68 Ah
