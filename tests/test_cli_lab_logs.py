@@ -107,3 +107,22 @@ def test_a_log_that_starts_under_load_away_from_initial_soc_is_warned_about(tmp_
     assert "--initial-soc" not in capsys.readouterr().err
     assert main(["fit", str(head), *args]) == 0
     assert "--initial-soc" not in capsys.readouterr().err
+
+
+def test_encode_log_warns_of_a_recording_far_from_its_tables_temperature(tmp_path, capsys):
+    """encode-log read no temperature check: a column in degF (75.3 at 24 degC) went out as 75 degC cell
+    temperatures, simulated on the 24 degC table, without a word; now it warns as the other commands do."""
+    rec = load_recording(drive_cycle("lg-hg2", "la92"))
+    n = 1500
+    args = ["--cells", "2", "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0", "--duration-s", "20",
+            "--no-progress"]
+    degf = save_recording(CellRecording(rec.time_s[:n], rec.current_a[:n], rec.voltage_v[:n],
+                                        rec.temperature_c[:n] * 9 / 5 + 32, "f"), tmp_path / "degf.csv")
+    assert main(["encode-log", str(degf), "-o", str(tmp_path / "f.log"), *args]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "degf.csv: its median cell temperature 75.3 degC is 51 K from the OCV table's" in err[0]
+    assert "or is temperature_c in degF? 75.3 degF is 24.1 degC" in err[0]
+    plain = save_recording(CellRecording(rec.time_s[:n], rec.current_a[:n], rec.voltage_v[:n],
+                                         rec.temperature_c[:n], "c"), tmp_path / "plain.csv")
+    assert main(["encode-log", str(plain), "-o", str(tmp_path / "c.log"), *args]) == 0
+    assert capsys.readouterr().err == ""
