@@ -126,3 +126,28 @@ def test_encode_log_warns_of_a_recording_far_from_its_tables_temperature(tmp_pat
                                          rec.temperature_c[:n], "c"), tmp_path / "plain.csv")
     assert main(["encode-log", str(plain), "-o", str(tmp_path / "c.log"), *args]) == 0
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.shared_data
+def test_ocv_of_a_test_timed_in_hours_is_refused_and_a_table_from_ma_is_named(tmp_path, capsys):
+    """The LG 25 degC C/20 test with time_s in hours wrote a table of capacity_ah 0.00077 Ah, and with current_a
+    in mA one of 2779 Ah, without a word (each branch is read on its own throughput, so the OCV was right); the
+    mA table's later refusal told the user to 'state one cell's capacity in Ah'."""
+    from tests.conftest import shared_file
+
+    c20 = load_recording(shared_file("lg-hg2/25degC/c20_ocv.csv.gz"), resample_s=None)
+    hours = save_recording(CellRecording(c20.time_s / 3600.0, c20.current_a, c20.voltage_v, c20.temperature_c, "h"),
+                           tmp_path / "c20_h.csv")
+    assert main(["ocv", str(hours), "-o", str(tmp_path / "h.csv")]) == 3
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "c20_h.csv: its discharge branch lasts 0.00504 h" in err
+    assert err.endswith("is time_s in seconds?")
+    ma = save_recording(CellRecording(c20.time_s, c20.current_a * 1000, c20.voltage_v, c20.temperature_c, "m"),
+                        tmp_path / "c20_ma.csv")
+    table = tmp_path / "ma.csv"
+    assert main(["ocv", str(ma), "-o", str(table)]) == 0
+    capsys.readouterr()
+    assert main(["soc", str(drive_cycle("lg-hg2", "la92")), "--ocv", str(table), "--capacity-ah", "3.0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.endswith("or rebuild the table: its capacity_ah 2779 Ah reads like a test "
+                                                 "whose current_a was in mA"), err

@@ -257,10 +257,14 @@ def load_ocv(paths: Path | Sequence[Path], rec: CellRecording | None = None, *,
         _warn_if_outside_the_tables(rec, t, surface)
     ratio = stated_capacity_ratio(capacity_ah, surface) if capacity_ah else None
     if ratio is not None:
+        table_ah = float(np.median(table_capacities_ah(surface)))
+        # 1000 times off: rather a table built from a test logged in mA (its OCV is right, its capacity_ah not)
+        table_hint = (f", or rebuild the table: its capacity_ah {table_ah:.4g} Ah reads like a test whose current_a "
+                      "was in mA" if ratio < 0.01 else "")
         raise UsageError(
             f"--capacity-ah {capacity_ah:g} is {ratio:.3g} times the C/20 capacity "
-            f"{float(np.median(table_capacities_ah(surface))):.3f} Ah of the --ocv table(s) "
-            f"({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah")
+            f"{table_ah:.3f} Ah of the --ocv table(s) "
+            f"({', '.join(Path(p).name for p in path_list)}): state one cell's capacity in Ah{table_hint}")
     return surface
 
 
