@@ -237,8 +237,44 @@ def _read_text(path: Path) -> tuple[str, bytes]:
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not UTF-8 text ({exc})") from exc
+        text = _decode_other_text(path, raw, exc)
+        raw = text.encode("utf-8")  # (the field-count check reads the bytes: one encoding for both)
     return text, raw
+
+
+#: the first bytes of files a lab or vehicle exports that are not CSV text, and what to do with each
+_NOT_CSV = ((b"MDF     ", "an MDF/MF4 measurement file", "export its time, current, voltage and temperature channels "
+                                                        "to CSV (a bus-logging .mf4 of the pack's CAN frames goes to "
+                                                        "'bms-estimator batch')"),
+            (b"LOGG", "a BLF CAN log", "encode the drive with 'bms-estimator batch'"),
+            (b"PK\x03\x04", "a zip archive (an Excel workbook?)", "save the sheet as CSV"),
+            (b"\xd0\xcf\x11\xe0", "an OLE document (an .xls workbook?)", "save the sheet as CSV"))
+
+
+def _decode_other_text(path: Path, raw: bytes, exc: UnicodeDecodeError) -> str:
+    """The text of a file that is not UTF-8: UTF-16 with its byte-order mark (as Windows tools write), or a
+    Windows-1252 / Latin-1 text (a cycler's export with 'degC' written as '\xb0C' in a header or comment: its numbers
+    are ASCII either way); a binary file is named by what it is, with the way to CSV."""
+    for magic, what, fix in _NOT_CSV:
+        if raw.startswith(magic):
+            raise DataError(f"{path}: {what}, not CSV text: the offline commands read CSV "
+                            f"(time_s,current_a,voltage_v[,temperature_c]); {fix}") from None
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        try:
+            return raw.decode("utf-16")
+        except UnicodeDecodeError:
+            pass
+    elif b"\x00" not in raw:
+        return raw.decode("cp1252", errors="strict") if _is_cp1252(raw) else raw.decode("latin-1")
+    raise DataError(f"{path}: not UTF-8 text ({exc})") from None
+
+
+def _is_cp1252(raw: bytes) -> bool:
+    try:
+        raw.decode("cp1252")
+    except UnicodeDecodeError:
+        return False
+    return True
 
 
 def _split_fields(line: str) -> list[str]:

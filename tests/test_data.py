@@ -478,3 +478,29 @@ def test_real_c20_log_is_not_resampled() -> None:
     assert rec.gaps_filled > 800 and rec.duration_s == pytest.approx(native.duration_s, abs=60.0)
     q = _zoh_charge(np.r_[rec.time_s, native.time_s[-1]], np.r_[rec.current_a, 0.0])
     assert q == pytest.approx(_zoh_charge(native.time_s, native.current_a), rel=1e-9)
+
+
+def test_text_a_windows_tool_writes_and_files_that_are_no_csv(tmp_path: Path) -> None:
+    """UTF-16 with its byte-order mark, and a Windows-1252 comment or header ('\u00b0C'), were 'not UTF-8 text' with a
+    codec's byte position; they read as the UTF-8 file does. An MF4 or a workbook is named, with the way to CSV."""
+    rec = _jittered_recording(n=300, step=1.0)
+    plain = save_recording(rec, tmp_path / "plain.csv")
+    text = plain.read_text()
+    want = load_recording(plain)
+    (tmp_path / "u16.csv").write_text(text, encoding="utf-16")
+    (tmp_path / "cp.csv").write_text("# Zelle 1, Temperatur in \u00b0C\n" + text, encoding="cp1252")
+    for name in ("u16.csv", "cp.csv"):
+        got = load_recording(tmp_path / name)
+        np.testing.assert_array_equal(got.current_a, want.current_a)
+        np.testing.assert_array_equal(got.time_s, want.time_s)
+    (tmp_path / "drive.mf4").write_bytes(b"MDF     4.10    " + bytes(range(256)))
+    with pytest.raises(DataError, match=r"drive.mf4: an MDF/MF4 measurement file, not CSV text: .* export its time, "
+                                        r"current, voltage and temperature channels to CSV"):
+        load_recording(tmp_path / "drive.mf4")
+    (tmp_path / "book.csv").write_bytes(b"PK\x03\x04" + bytes(range(256)))
+    with pytest.raises(DataError, match=r"book.csv: a zip archive \(an Excel workbook\?\), not CSV text: .* save the "
+                                        r"sheet as CSV"):
+        load_recording(tmp_path / "book.csv")
+    (tmp_path / "bin.csv").write_bytes(b"\x00\x9a" * 50)
+    with pytest.raises(DataError, match="bin.csv: not UTF-8 text"):
+        load_recording(tmp_path / "bin.csv")
