@@ -99,6 +99,7 @@ import gzip
 import io
 import math
 import os
+import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -323,6 +324,8 @@ def _check_columns(path: Path, names: list[str], header_line: int) -> None:
             near = [f"{lower[c]!r} to {c}" for c in missing if c in lower]
             if near:
                 hint = f"; column names are case-sensitive: rename {', '.join(near)}"
+            else:
+                hint = _lab_column_hint(missing, names)
         raise DataError(
             f"{path}: missing column(s) {', '.join(missing)} "
             f"(header has: {', '.join(names)}){hint}"
@@ -332,6 +335,40 @@ def _check_columns(path: Path, names: list[str], header_line: int) -> None:
             columns = ", ".join(str(k + 1) for k, n in enumerate(names) if n == c)
             raise DataError(f"{path}: line {header_line}: column '{c}' appears {names.count(c)} times in the "
                             f"header (columns {columns}): which one holds the data is ambiguous; rename or drop one")
+
+
+#: per column this loader reads: words a lab's name for it holds, its unit, and other units with their factor to it
+_LAB_COLUMNS = {
+    "time_s": (("test_time", "test time", "time"), "s", {"ms": "x 0.001", "min": "x 60", "h": "x 3600"}),
+    "current_a": (("current", "curr", "i/", "<i>", "i ["), "A", {"ma": "x 0.001"}),
+    "voltage_v": (("voltage", "volt", "ewe", "ecell", "u/", "u ["), "V", {"mv": "x 0.001"}),
+    "temperature_c": (("temperature", "temp", "aux_t"), "degC", {"k": "- 273.15", "degf": "(F - 32) / 1.8",
+                                                                 "f": "(F - 32) / 1.8"}),
+}
+_UNIT_RE = re.compile(r"[(\[/_ ]\s*(ms|min|h|s|ma|a|mv|v|k|degf|f|c|degc|°c)\s*\)?\]?\s*$")
+
+
+def _lab_column_hint(missing: list[str], names: list[str]) -> str:
+    """``'; rename ...'`` for the columns of a lab's export (Arbin 'Current(A)', BioLogic 'I/mA', 'time [s]'):
+    which header name looks like each missing column, the factor when its unit is another (mA, ms, h), and the
+    units and sign this loader reads. The error named the missing columns and the header, not the way from one
+    to the other (nor that current_a is in A, positive = charge)."""
+    renames = []
+    for col in [*missing, *(c for c in OPTIONAL_COLUMNS if c not in names)]:
+        words, unit, others = _LAB_COLUMNS[col]
+        found = next((n for n in names if any(w in n.lower() for w in words) and "date" not in n.lower()
+                      and not (col == "time_s" and "step" in n.lower())), None)
+        if found is None:
+            continue
+        m = _UNIT_RE.search(found.lower())
+        got = m.group(1) if m else None
+        if got in others:
+            renames.append(f"{found!r} to {col} in {unit} ({others[got]})")
+        else:
+            renames.append(f"{found!r} to {col}")
+    what = ("this tool reads time_s in s, current_a in A (positive = charge), voltage_v in V and, optionally, "
+            "temperature_c in degC")
+    return f"; {what}: rename {', '.join(renames)}" if renames else f"; {what}"
 
 
 def _locate_bad_value(path: Path, text: str, header_line: int, names: list[str],

@@ -504,3 +504,28 @@ def test_text_a_windows_tool_writes_and_files_that_are_no_csv(tmp_path: Path) ->
     (tmp_path / "bin.csv").write_bytes(b"\x00\x9a" * 50)
     with pytest.raises(DataError, match="bin.csv: not UTF-8 text"):
         load_recording(tmp_path / "bin.csv")
+
+
+@pytest.mark.parametrize("header, hint", [
+    ("Test_Time(s),Step_Time(s),Current(A),Voltage(V),Aux_Temperature_1(C)",  # Arbin-like
+     "rename 'Test_Time(s)' to time_s, 'Current(A)' to current_a, 'Voltage(V)' to voltage_v, "
+     "'Aux_Temperature_1(C)' to temperature_c"),
+    ("time/s,Step,I/mA,Ewe/V,Date_Time",  # BioLogic-like
+     "rename 'time/s' to time_s, 'I/mA' to current_a in A (x 0.001), 'Ewe/V' to voltage_v"),
+    ("Time [h],Current [mA],Voltage [mV],Temperature [K]",
+     "rename 'Time [h]' to time_s in s (x 3600), 'Current [mA]' to current_a in A (x 0.001), 'Voltage [mV]' to "
+     "voltage_v in V (x 0.001), 'Temperature [K]' to temperature_c in degC (- 273.15)"),
+    ("Zeit,Strom,Spannung,Tmp", ""),
+])
+def test_a_labs_column_names_are_mapped_in_the_error_with_units_and_sign(tmp_path: Path, header, hint) -> None:
+    """A cycler's export named the missing columns and the header, not which header column is which, the unit it
+    must be in, or the sign of the current: a user renaming 'I/mA' to current_a ran into the charge check later."""
+    n = header.count(",") + 1
+    path = _write(tmp_path / "lab.csv", header + "\n" + ("1," * (n - 1) + "1\n") * 3)
+    with pytest.raises(DataError) as exc:
+        load_recording(path)
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: missing column(s) time_s, current_a, voltage_v")
+    assert ("this tool reads time_s in s, current_a in A (positive = charge), voltage_v in V and, optionally, "
+            "temperature_c in degC") in msg
+    assert msg.endswith(f"degC: {hint}" if hint else "temperature_c in degC"), msg
