@@ -151,3 +151,15 @@ def test_ocv_of_a_test_timed_in_hours_is_refused_and_a_table_from_ma_is_named(tm
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and err.endswith("or rebuild the table: its capacity_ah 2779 Ah reads like a test "
                                                  "whose current_a was in mA"), err
+
+
+@pytest.mark.parametrize("command", ["ocv", "fit", "compare", "soc", "diagnose", "sop-backtest", "encode-log"])
+def test_each_commands_help_says_what_a_recording_holds(command, capsys):
+    """The recording's --help said 'in the ../shared/data layout' (soc, sop-backtest), 'c20_ocv CSV' (ocv) or
+    nothing (fit, compare, diagnose): a user with their own lab's files learnt its columns, units and the sign of
+    the current only from an error."""
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert ("time_s in s, current_a in A (positive = charge), voltage_v in V, optionally temperature_c in degC"
+            in text), text

@@ -35,6 +35,9 @@ EXCITATION_C = 0.01
 #: An --ocv table within this of a recording's median cell temperature is "the same ambient"; a recording
 #: further than this outside the tables' temperatures is read on the nearest table, and warned about.
 SAME_AMBIENT_K = 5.0
+#: what a recording given to an offline command holds (its --help)
+RECORDING_HELP = ("CSV or .csv.gz with a header row: time_s in s, current_a in A (positive = charge), voltage_v in V, "
+                  "optionally temperature_c in degC; other columns are ignored")
 
 
 def _number(text: str, *, allow_zero: bool) -> float:

@@ -11,6 +11,7 @@ from ..core.ocv import CELL_TEMPERATURE_RANGE_C, OcvCurve
 from ..data import load_recording
 from ..errors import DataError
 from ..ocv_table import write_ocv_table
+from .common import RECORDING_HELP
 from .outputs import check_outputs, file_output
 
 
@@ -22,7 +23,7 @@ def add_parser(sub) -> None:
                                    "HPPC test and the OCV comes from its rest points. The table records the test's "
                                    "temperature (temperature_c) and discharge capacity (capacity_ah): give several "
                                    "tables to --ocv, one per temperature.")
-    p.add_argument("data", type=Path, help="c20_ocv CSV (or hppc CSV with --hppc-steps)")
+    p.add_argument("data", type=Path, help=f"a C/20 test (or an HPPC test with --hppc-steps): {RECORDING_HELP}")
     p.add_argument("-o", "--output", type=Path, required=True, help="OCV CSV to write")
     p.add_argument("--hppc-steps", type=Path, default=None, help="the hppc_steps CSV that goes with an hppc file")
     p.add_argument("--temperature-c", type=_cell_temperature, default=None,

@@ -18,6 +18,7 @@ from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
                      fahrenheit_hint, load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction,
                      warn_if_start_is_not_initial_soc, write_json)
+from .common import RECORDING_HELP
 from .outputs import check_outputs, figure_output, file_output
 
 
@@ -43,7 +44,7 @@ def add_parser(sub) -> None:
                     f"(no sample for longer than {MAX_GAP_S:g} s) is rested over as the service rests over a time "
                     "jump (--no-rest-over-gaps: fed as samples); the scores count every sample of the file's time "
                     "base from the start, a gap's with the estimate held from before it.")
-    p.add_argument("data", type=Path, help="drive-cycle CSV(.gz) in the ../shared/data layout")
+    p.add_argument("data", type=Path, help=f"the drive: {RECORDING_HELP}")
     add_cell_options(p)
     p.add_argument("--start-s", type=float, default=0.0,
                    help="the estimator begins at this time of the file (s); inside a logging gap it begins at the "
