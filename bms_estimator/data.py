@@ -390,8 +390,13 @@ def _locate_bad_value(path: Path, text: str, header_line: int, names: list[str],
             try:
                 float(value)
             except ValueError:
+                hint = ""
+                if re.fullmatch(r"[-+]?\d*,\d+(?:[eE][-+]?\d+)?", value):  # "4,19155": a decimal comma, quoted
+                    hint = ": a decimal comma? this tool reads a point as the decimal mark (4.19, not 4,19)"
+                elif names[col] == "time_s" and re.search(r"\d[-/.:]\d\d?[-/.: T]\d", value):
+                    hint = ": time_s is seconds as a number; convert the timestamps (their seconds since the first)"
                 return DataError(
-                    f"{path}: line {lineno}: non-numeric value {value!r} in column '{names[col]}'"
+                    f"{path}: line {lineno}: non-numeric value {value!r} in column '{names[col]}'{hint}"
                 )
     return DataError(f"{path}: could not parse the numeric rows")
 
@@ -537,9 +542,13 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     if back.size:
         row = int(back[0]) + 1
         lineno = int(_data_line_numbers(text, header_line)[row])
+        # a second recording appended (its time from 0 again), or rows out of order
+        joined = t[row] <= t[0] + 0.01 * (t[row - 1] - t[0]) and np.all(np.diff(t[row:]) >= 0)
+        hint = (": a second recording appended here, its time from the start again? add the first's end time to its "
+                "time_s" if joined else ": sort the rows by time_s")
         raise DataError(
             f"{path}: time goes backwards at data row {row} (line {lineno}): "
-            f"{float(t[row - 1])!r} -> {float(t[row])!r} s"
+            f"{float(t[row - 1])!r} -> {float(t[row])!r} s{hint}"
         )
     keep = np.r_[True, dt > 0]  # drop repeated timestamps, keep the first
     data = data[keep]

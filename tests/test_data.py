@@ -529,3 +529,23 @@ def test_a_labs_column_names_are_mapped_in_the_error_with_units_and_sign(tmp_pat
     assert ("this tool reads time_s in s, current_a in A (positive = charge), voltage_v in V and, optionally, "
             "temperature_c in degC") in msg
     assert msg.endswith(f"degC: {hint}" if hint else "temperature_c in degC"), msg
+
+
+@pytest.mark.parametrize("text, message", [
+    ("time_s,current_a,voltage_v\n0,-1,4.1\n1,-1,4.0\n2,-1,4.0\n0,-1,3.9\n1,-1,3.9\n",
+     r"time goes backwards at data row 3 \(line 5\): 2.0 -> 0.0 s: a second recording appended here, its time from "
+     r"the start again\? add the first's end time to its time_s$"),
+    ("time_s,current_a,voltage_v\n0,-1,4.1\n2,-1,4.0\n1,-1,4.0\n3,-1,3.9\n",
+     r"time goes backwards at data row 2 \(line 4\): 2.0 -> 1.0 s: sort the rows by time_s$"),
+    ('time_s,current_a,voltage_v\n0,-1,"4,1"\n1,-1,"4,0"\n',
+     r"line 2: non-numeric value '4,1' in column 'voltage_v': a decimal comma\? this tool reads a point as the decimal "
+     r"mark \(4.19, not 4,19\)$"),
+    ("time_s,current_a,voltage_v\n2024-03-01 10:00:00,-1,4.1\n2024-03-01 10:00:01,-1,4.0\n",
+     r"line 2: non-numeric value '2024-03-01 10:00:00' in column 'time_s': time_s is seconds as a number; convert the "
+     r"timestamps \(their seconds since the first\)$"),
+])
+def test_a_joined_or_unsorted_time_a_decimal_comma_and_timestamps_are_named(tmp_path: Path, text, message) -> None:
+    """Two recordings appended, rows out of order, a quoted decimal comma and datetime strings were refused naming
+    the line only; each now says what it looks like and the way out."""
+    with pytest.raises(DataError, match=message):
+        load_recording(_write(tmp_path / "x.csv", text))
