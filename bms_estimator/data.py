@@ -393,12 +393,29 @@ def _locate_bad_value(path: Path, text: str, header_line: int, names: list[str],
                 hint = ""
                 if re.fullmatch(r"[-+]?\d*,\d+(?:[eE][-+]?\d+)?", value):  # "4,19155": a decimal comma, quoted
                     hint = ": a decimal comma? this tool reads a point as the decimal mark (4.19, not 4,19)"
+                elif lineno == _first_data_line(lines, header_line) and not any(
+                        _is_number(fields[c]) for c in usecols):
+                    hint = ": a row of units under the header? delete it, or start it with '#'"
                 elif names[col] == "time_s" and re.search(r"\d[-/.:]\d\d?[-/.: T]\d", value):
                     hint = ": time_s is seconds as a number; convert the timestamps (their seconds since the first)"
                 return DataError(
                     f"{path}: line {lineno}: non-numeric value {value!r} in column '{names[col]}'{hint}"
                 )
     return DataError(f"{path}: could not parse the numeric rows")
+
+
+def _first_data_line(lines: list[str], header_line: int) -> int:
+    """The 1-based number of the first line after the header that is neither blank nor a comment."""
+    return next((k for k in range(header_line + 1, len(lines) + 1)
+                 if lines[k - 1].strip() and not lines[k - 1].lstrip().startswith("#")), 0)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 #: every byte but a comma and a line end (``bytes.translate``'s delete argument)

@@ -549,3 +549,13 @@ def test_a_joined_or_unsorted_time_a_decimal_comma_and_timestamps_are_named(tmp_
     the line only; each now says what it looks like and the way out."""
     with pytest.raises(DataError, match=message):
         load_recording(_write(tmp_path / "x.csv", text))
+
+
+def test_a_row_of_units_under_the_header_is_named(tmp_path: Path) -> None:
+    """A cycler's export with its units in the row under the names read "line 2: non-numeric value 's'"."""
+    path = _write(tmp_path / "units.csv", "time_s,current_a,voltage_v\ns,A,V\n0,-1,4.1\n1,-1,4.0\n")
+    with pytest.raises(DataError, match=r"units.csv: line 2: non-numeric value 's' in column 'time_s': a row of "
+                                        r"units under the header\? delete it, or start it with '#'$"):
+        load_recording(path)
+    commented = _write(tmp_path / "commented.csv", "time_s,current_a,voltage_v\n# s,A,V\n0,-1,4.1\n1,-1,4.0\n")
+    assert len(load_recording(commented, resample_s=None)) == 2
