@@ -163,3 +163,21 @@ def test_each_commands_help_says_what_a_recording_holds(command, capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert ("time_s in s, current_a in A (positive = charge), voltage_v in V, optionally temperature_c in degC"
             in text), text
+
+
+def test_figures_of_a_log_stamped_in_unix_time_count_hours_from_its_start(tmp_path, monkeypatch):
+    """soc --plot of a log stamped in Unix time drew its axis at 472,222 h plus an offset, its title's start
+    time counted from the file's start."""
+    import matplotlib.figure
+
+    from bms_estimator.plots import TIME_LABEL
+
+    drawn = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: drawn.append(fig))
+    data = _la92_head(tmp_path, 1500, 1.7e9, "epoch.csv")
+    assert main(["soc", str(data), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0",
+                 "--reference-capacity-ah", "2.8", "--plot", str(tmp_path / "soc.png")]) == 0
+    (fig,) = drawn
+    x = fig.axes[0].lines[0].get_xdata()
+    assert x[0] == 0.0 and x[-1] == pytest.approx(1499 / 3600.0)
+    assert fig.axes[-1].get_xlabel() == TIME_LABEL == "time from the recording's start [h]"
