@@ -16,7 +16,8 @@ from one :class:`RestPlan`:
   fed as ``load_recording`` filled them, as the sampler's stale samples would be;
 * before every fed sample, the time without samples since the previous fed one,
   :func:`gap_before_s` of the fed samples' period ends
-  ``t_k + Ts`` (the sampler's own rule), is rested over when it exceeds ``MAX_GAP_S``:
+  ``t_k + Ts`` (the sampler's own rule), is rested over when it exceeds ``MAX_GAP_S`` (two
+  steps of a file logged coarser than 2.5 s):
   ``rest_before_s[k] = T``.  For a run of ``g`` unlogged bins between fed samples,
   ``T = g Ts``; a file not resampled (logged at the grid's step or coarser) has no
   unlogged bins, and a jump of its time axis longer than ``MAX_GAP_S`` is rested over
