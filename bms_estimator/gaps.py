@@ -10,12 +10,14 @@ stale samples, and calls a longer one a time jump, over which the estimator rest
 the estimator over a file (``soc``, the SOC matrix, the SOP back-test) do the same
 from one :class:`RestPlan`:
 
-* a run of unlogged bins longer than ``MAX_GAP_S`` (:func:`logging_gaps`) is not fed
+* a run of unlogged bins longer than ``MAX_GAP_S`` (:func:`logging_gaps`; for a file logged coarser
+  than 2.5 s, two of its steps, as the service's sampler at that period bridges) is not fed
   (``fed[k] = False``); shorter runs (the HPPC files' 1.2 s holes at pulse edges) are
   fed as ``load_recording`` filled them, as the sampler's stale samples would be;
 * before every fed sample, the time without samples since the previous fed one,
   :func:`gap_before_s` of the fed samples' period ends
-  ``t_k + Ts`` (the sampler's own rule), is rested over when it exceeds ``MAX_GAP_S``:
+  ``t_k + Ts`` (the sampler's own rule), is rested over when it exceeds ``MAX_GAP_S`` (two
+  steps of a file logged coarser than 2.5 s):
   ``rest_before_s[k] = T``.  For a run of ``g`` unlogged bins between fed samples,
   ``T = g Ts``; a file not resampled (logged at the grid's step or coarser) has no
   unlogged bins, and a jump of its time axis longer than ``MAX_GAP_S`` is rested over
@@ -95,13 +97,18 @@ class RestPlan:
 
 
 def rest_plan(n: int, dt_s: float, *, unlogged=None, time_s=None, rest_over_gaps: bool = True,
-              bridged_s: float = MAX_GAP_S) -> RestPlan:
+              bridged_s: float | None = None) -> RestPlan:
     """The :class:`RestPlan` of ``n`` samples of step ``dt_s`` (module docstring).
 
     ``unlogged``: per sample, True where the file logged nothing (None: every sample logged);
     ``time_s``: the samples' times (None: ``k dt_s``).  ``rest_over_gaps=False``: every sample fed,
-    no rest.
+    no rest.  ``bridged_s``: the longest stretch bridged, by default the service's rule at a period of
+    ``dt_s``, ``max(MAX_GAP_S, 2 dt_s)`` (5 s at the data set's 1 s; a 10 s log's one missing record, 10 s
+    unlogged, was rested over as parked, and its drive with 15 % of the records missing ran the capacity
+    estimate to 2.48 Ah, against 2.83 Ah fed).
     """
+    if bridged_s is None:
+        bridged_s = max(MAX_GAP_S, 2.0 * dt_s)
     for name, x in (("time_s", time_s), ("unlogged", unlogged)):
         if x is not None and np.shape(x) != (n,):
             raise ValueError(f"{name} has shape {np.shape(x)}, the recording {n} samples")

@@ -31,9 +31,19 @@ def save_figure(fig, path: Path, note: str | None = None, *, dpi: int = 110) -> 
     return path
 
 
+#: the time axis of the figures: hours from the recording's first sample, as --start-s counts (a log stamped in Unix
+#: time drew its axis at 472,222 h plus an offset)
+TIME_LABEL = "time from the recording's start [h]"
+
+
+def _hours_from_start(time_s) -> np.ndarray:
+    t = np.asarray(time_s, dtype=float)
+    return (t - t[0]) / 3600.0 if t.size else t
+
+
 def plot_parameters(time_s: np.ndarray, params: dict[str, dict[str, np.ndarray]], path: Path, title: str = "") -> Path:
     """Parameter trajectories (the paper's Figs 5-7): R0, R1, R2, tau1, tau2, c0 per method."""
-    t = np.asarray(time_s) / 3600.0
+    t = _hours_from_start(time_s)
     fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True)
     spec = [("r0_ohm", "R0 [mOhm]", 1e3), ("c0_v", "c0 [mV]", 1e3), ("r1_ohm", "R1 [mOhm]", 1e3),
             ("tau1_s", "tau1 [s]", 1.0), ("r2_ohm", "R2 [mOhm]", 1e3), ("tau2_s", "tau2 [s]", 1.0)]
@@ -44,7 +54,7 @@ def plot_parameters(time_s: np.ndarray, params: dict[str, dict[str, np.ndarray]]
         ax.grid(alpha=0.3)
     axes[0, 0].legend()
     for ax in axes[-1]:
-        ax.set_xlabel("time [h]")
+        ax.set_xlabel(TIME_LABEL)
     fig.suptitle(title)
     return save_figure(fig, path, ATTRIBUTION)
 
@@ -54,7 +64,7 @@ def plot_errors(time_s, voltage_v, predicted: dict[str, np.ndarray], path: Path,
     """Voltage error against time (the paper's Figs 8-9: OSA or simulation error), where ``mask`` is True; a
     mask without a True sample (a file that never enters the SOC window) shows the whole file, and says so
     (the panel was left empty)."""
-    t = np.asarray(time_s) / 3600.0
+    t = _hours_from_start(time_s)
     if mask is not None and not np.any(mask):
         mask, title = None, f"{title} (whole file: none of it in the SOC window)"
     fig, axes = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
@@ -68,7 +78,7 @@ def plot_errors(time_s, voltage_v, predicted: dict[str, np.ndarray], path: Path,
     axes[0].set_ylabel("voltage [V]")
     axes[0].legend(loc="lower left")
     axes[1].set_ylabel(ylabel)
-    axes[1].set_xlabel("time [h]")
+    axes[1].set_xlabel(TIME_LABEL)
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.suptitle(title)
@@ -77,9 +87,9 @@ def plot_errors(time_s, voltage_v, predicted: dict[str, np.ndarray], path: Path,
 
 def plot_soc(time_s, soc, soc_ref, capacity_ah, path: Path, title: str = "", counted=None) -> Path:
     """Estimated vs reference SOC and the error (the paper's Fig. 10), with plain counting from the same start."""
-    t = np.asarray(time_s) / 3600.0
+    t = _hours_from_start(time_s)
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
-    axes[0].plot(t, np.asarray(soc_ref) * 100, color="black", label="reference (coulomb counting from full)")
+    axes[0].plot(t, np.asarray(soc_ref) * 100, color="black", label="reference (coulomb counting from the start)")
     axes[0].plot(t, np.asarray(soc) * 100, color="tab:blue", label="estimated")
     if counted is not None:
         axes[0].plot(t, np.asarray(counted) * 100, color="0.5", ls=":", label="counting, stated capacity")
@@ -96,7 +106,7 @@ def plot_soc(time_s, soc, soc_ref, capacity_ah, path: Path, title: str = "", cou
     axes[1].set_ylabel("SOC error [%]")
     axes[2].plot(t, capacity_ah, color="tab:green")
     axes[2].set_ylabel("capacity [Ah]")
-    axes[2].set_xlabel("time [h]")
+    axes[2].set_xlabel(TIME_LABEL)
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.suptitle(title)

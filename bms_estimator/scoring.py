@@ -137,8 +137,10 @@ def soc_reference(
     temperature_c: float | None = None,
     rest_current_a: float | None = None,
     max_pct_per_doubling: float = MAX_PCT_PER_DOUBLING,
+    soc0: float = 1.0,
 ) -> SocReference:
-    """The reference SOC of a recording that starts full (module docstring).
+    """The reference SOC of a recording that starts full (module docstring), or at ``soc0``: a log that starts
+    mid-drive counts ``Q_ref = Ah_out(end) / (soc0 - soc_end)`` from there.
 
     ``c20_ocv`` is the same cell's C/20 OCV table at the recording's ambient
     (an ``OcvCurve``, or an ``OcvSurface`` read at ``temperature_c``).  ``rest_current_a``: the final rest's
@@ -162,16 +164,18 @@ def soc_reference(
     if ah_out <= 0:
         raise ValueError("the recording has no net discharge: no capacity to measure")
     soc_end, slope = soc_on_branch(float(v[-1]), c20_ocv, temperature_c)
-    if soc_end >= 1.0:
-        raise ValueError(f"the end-of-test voltage {v[-1]:.4f} V reads full on the discharge branch")
-    q_ref = ah_out / (1.0 - soc_end)
+    if soc_end >= soc0:
+        raise ValueError(f"the end-of-test voltage {v[-1]:.4f} V reads full on the discharge branch" if soc0 >= 1.0
+                         else f"the end-of-test voltage {v[-1]:.4f} V reads SOC {soc_end:.3f} on the discharge "
+                              f"branch, not below the start's {soc0:g}")
+    q_ref = ah_out / (soc0 - soc_end)
     rest = v[-n_rest:]
     t = (np.arange(n_rest) + 1.0) * dt_s
     sel = t > 60.0
     b = float(np.polyfit(np.log(t[sel]), rest[sel], 1)[0]) if sel.sum() >= 10 else float("inf")
     pct = 100.0 * abs(b) * np.log(2.0) / slope
     return SocReference(
-        soc=counted_soc(i, dt_s, q_ref, 1.0),
+        soc=counted_soc(i, dt_s, q_ref, soc0),
         capacity_ah=float(q_ref),
         soc_end=soc_end,
         rest_s=n_rest * dt_s,

@@ -34,6 +34,11 @@ def _zoh_charge(t: np.ndarray, i: np.ndarray) -> float:
     return float(np.sum(i[:-1] * np.diff(t)))
 
 
+def _grid_charge(rec: CellRecording, t_end: float) -> float:
+    """Coulomb count of a recording on a grid, each sample held to the next and the last one to ``t_end``."""
+    return _zoh_charge(np.r_[rec.time_s, t_end], np.r_[rec.current_a, 0.0])
+
+
 def _jittered_recording(n: int = 1001, step: float = 0.1, seed: int = 0) -> CellRecording:
     rng = np.random.default_rng(seed)
     t = np.arange(n) * step + rng.uniform(-0.02, 0.02, n) * step
@@ -194,6 +199,40 @@ def test_no_resampling_when_native_step_is_coarser_or_disabled(tmp_path: Path) -
     p2 = save_recording(fine, tmp_path / "fine.csv")
     b = load_recording(p2, resample_s=None)
     assert len(b) == 200
+
+
+@pytest.mark.parametrize("step", [10.0, 10.003, 1.0])
+def test_a_coarse_log_with_holes_or_extra_records_keeps_its_charge(tmp_path: Path, step: float) -> None:
+    """A log at or above the grid's step whose time axis is not uniform is put on a grid of its own step: the
+    commands count charge with one sample period (sum I dt_s), which skipped a hole's charge and counted an
+    extra record a whole step (a 10 s log of the LG la92 drive with 15 % of its records missing read to a
+    reference capacity of 2.47 Ah, not 2.82 Ah, at exit 0)."""
+    rng = np.random.default_rng(1)
+    n = 400
+    t = np.arange(n) * step
+    i = np.where(np.arange(n) % 40 < 20, -2.0, 0.5) + rng.normal(0.0, 0.05, n)
+    v = 3.7 + 0.02 * i
+    full = load_recording(save_recording(CellRecording(t, i, v, None, "full"), tmp_path / "full.csv"))
+    assert full.dt_s == pytest.approx(step) and full.gaps_filled == 0  # a uniform log is read as logged
+    np.testing.assert_allclose(full.current_a, i, atol=1e-5)
+    q_full = float(np.sum(full.current_a)) * full.dt_s
+    keep = rng.random(n) > 0.15
+    keep[[0, -1]] = True
+    holes = load_recording(save_recording(CellRecording(t[keep], i[keep], v[keep], None, "holes"),
+                                          tmp_path / "holes.csv"))
+    assert holes.dt_s == pytest.approx(step, rel=1e-6)
+    assert len(holes) in (n - 1, n) and holes.gaps_filled >= np.count_nonzero(~keep) - 1
+    assert _grid_charge(holes, t[-1]) == pytest.approx(_zoh_charge(t[keep], i[keep]), rel=1e-5)  # (saved to 1e-5 A)
+    # a record between the regular ones (a logger that also records on a change) is averaged into its step
+    t_extra = np.sort(np.r_[t, t[5:n - 5:37] + 0.3 * step])
+    i_extra = np.interp(t_extra, t, i)
+    i_extra[np.isin(t_extra, t, invert=True)] = -3.0
+    extra = load_recording(save_recording(CellRecording(t_extra, i_extra, 3.7 + 0.02 * i_extra, None, "extra"),
+                                          tmp_path / "extra.csv"))
+    assert extra.dt_s == pytest.approx(step, rel=1e-6) and len(extra) in (n - 1, n)
+    q_extra = _zoh_charge(t_extra, i_extra)
+    assert _grid_charge(extra, t[-1]) == pytest.approx(q_extra, rel=1e-5)
+    assert abs(q_extra - _zoh_charge(t, i)) > 0.01 * abs(q_extra)  # (the extra records do move the charge)
 
 
 def test_resampled_bins_start_on_file_time_axis(tmp_path: Path) -> None:
@@ -432,6 +471,91 @@ def test_real_drive_cycle_resampled_keeps_charge() -> None:
 def test_real_c20_log_is_not_resampled() -> None:
     path = shared_file("panasonic-18650pf/25degC/c20_ocv.csv.gz")
     rec = load_recording(path)
-    assert rec.dt_s == pytest.approx(60.0, abs=0.1)
-    assert rec.gaps_filled == 0
+    assert rec.dt_s == pytest.approx(60.0, abs=0.1)  # not averaged to 1 s
     assert np.all(np.diff(rec.time_s) > 0)  # the repeated end timestamps were dropped
+    # its 13.6 h unlogged rest is not one 60 s step: the file is put on its own 60 s grid, the hole unlogged bins
+    native = load_recording(path, resample_s=None)
+    assert rec.gaps_filled > 800 and rec.duration_s == pytest.approx(native.duration_s, abs=60.0)
+    q = _zoh_charge(np.r_[rec.time_s, native.time_s[-1]], np.r_[rec.current_a, 0.0])
+    assert q == pytest.approx(_zoh_charge(native.time_s, native.current_a), rel=1e-9)
+
+
+def test_text_a_windows_tool_writes_and_files_that_are_no_csv(tmp_path: Path) -> None:
+    """UTF-16 with its byte-order mark, and a Windows-1252 comment or header ('\u00b0C'), were 'not UTF-8 text' with a
+    codec's byte position; they read as the UTF-8 file does. An MF4 or a workbook is named, with the way to CSV."""
+    rec = _jittered_recording(n=300, step=1.0)
+    plain = save_recording(rec, tmp_path / "plain.csv")
+    text = plain.read_text()
+    want = load_recording(plain)
+    (tmp_path / "u16.csv").write_text(text, encoding="utf-16")
+    (tmp_path / "cp.csv").write_text("# Zelle 1, Temperatur in \u00b0C\n" + text, encoding="cp1252")
+    for name in ("u16.csv", "cp.csv"):
+        got = load_recording(tmp_path / name)
+        np.testing.assert_array_equal(got.current_a, want.current_a)
+        np.testing.assert_array_equal(got.time_s, want.time_s)
+    (tmp_path / "drive.mf4").write_bytes(b"MDF     4.10    " + bytes(range(256)))
+    with pytest.raises(DataError, match=r"drive.mf4: an MDF/MF4 measurement file, not CSV text: .* export its time, "
+                                        r"current, voltage and temperature channels to CSV"):
+        load_recording(tmp_path / "drive.mf4")
+    (tmp_path / "book.csv").write_bytes(b"PK\x03\x04" + bytes(range(256)))
+    with pytest.raises(DataError, match=r"book.csv: a zip archive \(an Excel workbook\?\), not CSV text: .* save the "
+                                        r"sheet as CSV"):
+        load_recording(tmp_path / "book.csv")
+    (tmp_path / "bin.csv").write_bytes(b"\x00\x9a" * 50)
+    with pytest.raises(DataError, match="bin.csv: not UTF-8 text"):
+        load_recording(tmp_path / "bin.csv")
+
+
+@pytest.mark.parametrize("header, hint", [
+    ("Test_Time(s),Step_Time(s),Current(A),Voltage(V),Aux_Temperature_1(C)",  # Arbin-like
+     "rename 'Test_Time(s)' to time_s, 'Current(A)' to current_a, 'Voltage(V)' to voltage_v, "
+     "'Aux_Temperature_1(C)' to temperature_c"),
+    ("time/s,Step,I/mA,Ewe/V,Date_Time",  # BioLogic-like
+     "rename 'time/s' to time_s, 'I/mA' to current_a in A (x 0.001), 'Ewe/V' to voltage_v"),
+    ("Time [h],Current [mA],Voltage [mV],Temperature [K]",
+     "rename 'Time [h]' to time_s in s (x 3600), 'Current [mA]' to current_a in A (x 0.001), 'Voltage [mV]' to "
+     "voltage_v in V (x 0.001), 'Temperature [K]' to temperature_c in degC (- 273.15)"),
+    ("Zeit,Strom,Spannung,Tmp", ""),
+])
+def test_a_labs_column_names_are_mapped_in_the_error_with_units_and_sign(tmp_path: Path, header, hint) -> None:
+    """A cycler's export named the missing columns and the header, not which header column is which, the unit it
+    must be in, or the sign of the current: a user renaming 'I/mA' to current_a ran into the charge check later."""
+    n = header.count(",") + 1
+    path = _write(tmp_path / "lab.csv", header + "\n" + ("1," * (n - 1) + "1\n") * 3)
+    with pytest.raises(DataError) as exc:
+        load_recording(path)
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: missing column(s) time_s, current_a, voltage_v")
+    assert ("this tool reads time_s in s, current_a in A (positive = charge), voltage_v in V and, optionally, "
+            "temperature_c in degC") in msg
+    assert msg.endswith(f"degC: {hint}" if hint else "temperature_c in degC"), msg
+
+
+@pytest.mark.parametrize("text, message", [
+    ("time_s,current_a,voltage_v\n0,-1,4.1\n1,-1,4.0\n2,-1,4.0\n0,-1,3.9\n1,-1,3.9\n",
+     r"time goes backwards at data row 3 \(line 5\): 2.0 -> 0.0 s: a second recording appended here, its time from "
+     r"the start again\? add the first's end time to its time_s$"),
+    ("time_s,current_a,voltage_v\n0,-1,4.1\n2,-1,4.0\n1,-1,4.0\n3,-1,3.9\n",
+     r"time goes backwards at data row 2 \(line 4\): 2.0 -> 1.0 s: sort the rows by time_s$"),
+    ('time_s,current_a,voltage_v\n0,-1,"4,1"\n1,-1,"4,0"\n',
+     r"line 2: non-numeric value '4,1' in column 'voltage_v': a decimal comma\? this tool reads a point as the decimal "
+     r"mark \(4.19, not 4,19\)$"),
+    ("time_s,current_a,voltage_v\n2024-03-01 10:00:00,-1,4.1\n2024-03-01 10:00:01,-1,4.0\n",
+     r"line 2: non-numeric value '2024-03-01 10:00:00' in column 'time_s': time_s is seconds as a number; convert the "
+     r"timestamps \(their seconds since the first\)$"),
+])
+def test_a_joined_or_unsorted_time_a_decimal_comma_and_timestamps_are_named(tmp_path: Path, text, message) -> None:
+    """Two recordings appended, rows out of order, a quoted decimal comma and datetime strings were refused naming
+    the line only; each now says what it looks like and the way out."""
+    with pytest.raises(DataError, match=message):
+        load_recording(_write(tmp_path / "x.csv", text))
+
+
+def test_a_row_of_units_under_the_header_is_named(tmp_path: Path) -> None:
+    """A cycler's export with its units in the row under the names read "line 2: non-numeric value 's'"."""
+    path = _write(tmp_path / "units.csv", "time_s,current_a,voltage_v\ns,A,V\n0,-1,4.1\n1,-1,4.0\n")
+    with pytest.raises(DataError, match=r"units.csv: line 2: non-numeric value 's' in column 'time_s': a row of "
+                                        r"units under the header\? delete it, or start it with '#'$"):
+        load_recording(path)
+    commented = _write(tmp_path / "commented.csv", "time_s,current_a,voltage_v\n# s,A,V\n0,-1,4.1\n1,-1,4.0\n")
+    assert len(load_recording(commented, resample_s=None)) == 2

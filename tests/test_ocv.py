@@ -238,6 +238,51 @@ def test_from_c20_needs_both_branches() -> None:
         OcvCurve.from_c20(t, np.abs(i), v)
 
 
+def test_from_c20_of_a_test_that_starts_empty_and_charges_first() -> None:
+    """A C/20 test that starts at the cut-off charges first, rests, then discharges: it was refused ('no
+    charge segment after the discharge', with a hint at HPPC) though it holds both branches. The same
+    branches give the same table, with a common Ah scale too."""
+    t, i, v = make_c20(cap_d=3.0, cap_c=3.0)
+    k_c = np.flatnonzero(i > 0)[0] - 30  # from the rest after the discharge on: rest, charge, rest
+    t2 = np.r_[t[k_c:] - t[k_c], t[k_c:][-1] - t[k_c] + t[:k_c] - t[0] + 60.0]
+    i2, v2 = np.r_[i[k_c:], i[:k_c]], np.r_[v[k_c:], v[:k_c]]
+    assert np.all(np.diff(t2) > 0)
+    for cap in (None, 3.0):
+        a = OcvCurve.from_c20(t, i, v, capacity_ah=cap)
+        b = OcvCurve.from_c20(t2, i2, v2, capacity_ah=cap)
+        np.testing.assert_allclose(b.soc, a.soc)
+        np.testing.assert_allclose(b.ocv_v, a.ocv_v, atol=1e-9)
+        np.testing.assert_allclose(b.hysteresis_v, a.hysteresis_v, atol=1e-9)
+        assert (b.capacity_discharge_ah, b.capacity_charge_ah) == pytest.approx((3.0, 3.0))
+
+
+@pytest.mark.parametrize("at", [0.4, 0.7])
+def test_from_c20_of_a_branch_with_a_pause_is_the_whole_branch(at) -> None:
+    """A C/20 discharge paused for 10 min (a rest inside it, the same current on either side): its longest run
+    alone was the branch, stretched over SOC 0..1 (the LG 25 degC test paused 40 % in: 105 mV RMS off, its
+    capacity 1.67 Ah, exit 0). The paused test gives the unpaused one's table; a pause in the charge too."""
+    t, i, v = make_c20(cap_d=3.0, cap_c=2.7)
+    base = OcvCurve.from_c20(t, i, v)
+    for sign in (-1, 1):
+        k = np.flatnonzero(sign * i > 0)
+        k = int(k[int(at * k.size)])
+        pause = np.arange(1, 11) * 60.0
+        t2 = np.r_[t[:k + 1], t[k] + pause, t[k + 1:] + 600.0]
+        i2 = np.r_[i[:k + 1], np.zeros(10), i[k + 1:]]
+        v2 = np.r_[v[:k + 1], v[k] - sign * 0.01 * np.ones(10), v[k + 1:]]  # relaxing towards the OCV
+        c = OcvCurve.from_c20(t2, i2, v2)
+        assert (c.capacity_discharge_ah, c.capacity_charge_ah) == pytest.approx((3.0, 2.7), abs=1e-9)
+        np.testing.assert_allclose(c.ocv_v, base.ocv_v, atol=1e-9)
+        np.testing.assert_allclose(c.hysteresis_v, base.hysteresis_v, atol=1e-9)
+    # a run at another current after the pause is not joined (a drive's, an HPPC test's): the longest run is the
+    # branch, as before
+    k = int(np.flatnonzero(i < 0)[int(0.6 * np.count_nonzero(i < 0))])
+    i3 = i.copy()
+    i3[k:k + 10] = 0.0
+    i3[k + 10:][i3[k + 10:] < 0] *= 2.0
+    assert OcvCurve.from_c20(t, i3, v).capacity_discharge_ah == pytest.approx(2 * 0.4 * 3.0 - 0.05, abs=0.02)
+
+
 # --------------------------------------------------------------------------- HPPC
 
 

@@ -79,6 +79,24 @@ def test_the_rest_plan_rests_over_what_the_sampler_would_not_bridge():
         rest_plan(41, 1.0, unlogged=unlogged)
 
 
+def test_a_coarse_log_bridges_what_the_service_at_its_period_bridges():
+    """The service's sampler bridges max(5 s, 2 periods): a 10 s log's one missing record (10 s unlogged) was
+    rested over as parked, and the LG la92 drive logged at 10 s with 15 % of its records missing ran its
+    capacity estimate to 2.48 Ah (2.83 Ah fed, 2.82 Ah the 0.1 s file's)."""
+    unlogged = np.zeros(40, dtype=bool)
+    unlogged[5] = True  # one record missing: 10 s, bridged
+    unlogged[10:12] = True  # two: 20 s, bridged
+    unlogged[20:23] = True  # three: 30 s, a time jump
+    plan = rest_plan(40, 10.0, unlogged=unlogged)
+    assert plan.fed[:20].all() and not plan.fed[20:23].any() and plan.fed[23:].all()
+    assert np.flatnonzero(plan.rest_before_s).tolist() == [23] and plan.rest_before_s[23] == 30.0
+    t = np.r_[np.arange(10.0), 13.0 + np.arange(10.0)] * 10.0  # a jump of 30 s in a 10 s time axis: rested
+    assert rest_plan(20, 10.0, time_s=t).rest_before_s[10] == 30.0
+    t = np.r_[np.arange(10.0), 12.0 + np.arange(10.0)] * 10.0  # of 20 s: bridged
+    assert rest_plan(20, 10.0, time_s=t).gaps == 0
+    assert rest_plan(40, 1.0, unlogged=unlogged).gaps == 0  # at 1 s, 5 s as before: 1-3 s runs bridged
+
+
 def test_soc_rests_over_a_logging_gap_as_the_service_does(gap_file, tmp_path, capsys):
     """The 2 h park the file does not log is rested over: the trace keeps every row of the file's time base
     (fed = 0 in the gap, the estimate held), the run is a SocEstimator fed the logged samples with an explicit

@@ -12,6 +12,7 @@ from ..errors import UsageError
 from .common import (METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
                      non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc,
                      write_json)
+from .common import RECORDING_HELP
 from .outputs import check_outputs, file_output, folder_output
 
 #: the figures --plots writes in its folder
@@ -26,8 +27,8 @@ def add_parser(sub) -> None:
                                    "runs online over the training file; its parameters simulate the "
                                    "training file (online trajectory) and the validation file (training parameters "
                                    "looked up by SOC). RMSEs cover the 20-90 % SOC part unless --full-range.")
-    p.add_argument("--train", type=Path, required=True)
-    p.add_argument("--validate", type=Path, required=True)
+    p.add_argument("--train", type=Path, required=True, help=f"the recording to identify on: {RECORDING_HELP}")
+    p.add_argument("--validate", type=Path, required=True, help=f"the recording to score on: {RECORDING_HELP}")
     add_cell_options(p)
     p.add_argument("--soc-min", type=float, default=0.2, help="lower end of the scored SOC window (default 0.2)")
     p.add_argument("--soc-max", type=float, default=0.9, help="upper end of the scored SOC window (default 0.9)")

@@ -16,6 +16,7 @@ from ..errors import DataError, UsageError
 from .outputs import check_outputs, file_output, folder_output
 from .common import (add_cell_options, add_method_option, load, load_ocv, positive_float,
                      warn_if_start_is_not_initial_soc, write_json)
+from .common import RECORDING_HELP
 
 
 def add_parser(sub) -> None:
@@ -27,7 +28,7 @@ def add_parser(sub) -> None:
                     "(4-fold cross-validation over interleaved time blocks, or on --validate) with a penalty for "
                     "extra parameters, and names the cause with the largest significant gain ('none' when no "
                     "extension earns its parameters).")
-    p.add_argument("data", type=Path)
+    p.add_argument("data", type=Path, help=RECORDING_HELP)
     add_cell_options(p)
     p.add_argument("--validate", type=Path, default=None,
                    help="score on this recording instead of cross-validating on DATA "

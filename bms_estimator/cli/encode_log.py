@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .common import positive_float, soc_fraction
+from .common import RECORDING_HELP, positive_float, soc_fraction
 from .outputs import check_outputs, file_output
 
 
@@ -20,7 +20,7 @@ def add_parser(sub) -> None:
                     "residual. The injected truth goes to OUT.truth.json. Details: "
                     "bms_estimator/replay/encode_log.py.",
     )
-    p.add_argument("data", type=Path, help="CSV time_s,current_a,voltage_v[,temperature_c] (current positive = charge)")
+    p.add_argument("data", type=Path, help=RECORDING_HELP)
     p.add_argument("--cells", type=int, required=True, help="cells in series (1..2000)")
     p.add_argument("-o", "--output", type=Path, required=True,
                    help="output log; the suffix picks the format: .log (candump), .asc (Vector ASCII), .blf (Vector binary)")

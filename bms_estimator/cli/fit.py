@@ -13,6 +13,7 @@ from ..analysis import (
 )
 from .common import (add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv,
                      soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc, write_json)
+from .common import RECORDING_HELP
 from .outputs import check_outputs, figure_output, file_output
 
 #: the second figure --plot writes, beside the first
@@ -35,7 +36,7 @@ def add_parser(sub) -> None:
                                    "along the coulomb-counted SOC path from the known start, then runs the chosen "
                                    "identifier along that path (with the known-SOC c0 prior, --c0-prior) and "
                                    "simulates the file with the identified parameter trajectory.")
-    p.add_argument("data", type=Path)
+    p.add_argument("data", type=Path, help=RECORDING_HELP)
     add_cell_options(p)
     add_method_option(p, IDENTIFICATION_METHOD)
     p.add_argument("--json", type=Path, default=None)

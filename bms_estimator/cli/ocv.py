@@ -5,10 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from ..core.ocv import CELL_TEMPERATURE_RANGE_C, OcvCurve
 from ..data import load_recording
 from ..errors import DataError
 from ..ocv_table import write_ocv_table
+from .common import RECORDING_HELP
 from .outputs import check_outputs, file_output
 
 
@@ -20,7 +23,7 @@ def add_parser(sub) -> None:
                                    "HPPC test and the OCV comes from its rest points. The table records the test's "
                                    "temperature (temperature_c) and discharge capacity (capacity_ah): give several "
                                    "tables to --ocv, one per temperature.")
-    p.add_argument("data", type=Path, help="c20_ocv CSV (or hppc CSV with --hppc-steps)")
+    p.add_argument("data", type=Path, help=f"a C/20 test (or an HPPC test with --hppc-steps): {RECORDING_HELP}")
     p.add_argument("-o", "--output", type=Path, required=True, help="OCV CSV to write")
     p.add_argument("--hppc-steps", type=Path, default=None, help="the hppc_steps CSV that goes with an hppc file")
     p.add_argument("--temperature-c", type=_cell_temperature, default=None,
@@ -42,6 +45,28 @@ def _cell_temperature(text: str) -> float:
     return value
 
 
+#: hours a slow (pseudo-OCV) discharge takes at its own current: C/2 .. C/200 (the data set's C/20: 18.5-20.7 h)
+C20_BRANCH_HOURS = (2.0, 200.0)
+
+
+def _check_branch_hours(path: Path, current_a: np.ndarray, capacity_ah: float) -> None:
+    """Refuse a discharge branch that lasts outside ``C20_BRANCH_HOURS`` at its median current: a time_s in hours
+    or minutes, or in ms, makes every capacity of the table 3600 or 60 times too small or 1000 times too large
+    (the LG 25 degC test in hours: a 0.001 Ah table, written without a word). The OCV shape is unchanged (each
+    branch is read on its own throughput), but the table's capacity_ah is what --capacity-ah is checked against."""
+    i = np.asarray(current_a, dtype=float)
+    ref = float(np.percentile(np.abs(i), 90))
+    dis = -i[i < -0.2 * ref]
+    if dis.size == 0 or not capacity_ah:
+        return
+    hours = capacity_ah / float(np.median(dis))
+    lo, hi = C20_BRANCH_HOURS
+    if not lo <= hours <= hi:
+        raise DataError(f"{path}: its discharge branch lasts {hours:.3g} h at its median current "
+                        f"({float(np.median(dis)):.4g} A for {capacity_ah:.4g} Ah), where a slow OCV test's takes "
+                        f"{lo:g}-{hi:g} h (C/20: 20 h): is time_s in seconds?")
+
+
 def run(args: argparse.Namespace) -> int:
     check_outputs([("DATA", args.data), ("--hppc-steps", args.hppc_steps)], [file_output("-o/--output", args.output)])
     rec = load_recording(args.data, resample_s=None)
@@ -60,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
             curve = OcvCurve.from_c20(rec.time_s, rec.current_a, rec.voltage_v, temperature_c=temperature)
         except ValueError as exc:  # the file is not a C/20 test
             raise DataError(f"{args.data}: {exc} (an HPPC test needs --hppc-steps)") from None
+        _check_branch_hours(args.data, rec.current_a, curve.capacity_discharge_ah)
     write_ocv_table(curve, args.output)
     msg = f"wrote {args.output}: {len(curve.soc)} points, OCV {curve.ocv_v[0]:.3f}..{curve.ocv_v[-1]:.3f} V"
     if curve.temperature_c is None:

@@ -16,7 +16,9 @@ from ..errors import DataError
 from ..gaps import MAX_GAP_S, held_charge_in_gaps, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
 from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
-                     load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction, write_json)
+                     fahrenheit_hint, load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction,
+                     warn_if_start_is_not_initial_soc, write_json)
+from .common import RECORDING_HELP
 from .outputs import check_outputs, figure_output, file_output
 
 
@@ -35,14 +37,14 @@ def add_parser(sub) -> None:
         "soc", help="run the SOC estimator from any start and score it against the independent reference",
         description="Runs the online SOC estimator (identification, OCV correction, capacity estimation) over a "
                     "recording, starting at --start-s with --start-soc (or the reference there minus "
-                    "--initial-soc-error). The reference is coulomb counting from the recording's full start with "
-                    "Q_ref = Ah_out(end) / (1 - SOC_end), SOC_end read from the relaxed end-of-test voltage on the "
+                    "--initial-soc-error). The reference is coulomb counting from the recording's start at --initial-soc "
+                    "(default 1.0, full) with Q_ref = Ah_out(end) / (initial SOC - SOC_end), SOC_end read from the relaxed end-of-test voltage on the "
                     "discharge branch of the same cell's C/20 table at the same ambient (--reference-ocv; by default "
                     "the --ocv table with hysteresis within 5 K of the recording's temperature). A logging gap of the file "
                     f"(no sample for longer than {MAX_GAP_S:g} s) is rested over as the service rests over a time "
                     "jump (--no-rest-over-gaps: fed as samples); the scores count every sample of the file's time "
                     "base from the start, a gap's with the estimate held from before it.")
-    p.add_argument("data", type=Path, help="drive-cycle CSV(.gz) in the ../shared/data layout")
+    p.add_argument("data", type=Path, help=f"the drive: {RECORDING_HELP}")
     add_cell_options(p)
     p.add_argument("--start-s", type=float, default=0.0,
                    help="the estimator begins at this time of the file (s); inside a logging gap it begins at the "
@@ -72,12 +74,21 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def curves_of(ocv) -> list:
+    """The tables of an OCV surface (one curve: itself)."""
+    return list(getattr(ocv, "curves", None) or [ocv])
+
+
+def temperatures_of(ocv) -> list:
+    """The tables' temperatures, ``None`` where unknown, one per :func:`curves_of`."""
+    return list(getattr(ocv, "temperatures_c", [None] * len(curves_of(ocv))))
+
+
 def _reference_table(args: argparse.Namespace, ocv, temp_c: float | None):
     """The C/20 table of the recording's ambient: --reference-ocv, else the nearest --ocv table with hysteresis."""
     if args.reference_ocv is not None:
         return load_ocv([args.reference_ocv]), "given"
-    curves = getattr(ocv, "curves", None) or [ocv]
-    temps = list(getattr(ocv, "temperatures_c", [None] * len(curves)))
+    curves, temps = curves_of(ocv), temperatures_of(ocv)
     best = None
     for c, t in zip(curves, temps):
         if not c.has_hysteresis:
@@ -100,14 +111,26 @@ def _reference(args: argparse.Namespace, rec, ocv) -> tuple[float, str, bool, np
     temp_c = float(np.nanmedian(temp)) if temp is not None and np.isfinite(temp).any() else None
     table, _ = _reference_table(args, ocv, temp_c)
     if table is None:
+        temps = [t for c, t in zip(curves_of(ocv), temperatures_of(ocv)) if c.has_hysteresis and t is not None]
+        hint = "" if temp_c is None or not temps else fahrenheit_hint(temp_c, min(temps), max(temps))
         raise ValueError(f"{args.data}: no C/20 table (with hysteresis) within {SAME_AMBIENT_K:g} K of the "
                          f"recording's {'unknown' if temp_c is None else f'{temp_c:.1f}'} degC among --ocv: give "
-                         "--reference-ocv or --reference-capacity-ah")
+                         f"--reference-ocv or --reference-capacity-ah{hint}")
     try:
-        ref = soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, table)
+        # from --initial-soc, the file's start (1.0: the data set's full starts); a log that starts mid-drive
+        # was counted from full whatever --initial-soc said: the LG la92 drive from 0.63 read a 1.68 Ah
+        # reference and scored the estimator's right 2.82 Ah run at 14 % SOC RMSE
+        ref = soc_reference(rec.current_a, rec.voltage_v, rec.dt_s, table, soc0=args.initial_soc)
     except ValueError as exc:  # the file cannot carry its own reference (no discharge, ends full)
         raise DataError(f"{args.data}: no SOC reference from the file: {exc}; give --reference-capacity-ah "
                         "to count the reference with a known capacity") from None
+    c20_ah = getattr(table, "capacity_discharge_ah", None)
+    if c20_ah and not REFERENCE_C20_RATIO[0] <= ref.capacity_ah / c20_ah <= REFERENCE_C20_RATIO[1]:
+        print(f"bms-estimator soc: warning: {args.data.name}: counted from --initial-soc {args.initial_soc:g} at "
+              f"its start, the reference reads a capacity of {ref.capacity_ah:.3f} Ah, "
+              f"{ref.capacity_ah / c20_ah:.2f} x its C/20 table's {c20_ah:.3f} Ah (the data set's drives 0.96-1.04): "
+              "does the file start there (a log from mid-drive)? give its start SOC with --initial-soc",
+              file=sys.stderr)
     return ref.capacity_ah, ref.why, ref.relaxed, ref.soc
 
 
@@ -127,9 +150,16 @@ def _write_trace(path: Path, rec, run_, soc_ref: np.ndarray, counted: np.ndarray
     cols = {"time_s": rec.time_s, "soc": run_.soc, "soc_sigma": run_.soc_sigma, "soc_reference": soc_ref,
             "soc_counted": counted, "capacity_ah": run_.capacity_ah,
             "temperature_c": temp if temp is not None else np.full(len(rec), np.nan), "fed": fed.astype(float)}
+    # time_s to the microsecond, as the recordings are saved: at 6 significant digits a log stamped in Unix
+    # time read 1.7e+09 on every row, and a 12 day one lost its seconds
     np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
-               comments="", fmt="%.6g")
+               comments="", fmt=["%.6f"] + ["%.6g"] * (len(cols) - 1))
 
+
+#: A reference capacity outside these times its C/20 table's is warned about: the data set's drives read 0.96-1.04
+#: at their ambient; a log that starts mid-drive, counted from full, reads far less (the LG la92 drive from SOC
+#: 0.63: 0.60).
+REFERENCE_C20_RATIO = (0.8, 1.25)
 
 #: a logging gap whose held current counts less than this SOC (a fraction) in the reference is not worth a word
 HELD_SOC_NOTED = 1e-4
@@ -168,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
                    figure_output("--plot", args.plot)])
     rec = load(args.data, args, identifies=False)  # a rest file: the SOC read on the OCV, counted
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
+    warn_if_start_is_not_initial_soc(rec, ocv, args)  # the reference counts from --initial-soc
     dt = rec.dt_s
     t = rec.time_s - rec.time_s[0]
     k0 = int(np.searchsorted(t, args.start_s - 1e-9))

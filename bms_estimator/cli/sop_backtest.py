@@ -16,6 +16,7 @@ from ..errors import UsageError
 from ..sop_backtest import run_backtest, summary
 from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
                      load_ocv, positive_float, soc_config, warn_if_start_is_not_initial_soc, write_json)
+from .common import RECORDING_HELP
 from .outputs import check_outputs, file_output
 
 _SOP = SopConfig()
@@ -32,7 +33,7 @@ def add_parser(sub) -> None:
                     "and checks the computed current limits against what the cell then did: 'limit exceeded' = the "
                     "voltage went past --v-min/--v-max while every sample's current stayed within the limits. The "
                     "HPPC static-resistance method is scored alongside as the baseline.")
-    p.add_argument("data", type=Path, help="CSV(.gz) in the ../shared/data layout (HPPC or drive cycle)")
+    p.add_argument("data", type=Path, help=f"an HPPC test or a drive: {RECORDING_HELP}")
     add_cell_options(p)
     p.add_argument("--horizon-s", type=positive_float, default=10.0, help="prediction horizon = window length (default 10 s)")
     p.add_argument("--v-min", type=positive_float, default=_SOP.v_min, help=f"cell discharge cut-off, V (default {_SOP.v_min:g})")

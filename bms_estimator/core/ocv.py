@@ -347,7 +347,10 @@ class OcvCurve:
         1. Segments.  Samples with ``I < -I_th`` form discharge runs, ``I > I_th``
            charge runs (``I_th`` = 20 % of the 90th percentile of ``|I|``, i.e. of
            the C/20 current, unless given).  The discharge branch is the run with
-           the largest charge; the charge branch the largest charge run after it.
+           the largest charge; the charge branch the largest charge run after it,
+           or, in a test that starts empty and charges first (no charge run after
+           the discharge), the largest one before it, which ends full where the
+           discharge starts.
         2. Coulomb counting: trapezoid over the branch's records plus the lead
            ``I_first Delta`` before its first record (logger model of
            :meth:`from_hppc`; ``Delta`` = spacing of the branch's records, at most
@@ -393,16 +396,23 @@ class OcvCurve:
             if ref <= 0:
                 raise ValueError("the current is zero in 90 % of the samples or more: not a C/20 test")
             current_threshold_a = 0.2 * ref
-        runs_d = _runs(i < -current_threshold_a)
-        runs_c = _runs(i > current_threshold_a)
+        # a branch paused (a rest inside the C/20 discharge or charge, at its own current on either side) is one
+        # branch: its longest run alone, stretched over 0..1, read the LG 25 degC table 105 mV RMS off for a 10 min
+        # pause 40 % into the discharge
+        runs_d = _join_paused_runs(_runs(i < -current_threshold_a), _runs(i > current_threshold_a), i, t)
+        runs_c = _join_paused_runs(_runs(i > current_threshold_a), _runs(i < -current_threshold_a), i, t)
         if not runs_d:
             raise ValueError("no discharge segment (I < -threshold) found in the C/20 data")
         qd = [_branch_charge(t, i, a, b) for a, b in runs_d]
         kd = int(np.argmax([-q[-1] for q in qd]))
         d0, d1 = runs_d[kd]
         later = [(a, b) for a, b in runs_c if a >= d1]
+        # a test that starts empty charges first: its charge branch ends full where the discharge starts
+        charge_first = not later
+        if charge_first:
+            later = [(a, b) for a, b in runs_c if b <= d0]
         if not later:
-            raise ValueError("no charge segment (I > threshold) after the discharge in the C/20 data")
+            raise ValueError("no charge segment (I > threshold) before or after the discharge in the C/20 data")
         qc = [_branch_charge(t, i, a, b) for a, b in later]
         kc = int(np.argmax([q[-1] for q in qc]))
         c0, c1 = later[kc]
@@ -425,7 +435,7 @@ class OcvCurve:
             if not capacity_ah > 0:
                 raise ValueError(f"capacity_ah must be positive, got {capacity_ah!r}")
             soc_d = 1.0 - q_d / capacity_ah
-            soc_c = 1.0 - cap_d / capacity_ah + q_c / capacity_ah
+            soc_c = (1.0 - cap_c / capacity_ah if charge_first else 1.0 - cap_d / capacity_ah) + q_c / capacity_ah
         lo = max(0.0, soc_d.min(), soc_c.min())
         hi = min(1.0, soc_d.max(), soc_c.max())
         if capacity_ah is None:
@@ -436,8 +446,10 @@ class OcvCurve:
                 f"capacity_ah={capacity_ah}"
             )
         grid = np.linspace(lo, hi, n_points)
-        v_d = _branch_on_grid(soc_d[::-1], v[d0:d1][::-1], grid)
-        v_c = _branch_on_grid(soc_c, v[c0:c1], grid)
+        on_d = np.abs(i[d0:d1]) > current_threshold_a  # (a pause's relaxing voltage is no point of its branch)
+        on_c = np.abs(i[c0:c1]) > current_threshold_a
+        v_d = _branch_on_grid(soc_d[on_d][::-1], v[d0:d1][on_d][::-1], grid)
+        v_c = _branch_on_grid(soc_c[on_c], v[c0:c1][on_c], grid)
         ocv_v = _strictly_increasing(0.5 * (v_c + v_d), _EPS_V)
         hyst = np.maximum(0.5 * (v_c - v_d), 0.0)
         return cls(grid, ocv_v, hyst, capacity_discharge_ah=cap_d, capacity_charge_ah=cap_c,
@@ -877,6 +889,36 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     m = np.r_[False, mask, False].astype(np.int8)
     edges = np.flatnonzero(np.diff(m))
     return list(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+
+
+#: runs of one sign joined across a pause into one C/20 branch when their median currents are within this of the
+#: first's (the same C-rate; a drive's or an HPPC test's runs at other currents are not joined) ...
+PAUSED_RUN_CURRENT_TOLERANCE = 0.25
+#: ... and each lasts this long at least (a C/20 branch's parts last hours, a drive's runs seconds to minutes: the
+#: data set's drive cycles and HPPC tests are refused with the figures of their runs as before)
+PAUSED_RUN_MIN_S = 600.0
+
+
+def _join_paused_runs(runs: list[tuple[int, int]], opposite: list[tuple[int, int]], i: np.ndarray,
+                      t: np.ndarray) -> list[tuple[int, int]]:
+    """``runs`` with each chain of consecutive runs of ``PAUSED_RUN_MIN_S`` or more at the first one's current
+    (within ``PAUSED_RUN_CURRENT_TOLERANCE``), separated by rests only (no run of ``opposite`` between them),
+    joined into one ``[a, b)`` spanning the rests."""
+    starts = np.array([a for a, _ in opposite], dtype=np.int64)
+    out: list[tuple[int, int]] = []
+    ref = None  # the current of the chain the last run of ``out`` can take more of (None: it takes none)
+    for a, b in runs:
+        level = float(np.median(np.abs(i[a:b])))
+        long_run = float(t[b - 1] - t[a]) >= PAUSED_RUN_MIN_S
+        if out and ref is not None and long_run:
+            a0, b0 = out[-1]
+            between = np.any((starts >= b0) & (starts < a))
+            if not between and abs(level - ref) <= PAUSED_RUN_CURRENT_TOLERANCE * ref:
+                out[-1] = (a0, b)
+                continue
+        out.append((a, b))
+        ref = level if long_run else None
+    return out
 
 
 def _branch_charge(t: np.ndarray, i: np.ndarray, a: int, b: int) -> np.ndarray:

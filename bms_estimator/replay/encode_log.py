@@ -84,6 +84,7 @@ import errno
 import json
 import math
 import os
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -711,6 +712,24 @@ def truth_dict(trace: PackTrace, fa: FrameArrays, *, out: str = "") -> dict[str,
     }
 
 
+def _warn_if_off_the_tables_temperature(rec: CellRecording, curve: OcvCurve, ocv_source: str) -> None:
+    """Warn, as the other commands do, when the recording's median cell temperature is more than 5 K from the OCV
+    table's: its cells are simulated on that table and its temperatures written to the log as read (a column in
+    degF, 75 at 24 degC, went out as 75 degC cell temperatures without a word)."""
+    from ..cli.common import SAME_AMBIENT_K, fahrenheit_hint
+    from ..core.ocv import median_temperature_c
+
+    if rec.temperature_c is None or curve.temperature_c is None:
+        return
+    median_c, table_c = median_temperature_c(rec.temperature_c), float(curve.temperature_c)
+    if median_c is None or not math.isfinite(median_c) or abs(median_c - table_c) <= SAME_AMBIENT_K:
+        return
+    warnings.warn(f"{rec.source}: its median cell temperature {median_c:.1f} degC is {abs(median_c - table_c):.0f} K "
+                  f"from the OCV table's {table_c:.1f} degC ({Path(ocv_source).name}): the cells are simulated on "
+                  f"that table; give --ocv a table measured near {round(median_c)} degC"
+                  f"{fahrenheit_hint(median_c, table_c, table_c)}", UserWarning, stacklevel=3)
+
+
 def encode_log(
     data: str | Path,
     out: str | Path,
@@ -743,6 +762,7 @@ def encode_log(
     curve, ocv_source, q = resolve_cell_defaults(data, ocv, capacity_ah)
     rec = load_recording(data)
     check_charge_span(rec, q, "--capacity-ah" if capacity_ah is not None else "the shipped cell's capacity")
+    _warn_if_off_the_tables_temperature(rec, curve, ocv_source)
     trace = build_pack(
         rec, n_cells, curve, q, seed=seed, spread=spread if spread is not None else CellSpread(),
         initial_soc=initial_soc, reference_capacity_ah=reference_capacity_ah, duration_s=duration_s,
