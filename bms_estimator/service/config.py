@@ -56,6 +56,7 @@ __all__ = [
     "ID_PATTERN",
     "HealthConfig",
     "LoggingConfig",
+    "MAX_CELLS",
     "MqttConfig",
     "PackConfig",
     "ServiceConfig",
@@ -79,9 +80,13 @@ class _Strict(BaseModel):
 
 
 # --------------------------------------------------------------------------- pack
+#: the most cells a pack may have (``pack.n_cells``)
+MAX_CELLS = 1024
+
+
 class PackConfig(_Strict):
     pack_id: str = Field("pack0", pattern=ID_PATTERN, description="used in MQTT topics and HA ids")
-    n_cells: int = Field(16, ge=1, le=1024)
+    n_cells: int = Field(16, ge=1, le=MAX_CELLS)
     capacity_ah: float = Field(50.0, gt=0, le=1e5)
     ocv_csv: Path | list[Path] | None = Field(
         None, description="OCV(SOC) table, or a list of tables at several temperatures (each with its temperature_c "

@@ -39,6 +39,7 @@ from .. import aio, package_version
 from ..errors import ConfigError
 from ..jsonsafe import to_jsonable
 from . import schema
+from .config import MAX_CELLS
 from .mqtt_client import MqttClient
 
 if TYPE_CHECKING:
@@ -51,6 +52,9 @@ __all__ = ["MqttCounters", "MqttPublisher", "tls_context"]
 log = structlog.get_logger("bms.mqtt")
 
 _PUBLISH_BATCH = 256
+#: discovery topics subscribed to at once when looking for orphans (:meth:`MqttPublisher.remove_orphans`): well
+#: below the messages a broker queues for one client (Mosquitto's max_queued_messages: 1000 by default)
+ORPHAN_SCAN_BATCH = 256
 #: discovery configs, their removal and the availability are retained and sent QoS 1
 _CONTROL_QOS = 1
 
@@ -547,30 +551,32 @@ class MqttPublisher:
 
     async def remove_orphans(self, client: aiomqtt.Client) -> int:
         """Remove this pack's retained discovery configs that the current configuration does not
-        publish (a pack that had more cells, or discovery turned off): subscribe to the discovery
-        prefix, collect the retained configs up to a probe message of our own, and clear the
-        orphans with an empty retained message. Returns their number."""
+        publish (a pack that had more cells, or discovery turned off): subscribe to every discovery
+        topic this pack may have used (:meth:`~bms_estimator.service.schema.Topics.discovery_filters`,
+        cells up to ``pack.n_cells``' limit), :data:`ORPHAN_SCAN_BATCH` at a time, collect the retained
+        configs of each batch up to a probe message of our own, and clear the orphans with an empty
+        retained message. Returns their number.
+
+        A batch at a time: a broker queues at most so many messages for a client (Mosquitto's
+        ``max_queued_messages``, 1000 by default) and drops the rest. One subscription to every
+        discovery config on the broker (``<prefix>/+/+/config``) had the configs beyond it dropped, the
+        probe with them: a pack of more than about 90 cells, or any pack on a broker holding more than
+        1000 configs, timed out and never removed its orphans."""
         cfg = self.cfg
         keep = {t for t, _ in self.discovery_messages()} if cfg.discovery else set()
         probe = self.topics.probe
-        token = f"{random.getrandbits(64):016x}"
-        flt = self.topics.discovery_filter
+        filters = self.topics.discovery_filters(MAX_CELLS)
         await client.subscribe(probe, qos=_CONTROL_QOS)
-        await client.subscribe(flt, qos=_CONTROL_QOS)
         found: set[str] = set()
         try:
-            await client.publish(probe, token, qos=_CONTROL_QOS, retain=False, timeout=cfg.timeout_s)
-            async with asyncio.timeout(cfg.timeout_s):
-                async for message in client.messages:
-                    topic = message.topic.value
-                    if topic == probe and _text(message.payload) == token:
-                        break
-                    if topic == self.ha_status_topic and _text(message.payload).strip().lower() == "online":
-                        self._discovery_due = True
-                    elif message.retain and message.payload and self._is_ours(topic):
-                        found.add(topic)
+            for start in range(0, len(filters), ORPHAN_SCAN_BATCH):
+                batch = filters[start : start + ORPHAN_SCAN_BATCH]
+                await client.subscribe([(f, _CONTROL_QOS) for f in batch])
+                try:
+                    found |= await self._retained_until_probe(client, probe)
+                finally:
+                    await client.unsubscribe(batch)
         finally:
-            await client.unsubscribe(flt)
             await client.unsubscribe(probe)
         orphans = sorted(found - keep)
         if orphans:
@@ -579,6 +585,24 @@ class MqttPublisher:
                 raise failed[0][1]
             log.info("home assistant: removed entities this configuration no longer has", removed=len(orphans))
         return len(orphans)
+
+    async def _retained_until_probe(self, client: aiomqtt.Client, probe: str) -> set[str]:
+        """This pack's retained discovery configs that arrive before a probe message published now (the
+        broker sends a subscription's retained messages before it handles the publish after it)."""
+        cfg = self.cfg
+        token = f"{random.getrandbits(64):016x}"
+        found: set[str] = set()
+        await client.publish(probe, token, qos=_CONTROL_QOS, retain=False, timeout=cfg.timeout_s)
+        async with asyncio.timeout(cfg.timeout_s):
+            async for message in client.messages:
+                topic = message.topic.value
+                if topic == probe and _text(message.payload) == token:
+                    break
+                if topic == self.ha_status_topic and _text(message.payload).strip().lower() == "online":
+                    self._discovery_due = True
+                elif message.retain and message.payload and self._is_ours(topic):
+                    found.add(topic)
+        return found
 
     async def _publish_items(self, client: aiomqtt.Client, items: list[tuple[str, str, bool]]) -> None:
         failed = await self._publish_batch(client, items)

@@ -277,6 +277,43 @@ def test_a_pack_whose_id_extends_another_keeps_its_entities(mosquitto):
     run_async(main())
 
 
+def test_a_big_pack_that_shrinks_has_its_orphan_entities_removed(broker_factory):
+    """A 192-cell pack announces 2136 retained discovery configs (11 per cell, 24 for the pack), more than a
+    broker queues for one client (Mosquitto's max_queued_messages, 1000 by default): a scan subscribed to
+    every discovery config on the broker had the rest, and its own probe behind them, dropped by the broker,
+    timed out, and removed nothing. Restarted with 96 cells, cells 96-191 stayed in Home Assistant for ever
+    (and so did every orphan of any pack on a broker holding more than 1000 configs)."""
+    port = broker_factory(extra_conf="max_queued_messages 1000").port  # Mosquitto's default (the tests' is deeper)
+
+    async def publish_once(pack: str, n: int) -> MqttPublisher:
+        pub = MqttPublisher(mqtt_cfg(port), pack, n)
+        n_configs = len(pub.discovery_messages())  # once: 2136 JSON configs take a while to build
+        async with running(pub):
+            await wait_until(lambda: pub._orphans_checked and pub.counters.published >= 1 + n_configs, 20,
+                             "discovery")
+        return pub
+
+    def cell_topics(pack: str, cells) -> list[str]:
+        return [f"homeassistant/sensor/bms_{pack}_cell{i}_{uid}/config" for i in cells
+                for uid in ("soc", "voltage", "r0", "capacity", "soh_resistance")]
+
+    async def retained(topics: list[str]) -> set[str]:
+        async with Collector(port, (*topics, "probe/y"), qos=1) as col:
+            await col.client.publish("probe/y", "p", qos=1)
+            await col.wait(lambda c: bool(c.on("probe/y")), what="probe")
+            return {m.topic.value for m in col.messages if m.retain and m.payload}
+
+    async def main():
+        big = await publish_once("bigpack", 192)
+        assert len(big.discovery_messages()) == 2136
+        gone, kept = cell_topics("bigpack", (96, 150, 191)), cell_topics("bigpack", (0, 95))
+        assert await retained(gone + kept) == set(gone + kept)
+        await publish_once("bigpack", 96)
+        assert await retained(gone + kept) == set(kept)
+
+    run_async(main())
+
+
 def test_publish_period_and_soc_deadband():
     """Telemetry thinning on the frames' time: a period per topic, and a SOC deadband with a
     longest silence; a stale flag that changes is always sent."""
