@@ -392,7 +392,7 @@ class HealthConfig(_Strict):
     host: str = "127.0.0.1"
     port: int = Field(9108, ge=0, le=65535, description="0 = any free port")
     stale_after_periods: float = Field(3.0, gt=0, description="/healthz is 503 after this many missed ticks")
-    cell_metrics: bool = Field(False, description="per-cell gauges (SOC, R0, capacity) in /metrics: 3 series per cell")
+    cell_metrics: bool = Field(False, description="per-cell gauges (SOC, R0, capacity, the 10 s power limit each way) in /metrics: 5 series per cell")
 
     @field_validator("host")
     @classmethod
