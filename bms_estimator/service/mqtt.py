@@ -52,6 +52,9 @@ __all__ = ["MqttCounters", "MqttPublisher", "tls_context"]
 log = structlog.get_logger("bms.mqtt")
 
 _PUBLISH_BATCH = 256
+#: failed connects in a row logged each (the back-off grows meanwhile); after them one in _LOG_FAILURES_EVERY
+_LOG_FAILURES_FIRST = 10
+_LOG_FAILURES_EVERY = 100
 #: discovery topics subscribed to at once when looking for orphans (:meth:`MqttPublisher.remove_orphans`): well
 #: below the messages a broker queues for one client (Mosquitto's max_queued_messages: 1000 by default)
 ORPHAN_SCAN_BATCH = 256
@@ -171,6 +174,7 @@ class MqttPublisher:
         self._pack_last_t: float | None = None
         self._submitted: dict[str, float] = {}  # topic -> when its oldest unsent state was submitted
         self._orphans_checked = False  # once per run: the configuration does not change in between
+        self._failed_in_a_row = 0  # connects failed since the last one that succeeded (what is logged)
 
     # ------------------------------------------------------------------ topics
     def cell_topic(self, i: int) -> str:
@@ -343,7 +347,8 @@ class MqttPublisher:
                 stable = was_connected and time.monotonic() - started >= self.cfg.reconnect_max_s
                 failures = 0 if stable else failures + 1
                 delay = self._backoff(max(failures, 1))
-                log.info("mqtt reconnecting", in_s=round(delay, 3), failed_attempts=failures)
+                if self._logs_failure():
+                    log.info("mqtt reconnecting", in_s=round(delay, 3), failed_attempts=failures)
                 self._wakeup.clear()
                 with contextlib.suppress(asyncio.TimeoutError):
                     # Woken early only by close() (submissions are ignored here).
@@ -356,6 +361,14 @@ class MqttPublisher:
         while not self._closing:
             self._wakeup.clear()
             await self._wakeup.wait()
+
+    def _logs_failure(self) -> bool:
+        """Whether this failed connect is logged: each of the first :data:`_LOG_FAILURES_FIRST` in a row, then
+        one in :data:`_LOG_FAILURES_EVERY`. A broker down for days (a vehicle out of coverage) is tried every
+        ``reconnect_max_s``: a WARNING and an INFO each time, 2880 lines a day at 60 s, pushed the rest of the
+        journal out (the CAN bus's silence is said the same way)."""
+        n = self._failed_in_a_row
+        return n <= _LOG_FAILURES_FIRST or n % _LOG_FAILURES_EVERY == 0
 
     def _backoff(self, attempt: int) -> float:
         lo, hi = self.cfg.reconnect_min_s, self.cfg.reconnect_max_s
@@ -407,8 +420,10 @@ class MqttPublisher:
             client = self._make_client()
         except (OSError, ValueError, ssl.SSLError) as exc:
             self._count("connect_failures")
+            self._failed_in_a_row += 1
             why = "; ".join(exc.problems) if isinstance(exc, ConfigError) else f"{type(exc).__name__}: {exc}"
-            log.error("mqtt client setup failed", error=why)
+            if self._logs_failure():
+                log.error("mqtt client setup failed", error=why, failures_in_a_row=self._failed_in_a_row)
             return False
         entered = False
         try:
@@ -416,7 +431,9 @@ class MqttPublisher:
                 entered = True
                 self._count("connects")
                 self._set_connected(True)
-                log.info("mqtt connected", host=cfg.host, port=cfg.port, tls=cfg.tls.enabled)
+                after = {"after_failed_connects": self._failed_in_a_row} if self._failed_in_a_row else {}
+                self._failed_in_a_row = 0
+                log.info("mqtt connected", host=cfg.host, port=cfg.port, tls=cfg.tls.enabled, **after)
                 await self._serve(client)
         except aiomqtt.MqttError as exc:
             if aio.cancelling():
@@ -425,13 +442,17 @@ class MqttPublisher:
                 raise asyncio.CancelledError from exc
             if not entered:
                 self._count("connect_failures")
-                log.warning(
-                    "mqtt connect failed",
-                    host=cfg.host,
-                    port=cfg.port,
-                    error=str(exc),
-                    failures=self.counters.connect_failures,
-                )
+                self._failed_in_a_row += 1
+                if self._logs_failure():
+                    log.warning(
+                        "mqtt connect failed",
+                        host=cfg.host,
+                        port=cfg.port,
+                        error=str(exc),
+                        failures=self.counters.connect_failures,
+                        failures_in_a_row=self._failed_in_a_row,
+                        **({"next_logged_at": _LOG_FAILURES_EVERY} if self._failed_in_a_row == _LOG_FAILURES_FIRST else {}),
+                    )
             elif not self._closing:
                 self._count("disconnects")
                 log.warning("mqtt connection lost", error=str(exc))

@@ -898,3 +898,29 @@ def test_connections_that_drop_at_once_back_off_as_failed_connects_do(monkeypatc
     delays = [r["in_s"] for r in logs if r["event"] == "mqtt reconnecting"][:7]
     # reconnect_min_s doubling, with jitter in [base/2, base]: 0.01, 0.02, ... 0.64
     assert all(0.005 * 2 ** k <= d <= 0.01 * 2 ** k for k, d in enumerate(delays)), delays
+
+
+def test_a_broker_down_for_days_is_not_a_journal_line_every_attempt():
+    """A vehicle out of coverage (or a broker taken down) is tried every reconnect_max_s for as long as it
+    lasts: each failed connect logged a WARNING and an INFO, 2880 lines a day at the default 60 s, for
+    weeks, pushing the rest of the journal out. Now the first 10 in a row are logged each, then one in
+    100, and the connect that ends the outage says how many failed before it."""
+    from structlog.testing import capture_logs
+
+    port = free_port()  # nothing listens: refused
+    pub = MqttPublisher(mqtt_cfg(port, reconnect_min_s=0.001, reconnect_max_s=0.002), "away", 1)
+
+    async def main():
+        task = asyncio.create_task(pub.run())
+        await wait_until(lambda: pub.counters.connect_failures >= 250, 60, "250 failed connects")
+        await pub.close(timeout_s=3.0)
+        await task
+
+    with capture_logs() as logs:
+        run_async(main())
+    failed = [r for r in logs if r["event"] == "mqtt connect failed"]
+    retries = [r for r in logs if r["event"] == "mqtt reconnecting"]
+    assert len(failed) == 12  # before: one per attempt, 250 or more
+    assert [r["failures_in_a_row"] for r in failed] == [*range(1, 11), 100, 200]
+    assert len(retries) == len(failed)
+    assert pub.counters.connect_failures >= 250  # every attempt still counted (bms_mqtt_connect_failures)
