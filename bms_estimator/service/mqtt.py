@@ -572,11 +572,16 @@ class MqttPublisher:
 
     async def remove_orphans(self, client: aiomqtt.Client) -> int:
         """Remove this pack's retained discovery configs that the current configuration does not
-        publish (a pack that had more cells, or discovery turned off): subscribe to every discovery
-        topic this pack may have used (:meth:`~bms_estimator.service.schema.Topics.discovery_filters`,
-        cells up to ``pack.n_cells``' limit), :data:`ORPHAN_SCAN_BATCH` at a time, collect the retained
-        configs of each batch up to a probe message of our own, and clear the orphans with an empty
-        retained message. Returns their number.
+        publish (a pack that had more cells, or discovery turned off): subscribe to the discovery
+        topics this pack may have used (:meth:`~bms_estimator.service.schema.Topics.discovery_filters`),
+        at most :data:`ORPHAN_SCAN_BATCH` at a time, collect the retained configs of each batch up to a
+        probe message of our own, and clear the orphans with an empty retained message. Returns their
+        number.
+
+        Scanned: the unique ids of the pack and of its ``n_cells`` cells that this configuration does not
+        announce (all of them with discovery off), then the cells beyond, a batch of cells at a time up to
+        the first batch that has none (a pack's cells were always ``0 .. n - 1``: the orphans of one that
+        had more are the cells from ``n_cells`` on), at most ``pack.n_cells``' limit.
 
         A batch at a time: a broker queues at most so many messages for a client (Mosquitto's
         ``max_queued_messages``, 1000 by default) and drops the rest. One subscription to every
@@ -584,21 +589,24 @@ class MqttPublisher:
         probe with them: a pack of more than about 90 cells, or any pack on a broker holding more than
         1000 configs, timed out and never removed its orphans."""
         cfg = self.cfg
+        topics = self.topics
         keep = {t for t, _ in self.discovery_messages()} if cfg.discovery else set()
-        probe = self.topics.probe
-        filters = self.topics.discovery_filters(MAX_CELLS)
-        await client.subscribe(probe, qos=_CONTROL_QOS)
+        announced = {t.split("/")[-2] for t in keep}
+        own = [f for f in topics.discovery_filters(range(self.n_cells), pack=True) if f.split("/")[-2] not in announced]
+        per_batch = max(1, ORPHAN_SCAN_BATCH // len(schema.CELL_ENTITY_UIDS))  # cells
+        await client.subscribe(topics.probe, qos=_CONTROL_QOS)
         found: set[str] = set()
         try:
-            for start in range(0, len(filters), ORPHAN_SCAN_BATCH):
-                batch = filters[start : start + ORPHAN_SCAN_BATCH]
-                await client.subscribe([(f, _CONTROL_QOS) for f in batch])
-                try:
-                    found |= await self._retained_until_probe(client, probe)
-                finally:
-                    await client.unsubscribe(batch)
+            for start in range(0, len(own), ORPHAN_SCAN_BATCH):
+                found |= await self._scan_batch(client, own[start : start + ORPHAN_SCAN_BATCH])
+            for first in range(self.n_cells, MAX_CELLS, per_batch):
+                batch = topics.discovery_filters(range(first, min(first + per_batch, MAX_CELLS)))
+                more = await self._scan_batch(client, batch)
+                if not more:
+                    break
+                found |= more
         finally:
-            await client.unsubscribe(probe)
+            await client.unsubscribe(topics.probe)
         orphans = sorted(found - keep)
         if orphans:
             failed = await self._publish_batch(client, [(t, "", True) for t in orphans], qos=_CONTROL_QOS)
@@ -606,6 +614,14 @@ class MqttPublisher:
                 raise failed[0][1]
             log.info("home assistant: removed entities this configuration no longer has", removed=len(orphans))
         return len(orphans)
+
+    async def _scan_batch(self, client: aiomqtt.Client, filters: list[str]) -> set[str]:
+        """This pack's retained discovery configs under ``filters`` (subscribed to for as long as it takes)."""
+        await client.subscribe([(f, _CONTROL_QOS) for f in filters])
+        try:
+            return await self._retained_until_probe(client, self.topics.probe)
+        finally:
+            await client.unsubscribe(filters)
 
     async def _retained_until_probe(self, client: aiomqtt.Client, probe: str) -> set[str]:
         """This pack's retained discovery configs that arrive before a probe message published now (the
