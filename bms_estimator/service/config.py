@@ -56,6 +56,7 @@ __all__ = [
     "ID_PATTERN",
     "HealthConfig",
     "LoggingConfig",
+    "MAX_CELLS",
     "MqttConfig",
     "PackConfig",
     "ServiceConfig",
@@ -79,9 +80,13 @@ class _Strict(BaseModel):
 
 
 # --------------------------------------------------------------------------- pack
+#: the most cells a pack may have (``pack.n_cells``)
+MAX_CELLS = 1024
+
+
 class PackConfig(_Strict):
     pack_id: str = Field("pack0", pattern=ID_PATTERN, description="used in MQTT topics and HA ids")
-    n_cells: int = Field(16, ge=1, le=1024)
+    n_cells: int = Field(16, ge=1, le=MAX_CELLS)
     capacity_ah: float = Field(50.0, gt=0, le=1e5)
     ocv_csv: Path | list[Path] | None = Field(
         None, description="OCV(SOC) table, or a list of tables at several temperatures (each with its temperature_c "
@@ -388,7 +393,7 @@ class HealthConfig(_Strict):
     host: str = "127.0.0.1"
     port: int = Field(9108, ge=0, le=65535, description="0 = any free port")
     stale_after_periods: float = Field(3.0, gt=0, description="/healthz is 503 after this many missed ticks")
-    cell_metrics: bool = Field(False, description="per-cell gauges (SOC, R0, capacity) in /metrics: 3 series per cell")
+    cell_metrics: bool = Field(False, description="per-cell gauges (SOC, R0, capacity, the 10 s power limit each way) in /metrics: 5 series per cell")
 
     @field_validator("host")
     @classmethod

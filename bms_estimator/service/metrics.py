@@ -25,7 +25,8 @@ Families (``bms_`` prefix; counters end in ``_total``):
   ``pack_power_limit_watts{direction=discharge|charge,horizon=2s|10s|30s}``, ``pack_energy_left_wh``,
   ``pack_energy_delivered_wh``, ``pack_energy_discharged_wh``, ``pack_time_to_empty_seconds``,
   ``pack_time_to_full_seconds``, ``pack_soh_ratio{kind=capacity|resistance}``; and with ``health.cell_metrics``
-  ``cell_soc{cell}``, ``cell_r0_ohms{cell}``, ``cell_capacity_ah{cell}``
+  ``cell_soc{cell}``, ``cell_r0_ohms{cell}``, ``cell_capacity_ah{cell}``, ``cell_power_limit_watts{cell,direction}``
+  (5 series per cell)
 * outputs: ``mqtt_published``, ``mqtt_dropped``, ``mqtt_connects``, ``mqtt_connect_failures``,
   ``mqtt_connected``, ``mqtt_publish_latency_seconds`` (histogram), ``state_saves``,
   ``state_save_errors``

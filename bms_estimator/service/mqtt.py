@@ -39,6 +39,7 @@ from .. import aio, package_version
 from ..errors import ConfigError
 from ..jsonsafe import to_jsonable
 from . import schema
+from .config import MAX_CELLS
 from .mqtt_client import MqttClient
 
 if TYPE_CHECKING:
@@ -51,6 +52,12 @@ __all__ = ["MqttCounters", "MqttPublisher", "tls_context"]
 log = structlog.get_logger("bms.mqtt")
 
 _PUBLISH_BATCH = 256
+#: failed connects in a row logged each (the back-off grows meanwhile); after them one in _LOG_FAILURES_EVERY
+_LOG_FAILURES_FIRST = 10
+_LOG_FAILURES_EVERY = 100
+#: discovery topics subscribed to at once when looking for orphans (:meth:`MqttPublisher.remove_orphans`): well
+#: below the messages a broker queues for one client (Mosquitto's max_queued_messages: 1000 by default)
+ORPHAN_SCAN_BATCH = 256
 #: discovery configs, their removal and the availability are retained and sent QoS 1
 _CONTROL_QOS = 1
 
@@ -167,6 +174,7 @@ class MqttPublisher:
         self._pack_last_t: float | None = None
         self._submitted: dict[str, float] = {}  # topic -> when its oldest unsent state was submitted
         self._orphans_checked = False  # once per run: the configuration does not change in between
+        self._failed_in_a_row = 0  # connects failed since the last one that succeeded (what is logged)
 
     # ------------------------------------------------------------------ topics
     def cell_topic(self, i: int) -> str:
@@ -339,7 +347,8 @@ class MqttPublisher:
                 stable = was_connected and time.monotonic() - started >= self.cfg.reconnect_max_s
                 failures = 0 if stable else failures + 1
                 delay = self._backoff(max(failures, 1))
-                log.info("mqtt reconnecting", in_s=round(delay, 3), failed_attempts=failures)
+                if self._logs_failure():
+                    log.info("mqtt reconnecting", in_s=round(delay, 3), failed_attempts=failures)
                 self._wakeup.clear()
                 with contextlib.suppress(asyncio.TimeoutError):
                     # Woken early only by close() (submissions are ignored here).
@@ -352,6 +361,14 @@ class MqttPublisher:
         while not self._closing:
             self._wakeup.clear()
             await self._wakeup.wait()
+
+    def _logs_failure(self) -> bool:
+        """Whether this failed connect is logged: each of the first :data:`_LOG_FAILURES_FIRST` in a row, then
+        one in :data:`_LOG_FAILURES_EVERY`. A broker down for days (a vehicle out of coverage) is tried every
+        ``reconnect_max_s``: a WARNING and an INFO each time, 2880 lines a day at 60 s, pushed the rest of the
+        journal out (the CAN bus's silence is said the same way)."""
+        n = self._failed_in_a_row
+        return n <= _LOG_FAILURES_FIRST or n % _LOG_FAILURES_EVERY == 0
 
     def _backoff(self, attempt: int) -> float:
         lo, hi = self.cfg.reconnect_min_s, self.cfg.reconnect_max_s
@@ -403,8 +420,10 @@ class MqttPublisher:
             client = self._make_client()
         except (OSError, ValueError, ssl.SSLError) as exc:
             self._count("connect_failures")
+            self._failed_in_a_row += 1
             why = "; ".join(exc.problems) if isinstance(exc, ConfigError) else f"{type(exc).__name__}: {exc}"
-            log.error("mqtt client setup failed", error=why)
+            if self._logs_failure():
+                log.error("mqtt client setup failed", error=why, failures_in_a_row=self._failed_in_a_row)
             return False
         entered = False
         try:
@@ -412,7 +431,9 @@ class MqttPublisher:
                 entered = True
                 self._count("connects")
                 self._set_connected(True)
-                log.info("mqtt connected", host=cfg.host, port=cfg.port, tls=cfg.tls.enabled)
+                after = {"after_failed_connects": self._failed_in_a_row} if self._failed_in_a_row else {}
+                self._failed_in_a_row = 0
+                log.info("mqtt connected", host=cfg.host, port=cfg.port, tls=cfg.tls.enabled, **after)
                 await self._serve(client)
         except aiomqtt.MqttError as exc:
             if aio.cancelling():
@@ -421,13 +442,17 @@ class MqttPublisher:
                 raise asyncio.CancelledError from exc
             if not entered:
                 self._count("connect_failures")
-                log.warning(
-                    "mqtt connect failed",
-                    host=cfg.host,
-                    port=cfg.port,
-                    error=str(exc),
-                    failures=self.counters.connect_failures,
-                )
+                self._failed_in_a_row += 1
+                if self._logs_failure():
+                    log.warning(
+                        "mqtt connect failed",
+                        host=cfg.host,
+                        port=cfg.port,
+                        error=str(exc),
+                        failures=self.counters.connect_failures,
+                        failures_in_a_row=self._failed_in_a_row,
+                        **({"next_logged_at": _LOG_FAILURES_EVERY} if self._failed_in_a_row == _LOG_FAILURES_FIRST else {}),
+                    )
             elif not self._closing:
                 self._count("disconnects")
                 log.warning("mqtt connection lost", error=str(exc))
@@ -548,30 +573,40 @@ class MqttPublisher:
     async def remove_orphans(self, client: aiomqtt.Client) -> int:
         """Remove this pack's retained discovery configs that the current configuration does not
         publish (a pack that had more cells, or discovery turned off): subscribe to the discovery
-        prefix, collect the retained configs up to a probe message of our own, and clear the
-        orphans with an empty retained message. Returns their number."""
+        topics this pack may have used (:meth:`~bms_estimator.service.schema.Topics.discovery_filters`),
+        at most :data:`ORPHAN_SCAN_BATCH` at a time, collect the retained configs of each batch up to a
+        probe message of our own, and clear the orphans with an empty retained message. Returns their
+        number.
+
+        Scanned: the unique ids of the pack and of its ``n_cells`` cells that this configuration does not
+        announce (all of them with discovery off), then the cells beyond, a batch of cells at a time up to
+        the first batch that has none (a pack's cells were always ``0 .. n - 1``: the orphans of one that
+        had more are the cells from ``n_cells`` on), at most ``pack.n_cells``' limit.
+
+        A batch at a time: a broker queues at most so many messages for a client (Mosquitto's
+        ``max_queued_messages``, 1000 by default) and drops the rest. One subscription to every
+        discovery config on the broker (``<prefix>/+/+/config``) had the configs beyond it dropped, the
+        probe with them: a pack of more than about 90 cells, or any pack on a broker holding more than
+        1000 configs, timed out and never removed its orphans."""
         cfg = self.cfg
+        topics = self.topics
         keep = {t for t, _ in self.discovery_messages()} if cfg.discovery else set()
-        probe = self.topics.probe
-        token = f"{random.getrandbits(64):016x}"
-        flt = self.topics.discovery_filter
-        await client.subscribe(probe, qos=_CONTROL_QOS)
-        await client.subscribe(flt, qos=_CONTROL_QOS)
+        announced = {t.split("/")[-2] for t in keep}
+        own = [f for f in topics.discovery_filters(range(self.n_cells), pack=True) if f.split("/")[-2] not in announced]
+        per_batch = max(1, ORPHAN_SCAN_BATCH // len(schema.CELL_ENTITY_UIDS))  # cells
+        await client.subscribe(topics.probe, qos=_CONTROL_QOS)
         found: set[str] = set()
         try:
-            await client.publish(probe, token, qos=_CONTROL_QOS, retain=False, timeout=cfg.timeout_s)
-            async with asyncio.timeout(cfg.timeout_s):
-                async for message in client.messages:
-                    topic = message.topic.value
-                    if topic == probe and _text(message.payload) == token:
-                        break
-                    if topic == self.ha_status_topic and _text(message.payload).strip().lower() == "online":
-                        self._discovery_due = True
-                    elif message.retain and message.payload and self._is_ours(topic):
-                        found.add(topic)
+            for start in range(0, len(own), ORPHAN_SCAN_BATCH):
+                found |= await self._scan_batch(client, own[start : start + ORPHAN_SCAN_BATCH])
+            for first in range(self.n_cells, MAX_CELLS, per_batch):
+                batch = topics.discovery_filters(range(first, min(first + per_batch, MAX_CELLS)))
+                more = await self._scan_batch(client, batch)
+                if not more:
+                    break
+                found |= more
         finally:
-            await client.unsubscribe(flt)
-            await client.unsubscribe(probe)
+            await client.unsubscribe(topics.probe)
         orphans = sorted(found - keep)
         if orphans:
             failed = await self._publish_batch(client, [(t, "", True) for t in orphans], qos=_CONTROL_QOS)
@@ -579,6 +614,32 @@ class MqttPublisher:
                 raise failed[0][1]
             log.info("home assistant: removed entities this configuration no longer has", removed=len(orphans))
         return len(orphans)
+
+    async def _scan_batch(self, client: aiomqtt.Client, filters: list[str]) -> set[str]:
+        """This pack's retained discovery configs under ``filters`` (subscribed to for as long as it takes)."""
+        await client.subscribe([(f, _CONTROL_QOS) for f in filters])
+        try:
+            return await self._retained_until_probe(client, self.topics.probe)
+        finally:
+            await client.unsubscribe(filters)
+
+    async def _retained_until_probe(self, client: aiomqtt.Client, probe: str) -> set[str]:
+        """This pack's retained discovery configs that arrive before a probe message published now (the
+        broker sends a subscription's retained messages before it handles the publish after it)."""
+        cfg = self.cfg
+        token = f"{random.getrandbits(64):016x}"
+        found: set[str] = set()
+        await client.publish(probe, token, qos=_CONTROL_QOS, retain=False, timeout=cfg.timeout_s)
+        async with asyncio.timeout(cfg.timeout_s):
+            async for message in client.messages:
+                topic = message.topic.value
+                if topic == probe and _text(message.payload) == token:
+                    break
+                if topic == self.ha_status_topic and _text(message.payload).strip().lower() == "online":
+                    self._discovery_due = True
+                elif message.retain and message.payload and self._is_ours(topic):
+                    found.add(topic)
+        return found
 
     async def _publish_items(self, client: aiomqtt.Client, items: list[tuple[str, str, bool]]) -> None:
         failed = await self._publish_batch(client, items)

@@ -26,7 +26,7 @@ import enum
 import json
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -310,10 +310,16 @@ class Topics:
         """A private topic of the service's own (outside ``<base>/<pack_id>/#``; a pack id never starts with '.')."""
         return f"{self.base_topic}/.probe/{self.pack_id}"
 
-    @property
-    def discovery_filter(self) -> str:
-        """Subscription that sees every discovery config this pack may have left retained."""
-        return f"{self.discovery_prefix}/+/+/config"
+    def discovery_filters(self, cells: Iterable[int], *, pack: bool = False) -> list[str]:
+        """Subscriptions that see the discovery configs this pack may have left retained, one per unique id it
+        may have announced (its pack entities with ``pack``, and those of ``cells``), any component. Not
+        ``<prefix>/+/+/config``: that is every config of every device on the broker, and a broker queues at
+        most so many messages for a client (Mosquitto's ``max_queued_messages``, 1000 by default) and drops
+        the rest: one 96-cell pack announces 1080."""
+        base, d = self.unique_id_prefix, self.discovery_prefix
+        cell_uids = sorted(CELL_ENTITY_UIDS)
+        return ([f"{d}/+/{base}pack_{uid}/config" for uid in sorted(PACK_ENTITY_UIDS)] if pack else []) + [
+            f"{d}/+/{base}cell{i}_{uid}/config" for i in cells for uid in cell_uids]
 
 
 # ----------------------------------------------------------------------- payloads

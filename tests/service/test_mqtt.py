@@ -277,6 +277,43 @@ def test_a_pack_whose_id_extends_another_keeps_its_entities(mosquitto):
     run_async(main())
 
 
+def test_a_big_pack_that_shrinks_has_its_orphan_entities_removed(broker_factory):
+    """A 192-cell pack announces 2136 retained discovery configs (11 per cell, 24 for the pack), more than a
+    broker queues for one client (Mosquitto's max_queued_messages, 1000 by default): a scan subscribed to
+    every discovery config on the broker had the rest, and its own probe behind them, dropped by the broker,
+    timed out, and removed nothing. Restarted with 96 cells, cells 96-191 stayed in Home Assistant for ever
+    (and so did every orphan of any pack on a broker holding more than 1000 configs)."""
+    port = broker_factory(extra_conf="max_queued_messages 1000").port  # Mosquitto's default (the tests' is deeper)
+
+    async def publish_once(pack: str, n: int) -> MqttPublisher:
+        pub = MqttPublisher(mqtt_cfg(port), pack, n)
+        n_configs = len(pub.discovery_messages())  # once: 2136 JSON configs take a while to build
+        async with running(pub):
+            await wait_until(lambda: pub._orphans_checked and pub.counters.published >= 1 + n_configs, 20,
+                             "discovery")
+        return pub
+
+    def cell_topics(pack: str, cells) -> list[str]:
+        return [f"homeassistant/sensor/bms_{pack}_cell{i}_{uid}/config" for i in cells
+                for uid in ("soc", "voltage", "r0", "capacity", "soh_resistance")]
+
+    async def retained(topics: list[str]) -> set[str]:
+        async with Collector(port, (*topics, "probe/y"), qos=1) as col:
+            await col.client.publish("probe/y", "p", qos=1)
+            await col.wait(lambda c: bool(c.on("probe/y")), what="probe")
+            return {m.topic.value for m in col.messages if m.retain and m.payload}
+
+    async def main():
+        big = await publish_once("bigpack", 192)
+        assert len(big.discovery_messages()) == 2136
+        gone, kept = cell_topics("bigpack", (96, 150, 191)), cell_topics("bigpack", (0, 95))
+        assert await retained(gone + kept) == set(gone + kept)
+        await publish_once("bigpack", 96)
+        assert await retained(gone + kept) == set(kept)
+
+    run_async(main())
+
+
 def test_publish_period_and_soc_deadband():
     """Telemetry thinning on the frames' time: a period per topic, and a SOC deadband with a
     longest silence; a stale flag that changes is always sent."""
@@ -861,3 +898,29 @@ def test_connections_that_drop_at_once_back_off_as_failed_connects_do(monkeypatc
     delays = [r["in_s"] for r in logs if r["event"] == "mqtt reconnecting"][:7]
     # reconnect_min_s doubling, with jitter in [base/2, base]: 0.01, 0.02, ... 0.64
     assert all(0.005 * 2 ** k <= d <= 0.01 * 2 ** k for k, d in enumerate(delays)), delays
+
+
+def test_a_broker_down_for_days_is_not_a_journal_line_every_attempt():
+    """A vehicle out of coverage (or a broker taken down) is tried every reconnect_max_s for as long as it
+    lasts: each failed connect logged a WARNING and an INFO, 2880 lines a day at the default 60 s, for
+    weeks, pushing the rest of the journal out. Now the first 10 in a row are logged each, then one in
+    100, and the connect that ends the outage says how many failed before it."""
+    from structlog.testing import capture_logs
+
+    port = free_port()  # nothing listens: refused
+    pub = MqttPublisher(mqtt_cfg(port, reconnect_min_s=0.001, reconnect_max_s=0.002), "away", 1)
+
+    async def main():
+        task = asyncio.create_task(pub.run())
+        await wait_until(lambda: pub.counters.connect_failures >= 250, 60, "250 failed connects")
+        await pub.close(timeout_s=3.0)
+        await task
+
+    with capture_logs() as logs:
+        run_async(main())
+    failed = [r for r in logs if r["event"] == "mqtt connect failed"]
+    retries = [r for r in logs if r["event"] == "mqtt reconnecting"]
+    assert len(failed) == 12  # before: one per attempt, 250 or more
+    assert [r["failures_in_a_row"] for r in failed] == [*range(1, 11), 100, 200]
+    assert len(retries) == len(failed)
+    assert pub.counters.connect_failures >= 250  # every attempt still counted (bms_mqtt_connect_failures)

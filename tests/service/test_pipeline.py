@@ -185,3 +185,23 @@ def test_a_cell_flapping_at_its_staleness_edge_does_not_flood_the_log():
     said = [e for e in logs if e["event"].startswith(("cells stale", "cells no longer stale"))]
     assert len(said) == 20 and pipe.counters.stale_changes == 199
     assert said[-1]["stale_changes"] == 20
+
+
+def test_the_per_cell_metrics_are_as_many_series_as_the_configuration_says():
+    """``health.cell_metrics`` adds a fixed number of series per cell (what a fleet sizes Prometheus by: a
+    192-cell pack times it, per pack). Its description said 3 (SOC, R0, capacity); the 10 s power limits,
+    per direction, made it 5: 960 series for 192 cells, not 576."""
+    import re
+    from types import SimpleNamespace
+
+    from bms_estimator.service.config import HealthConfig
+    from bms_estimator.service.metrics import _ServiceCollector
+
+    pipe, snaps = _pipeline(sox=True)
+    _feed(pipe, _seconds(100.0, 4, [3.7] * N) + [current_frame(104.0, -1.0)])
+    assert snaps and "p_discharge_max_10s_w" in snaps[-1].cells
+    svc = SimpleNamespace(pipeline=pipe)
+    per_cell = sum(1 for fam in _ServiceCollector(svc, True)._battery(svc) for s in fam.samples if "cell" in s.labels)
+    assert sum(1 for fam in _ServiceCollector(svc, False)._battery(svc) for s in fam.samples if "cell" in s.labels) == 0
+    said = re.search(r"(\d+) series per cell", HealthConfig.model_fields["cell_metrics"].description)
+    assert said is not None and per_cell == int(said[1]) * N
