@@ -359,7 +359,11 @@ def _default_state_path() -> Path:
 class StateConfig(_Strict):
     path: Path = Field(default_factory=_default_state_path)
     save_interval_s: float = Field(60.0, gt=0, le=86400)
-    max_age_s: float | None = Field(7 * 86400.0, gt=0, description="older saved state is ignored (and one saved this far ahead of the clock); None = no limit")
+    # A year, not a week: the estimator rests over any gap (core.soc's rest: the RC voltages decay, the SOC's
+    # variance grows, a rest reading replaces the count), so a parked month is a rest, not a reason to forget.
+    # At 7 days a vehicle parked a fortnight started fresh: its learnt capacity, the commissioning R0 its
+    # resistance SOH is measured against, and its energy counters gone.
+    max_age_s: float | None = Field(366 * 86400.0, gt=0, description="older saved state is ignored (and one saved this far ahead of the clock); None = no limit")
 
     def path_problem(self) -> str | None:
         """Why no state can ever be saved at ``path``, where that can be told without writing: it is a

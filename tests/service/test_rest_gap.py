@@ -270,3 +270,24 @@ def test_a_clock_that_comes_back_behind_the_saved_state_resumes_it(tmp_path):
     save_state(Path(cfg.state.path), state, meta, saved_at=time.time() + cfg.state.max_age_s + 600)
     assert not Service(cfg).restore()
     assert len(list(tmp_path.glob("state.npz.stale-*"))) == 1
+
+
+def test_a_state_saved_a_month_ago_is_rested_over_not_set_aside(tmp_path):
+    """A vehicle parked a month (holidays, a fleet's reserve) used to start fresh: a state older than the
+    default ``state.max_age_s`` of 7 days was set aside as stale, and with it the learnt capacity, the
+    commissioning R0 its resistance SOH is measured against, and the energy counters.  The estimator rests
+    over any gap, so the default is now a year: the month is rested over and what was learnt is kept."""
+    cfg, svc, state, meta = _driven(tmp_path)
+    assert cfg.state.max_age_s >= 365 * 86400
+    month_s = 30 * 86400
+    save_state(Path(cfg.state.path), state, meta, saved_at=time.time() - month_s)
+    resumed = Service(cfg)
+    assert resumed.restore()
+    c = resumed.pipeline.counters
+    assert c.rests == 1 and c.rest_s == pytest.approx(month_s, abs=60)
+    assert not list(tmp_path.glob("state.npz.stale-*"))
+    np.testing.assert_array_equal(resumed.estimator.capacity_ah, svc.estimator.capacity_ah)
+    sox_before, sox = svc.pipeline.sox, resumed.pipeline.sox
+    np.testing.assert_array_equal(sox.energy_discharged_wh, sox_before.energy_discharged_wh)
+    np.testing.assert_array_equal(sox.resistance.r0_commissioning_ohm, sox_before.resistance.r0_commissioning_ohm)
+    assert np.all(np.isfinite(resumed.estimator.soc)) and np.all(resumed.estimator.soc_sigma > svc.estimator.soc_sigma)
