@@ -215,7 +215,6 @@ def test_a_coarse_log_with_holes_or_extra_records_keeps_its_charge(tmp_path: Pat
     full = load_recording(save_recording(CellRecording(t, i, v, None, "full"), tmp_path / "full.csv"))
     assert full.dt_s == pytest.approx(step) and full.gaps_filled == 0  # a uniform log is read as logged
     np.testing.assert_allclose(full.current_a, i, atol=1e-5)
-    q_full = float(np.sum(full.current_a)) * full.dt_s
     keep = rng.random(n) > 0.15
     keep[[0, -1]] = True
     holes = load_recording(save_recording(CellRecording(t[keep], i[keep], v[keep], None, "holes"),
