@@ -186,9 +186,9 @@ class StateEncoder:
         self._clamp_logged: set[tuple[str, str]] = set()
         self._summary_counter = 0
 
-    def _checked(self, message: str, codec: SignalCodec, values: Any) -> Any:
-        """``values`` as given; those :meth:`SignalCodec.raw` will clamp are counted and logged (once per signal)."""
-        out = codec.beyond(values)
+    def _raw(self, message: str, codec: SignalCodec, values: Any) -> np.ndarray:
+        """``codec.raw(values)``; the values it clamps are counted and logged (once per signal)."""
+        raw, out = codec.raw_and_clamped(values)
         if out.any():
             self.clamped_values += int(np.count_nonzero(out))
             if (message, codec.name) not in self._clamp_logged:
@@ -201,7 +201,7 @@ class StateEncoder:
                             "(a cell the DBC was not scaled for? can.dbc takes one that is)", message=message,
                             signal=codec.name, value=worst * codec.unit_factor, range=f"{lo:g}..{hi:g}",
                             unit=sig.unit or "")
-        return values
+        return raw
 
     @staticmethod
     def _codec(sig) -> SignalCodec:
@@ -265,13 +265,12 @@ class StateEncoder:
             ca, cb = self.CELL_A, self.CELL_B
             raw_a = {
                 "Soc": a["Soc"].raw(cols["soc"]),
-                "R0": a["R0"].raw(self._checked(ca, a["R0"], cols["r0"])),
-                "R1": a["R1"].raw(self._checked(ca, a["R1"], cols["r1"])),
-                "C0": a["C0"].raw(self._checked(ca, a["C0"], cols["c0"])),
+                "R0": self._raw(ca, a["R0"], cols["r0"]),
+                "R1": self._raw(ca, a["R1"], cols["r1"]),
+                "C0": self._raw(ca, a["C0"], cols["c0"]),
             }
-            raw_b = {"C1": b["C1"].raw(self._checked(cb, b["C1"], cols["c1"])),
-                     "R2": b["R2"].raw(self._checked(cb, b["R2"], cols["r2"])),
-                     "C2": b["C2"].raw(self._checked(cb, b["C2"], cols["c2"]))}
+            raw_b = {"C1": self._raw(cb, b["C1"], cols["c1"]), "R2": self._raw(cb, b["R2"], cols["r2"]),
+                     "C2": self._raw(cb, b["C2"], cols["c2"])}
             mux_max = min(a["CellIndex"].raw_max, b["CellIndex"].raw_max)
             with np.errstate(invalid="ignore"):
                 usable = np.isfinite(idx) & (idx == np.floor(idx)) & (idx >= 0) & (idx <= mux_max)
@@ -422,7 +421,7 @@ class StateEncoder:
             value = _to_float(values.get(CAN_PACK_SOX_SIGNALS[name][sname], math.nan))
             if self._msgs[name].get_signal_by_name(sname).unit == "%":
                 value *= 100.0
-            return int(codec.raw(self._checked(name, codec, value)))
+            return int(self._raw(name, codec, value))
 
         return self._encode_each(self._sox_msgs, raw, timestamp, "can.encode_pack_sox.failed")
 

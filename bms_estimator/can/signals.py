@@ -58,18 +58,16 @@ class SignalCodec:
             choices_by_name={str(n): int(r) for r, n in (sig.choices or {}).items()},
         )
 
-    def beyond(self, values: Any) -> np.ndarray:
-        """Finite physical values (times ``unit_factor``) outside the signal's range: :meth:`raw` clamps them."""
-        x = np.asarray(values, dtype=float)
-        with np.errstate(all="ignore"):
-            r = np.rint((x * self.unit_factor - self.offset) / self.scale)
-            return np.isfinite(x) & ((r < self.raw_min) | (r > self.raw_max))
-
     def raw(self, values: Any) -> np.ndarray:
         """Physical (times ``unit_factor``) -> raw int64, vectorised; never raises, never warns."""
+        return self.raw_and_clamped(values)[0]
+
+    def raw_and_clamped(self, values: Any) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`raw`, and where a finite value lay outside the signal's range and was clamped to its end."""
         x = np.asarray(values, dtype=float)
         with np.errstate(all="ignore"):
             r = np.rint((x * self.unit_factor - self.offset) / self.scale)
             nan = np.isnan(r)
+            clamped = np.isfinite(x) & ((r < self.raw_min) | (r > self.raw_max))
             r = np.clip(np.where(nan, self.raw_min, r), self.raw_min, self.raw_max)
-        return np.asarray(np.where(nan, self.na_raw, r), dtype=np.int64)
+        return np.asarray(np.where(nan, self.na_raw, r), dtype=np.int64), clamped

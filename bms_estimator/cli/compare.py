@@ -9,10 +9,9 @@ from ..analysis import DEFAULT_METHODS, compare_methods
 from ..core.arrhenius import RESISTANCE_ACTIVATION_K
 from ..core.identifier import METHODS
 from ..errors import UsageError
-from .common import (METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
+from .common import (RECORDING_HELP, METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
                      non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc,
                      write_json)
-from .common import RECORDING_HELP
 from .outputs import check_outputs, file_output, folder_output
 
 #: the figures --plots writes in its folder

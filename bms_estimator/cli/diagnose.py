@@ -14,9 +14,8 @@ from pathlib import Path
 
 from ..errors import DataError, UsageError
 from .outputs import check_outputs, file_output, folder_output
-from .common import (add_cell_options, add_method_option, load, load_ocv, positive_float,
+from .common import (RECORDING_HELP, add_cell_options, add_method_option, load, load_ocv, positive_float,
                      warn_if_start_is_not_initial_soc, write_json)
-from .common import RECORDING_HELP
 
 
 def add_parser(sub) -> None:

@@ -11,9 +11,8 @@ from ..analysis import (
     IDENTIFICATION_METHOD, one_step_ahead, output_error_capacity, reference_soc, rmse_mv, run_identification,
     simulate_with_params, soc_lookup_table,
 )
-from .common import (add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv,
+from .common import (RECORDING_HELP, add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv,
                      soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc, write_json)
-from .common import RECORDING_HELP
 from .outputs import check_outputs, figure_output, file_output
 
 #: the second figure --plot writes, beside the first

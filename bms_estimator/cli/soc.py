@@ -15,10 +15,9 @@ from ..core.soc import SOC_METHODS, VOLTAGE_LINE_RATIO_MAX, SocConfig
 from ..errors import DataError
 from ..gaps import MAX_GAP_S, held_charge_in_gaps, recording_rest_plan
 from ..scoring import counted_soc, soc_error_figures, soc_reference
-from .common import (SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
+from .common import (RECORDING_HELP, SAME_AMBIENT_K, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options,
                      fahrenheit_hint, load, load_ocv, positive_float, soc_config, soc_difference, soc_fraction,
                      warn_if_start_is_not_initial_soc, write_json)
-from .common import RECORDING_HELP
 from .outputs import check_outputs, figure_output, file_output
 
 

@@ -14,9 +14,8 @@ from ..core.ocv_surface import REFERENCE_TEMPERATURE_C
 from ..core.sop import SopConfig, default_ratings_note
 from ..errors import UsageError
 from ..sop_backtest import run_backtest, summary
-from .common import (add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
+from .common import (RECORDING_HELP, add_cell_options, add_method_option, add_rest_over_gaps_option, add_tuning_options, load,
                      load_ocv, positive_float, soc_config, warn_if_start_is_not_initial_soc, write_json)
-from .common import RECORDING_HELP
 from .outputs import check_outputs, file_output
 
 _SOP = SopConfig()
