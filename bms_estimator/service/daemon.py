@@ -243,7 +243,8 @@ class Service:
         self._check_staleness(self.staleness_s, cell_cycle_s)
 
         assert self.decoder is not None
-        self.pipeline = Pipeline(self.decoder, self.sampler, estimator, sox=self._new_sox())
+        self.pipeline = Pipeline(self.decoder, self.sampler, estimator, sox=self._new_sox(),
+                                 n_parallel=cfg.estimator.sop.n_parallel)  # as batch passes it
         self.metrics = metrics if metrics is not None else ServiceMetrics(cell_metrics=cfg.health.cell_metrics)
         self.metrics.attach(self)
         self.pipeline.observe_tick = self.metrics.observe_tick
