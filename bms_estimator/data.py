@@ -266,16 +266,11 @@ def _decode_other_text(path: Path, raw: bytes, exc: UnicodeDecodeError) -> str:
         except UnicodeDecodeError:
             pass
     elif b"\x00" not in raw:
-        return raw.decode("cp1252", errors="strict") if _is_cp1252(raw) else raw.decode("latin-1")
+        try:
+            return raw.decode("cp1252")
+        except UnicodeDecodeError:  # the five bytes cp1252 leaves undefined: Latin-1 reads every byte
+            return raw.decode("latin-1")
     raise DataError(f"{path}: not UTF-8 text ({exc})") from None
-
-
-def _is_cp1252(raw: bytes) -> bool:
-    try:
-        raw.decode("cp1252")
-    except UnicodeDecodeError:
-        return False
-    return True
 
 
 def _split_fields(line: str) -> list[str]:
