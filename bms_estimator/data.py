@@ -25,7 +25,13 @@ Loading (:func:`load_recording`)
    error naming the line), the temperature, where given, a cell's (within
    ``CELL_TEMPERATURE_RANGE_C``: a column in kelvin, say, is an error naming the
    line), and the current positive for charge (below).
-3. Drop repeated timestamps (``t[k] == t[k-1]``), keeping the first sample.
+   An empty or ``nan`` temperature (a sensor that dropped out for some rows) is
+   read as not logged there: linearly interpolated in time between the logged
+   ones (held beyond the first and last), with a warning naming how many; a
+   column with no value at all is read as absent.  An empty current, voltage or
+   time is an error naming its line.
+3. Drop repeated timestamps (``t[k] == t[k-1]``), keeping the last sample: under
+   the zero-order hold below, the earlier one holds for no time at all.
 4. Resample when the native step ``median(diff(t))`` is below ``resample_s``
    (see below).  Uniform logs already at or above the requested step and any
    call with ``resample_s=None`` are returned unresampled; a non-uniform one is
@@ -94,6 +100,7 @@ under which the coulomb count is ``Q = sum_k I[k] (t_{k+1} - t_k)``.  With bins
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import gzip
 import io
@@ -500,20 +507,17 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     every_column = sorted(usecols) == list(range(len(names)))
 
     try:
-        with warnings.catch_warnings():  # a header without rows is reported below, not as numpy's warning
-            warnings.simplefilter("ignore", UserWarning)
-            data = np.loadtxt(
-                io.StringIO(text),
-                delimiter=",",
-                skiprows=header_line,
-                usecols=None if every_column else usecols,
-                dtype=np.float64,
-                ndmin=2,
-                comments="#",
-                quotechar='"',  # RFC 4180: "0.5" is 0.5
-            )
+        data = _parse_rows(text, header_line, None if every_column else usecols)
     except ValueError:
-        raise _locate_bad_value(path, text, header_line, names, usecols) from None
+        # an empty temperature (a sensor that dropped out) is read as not logged there; any other value
+        # that is not a number is an error naming its line
+        data = None
+        if "temperature_c" in names:
+            with contextlib.suppress(ValueError):
+                data = _parse_rows(text, header_line, None if every_column else usecols,
+                                   {names.index("temperature_c"): _temperature_or_nan})
+        if data is None:
+            raise _locate_bad_value(path, text, header_line, names, usecols) from None
     if not every_column:
         _check_field_counts(path, encoded, header_line, len(names))
     elif data.shape[0]:
@@ -527,6 +531,9 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
         raise DataError(f"{path}: needs at least 2 data rows, found {data.shape[0]}")
 
     bad = ~np.isfinite(data)
+    if data.shape[1] > 3:
+        data = _fill_missing_temperature(path, text, header_line, data)
+        bad = ~np.isfinite(data)
     if bad.any():
         row, col = np.argwhere(bad)[0]
         lineno = int(_data_line_numbers(text, header_line)[row])
@@ -562,7 +569,7 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
             f"{path}: time goes backwards at data row {row} (line {lineno}): "
             f"{float(t[row - 1])!r} -> {float(t[row])!r} s{hint}"
         )
-    keep = np.r_[True, dt > 0]  # drop repeated timestamps, keep the first
+    keep = np.r_[dt > 0, True]  # drop repeated timestamps, keep the last: the earlier one holds for no time
     data = data[keep]
     if data.shape[0] < 2:
         raise DataError(f"{path}: needs at least 2 distinct timestamps, found {data.shape[0]}")
@@ -604,6 +611,52 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
         rec = CellRecording(time_s, current_a, voltage_v, temperature_c, str(path), 0)
     _check_current_sign(path, rec.current_a, rec.voltage_v)
     return rec
+
+
+def _parse_rows(text: str, header_line: int, usecols: list[int] | None,
+                converters: dict | None = None) -> np.ndarray:
+    """The data rows as an (n, columns) array (``np.loadtxt``, its C parser); raises ValueError."""
+    with warnings.catch_warnings():  # a header without rows is reported by the caller, not as numpy's warning
+        warnings.simplefilter("ignore", UserWarning)
+        return np.loadtxt(
+            io.StringIO(text),
+            delimiter=",",
+            skiprows=header_line,
+            usecols=usecols,
+            converters=converters,
+            dtype=np.float64,
+            ndmin=2,
+            comments="#",
+            quotechar='"',  # RFC 4180: "0.5" is 0.5
+        )
+
+
+def _temperature_or_nan(value: str) -> float:
+    return float(value) if value.strip() else math.nan
+
+
+def _fill_missing_temperature(path: Path, text: str, header_line: int, data: np.ndarray) -> np.ndarray:
+    """Read an empty or ``nan`` temperature (column 3 of ``data``) as not logged there: linearly interpolated in
+    time between the logged ones, held beyond the first and the last, with a warning; a column without any
+    value is dropped (the recording has no temperature).  A sensor that drops out for a few rows refused the
+    whole file ("empty value in column 'temperature_c'")."""
+    missing = np.isnan(data[:, 3])
+    if not missing.any():
+        return data
+    n, row = int(np.count_nonzero(missing)), int(np.argmax(missing))
+    lineno = int(_data_line_numbers(text, header_line)[row])
+    if missing.all():
+        warnings.warn(f"{path}: its temperature_c column holds no value: read without a temperature",
+                      UserWarning, stacklevel=3)
+        return data[:, :3]
+    t = data[:, 0]
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t[~missing]) < 0):
+        return data  # a bad time axis is named by the checks that follow, not read through here
+    data = data.copy()
+    data[missing, 3] = np.interp(t[missing], t[~missing], data[~missing, 3])
+    warnings.warn(f"{path}: {n} of {len(data)} temperature_c values are empty or nan (the first on line {lineno}): "
+                  "read between the logged ones", UserWarning, stacklevel=3)
+    return data
 
 
 def _check_resampled_size(path: Path, text: str, header_line: int, time_s: np.ndarray, resample_s: float) -> None:

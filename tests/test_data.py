@@ -93,15 +93,39 @@ def test_extra_and_reordered_columns(tmp_path: Path) -> None:
     assert rec.dt_s == 1.0 and rec.duration_s == 2.0
 
 
-def test_duplicate_timestamps_dropped_keep_first(tmp_path: Path) -> None:
+def test_duplicate_timestamps_keep_the_last_which_is_the_one_that_holds(tmp_path: Path) -> None:
+    """Under the zero-order hold the charge is counted with, of two rows stamped 60 s the first holds for no
+    time and the second until 120 s: the second is kept (the first was, counting 2 A where 9 A flowed)."""
     path = _write(
         tmp_path / "r.csv",
-        "time_s,current_a,voltage_v\n0,1,4.0\n60,2,4.1\n60,9,9.9\n120,3,4.2\n120,8,8.8\n",
+        "time_s,current_a,voltage_v\n0,1,4.0\n60,2,4.1\n60,9,4.9\n120,3,4.2\n120,8,4.8\n",
     )
     rec = load_recording(path, resample_s=None)
     np.testing.assert_array_equal(rec.time_s, [0, 60, 120])
-    np.testing.assert_array_equal(rec.current_a, [1, 2, 3])
-    np.testing.assert_array_equal(rec.voltage_v, [4.0, 4.1, 4.2])
+    np.testing.assert_array_equal(rec.current_a, [1, 9, 8])
+    np.testing.assert_array_equal(rec.voltage_v, [4.0, 4.9, 4.8])
+    # resampled to 120 s, the first bin holds 1 A for 60 s and 9 A for 60 s
+    res = load_recording(path, resample_s=120.0)
+    np.testing.assert_array_equal(res.current_a, [5, 8])
+
+
+def test_an_empty_or_nan_temperature_is_read_between_its_neighbours(tmp_path: Path) -> None:
+    """A temperature sensor that drops out for some rows left them empty, and the whole file was refused
+    ("empty value in column 'temperature_c'"): those rows are read between the logged temperatures, with a
+    warning naming how many and the first line; an empty current or voltage is still an error."""
+    head = "time_s,current_a,voltage_v,temperature_c\n"
+    path = _write(tmp_path / "t.csv", head + "0,0,4,20\n1,-1,3.9,\n2,-1,3.9,nan\n3,0,4,23\n4,0,4,\n")
+    with pytest.warns(UserWarning, match=r"t.csv: 3 of 5 temperature_c values are empty or nan \(the first on "
+                                         r"line 3\): read between the logged ones"):
+        rec = load_recording(path, resample_s=None)
+    np.testing.assert_array_equal(rec.temperature_c, [20, 21, 22, 23, 23])
+    with pytest.warns(UserWarning, match="no value: read without a temperature"):
+        blank = load_recording(_write(tmp_path / "b.csv", head + "0,0,4,\n1,-1,3.9,\n"), resample_s=None)
+    assert blank.temperature_c is None and len(blank) == 2
+    with pytest.raises(DataError, match=r"line 3: empty value in column 'voltage_v'"):
+        load_recording(_write(tmp_path / "v.csv", head + "0,0,4,20\n1,-1,,\n"), resample_s=None)
+    with pytest.raises(DataError, match=r"line 3: non-numeric value 'x' in column 'temperature_c'"):
+        load_recording(_write(tmp_path / "x.csv", head + "0,0,4,20\n1,-1,3.9,x\n2,0,4,\n"), resample_s=None)
 
 
 # --------------------------------------------------------------------------- resampling
