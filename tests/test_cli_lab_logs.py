@@ -25,14 +25,21 @@ def test_the_soc_trace_keeps_an_absolute_time_base(tmp_path, capsys):
     so it could not be put beside the log it came from."""
     t0 = 1.7e9 + 0.25
     data = _la92_head(tmp_path, 1500, t0, "epoch.csv")
-    trace = tmp_path / "trace.csv"
+    trace, figures = tmp_path / "trace.csv", tmp_path / "soc.json"
     assert main(["soc", str(data), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0",
-                 "--reference-capacity-ah", "2.8", "--start-s", "100", "--trace", str(trace)]) == 0
+                 "--reference-capacity-ah", "2.8", "--start-s", "100", "--trace", str(trace),
+                 "--json", str(figures)]) == 0
     rows = np.genfromtxt(trace, delimiter=",", names=True)
     rec = load_recording(data)
     np.testing.assert_allclose(rows["time_s"], rec.time_s, rtol=0, atol=1e-6)
     assert np.all(np.diff(rows["time_s"]) == pytest.approx(1.0))
     assert np.isnan(rows["soc"][rows["time_s"] < rec.time_s[0] + 100 - 1e-6]).all()
+    # the JSON gives the start as --start-s does (from the file's first sample) and on the trace's time base,
+    # where the estimate begins (it gave only the first: 100 s, against a trace stamped 1.7e9)
+    got = json.loads(figures.read_text())
+    assert got["start_s"] == pytest.approx(100.0)
+    start = np.flatnonzero(np.isfinite(rows["soc"]))[0]
+    assert got["start_time_s"] == pytest.approx(rows["time_s"][start], abs=1e-6)
 
 
 def test_soc_of_a_log_that_starts_mid_drive_counts_its_reference_from_initial_soc(tmp_path, capsys):

@@ -46,8 +46,9 @@ def add_parser(sub) -> None:
     p.add_argument("data", type=Path, help=f"the drive: {RECORDING_HELP}")
     add_cell_options(p)
     p.add_argument("--start-s", type=float, default=0.0,
-                   help="the estimator begins at this time of the file (s); inside a logging gap it begins at the "
-                        "next logged sample (its time is the JSON's start_s)")
+                   help="the estimator begins this long after the file's first sample (s); inside a logging gap "
+                        "it begins at the next logged sample (the JSON's start_s; start_time_s is that sample's "
+                        "time_s, the time base of the file and of --trace)")
     p.add_argument("--start-soc", type=_start_soc, default=None,
                    help="SOC the estimator begins with (a fraction), or 'ocv' to read it from the first sample's "
                         "voltage as the service does after a rest (default: reference - --initial-soc-error)")
@@ -228,7 +229,8 @@ def run(args: argparse.Namespace) -> int:
     out.update(
         counting_stated_capacity=base,
         soc_method=args.soc_method,
-        start_s=float(t[k0]),
+        start_s=float(t[k0]),  # from the file's first sample, as --start-s
+        start_time_s=float(rec.time_s[k0]),  # on the file's own time base, as the trace's time_s
         start_soc=float(run_.soc[k0]),
         capacity_ah_estimated=float(run_.capacity_ah[-1]),
         capacity_ah_stated=args.capacity_ah,
