@@ -57,22 +57,29 @@ CAPACITY_SEEDS = (2, 3, 4, 5, 6, 7)  # six drive cycles, not one that happens to
 def _capacity_runs(updates: tuple[str, ...]) -> dict[str, dict]:
     """A 2.7 Ah cell stated as 3.0 Ah, discharged to empty, per ``capacity_soc_update`` mode:
     {mode: {seed: (estimated capacity, last-hour SOC RMSE, the same trusting 3.0 Ah)}}.
-    The trusting run does not depend on the mode: it is run once per seed."""
+    The six drive cycles run as six cells of one estimator (each cell its own current: the estimator is
+    vectorised over cells and a cell's results are its solo run's, tests/fleet/test_fleet_stack.py), one
+    run per setting instead of one per setting and seed; the trusting run does not depend on the mode."""
     ocv = _nmc_like_ocv()  # the conftest fixture's curve (that one is function-scoped)
     n = 3 * 3600
-    last_hour = np.arange(n) >= n - 3600
+    cells = [_cell(n, seed, ocv, q_true=2.7) for seed in CAPACITY_SEEDS]
+    i, v = (np.array(x) for x in zip(*cells))  # (seeds, samples)
+    ref = np.array([reference_soc(c, 1.0, 2.7, 1.0) for c in i])
 
-    def last_hour_rmse(run, ref):
-        return soc_errors(run.soc[last_hour], ref[last_hour], np.arange(3600), after_s=0)["soc_rmse_pct"]
+    def run(config):
+        est = SocEstimator(len(CAPACITY_SEEDS), ocv, 3.0, 1.0, initial_soc=1.0, config=config)
+        soc = np.empty_like(v)
+        for k in range(n):
+            est.update(i[:, k], v[:, k])
+            soc[:, k] = est.soc
+        last_hour = 100.0 * (soc[:, n - 3600:] - ref[:, n - 3600:])
+        return est.capacity_ah.copy(), np.sqrt(np.mean(last_hour**2, axis=1))
 
-    out: dict[str, dict] = {mode: {} for mode in updates}
-    for seed in CAPACITY_SEEDS:
-        i, v = _cell(n, seed, ocv, q_true=2.7)
-        ref = reference_soc(i, 1.0, 2.7, 1.0)
-        trusting = last_hour_rmse(run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=SocConfig(soc_method="c0", estimate_capacity=False)), ref)
-        for mode in updates:
-            run = run_soc(i, v, ocv, 3.0, initial_soc=1.0, config=SocConfig(soc_method="c0", capacity_soc_update=mode))
-            out[mode][seed] = (run.capacity_ah[-1], last_hour_rmse(run, ref), trusting)
+    _, trusting = run(SocConfig(soc_method="c0", estimate_capacity=False))
+    out: dict[str, dict] = {}
+    for mode in updates:
+        q, err = run(SocConfig(soc_method="c0", capacity_soc_update=mode))
+        out[mode] = {seed: (q[j], err[j], trusting[j]) for j, seed in enumerate(CAPACITY_SEEDS)}
     return out
 
 
