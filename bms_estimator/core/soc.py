@@ -180,6 +180,12 @@ class SocConfig:
     # after 300-600 s: scoring.py; 30 min leaves the diffusion branch at exp(-1800/1200) = 22 %.)
     rest_relaxation_s: Annotated[float, Interval(ge=60.0, le=86400.0)] = 1800.0
     rest_current_c: Annotated[float, Interval(ge=0.0, le=0.2)] = 0.02  # |i| below this C-rate is rest
+    # ... and that first sample is read at up to this C-rate, its modelled ohmic drop taken out: a vehicle's
+    # gateway wakes with the idle draw (a DC/DC converter, C/50-C/20 on a big pack's cell) on the bus, and
+    # a rest reading held to rest_current_c never came.  At C/10 on the data's cells R0 i is 6-20 mV and the
+    # RC branches, relaxed by the rest, build 0.1-0.3 mV within the first period; a 20 % R0 error reads
+    # 0.2-0.8 % SOC, against a count that cannot see a charge while parked at all.
+    rest_read_current_c: Annotated[float, Interval(ge=0.0, le=0.5)] = 0.1
     # How that reading meets the count (README "Across a gap"):
     #   "ocv"    it replaces the count, with the EKF's ocv_start_soc_sigma (a start from rest)
     #   "fused"  one EKF update with the count's grown variance; a reading more than
@@ -673,8 +679,10 @@ class SocEstimator:
         * The identifier's regressor window restarts (:meth:`Identifier.rest`: it refills before it
           learns again; theta, P and the guard's state kept); the c0 average restarts.
         * A rest of ``rest_relaxation_s`` or longer relaxed the cell: at its next valid sample, if that
-          is at rest (``|i| <= rest_current_c`` C), the voltage less what is left of the modelled
-          overpotential is read as an OCV on the hysteresis branch, ``OCV(z) + h H(z) = v - eta``, and
+          is at rest or near it (``|i| <= rest_read_current_c`` C: a gateway wakes with the vehicle's idle
+          draw), the voltage less what is left of the modelled overpotential (the ohmic drop ``R0 i``, the
+          RC and diffusion voltages the rest left) is read as an OCV on the hysteresis branch,
+          ``OCV(z) + h H(z) = v - eta``, and
           replaces the count (``rest_soc_reading="ocv"``) or is fused with it (``"fused"``).  A
           charge while parked (the count cannot see it) is thus caught at that first sample.
         """
@@ -728,7 +736,8 @@ class SocEstimator:
         due = self._rest_due & ok
         self._rest_due = self._rest_due & ~ok  # a cell without a valid sample yet waits for its first
         self._any_rest_due = any_cell(self._rest_due)
-        read = due & np.isfinite(i) & (np.abs(i) <= cfg.rest_current_c * self.capacity_stated_ah) & np.isfinite(self.soc)
+        near_rest = np.abs(i) <= cfg.rest_read_current_c * self.capacity_stated_ah
+        read = due & np.isfinite(i) & near_rest & np.isfinite(self.soc)
         if not any_cell(read):
             return read
         i0 = np.where(read, i, 0.0)
