@@ -7,6 +7,8 @@ current (the SOC side held at its rest meanwhile, so only the SOX part differs),
 neither rests nor is fed (the behaviour before ``rest``).
 """
 
+import copy
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, example, given, settings
@@ -31,18 +33,28 @@ def _kept(s: SoxEstimator) -> tuple:
     return s.x_v.copy(), s.mean_current_a.copy(), s.error_ms_v2.copy()
 
 
+#: the last sample the tests read: five minutes into the second drive
+LAST = FIRST + AWAKE_S + 300
+KINDS = ("rested", "fed", "old")
+
+
 @pytest.fixture(scope="module")
 def runs():
-    """{config: {"rested"|"fed"|"old": {sample: outputs}}}, plus each SOX estimator's state at the gap."""
+    """{config: {"rested"|"fed"|"old": {sample: outputs}}}, plus each SOX estimator's state at the gap.
+
+    Up to the gap the three kinds are one SOX estimator per config (they see the same samples): it is copied
+    into the three there, and the run stops at the last sample the tests read (``LAST``)."""
     i, v, _, idx = _park_trip()
     est = SocEstimator(1, _ocv(), Q_AH, 1.0, initial_soc=0.95)
-    sox = {(c, kind): SoxEstimator(1, 1.0, cfg) for c, cfg in CONFIGS.items() for kind in ("rested", "fed", "old")}
-    out = {key: {} for key in sox}
+    shared = {c: SoxEstimator(1, 1.0, cfg) for c, cfg in CONFIGS.items()}
+    sox = {(c, "shared"): s for c, s in shared.items()}
+    out = {(c, kind): {} for c in CONFIGS for kind in KINDS}
     at_gap = {}
     prev = None
-    for k in idx:
+    for k in idx[idx <= LAST]:
         if prev is not None and k - prev > 1:
             gap = float(k - prev - 1)
+            sox = {(c, kind): copy.deepcopy(shared[c]) for c in CONFIGS for kind in KINDS}
             at_gap["before"] = {key: _kept(s) for key, s in sox.items()}
             for (c, kind), s in sox.items():
                 if kind == "rested":
