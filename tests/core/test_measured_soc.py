@@ -14,18 +14,36 @@ import numpy as np
 import pytest
 
 from bms_estimator.core.soc import SocConfig
-from bms_estimator.soc_matrix import check_start, run_cell, start_point
+from bms_estimator.soc_matrix import STARTS, check_start, run_cell, start_point
 from tests.conftest import SHARED, needs_shared
 
 DEFAULT = SocConfig().soc_method
 
 
+LATE = ("at50+20", "at50-20", "at50+5", "at50-5", "at75+20", "at75-20", "at75+5", "at75-5")
+LOADED = ("at10ocv", "at25ocv", "at50ocv", "at75ocv")
+FIRST_SAMPLE = ("ocv",)
+
+
 @pytest.fixture(scope="module")
-def rows() -> list[dict]:
+def every_start() -> list[dict]:
+    """The scored files from the README's four starts and every other start the tests below score, in one run
+    per cell: each (file, start) is a cell of one estimator, and a cell's figures are its run alone's (the
+    README's four rows measured equal in every field), at a quarter of the time of a run per set of starts."""
     out = []
     for cell, pattern in (("lg-hg2", "lg-hg2/[02]*degC/*"), ("panasonic-18650pf", "panasonic-18650pf/25degC/*")):
-        out += run_cell(SHARED, cell, [DEFAULT], pattern, leave_out=False)
-    return [r for r in out if r.get("reference_relaxed")]
+        out += run_cell(SHARED, cell, [DEFAULT], pattern, leave_out=False,
+                        start_names=tuple(STARTS) + LATE + LOADED + FIRST_SAMPLE)
+    return out
+
+
+def _starting(rows: list[dict], names: tuple[str, ...]) -> list[dict]:
+    return [r for r in rows if r["start"] in names]
+
+
+@pytest.fixture(scope="module")
+def rows(every_start) -> list[dict]:
+    return [r for r in _starting(every_start, tuple(STARTS)) if r.get("reference_relaxed")]
 
 
 @needs_shared
@@ -105,11 +123,8 @@ def test_start_names_place_the_start_and_an_unknown_one_is_named():
             check_start(bad)
 
 
-LATE = ("at50+20", "at50-20", "at50+5", "at50-5", "at75+20", "at75-20", "at75+5", "at75-5")
-
-
 @needs_shared
-def test_starts_later_in_a_drive():
+def test_starts_later_in_a_drive(every_start):
     """Halfway and three quarters into each scored file, 20 % and 5 % off either way: starts the README
     matrix does not use (its mid-file starts are at a quarter).  Measured 108 of 124 scored runs within 2 %
     (median 0.95 %; 61 of 68 halfway, 47 of 56 at three quarters, where the end of discharge weighs most),
@@ -117,9 +132,7 @@ def test_starts_later_in_a_drive():
     branch fix 59 of 124, before the diffusion prior 93, before the identifier's prior at the start
     temperature 102; 105 while a later start took the priors at the recording's first sample; 104 before
     the slow-branch floor)."""
-    rows = []
-    for cell, pattern in (("lg-hg2", "lg-hg2/[02]*degC/*"), ("panasonic-18650pf", "panasonic-18650pf/25degC/*")):
-        rows += run_cell(SHARED, cell, [DEFAULT], pattern, leave_out=False, start_names=LATE)
+    rows = _starting(every_start, LATE)
     scored = [r for r in rows if r.get("reference_relaxed") and np.isfinite(r["rmse_30min_pct"])]
     assert len(scored) >= 120, len(scored)
     e30 = np.array([r["rmse_30min_pct"] for r in scored])
@@ -130,16 +143,13 @@ def test_starts_later_in_a_drive():
 
 
 @needs_shared
-def test_starts_read_from_a_loaded_voltage_mid_drive():
+def test_starts_read_from_a_loaded_voltage_mid_drive(every_start):
     """A gateway started mid-drive without a state (``soc --start-s T --start-soc ocv``): 10, 25, 50 and 75 %
     into each scored file the SOC is read from the voltage under load.  Measured 57 of 67 within 2 % from
     30 min (median 0.91 %, worst 4.55 %; 55 of 67 before the slow-branch floor), better than counting with
     the stated capacity from the same start on 63; 33 of 67 (median 2.10 %, worst 11.93 %) while the whole overpotential was read as OCV and
     trusted to 3 %."""
-    rows = []
-    for cell, pattern in (("lg-hg2", "lg-hg2/[02]*degC/*"), ("panasonic-18650pf", "panasonic-18650pf/25degC/*")):
-        rows += run_cell(SHARED, cell, [DEFAULT], pattern, leave_out=False,
-                         start_names=("at10ocv", "at25ocv", "at50ocv", "at75ocv"))
+    rows = _starting(every_start, LOADED)
     scored = [r for r in rows if r.get("reference_relaxed") and np.isfinite(r["rmse_30min_pct"])]
     assert len(scored) >= 60, len(scored)
     e30 = np.array([r["rmse_30min_pct"] for r in scored])
@@ -163,15 +173,13 @@ def test_sigma_coverage_counts_the_samples_within_one_and_two_sigma():
 
 
 @needs_shared
-def test_a_start_read_from_the_ocv_at_the_first_sample():
+def test_a_start_read_from_the_ocv_at_the_first_sample(every_start):
     """What the service does after a rest (and ``soc --start-soc ocv``): the SOC read from the first
     sample's voltage, every scored file starting after a charge (three Panasonic files under a 1.6-2.7 A
     load: the prior's ohmic drop taken out).  Measured 17 of 18 within 2 % from 30 min (median 0.60 %;
     0.56 % before the loaded reads, which read 0.92-0.96 then); the miss is Panasonic hwfet_a, 2.55 %
     (1.50 % when told it is full: from 35 min the identifier's slow branch and its c0 drift together, README)."""
-    rows = []
-    for cell, pattern in (("lg-hg2", "lg-hg2/[02]*degC/*"), ("panasonic-18650pf", "panasonic-18650pf/25degC/*")):
-        rows += run_cell(SHARED, cell, [DEFAULT], pattern, leave_out=False, start_names=("ocv",))
+    rows = _starting(every_start, FIRST_SAMPLE)
     scored = [r for r in rows if r.get("reference_relaxed")]
     assert len(scored) == 18, len(scored)
     starts = np.array([r["start_soc"] for r in scored])
