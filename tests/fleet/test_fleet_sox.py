@@ -53,11 +53,18 @@ def slices(tmp_path_factory):
     return d, logs, write_batch_config(d, 1, "fleet-sox")
 
 
+@pytest.fixture(scope="module")
+def first_drive(slices, tmp_path_factory):
+    """run_drive of the first slice with the SOX part: (result, state, estimates), read by three tests."""
+    d, logs, cfg = slices
+    return run_drive(logs[0], str(cfg), tmp_path_factory.mktemp("first-drive"), "car1", sox=True)
+
+
 def _column(parquet: str, key: str) -> np.ndarray:
     return pq.read_table(parquet).column(key).to_numpy()
 
 
-def test_chained_drives_carry_the_soh_and_the_energy_across_drives(slices, tmp_path):
+def test_chained_drives_carry_the_soh_and_the_energy_across_drives(slices, first_drive, tmp_path):
     d, logs, cfg = slices
     chained = run_vehicle([str(p) for p in logs], str(cfg), tmp_path / "chained", "car1", sox=True)
     alone = run_vehicle([str(p) for p in logs], str(cfg), tmp_path / "alone", "car1", sox=True, chain=False)
@@ -79,7 +86,7 @@ def test_chained_drives_carry_the_soh_and_the_energy_across_drives(slices, tmp_p
     assert chained[1].cells["energy_discharged_wh"] == pytest.approx(alone[1].cells["energy_discharged_wh"], rel=1e-9)
     assert 0 < chained[1].cells["energy_charged_wh"][0] < chained[1].cells["energy_discharged_wh"][0]
     # the carried state is the daemon's state file: saved and loaded, it resumes drive 2 the same
-    _, state1, _ = run_drive(logs[0], str(cfg), tmp_path / "x", "car1", sox=True)
+    _, state1, _ = first_drive
     assert any(k.startswith("sox.") for k in state1)
     save_state(tmp_path / "state.npz", state1, {"pack_id": "car1", "n_cells": 1})
     loaded = load_state(tmp_path / "state.npz", pack_id="car1", n_cells=1, max_age_s=None)
@@ -88,9 +95,9 @@ def test_chained_drives_carry_the_soh_and_the_energy_across_drives(slices, tmp_p
         assert np.array_equal(est2.cells[key].reshape(-1), _column(chained[1].parquet, key), equal_nan=True), key
 
 
-def test_the_carried_sox_state_is_rested_over_the_gap(slices):
+def test_the_carried_sox_state_is_rested_over_the_gap(slices, first_drive):
     d, logs, cfg = slices
-    _, state, _ = run_drive(logs[0], str(cfg), d / "x", "car1", sox=True)
+    _, state, _ = first_drive
     svc = service_for(str(cfg), n_cells=1)
     samples = SampleArrays.from_recording(load_recording(logs[1]), 1.0)
     before = np.asarray(state["sox.mean_current_a"], dtype=float)
@@ -123,14 +130,14 @@ def test_summary_has_the_soh_columns_finite_where_defined(slices, tmp_path):
     assert first > 600 and np.isnan(soh[:first]).all() and np.isfinite(soh[first:]).all()
     # the energy left at the end of a drive to 6 % SOC is a small part of the 10.8 Wh cell; out > in
     assert 0 <= row["energy_left_wh_final"] < 1.5 and row["energy_discharged_wh"] > row["energy_charged_wh"] > 0
-    # without sox: the summary's columns as before
-    plain, _, _ = run_drive(SAMPLE, str(cfg), tmp_path, "lg", write=False)
+    # without sox: the summary's columns as before (on the shorter drive: the columns do not hang on its length)
+    plain, _, _ = run_drive(logs[0], str(cfg), tmp_path, "car1", write=False)
     assert not set(SOX_SUMMARY_COLUMNS) & set(summary_rows([plain])[0])
 
 
-def test_pack_summary_is_the_pack_series_finite_where_defined(slices, tmp_path):
+def test_pack_summary_is_the_pack_series_finite_where_defined(slices, first_drive):
     d, logs, cfg = slices
-    res, _, est = run_drive(logs[0], str(cfg), tmp_path, "car1", sox=True)  # 2500 s in the resistance SOH's band
+    res, _, est = first_drive  # 2500 s in the resistance SOH's band
     rows = summary_rows([res], sox=True)
     assert len(rows) == 1 and tuple(rows[0])[-len(PACK_SUMMARY_COLUMNS):] == PACK_SUMMARY_COLUMNS
     row = rows[0]
