@@ -713,10 +713,14 @@ def test_ocv_tables_of_two_cells_are_named_in_one_warning(tmp_path, capsys):
     figure (not refused: core.ocv_surface, item 9). The LG table with a copy of itself 20 K colder says nothing."""
     pan = read_ocv_table(PAN_OCV)
     pan20 = write_ocv_table(OcvCurve(pan.soc, pan.ocv_v, pan.hysteresis_v, temperature_c=20.0), tmp_path / "pan20.csv")
-    data = str(drive_cycle("lg-hg2", "udds"))
+    from bms_estimator.data import CellRecording, load_recording, save_recording
+
+    udds = load_recording(drive_cycle("lg-hg2", "udds"))  # its first 10 min: the warning is the tables'
+    head = CellRecording(udds.time_s[:600], udds.current_a[:600], udds.voltage_v[:600], udds.temperature_c[:600])
+    data = str(save_recording(head, tmp_path / "udds_head.csv"))
     out = tmp_path / "mixed.json"
     assert main(["soc", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(pan20), "--capacity-ah", "2.8",
-                 "--json", str(out)]) == 0
+                 "--reference-capacity-ah", "2.8", "--json", str(out)]) == 0
     err = capsys.readouterr().err
     assert "Traceback" not in err
     line = [w for w in err.splitlines() if "not tables of one cell" in w or "tables of one cell?" in w]
@@ -726,7 +730,7 @@ def test_ocv_tables_of_two_cells_are_named_in_one_warning(tmp_path, capsys):
     lg = read_ocv_table(ocv_table("lg-hg2"))
     lg5 = write_ocv_table(OcvCurve(lg.soc, lg.ocv_v, lg.hysteresis_v, temperature_c=4.0), tmp_path / "lg4.csv")
     assert main(["soc", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(lg5), "--capacity-ah", "2.8",
-                 "--json", str(out)]) == 0
+                 "--reference-capacity-ah", "2.8", "--json", str(out)]) == 0
     assert "tables of one cell" not in capsys.readouterr().err
 
 
