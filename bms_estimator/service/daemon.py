@@ -311,7 +311,27 @@ class Service:
             "c0_window_s": self.soc_config.c0_window_s,
             "capacity_ah": self.cfg.pack.capacity_ah,
         }
+        # Cells in parallel: each is fed the pack current / n_parallel, so what a state learnt (its SOC count,
+        # resistances, capacity, energy) is at that current. Left out at 1, so that the states of one cell
+        # per series element saved before it was part of the key keep their fingerprint; a state of a
+        # parallel pack saved before it was (its cells fed the whole pack current) no longer matches.
+        n_parallel = self.cfg.estimator.sop.n_parallel
+        if n_parallel != 1:
+            key["n_parallel"] = n_parallel
         return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+    def _fingerprint_mismatch(self, meta: dict[str, Any]) -> str:
+        """Why a state of another fingerprint is not resumed: what its meta says differs, else the list."""
+        k, saved_k = self.cfg.estimator.sop.n_parallel, meta.get("n_parallel")
+        if saved_k is None and k != 1:
+            return (f"saved without estimator.sop.n_parallel (by an earlier version, which fed each of the {k} "
+                    "cells in parallel the whole pack current: its SOC, resistances, capacity and energy are "
+                    "not a cell's), or with another estimator configuration")
+        if saved_k is not None and saved_k != k:
+            return (f"saved with estimator.sop.n_parallel {saved_k}, configured {k}: its SOC, resistances, "
+                    "capacity and energy are at another current per cell")
+        return ("made with another estimator configuration (sample period, method, window, c0 window, capacity "
+                "or cells in parallel)")
 
     def restore(self) -> bool:
         """Load the saved state if it is fresh and fits; True when resumed. Never raises."""
@@ -325,7 +345,7 @@ class Service:
         meta = getattr(saved, "meta", {}) or {}
         reason = None
         if meta.get("fingerprint") != self.fingerprint:
-            reason = "made with another estimator configuration (sample period, method, window, c0 window or capacity)"
+            reason = self._fingerprint_mismatch(meta)
         else:
             est = self._new_estimator()
             try:
@@ -418,6 +438,7 @@ class Service:
             "samples": est.samples,
             "sample_period_s": self.period_s,
             "capacity_ah": self.cfg.pack.capacity_ah,
+            "n_parallel": self.cfg.estimator.sop.n_parallel,
         }
         if last is not None:
             saved_at = last.wall_time

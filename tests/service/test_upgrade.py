@@ -1,0 +1,75 @@
+"""An upgrade of a running fleet: the state file, configuration and outputs an older version left behind.
+
+The service resumes the state file an older version saved where its fields mean what they meant then
+(``tests/service/test_daemon.py``, ``test_restart_resumes_from_saved_state``; the core's ``load_state_dict``
+fills fields added since). Where a version changed what a field means, the file is set aside with one log
+line saying why, never resumed as if nothing had changed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from structlog.testing import capture_logs
+from test_daemon import CAPACITY_AH, N, PACK, channel, make_cfg, ocv
+
+from bms_estimator.core.soc import SocEstimator
+from bms_estimator.service.daemon import Service
+from bms_estimator.service.state import save_state
+
+
+def _legacy_meta(fingerprint: str) -> dict:
+    """The meta every version up to this one wrote (service/daemon.py ``_state_to_save``)."""
+    return {"pack_id": PACK, "n_cells": N, "fingerprint": fingerprint, "t_s": 2399.0, "samples": 2399,
+            "sample_period_s": 1.0, "capacity_ah": CAPACITY_AH}
+
+
+def _not_used(logs: list[dict]) -> list[dict]:
+    return [e for e in logs if e["event"] == "saved estimator state not used; starting fresh" and "reason" in e]
+
+
+def test_a_parallel_packs_state_counted_at_the_whole_pack_current_is_set_aside_saying_why(tmp_path):
+    """With ``estimator.sop.n_parallel = k`` each cell is now fed the pack current / k; versions before fed
+    each the whole pack current, so their state holds an SOC counted k times too fast, resistances 1/k of
+    the cell's and energy counters k times it (k = 2, measured on the LG la92 pack log: R0 20.5 against 44.8
+    mOhm, 3.53 against 1.77 Wh). An upgraded service resumed that file (its fingerprint had no n_parallel)
+    and kept the halved resistances for good. Now it is set aside, the log naming n_parallel."""
+    ch = channel()
+    one = make_cfg(tmp_path, ch)
+    two = make_cfg(tmp_path, ch, estimator={"sop": {"n_parallel": 2}})
+    est = SocEstimator(N, ocv(), CAPACITY_AH, 1.0, initial_soc=0.6, config=Service(one).soc_config)
+    path = Path(two.state.path)
+    save_state(path, est.state_dict(), _legacy_meta(Service(one).fingerprint))  # as an older version saved it
+
+    svc = Service(two)
+    with capture_logs() as logs:
+        assert svc.restore() is False
+    assert not path.exists() and len(list(tmp_path.glob("state.npz.foreign-*"))) == 1  # kept, not deleted
+    (line,) = _not_used(logs)
+    assert "estimator.sop.n_parallel" in line["reason"] and "whole pack current" in line["reason"]
+
+    # the same file with one cell per series element (n_parallel = 1, the default) is resumed as before
+    save_state(path, est.state_dict(), _legacy_meta(Service(one).fingerprint))
+    assert Service(one).restore() is True
+
+
+def test_a_state_of_another_n_parallel_is_set_aside_naming_both(tmp_path):
+    """A state saved by this version with ``n_parallel = 2`` resumes with 2, and is set aside (naming both
+    values) with 3: what it learnt is at another current per cell."""
+    ch = channel()
+    two = make_cfg(tmp_path, ch, estimator={"sop": {"n_parallel": 2}})
+    three = make_cfg(tmp_path, ch, estimator={"sop": {"n_parallel": 3}})
+    svc = Service(two)
+    assert svc.restore() is False  # no file yet
+    state, meta, saved_at = svc._state_to_save()
+    assert meta["n_parallel"] == 2
+    save_state(Path(two.state.path), state, meta, saved_at=saved_at)
+    again = Service(two)
+    assert again.restore() is True
+    save_state(Path(two.state.path), state, meta, saved_at=saved_at)
+    with capture_logs() as logs:
+        assert Service(three).restore() is False
+    (line,) = _not_used(logs)
+    assert "estimator.sop.n_parallel 2" in line["reason"] and "configured 3" in line["reason"]
+
