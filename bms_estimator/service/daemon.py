@@ -195,10 +195,18 @@ class Service:
         # cell of a parallel group, say).  Counting with it, the EKF's first step would clip it into
         # capacity_bounds x stated, a wrong capacity with nothing to say so.
         self.capacity_note: str | None = None
+        # versions before this rule started the count on the tables' capacity here, and the EKF's first step
+        # clipped it to this bound (-1 low, +1 high) where it lies outside capacity_bounds x stated (restore)
+        self._legacy_clip_side = 0
         if self.ocv is not None and self.soc_config.capacity_from_ocv:
             ratio = stated_capacity_ratio(cfg.pack.capacity_ah, self.ocv)
             if cfg.pack.ocv_csv is None or ratio is not None:
                 self.soc_config = replace(self.soc_config, capacity_from_ocv=False)
+                tables = table_capacities_ah(self.ocv)
+                if tables:
+                    q, (lo, hi) = float(np.median(tables)), self.soc_config.capacity_bounds
+                    self._legacy_clip_side = -1 if q < lo * cfg.pack.capacity_ah else (
+                        1 if q > hi * cfg.pack.capacity_ah else 0)
             if cfg.pack.ocv_csv is not None and ratio is not None:
                 self.capacity_note = (
                     f"pack.capacity_ah {cfg.pack.capacity_ah:g} Ah is {ratio:.3g} times the C/20 capacity "
@@ -353,8 +361,10 @@ class Service:
             except Exception as exc:  # noqa: BLE001 - ValueError, KeyError, shape errors...
                 reason = f"rejected by the estimator: {type(exc).__name__}: {exc}"
             else:
-                self.pipeline.estimator = est
-                self._restore_sox(saved)
+                reason = self._legacy_clipped_capacity(meta, est)
+                if reason is None:
+                    self.pipeline.estimator = est
+                    self._restore_sox(saved)
         if reason is not None:
             on_disk = self.handover is None and Path(st.path).exists()  # a state handed over is not the file's
             aside = _move_aside(Path(st.path), "foreign") if on_disk else None
@@ -369,6 +379,24 @@ class Service:
         log.info("estimator resumed from saved state", path=str(st.path), age_s=round(float(meta.get("age_s", 0)), 1),
                  t_s=meta.get("t_s"), soc_mean=float(np.nanmean(soc)) if np.isfinite(soc).any() else None)
         return True
+
+    def _legacy_clipped_capacity(self, meta: dict[str, Any], est: SocEstimator) -> str | None:
+        """Why a state an earlier version counted with a capacity nobody stated is not resumed, else None.
+
+        Versions that did not record ``capacity_from_ocv`` in the meta started the count on the OCV tables'
+        capacity even where it is not this pack's cells' (the built-in curve's 3.0 Ah, a table more than 2x
+        from pack.capacity_ah), and the EKF's first step clipped it to a capacity bound: a 50 Ah pack counted
+        with 30 Ah. Resumed, that capacity stays, the SOC is counted with it and the bound flag blames
+        pack.capacity_ah. Cells of such a file still at that bound: the file is set aside."""
+        side = self._legacy_clip_side
+        if side == 0 or "capacity_from_ocv" in meta or not np.any(est.capacity_at_bound == side):
+            return None
+        lo, hi = self.soc_config.capacity_bounds
+        bound = (lo if side < 0 else hi) * self.cfg.pack.capacity_ah
+        return (f"saved by an earlier version, which started the count on the OCV table's capacity and clipped it "
+                f"to {bound:g} Ah ({lo if side < 0 else hi:g} x pack.capacity_ah {self.cfg.pack.capacity_ah:g}), "
+                f"a capacity nobody stated: cells {np.flatnonzero(est.capacity_at_bound == side).tolist()} "
+                "still count with it")
 
     def _rest_since_saved(self, saved_at: float) -> float:
         """The resumed state is ``now - saved_at`` seconds behind (``saved_at``: the wall time of its newest
@@ -439,6 +467,7 @@ class Service:
             "sample_period_s": self.period_s,
             "capacity_ah": self.cfg.pack.capacity_ah,
             "n_parallel": self.cfg.estimator.sop.n_parallel,
+            "capacity_from_ocv": self.soc_config.capacity_from_ocv,  # the count started on the tables' capacity
         }
         if last is not None:
             saved_at = last.wall_time

@@ -73,3 +73,38 @@ def test_a_state_of_another_n_parallel_is_set_aside_naming_both(tmp_path):
     (line,) = _not_used(logs)
     assert "estimator.sop.n_parallel 2" in line["reason"] and "configured 3" in line["reason"]
 
+
+def _state_with_capacity(svc: Service, capacity_ah: float) -> dict:
+    est = SocEstimator(N, svc.ocv, svc.cfg.pack.capacity_ah, 1.0, initial_soc=0.6, config=svc.soc_config)
+    state = est.state_dict()
+    state["capacity_ah"] = np.full(N, capacity_ah)
+    return state
+
+
+def test_a_capacity_an_earlier_version_clipped_from_the_ocv_tables_is_set_aside_saying_why(tmp_path):
+    """A 50 Ah pack on the example configuration (``pack.ocv_csv`` unset: the built-in 3.0 Ah curve) was
+    counted by versions before the count's start moved to ``pack.capacity_ah`` with the curve's 3.0 Ah, which
+    the EKF's first step clipped to 0.6 x 50 = 30 Ah: their state file holds 30 Ah for every cell (measured:
+    the LG la92 pack log through the version of 2026-11-24). The upgraded service resumed it, counted the SOC
+    with 30 Ah and warned that pack.capacity_ah, which is right, was wrong for these cells. Now a file saved
+    without the count's start in its meta, whose cells sit at the bound that start clips to, is set aside
+    saying so; one whose capacity has moved inside the bounds, or saved by this version, is resumed."""
+    cfg = make_cfg(tmp_path, channel(), pack={"capacity_ah": 50.0, "ocv_csv": None})
+    svc = Service(cfg)
+    path = Path(cfg.state.path)
+    meta = dict(_legacy_meta(svc.fingerprint), capacity_ah=50.0)
+    save_state(path, _state_with_capacity(svc, 30.0), meta)
+    with capture_logs() as logs:
+        assert Service(cfg).restore() is False
+    assert not path.exists() and len(list(tmp_path.glob("state.npz.foreign-*"))) == 1
+    (line,) = _not_used(logs)
+    assert "30 Ah" in line["reason"] and "pack.capacity_ah" in line["reason"] and "earlier version" in line["reason"]
+
+    # a capacity learnt inside the bounds since: resumed
+    save_state(path, _state_with_capacity(svc, 41.0), meta)
+    assert Service(cfg).restore() is True
+    # this version's file at the bound (the stated capacity really wrong): resumed, the bound flag says so
+    _, now_meta, _ = svc._state_to_save()
+    save_state(path, _state_with_capacity(svc, 30.0), now_meta)
+    resumed = Service(cfg)
+    assert resumed.restore() is True and np.all(resumed.estimator.capacity_at_bound == -1)
