@@ -108,3 +108,21 @@ def test_a_capacity_an_earlier_version_clipped_from_the_ocv_tables_is_set_aside_
     save_state(path, _state_with_capacity(svc, 30.0), now_meta)
     resumed = Service(cfg)
     assert resumed.restore() is True and np.all(resumed.estimator.capacity_at_bound == -1)
+
+
+def test_a_state_set_aside_is_not_said_to_be_restored_first(tmp_path):
+    """The journal of a start whose state file is set aside by the service (another estimator configuration,
+    an earlier version's file) said ``estimator state restored`` and, the next line, ``saved estimator state
+    not used; starting fresh``. Reading the file is not restoring it: only the line that resumes says so."""
+    cfg = make_cfg(tmp_path, channel())
+    svc = Service(cfg)
+    save_state(Path(cfg.state.path), _state_with_capacity(svc, CAPACITY_AH), _legacy_meta("0123456789abcdef"))
+    with capture_logs() as logs:
+        assert Service(cfg).restore() is False
+    assert _not_used(logs)
+    assert not [e["event"] for e in logs if "restored" in e["event"] or "resumed" in e["event"]]
+    save_state(Path(cfg.state.path), _state_with_capacity(svc, CAPACITY_AH), _legacy_meta(svc.fingerprint))
+    with capture_logs() as logs:
+        assert Service(cfg).restore() is True
+    assert [e["event"] for e in logs if "resumed" in e["event"]] == ["estimator resumed from saved state"]
+
