@@ -242,6 +242,13 @@ class Service:
         ratings_note = default_ratings_note(cfg.pack.capacity_ah, ratings, "pack.capacity_ah")
         if ratings_note is not None:
             log.warning(ratings_note, stated_ah=cfg.pack.capacity_ah, config_key="estimator.sop")
+        # the example configuration of earlier versions spelt out the 7-day default of state.max_age_s: copied,
+        # it kept a vehicle parked a fortnight starting fresh after the default moved to 366 days
+        if cfg.state.max_age_s == LEGACY_MAX_AGE_S and "max_age_s" in cfg.state.model_fields_set:
+            log.warning("state.max_age_s 604800 s (7 days) is the default that the example configuration of earlier "
+                        "versions spelt out; the default is now 366 days (a parked month keeps the learnt "
+                        "capacity, the commissioning R0 and the energy counters): remove the key to take it, or "
+                        "keep it to set aside a state older than 7 days", config_key="state.max_age_s")
         # the shipped DBC's ranges against the cell's size (a 57 Ah cell's C1 went out clamped at 13,106.8 F)
         dbc_note = dbc_size_note(cfg.pack.capacity_ah, cfg.can.dbc) if cfg.can.output.enabled else None
         if dbc_note is not None:
@@ -735,6 +742,10 @@ class Service:
             with contextlib.suppress(Exception):
                 await self.health.close()
         log.info("service stopped", samples=self.pipeline.counters.samples)
+
+
+#: ``state.max_age_s`` as the example configuration of versions before the 366-day default spelt it out
+LEGACY_MAX_AGE_S = 7 * 86400.0
 
 
 def staleness_for(estimator: EstimatorConfig, cell_cycle_s: float | None) -> float:

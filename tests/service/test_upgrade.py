@@ -126,3 +126,18 @@ def test_a_state_set_aside_is_not_said_to_be_restored_first(tmp_path):
         assert Service(cfg).restore() is True
     assert [e["event"] for e in logs if "resumed" in e["event"]] == ["estimator resumed from saved state"]
 
+
+def test_the_7_day_state_max_age_of_earlier_example_configurations_is_named_at_start(tmp_path):
+    """The example configuration of earlier versions spelt out ``state.max_age_s = 604800.0`` (7 days, then
+    the default) and said every key showed its default. The default is now 366 days (a parked month keeps
+    the learnt capacity, the commissioning R0 and the energy counters), but a configuration copied from
+    that example keeps 7 days: upgraded, a vehicle parked a fortnight still started fresh, with nothing to
+    say the default had moved. That value is now named at start, with the new default."""
+    with capture_logs() as logs:
+        Service(make_cfg(tmp_path, channel(), state={"max_age_s": 604800.0}))
+    (note,) = [e for e in logs if e.get("config_key") == "state.max_age_s"]
+    assert note["log_level"] == "warning" and "366 days" in note["event"] and "7 days" in note["event"]
+    for state in ({}, {"max_age_s": 30 * 86400.0}, {"max_age_s": None}):  # the default, a value of one's own
+        with capture_logs() as logs:
+            Service(make_cfg(tmp_path, channel(), state=state))
+        assert not [e for e in logs if e.get("config_key") == "state.max_age_s"]
