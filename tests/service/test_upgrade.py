@@ -141,3 +141,20 @@ def test_the_7_day_state_max_age_of_earlier_example_configurations_is_named_at_s
         with capture_logs() as logs:
             Service(make_cfg(tmp_path, channel(), state=state))
         assert not [e for e in logs if e.get("config_key") == "state.max_age_s"]
+
+
+def test_the_dbc_note_says_the_receivers_of_the_output_frames_must_switch_with_it(tmp_path):
+    """A 50 Ah pack upgraded to a version with the large-cell DBC is told at every start to set
+    ``can.dbc = "large-cell"``, "the same frames": same ids and bits, but R0/R1/R2/C1/C2/CapacityMean at other
+    scalings, so every node decoding the output frames with the project DBC reads R0 four times the value
+    sent. The note now says the receivers must decode with that DBC too, naming its file (and back)."""
+    def note(**kw) -> str:
+        with capture_logs() as logs:
+            Service(make_cfg(tmp_path, channel(), **kw))
+        (one,) = [r for r in logs if r["log_level"] == "warning" and r.get("config_key") == "can.dbc"]
+        return one["event"]
+
+    big = note(pack={"capacity_ah": 50.0, "ocv_csv": None})
+    assert "bms_estimator_large_cell.dbc" in big and "receiver" in big
+    small = note(can={"dbc": "large-cell"})
+    assert "bms_estimator.dbc" in small and "receiver" in small
