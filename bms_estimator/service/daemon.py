@@ -359,6 +359,7 @@ class Service:
             return False
         meta = getattr(saved, "meta", {}) or {}
         reason = None
+        sox_only = False  # the SOC part set aside, the SOP/SOE/SOH part resumed
         if meta.get("fingerprint") != self.fingerprint:
             reason = self._fingerprint_mismatch(meta)
         else:
@@ -369,6 +370,7 @@ class Service:
                 reason = f"rejected by the estimator: {type(exc).__name__}: {exc}"
             else:
                 reason = self._legacy_clipped_capacity(meta, est)
+                sox_only = reason is not None
                 if reason is None:
                     self.pipeline.estimator = est
                     self._restore_sox(saved)
@@ -378,6 +380,8 @@ class Service:
             log.warning("saved estimator state not used; starting fresh", path=str(st.path), reason=reason,
                         moved_to=str(aside) if aside else None)
             self.pipeline.estimator = self._new_estimator()
+            if sox_only:
+                self._resume_sox_only(saved, meta)
             return False
         self.restored = True
         self._restored_saved_at = float(meta.get("saved_at", time.time()))
@@ -404,6 +408,20 @@ class Service:
                 f"to {bound:g} Ah ({lo if side < 0 else hi:g} x pack.capacity_ah {self.cfg.pack.capacity_ah:g}), "
                 f"a capacity nobody stated: cells {np.flatnonzero(est.capacity_at_bound == side).tolist()} "
                 "still count with it")
+
+    def _resume_sox_only(self, saved: Any, meta: dict[str, Any]) -> None:
+        """The SOP/SOE/SOH part of a state whose SOC part is set aside for its capacity alone
+        (:meth:`_legacy_clipped_capacity`): the commissioning R0 the resistance SOH is measured against and
+        the energy counters do not depend on the capacity the SOC was counted with. Rested over the state's
+        age as a resumed state is (with the fresh SOC estimator's model: its RC voltages relax fully)."""
+        self._restore_sox(saved)
+        age = time.time() - _rested_until(meta, float(meta.get("saved_at", time.time())))
+        if age > self.sampler.max_gap_s:
+            self.pipeline.sox.rest(age, est=self.estimator)
+        r0_c = self.pipeline.sox.resistance.r0_commissioning_ohm
+        log.info("the SOP/SOE/SOH part of the state set aside is resumed (the commissioning R0 of the resistance "
+                 "SOH, the energy counters): it does not depend on the capacity",
+                 cells_commissioned=int(np.count_nonzero(np.isfinite(r0_c))), rested_s=round(max(age, 0.0), 1))
 
     def _rest_since_saved(self, saved_at: float) -> float:
         """The resumed state is ``now - saved_at`` seconds behind (``saved_at``: the wall time of its newest

@@ -8,6 +8,7 @@ line saying why, never resumed as if nothing had changed.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +100,25 @@ def test_a_capacity_an_earlier_version_clipped_from_the_ocv_tables_is_set_aside_
     assert not path.exists() and len(list(tmp_path.glob("state.npz.foreign-*"))) == 1
     (line,) = _not_used(logs)
     assert "30 Ah" in line["reason"] and "pack.capacity_ah" in line["reason"] and "earlier version" in line["reason"]
+
+    # its SOP/SOE/SOH part does not depend on the capacity the SOC was counted with: the commissioning R0
+    # the resistance SOH is measured against and the energy counters are resumed, and said to be
+    sox = svc._new_sox()
+    sox.resistance.r0_commissioning_ohm[:] = 0.021
+    sox.energy_discharged_wh[:] = 1234.5
+    state = {**_state_with_capacity(svc, 30.0), **{f"sox.{k}": v for k, v in sox.state_dict().items()}}
+    save_state(path, state, meta, saved_at=time.time() - 3 * 86400)  # parked three days
+    upgraded = Service(cfg)
+    with capture_logs() as logs:
+        assert upgraded.restore() is False
+    assert np.all(upgraded.estimator.capacity_ah == 50.0) and not np.isfinite(upgraded.estimator.soc).any()
+    np.testing.assert_array_equal(upgraded.pipeline.sox.resistance.r0_commissioning_ohm, 0.021)
+    np.testing.assert_array_equal(upgraded.pipeline.sox.energy_discharged_wh, 1234.5)
+    assert [e for e in logs if e["event"].startswith("the SOP/SOE/SOH part of the state set aside is resumed")]
+    state, _, _ = upgraded._state_to_save()  # the next save carries them on
+    np.testing.assert_array_equal(state["sox.soh.r0_commissioning_ohm"], 0.021)
+    for p in tmp_path.glob("state.npz.foreign-*"):
+        p.unlink()
 
     # a capacity learnt inside the bounds since: resumed
     save_state(path, _state_with_capacity(svc, 41.0), meta)
