@@ -403,11 +403,12 @@ class Service:
         if side == 0 or "capacity_from_ocv" in meta or not np.any(est.capacity_at_bound == side):
             return None
         lo, hi = self.soc_config.capacity_bounds
-        bound = (lo if side < 0 else hi) * self.cfg.pack.capacity_ah
-        return (f"saved by an earlier version, which started the count on the OCV table's capacity and clipped it "
-                f"to {bound:g} Ah ({lo if side < 0 else hi:g} x pack.capacity_ah {self.cfg.pack.capacity_ah:g}), "
-                f"a capacity nobody stated: cells {np.flatnonzero(est.capacity_at_bound == side).tolist()} "
-                "still count with it")
+        factor = lo if side < 0 else hi
+        cells = np.flatnonzero(est.capacity_at_bound == side)
+        return (f"saved by an earlier version, which started the count on the OCV table's capacity, not this "
+                f"pack's cells', and (EKF) clipped it to {factor * self.cfg.pack.capacity_ah:g} Ah ({factor:g} x "
+                f"pack.capacity_ah {self.cfg.pack.capacity_ah:g}): cells {cells.tolist()} still count with "
+                f"{float(np.median(est.capacity_ah[cells])):.4g} Ah, a capacity nobody stated")
 
     def _resume_sox_only(self, saved: Any, meta: dict[str, Any]) -> None:
         """The SOP/SOE/SOH part of a state whose SOC part is set aside for its capacity alone
