@@ -86,10 +86,11 @@ def test_a_capacity_an_earlier_version_clipped_from_the_ocv_tables_is_set_aside_
     """A 50 Ah pack on the example configuration (``pack.ocv_csv`` unset: the built-in 3.0 Ah curve) was
     counted by versions before the count's start moved to ``pack.capacity_ah`` with the curve's 3.0 Ah, which
     the EKF's first step clipped to 0.6 x 50 = 30 Ah: their state file holds 30 Ah for every cell (measured:
-    the LG la92 pack log through the version of 2026-11-24). The upgraded service resumed it, counted the SOC
+    the LG la92 pack log through 80de115). The upgraded service resumed it, counted the SOC
     with 30 Ah and warned that pack.capacity_ah, which is right, was wrong for these cells. Now a file saved
     without the count's start in its meta, whose cells sit at the bound that start clips to, is set aside
-    saying so; one whose capacity has moved inside the bounds, or saved by this version, is resumed."""
+    saying so (its SOP/SOE/SOH part resumed); one whose capacity has moved inside the bounds, or saved by this
+    version, is resumed."""
     cfg = make_cfg(tmp_path, channel(), pack={"capacity_ah": 50.0, "ocv_csv": None})
     svc = Service(cfg)
     path = Path(cfg.state.path)
