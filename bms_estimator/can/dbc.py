@@ -76,8 +76,12 @@ def dbc_size_note(capacity_ah: float, dbc: str | Path | None) -> str | None:
     if name == "default" and capacity_ah >= LARGE_CELL_AH:
         return (f"can.dbc: the project DBC's ranges are an 18650's (C1 to 13,107 F, CapacityMean to 65.5 Ah, "
                 f"R0/R1 in 8 uOhm steps); a {capacity_ah:g} Ah cell's values are clamped or coarse there: "
-                'set can.dbc = "large-cell" (the same frames, scaled for cells of 20 Ah and up)')
+                'set can.dbc = "large-cell" (the same frames, scaled for cells of 20 Ah and up; every '
+                "receiver of the output frames must then decode them with dbc/bms_estimator_large_cell.dbc: "
+                "on the project DBC it reads R0, R1 and R2 four times, C1 and C2 a 25th and CapacityMean a "
+                "tenth of the values sent)")
     if name == "large-cell" and capacity_ah < LARGE_CELL_AH / 2:
         return (f"can.dbc: the large-cell DBC's R0/R1 end at 16.38 mOhm, below a {capacity_ah:g} Ah cell's; "
-                "leave can.dbc unset (the project DBC) for it")
+                "leave can.dbc unset (the project DBC) for it, and every receiver of the output frames on "
+                "dbc/bms_estimator.dbc")
     return None

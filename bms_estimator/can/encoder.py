@@ -33,6 +33,8 @@ C2 at 131068 F, CapacityMean at 65.534 Ah, R0/R1 step 8 uOhm; a 57 Ah cell's C1 
 counted in ``clamped_values`` and logged once per signal (WARNING ``can.encode.clamped``, naming the
 signal, the value and the range): before, the frame carried the range's end with nothing to say so.
 The remedy is a DBC scaled for the cell (``can.dbc``; units such as ``kF`` and ``uOhm`` are followed).
+Not so ``TimeToEmpty``/``TimeToFull`` (:data:`SATURATING_SIGNALS`), whose 4094 min the DBC defines as "not
+discharging (charging) or 68 h and more": an idle pack's, sent as meant, neither counted nor logged.
 
 Cells without a usable index (NaN, negative, above the multiplexer's range)
 are skipped and counted in ``skipped_cells``.
@@ -69,6 +71,10 @@ if TYPE_CHECKING:
 __all__ = ["StateEncoder"]
 
 log = structlog.get_logger(__name__)
+
+#: (message, signal) whose range end the DBC defines as "that much and more" (PackEnergy: 4094 min = not
+#: discharging / charging, or 68 h and more): clamped to it as meant, not counted or logged as a clamp
+SATURATING_SIGNALS: frozenset[tuple[str, str]] = frozenset({("PackEnergy", "TimeToEmpty"), ("PackEnergy", "TimeToFull")})
 
 #: factor from the SI value handed to the encoder to the DBC signal's unit
 UNIT_FROM_SI: dict[str, float] = {
@@ -187,7 +193,10 @@ class StateEncoder:
         self._summary_counter = 0
 
     def _raw(self, message: str, codec: SignalCodec, values: Any) -> np.ndarray:
-        """``codec.raw(values)``; the values it clamps are counted and logged (once per signal)."""
+        """``codec.raw(values)``; the values it clamps are counted and logged (once per signal), but for the
+        signals whose range end the DBC defines as "that much and more" (:data:`SATURATING_SIGNALS`)."""
+        if (message, codec.name) in SATURATING_SIGNALS:
+            return codec.raw(values)
         raw, out = codec.raw_and_clamped(values)
         if out.any():
             self.clamped_values += int(np.count_nonzero(out))

@@ -195,10 +195,18 @@ class Service:
         # cell of a parallel group, say).  Counting with it, the EKF's first step would clip it into
         # capacity_bounds x stated, a wrong capacity with nothing to say so.
         self.capacity_note: str | None = None
+        # versions before this rule started the count on the tables' capacity here, and the EKF's first step
+        # clipped it to this bound (-1 low, +1 high) where it lies outside capacity_bounds x stated (restore)
+        self._legacy_clip_side = 0
         if self.ocv is not None and self.soc_config.capacity_from_ocv:
             ratio = stated_capacity_ratio(cfg.pack.capacity_ah, self.ocv)
             if cfg.pack.ocv_csv is None or ratio is not None:
                 self.soc_config = replace(self.soc_config, capacity_from_ocv=False)
+                tables = table_capacities_ah(self.ocv)
+                if tables:
+                    q, (lo, hi) = float(np.median(tables)), self.soc_config.capacity_bounds
+                    self._legacy_clip_side = -1 if q < lo * cfg.pack.capacity_ah else (
+                        1 if q > hi * cfg.pack.capacity_ah else 0)
             if cfg.pack.ocv_csv is not None and ratio is not None:
                 self.capacity_note = (
                     f"pack.capacity_ah {cfg.pack.capacity_ah:g} Ah is {ratio:.3g} times the C/20 capacity "
@@ -234,6 +242,13 @@ class Service:
         ratings_note = default_ratings_note(cfg.pack.capacity_ah, ratings, "pack.capacity_ah")
         if ratings_note is not None:
             log.warning(ratings_note, stated_ah=cfg.pack.capacity_ah, config_key="estimator.sop")
+        # the example configuration of earlier versions spelt out the 7-day default of state.max_age_s: copied,
+        # it kept a vehicle parked a fortnight starting fresh after the default moved to 366 days
+        if cfg.state.max_age_s == LEGACY_MAX_AGE_S and "max_age_s" in cfg.state.model_fields_set:
+            log.warning("state.max_age_s 604800 s (7 days) is the default that the example configuration of earlier "
+                        "versions spelt out; the default is now 366 days (a parked month keeps the learnt "
+                        "capacity, the commissioning R0 and the energy counters): remove the key to take it, or "
+                        "keep it to set aside a state older than 7 days", config_key="state.max_age_s")
         # the shipped DBC's ranges against the cell's size (a 57 Ah cell's C1 went out clamped at 13,106.8 F)
         dbc_note = dbc_size_note(cfg.pack.capacity_ah, cfg.can.dbc) if cfg.can.output.enabled else None
         if dbc_note is not None:
@@ -311,7 +326,27 @@ class Service:
             "c0_window_s": self.soc_config.c0_window_s,
             "capacity_ah": self.cfg.pack.capacity_ah,
         }
+        # Cells in parallel: each is fed the pack current / n_parallel, so what a state learnt (its SOC count,
+        # resistances, capacity, energy) is at that current. Left out at 1, so that the states of one cell
+        # per series element saved before it was part of the key keep their fingerprint; a state of a
+        # parallel pack saved before it was (its cells fed the whole pack current) no longer matches.
+        n_parallel = self.cfg.estimator.sop.n_parallel
+        if n_parallel != 1:
+            key["n_parallel"] = n_parallel
         return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+    def _fingerprint_mismatch(self, meta: dict[str, Any]) -> str:
+        """Why a state of another fingerprint is not resumed: what its meta says differs, else the list."""
+        k, saved_k = self.cfg.estimator.sop.n_parallel, meta.get("n_parallel")
+        if saved_k is None and k != 1:
+            return (f"saved without estimator.sop.n_parallel (by an earlier version, which fed each of the {k} "
+                    "cells in parallel the whole pack current: its SOC, resistances, capacity and energy are "
+                    "not a cell's), or with another estimator configuration")
+        if saved_k is not None and saved_k != k:
+            return (f"saved with estimator.sop.n_parallel {saved_k}, configured {k}: its SOC, resistances, "
+                    "capacity and energy are at another current per cell")
+        return ("made with another estimator configuration (sample period, method, window, c0 window, capacity "
+                "or cells in parallel)")
 
     def restore(self) -> bool:
         """Load the saved state if it is fresh and fits; True when resumed. Never raises."""
@@ -324,8 +359,9 @@ class Service:
             return False
         meta = getattr(saved, "meta", {}) or {}
         reason = None
+        sox_only = False  # the SOC part set aside, the SOP/SOE/SOH part resumed
         if meta.get("fingerprint") != self.fingerprint:
-            reason = "made with another estimator configuration (sample period, method, window, c0 window or capacity)"
+            reason = self._fingerprint_mismatch(meta)
         else:
             est = self._new_estimator()
             try:
@@ -333,14 +369,19 @@ class Service:
             except Exception as exc:  # noqa: BLE001 - ValueError, KeyError, shape errors...
                 reason = f"rejected by the estimator: {type(exc).__name__}: {exc}"
             else:
-                self.pipeline.estimator = est
-                self._restore_sox(saved)
+                reason = self._legacy_clipped_capacity(meta, est)
+                sox_only = reason is not None
+                if reason is None:
+                    self.pipeline.estimator = est
+                    self._restore_sox(saved)
         if reason is not None:
             on_disk = self.handover is None and Path(st.path).exists()  # a state handed over is not the file's
             aside = _move_aside(Path(st.path), "foreign") if on_disk else None
             log.warning("saved estimator state not used; starting fresh", path=str(st.path), reason=reason,
                         moved_to=str(aside) if aside else None)
             self.pipeline.estimator = self._new_estimator()
+            if sox_only:
+                self._resume_sox_only(saved, meta)
             return False
         self.restored = True
         self._restored_saved_at = float(meta.get("saved_at", time.time()))
@@ -349,6 +390,39 @@ class Service:
         log.info("estimator resumed from saved state", path=str(st.path), age_s=round(float(meta.get("age_s", 0)), 1),
                  t_s=meta.get("t_s"), soc_mean=float(np.nanmean(soc)) if np.isfinite(soc).any() else None)
         return True
+
+    def _legacy_clipped_capacity(self, meta: dict[str, Any], est: SocEstimator) -> str | None:
+        """Why a state an earlier version counted with a capacity nobody stated is not resumed, else None.
+
+        Versions that did not record ``capacity_from_ocv`` in the meta started the count on the OCV tables'
+        capacity even where it is not this pack's cells' (the built-in curve's 3.0 Ah, a table more than 2x
+        from pack.capacity_ah), and the EKF's first step clipped it to a capacity bound: a 50 Ah pack counted
+        with 30 Ah. Resumed, that capacity stays, the SOC is counted with it and the bound flag blames
+        pack.capacity_ah. Cells of such a file still at that bound: the file is set aside."""
+        side = self._legacy_clip_side
+        if side == 0 or "capacity_from_ocv" in meta or not np.any(est.capacity_at_bound == side):
+            return None
+        lo, hi = self.soc_config.capacity_bounds
+        factor = lo if side < 0 else hi
+        cells = np.flatnonzero(est.capacity_at_bound == side)
+        return (f"saved by an earlier version, which started the count on the OCV table's capacity, not this "
+                f"pack's cells', and (EKF) clipped it to {factor * self.cfg.pack.capacity_ah:g} Ah ({factor:g} x "
+                f"pack.capacity_ah {self.cfg.pack.capacity_ah:g}): cells {cells.tolist()} still count with "
+                f"{float(np.median(est.capacity_ah[cells])):.4g} Ah, a capacity nobody stated")
+
+    def _resume_sox_only(self, saved: Any, meta: dict[str, Any]) -> None:
+        """The SOP/SOE/SOH part of a state whose SOC part is set aside for its capacity alone
+        (:meth:`_legacy_clipped_capacity`): the commissioning R0 the resistance SOH is measured against and
+        the energy counters do not depend on the capacity the SOC was counted with. Rested over the state's
+        age as a resumed state is (with the fresh SOC estimator's model: its RC voltages relax fully)."""
+        self._restore_sox(saved)
+        age = time.time() - _rested_until(meta, float(meta.get("saved_at", time.time())))
+        if age > self.sampler.max_gap_s:
+            self.pipeline.sox.rest(age, est=self.estimator)
+        r0_c = self.pipeline.sox.resistance.r0_commissioning_ohm
+        log.info("the SOP/SOE/SOH part of the state set aside is resumed (the commissioning R0 of the resistance "
+                 "SOH, the energy counters): it does not depend on the capacity",
+                 cells_commissioned=int(np.count_nonzero(np.isfinite(r0_c))), rested_s=round(max(age, 0.0), 1))
 
     def _rest_since_saved(self, saved_at: float) -> float:
         """The resumed state is ``now - saved_at`` seconds behind (``saved_at``: the wall time of its newest
@@ -418,6 +492,8 @@ class Service:
             "samples": est.samples,
             "sample_period_s": self.period_s,
             "capacity_ah": self.cfg.pack.capacity_ah,
+            "n_parallel": self.cfg.estimator.sop.n_parallel,
+            "capacity_from_ocv": self.soc_config.capacity_from_ocv,  # the count started on the tables' capacity
         }
         if last is not None:
             saved_at = last.wall_time
@@ -685,6 +761,10 @@ class Service:
             with contextlib.suppress(Exception):
                 await self.health.close()
         log.info("service stopped", samples=self.pipeline.counters.samples)
+
+
+#: ``state.max_age_s`` as the example configuration of versions before the 366-day default spelt it out
+LEGACY_MAX_AGE_S = 7 * 86400.0
 
 
 def staleness_for(estimator: EstimatorConfig, cell_cycle_s: float | None) -> float:

@@ -343,7 +343,7 @@ def _load(
         format_version=int(version),
     )
     out.meta = meta
-    log.info("estimator state restored", path=str(path), age_s=round(max(0.0, age), 1), keys=len(out))
+    log.info("saved estimator state read", path=str(path), age_s=round(max(0.0, age), 1), keys=len(out))
     return out
 
 

@@ -311,6 +311,27 @@ def test_a_large_cells_value_beyond_a_signal_is_counted_and_logged_once():
     assert quiet.clamped_values == 0
 
 
+def test_a_time_to_empty_of_68_h_and_more_is_the_dbcs_own_value_not_a_clamp_to_warn_about():
+    """``TimeToEmpty``/``TimeToFull`` end at 4094 min, which the DBC defines as "not discharging or 68 h and
+    more": a pack at rest or idling (an 18650 pack of the example configuration, 5,815 min at its mean
+    current after a drive) sends 4094 as meant. The clamp warning added for cells the DBC's ranges were not
+    made for fired at every such start ("a cell the DBC was not scaled for? can.dbc takes one that is"), a
+    false alarm pointing at a DBC change that leaves those two signals as they are. They saturate silently;
+    a value really beyond its range is still counted and logged."""
+    from structlog.testing import capture_logs
+
+    enc = StateEncoder(DB)
+    with capture_logs() as logs:
+        (frame,) = [m for m in enc.encode_pack_sox({"time_to_empty_s": 5814.6 * 60.0, "time_to_full_s": 1e7})
+                    if m.arbitration_id == DB.get_message_by_name("PackEnergy").frame_id]
+    d = DB.decode_message(frame.arbitration_id, frame.data)
+    assert d["TimeToEmpty"] == 4094 and d["TimeToFull"] == 4094
+    assert enc.clamped_values == 0 and not [e for e in logs if e["event"].startswith("can.encode.clamped")]
+    with capture_logs() as logs:
+        enc.encode_pack_sox({"capacity_ah_mean": 100.0})
+    assert enc.clamped_values == 1 and [e["signal"] for e in logs] == ["CapacityMean"]
+
+
 def test_the_large_cell_dbc_is_the_project_dbc_with_a_large_cells_scalings():
     """``can.dbc = "large-cell"`` is the project DBC frame for frame and bit for bit (a receiver switches by its
     scalings alone); only R0, R1, R2, C1, C2 and CapacityMean differ, and there only in factor and range."""
