@@ -150,16 +150,28 @@ def test_bad_data_gives_a_clear_error_and_exit_3(tmp_path, capsys, content, mess
     assert rc == 3 and "bad.csv" in err and message in err, err  # a data error, not a usage error
 
 
+def _drive_head(tmp_path, cell: str, cycle: str, seconds: int) -> str:
+    """The shipped drive cycle's first ``seconds`` as a recording CSV: for a check that is the tables' or the
+    options', not the drive's (a full drive is 2-3 h of estimator time)."""
+    from bms_estimator.data import CellRecording, load_recording, save_recording
+
+    rec = load_recording(drive_cycle(cell, cycle))
+    k = slice(0, seconds)
+    head = CellRecording(rec.time_s[k], rec.current_a[k], rec.voltage_v[k], rec.temperature_c[k])
+    return str(save_recording(head, tmp_path / f"{cycle}_head.csv"))
+
+
 def test_every_command_reads_a_gzipped_ocv_table(tmp_path, capsys):
     """--ocv took .csv only ("not UTF-8 text (invalid start byte at byte 1)") while the recordings take .csv.gz."""
     import gzip
 
     gz = tmp_path / "ocv.csv.gz"
     gz.write_bytes(gzip.compress(Path(PAN_OCV).read_bytes()))
-    data = str(drive_cycle("panasonic-18650pf", "cycle_1"))
+    data = _drive_head(tmp_path, "panasonic-18650pf", "cycle_1", 900)
     plain_json, gz_json = tmp_path / "plain.json", tmp_path / "gz.json"
-    assert main(["soc", data, "--ocv", PAN_OCV, "--capacity-ah", "2.9", "--json", str(plain_json)]) == 0
-    assert main(["soc", data, "--ocv", str(gz), "--capacity-ah", "2.9", "--json", str(gz_json)]) == 0, \
+    common = ["--capacity-ah", "2.9", "--reference-capacity-ah", "2.9"]
+    assert main(["soc", data, "--ocv", PAN_OCV, *common, "--json", str(plain_json)]) == 0
+    assert main(["soc", data, "--ocv", str(gz), *common, "--json", str(gz_json)]) == 0, \
         capsys.readouterr().err
     assert json.loads(gz_json.read_text()) == json.loads(plain_json.read_text())
 
@@ -713,11 +725,7 @@ def test_ocv_tables_of_two_cells_are_named_in_one_warning(tmp_path, capsys):
     figure (not refused: core.ocv_surface, item 9). The LG table with a copy of itself 20 K colder says nothing."""
     pan = read_ocv_table(PAN_OCV)
     pan20 = write_ocv_table(OcvCurve(pan.soc, pan.ocv_v, pan.hysteresis_v, temperature_c=20.0), tmp_path / "pan20.csv")
-    from bms_estimator.data import CellRecording, load_recording, save_recording
-
-    udds = load_recording(drive_cycle("lg-hg2", "udds"))  # its first 10 min: the warning is the tables'
-    head = CellRecording(udds.time_s[:600], udds.current_a[:600], udds.voltage_v[:600], udds.temperature_c[:600])
-    data = str(save_recording(head, tmp_path / "udds_head.csv"))
+    data = _drive_head(tmp_path, "lg-hg2", "udds", 600)  # its first 10 min: the warning is the tables'
     out = tmp_path / "mixed.json"
     assert main(["soc", data, "--ocv", str(ocv_table("lg-hg2")), "--ocv", str(pan20), "--capacity-ah", "2.8",
                  "--reference-capacity-ah", "2.8", "--json", str(out)]) == 0
