@@ -272,38 +272,48 @@ def test_compare_on_the_nmc_cell_stays_within_the_bound(tmp_path):
     assert m["c0_prior_weight"] == 0.1
 
 
-def _fit_and_compare_lg(tmp_path, method: str) -> tuple[dict, dict]:
-    """``fit`` of the shipped LG la92 sample with ``method``, and ``compare`` la92 -> udds of it beside lif-iv:
+EXTENSIONS = ("lif-iv-bv", "lif-iv-ct")
+
+
+@pytest.fixture(scope="module")
+def extensions_compared(tmp_path_factory) -> dict:
+    """``compare`` la92 -> udds (shipped LG samples) of both extensions beside lif-iv, in one run: each
+    method's validation simulation is its own (compare identifies and simulates per method)."""
+    out = tmp_path_factory.mktemp("extensions") / "cmp.json"
+    assert main(["compare", "--train", str(drive_cycle("lg-hg2", "la92")), "--validate",
+                 str(drive_cycle("lg-hg2", "udds")), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0",
+                 *[a for m in EXTENSIONS for a in ("--method", m)], "--method", "lif-iv", "--json", str(out)]) == 0
+    return json.loads(out.read_text())
+
+
+def _fit_and_compare_lg(tmp_path, method: str, compared: dict) -> tuple[dict, dict]:
+    """``fit`` of the shipped LG la92 sample with ``method``, and its ``compare`` la92 -> udds beside lif-iv:
     (the fit's JSON, the compare's); both validation simulations below 30 mV and not the same."""
-    data = str(drive_cycle("lg-hg2", "la92"))
-    lg_ocv = str(ocv_table("lg-hg2"))
     out = tmp_path / "fit.json"
-    assert main(["fit", data, "--ocv", lg_ocv, "--capacity-ah", "3.0", "--method", method,
-                 "--json", str(out)]) == 0
+    assert main(["fit", str(drive_cycle("lg-hg2", "la92")), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah",
+                 "3.0", "--method", method, "--json", str(out)]) == 0
     f = json.loads(out.read_text())
     assert f["method"] == method and 0 < f["sim_rmse_mv"] < 30
-    cmp_out = tmp_path / "cmp.json"
-    assert main(["compare", "--train", data, "--validate", str(drive_cycle("lg-hg2", "udds")), "--ocv", lg_ocv,
-                 "--capacity-ah", "3.0", "--method", method, "--method", "lif-iv", "--json", str(cmp_out)]) == 0
-    m = json.loads(cmp_out.read_text())
-    assert set(m["validate"]) == {method, "lif-iv"}
+    m = compared
+    assert set(m["validate"]) == {*EXTENSIONS, "lif-iv"}
     assert 0 < m["validate"][method]["sim_rmse_mv"] < 30
     assert m["validate"][method]["sim_rmse_mv"] != m["validate"]["lif-iv"]["sim_rmse_mv"]
     return f, m
 
 
-def test_fit_and_compare_take_the_kinetic_term(tmp_path, capsys):
+def test_fit_and_compare_take_the_kinetic_term(tmp_path, capsys, extensions_compared):
     """lif-iv-bv: fit reports K1, K2 and i0; compare simulates the validation file with them."""
-    f, _ = _fit_and_compare_lg(tmp_path, "lif-iv-bv")
+    f, _ = _fit_and_compare_lg(tmp_path, "lif-iv-bv", extensions_compared)
     med = f["median_soc_20_90"]
     assert med["i0_a"] == pytest.approx(3.0)
     for j in (1, 2):  # the guard's bound holds in what is reported
         assert abs(med[f"k{j}_ohm"]) <= med[f"r{j}_ohm"]
 
 
-def test_fit_and_compare_take_the_charge_transfer_branch(tmp_path, capsys):
+def test_fit_and_compare_take_the_charge_transfer_branch(tmp_path, capsys, extensions_compared):
     """lif-iv-ct: fit reports the charge-transfer share and V_T; compare simulates the validation file with them."""
-    f, _ = _fit_and_compare_lg(tmp_path, "lif-iv-ct")
+    capsys.readouterr()
+    f, _ = _fit_and_compare_lg(tmp_path, "lif-iv-ct", extensions_compared)
     assert "charge-transfer fast branch: 100 % of R1" in capsys.readouterr().out
     med = f["median_soc_20_90"]
     assert med["ct_fraction"] == 1.0
