@@ -19,9 +19,10 @@ from bms_estimator.cli.__main__ import main  # noqa: E402
 from bms_estimator.samples import drive_cycle  # noqa: E402
 
 
-def encode(out: Path, cells: int, duration_s: float, seed: int = 0) -> dict:
-    rc = main(["encode-log", str(drive_cycle(CELL, CYCLE)), "--cells", str(cells), "-o", str(out),
-               "--seed", str(seed), "--duration-s", str(duration_s), "--no-progress"])
+def encode(out: Path, cells: int, duration_s: float, seed: int = 0, data: Path | None = None,
+           *extra: str) -> dict:
+    rc = main(["encode-log", str(data or drive_cycle(CELL, CYCLE)), "--cells", str(cells), "-o", str(out),
+               "--seed", str(seed), "--duration-s", str(duration_s), "--no-progress", *extra])
     assert rc == 0
     return {"log": out, "truth": json.loads(Path(str(out) + ".truth.json").read_text())}
 
@@ -34,8 +35,16 @@ def pack_log(tmp_path_factory) -> dict:
 
 @pytest.fixture(scope="session")
 def short_log(tmp_path_factory) -> dict:
-    """60 s of the same cycle, 16 cells: short enough to replay in real time."""
-    return encode(tmp_path_factory.mktemp("e2e-short") / "short16.log", 16, 60)
+    """30 s of the same cycle from its 30th second (its first 30 s hold one current: nothing to identify), 16
+    cells: short enough to replay in real time."""
+    from bms_estimator.data import CellRecording, load_recording, save_recording
+
+    d = tmp_path_factory.mktemp("e2e-short")
+    rec = load_recording(drive_cycle(CELL, CYCLE))
+    k = slice(30, 61)
+    part = save_recording(CellRecording(rec.time_s[k] - rec.time_s[30], rec.current_a[k], rec.voltage_v[k],
+                                        rec.temperature_c[k], "part"), d / f"{CELL}_{CYCLE}_from_30s.csv")
+    return encode(d / "short16.log", 16, 30, 0, part, "--reference-capacity-ah", "2.8")
 
 
 @pytest.fixture(scope="session")
