@@ -530,10 +530,9 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     if data.shape[0] < 2:
         raise DataError(f"{path}: needs at least 2 data rows, found {data.shape[0]}")
 
-    bad = ~np.isfinite(data)
     if data.shape[1] > 3:
         data = _fill_missing_temperature(path, text, header_line, data)
-        bad = ~np.isfinite(data)
+    bad = ~np.isfinite(data)
     if bad.any():
         row, col = np.argwhere(bad)[0]
         lineno = int(_data_line_numbers(text, header_line)[row])
@@ -651,7 +650,7 @@ def _fill_missing_temperature(path: Path, text: str, header_line: int, data: np.
         return data[:, :3]
     t = data[:, 0]
     if not np.all(np.isfinite(t)) or np.any(np.diff(t[~missing]) < 0):
-        return data  # a bad time axis is named by the checks that follow, not read through here
+        t = np.arange(len(data), dtype=float)  # a bad time axis, named by the checks that follow: by row here
     data = data.copy()
     data[missing, 3] = np.interp(t[missing], t[~missing], data[~missing, 3])
     warnings.warn(f"{path}: {n} of {len(data)} temperature_c values are empty or nan (the first on line {lineno}): "
