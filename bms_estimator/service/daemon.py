@@ -48,6 +48,8 @@ build (:class:`ConfigError`, :class:`DataError`, or anything else) is logged wit
 the running service keeps its configuration. Otherwise the running service stops as on SIGTERM but
 says ``RELOADING=1`` (the state saved), and the new one starts from that state (``READY=1``), from memory
 where that save failed (:meth:`Service.takes_over`); a stop requested meanwhile ends there instead.
+Where the new configuration keeps the broker and availability topic, the stopping service does not
+publish ``offline``, so Home Assistant's entities stay available across the reload.
 """
 
 from __future__ import annotations
@@ -287,6 +289,7 @@ class Service:
         self._no_input_logged = False
         self._last_frame_mono: float | None = None
         self.reloading = False  # set by serve(): the stop ahead is a reload (RELOADING=1, not STOPPING=1)
+        self.stays_online = False  # set by serve(): the reload's service announces on the same availability topic
         self.unsaved: StateDict | None = None  # the state the final save could not write (set at the stop)
         self.handover: StateDict | None = None  # set by serve(): the unsaved state of the service this one follows
         self.clock_guard = ClockStepGuard(self.sampler.max_gap_s)
@@ -746,7 +749,7 @@ class Service:
             # with publish_period_s/soc_deadband the newest state may not have gone out yet
             self.publisher.submit_snapshot(self.pipeline.last, final=True)
         with contextlib.suppress(Exception):
-            await self.publisher.close(timeout_s=5.0)
+            await self.publisher.close(timeout_s=5.0, offline=not self.stays_online)
         if self.bus is not None:
             with contextlib.suppress(Exception):
                 await self.bus.drain(1.0)
@@ -873,6 +876,7 @@ async def serve(svc: Service, stop: asyncio.Event, reload: asyncio.Event, rebuil
                 log.error("configuration not reloaded: the service goes on with the one it has",
                           config=config, error=one_line_error(exc))
         svc.reloading = new is not None and not stop.is_set()
+        svc.stays_online = svc.reloading and new.publisher.same_availability(svc.publisher)
         run_stop.set()
         await task
         if not svc.reloading:

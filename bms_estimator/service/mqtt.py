@@ -156,6 +156,7 @@ class MqttPublisher:
         self._buffer = _LatestBuffer(cfg.buffer_max)
         self._wakeup = asyncio.Event()
         self._closing = False
+        self._close_offline = True  # close(): publish offline (not for a reload that keeps the topic)
         self._discovery_due = False
         self._ha_online_at = -math.inf  # monotonic time of the last discovery re-send for Home Assistant
         self._ha_online_timer: asyncio.TimerHandle | None = None
@@ -375,9 +376,22 @@ class MqttPublisher:
         base = min(hi, lo * (2.0 ** min(attempt - 1, 60)))
         return max(lo, random.uniform(base / 2, base))
 
-    async def close(self, timeout_s: float = 5.0) -> None:
+    def same_availability(self, other: MqttPublisher) -> bool:
+        """Whether ``other`` announces on this publisher's broker and availability topic, so that a
+        reload from one to the other can leave ``online`` standing (:meth:`close`'s ``offline``)."""
+        return (self.cfg.enabled and other.cfg.enabled and self.availability_topic == other.availability_topic
+                and (self.cfg.host, self.cfg.port) == (other.cfg.host, other.cfg.port))
+
+    async def close(self, timeout_s: float = 5.0, *, offline: bool = True) -> None:
         """Publish ``offline``, disconnect, and wait for :meth:`run` to end
-        (cancelling it after ``timeout_s``). Further submissions are ignored."""
+        (cancelling it after ``timeout_s``). Further submissions are ignored.
+
+        ``offline=False`` (a reload to a publisher of :meth:`same_availability`) disconnects cleanly
+        without it: the retained ``online`` stands, and Home Assistant's entities do not turn
+        unavailable for the second the new service takes to connect. A clean disconnect does not
+        fire the will; a process that dies before its successor connects still leaves ``online``
+        behind, which the entities' ``expire_after`` ends."""
+        self._close_offline = offline
         self._closing = True
         self._wake()
         task, done = self._run_task, self._done
@@ -491,8 +505,11 @@ class MqttPublisher:
                 if items:
                     await self._publish_items(client, items)
                 if closing:
-                    await self._publish_one(client, self.availability_topic, "offline", True)
-                    log.info("mqtt closing: published offline")
+                    if self._close_offline:
+                        await self._publish_one(client, self.availability_topic, "offline", True)
+                        log.info("mqtt closing: published offline")
+                    else:
+                        log.info("mqtt closing for a reload: availability left online")
                     return
                 if items:
                     continue

@@ -284,3 +284,52 @@ def test_a_reload_whose_state_save_fails_resumes_the_state_from_memory(tmp_path,
     failed = [e for e in logs if e.get("event") == "final state save failed"]
     assert failed and all(e["log_level"] == "warning" for e in failed), failed
     np.testing.assert_array_equal(after[0], before[0])
+
+
+def test_a_reload_keeps_home_assistant_online_unless_the_availability_topic_moves(mosquitto, tmp_path):
+    """A reload stopped the running service as SIGTERM does, publishing ``offline``: every Home
+    Assistant entity of the pack turned unavailable for the second the new service took to connect.
+    A reload that keeps the broker and availability topic now leaves ``online`` standing; one that
+    moves it (another ``base_topic``) still says ``offline`` on the old topic, and a stop still does."""
+    import asyncio
+
+    from service_helpers import Collector, run_async, wait_until
+    from test_daemon import make_cfg
+
+    from bms_estimator.service.daemon import Service, serve
+
+    ch = f"bmsr-{uuid.uuid4().hex[:8]}"
+    cfgs = [make_cfg(tmp_path, ch, mqtt_port=mosquitto.port, health={"enabled": False}),
+            make_cfg(tmp_path, ch, mqtt_port=mosquitto.port, health={"enabled": False}, mqtt={"base_topic": "moved"})]
+    built: list[Service] = []
+
+    def rebuild() -> Service:
+        built.append(Service(cfgs[len(built)]))
+        return built[-1]
+
+    first = Service(make_cfg(tmp_path, ch, mqtt_port=mosquitto.port, health={"enabled": False}))
+    old, new = first.publisher.availability_topic, Service(cfgs[1]).publisher.availability_topic
+    assert old != new
+
+    async def main():
+        async with Collector(mosquitto.port, (old, new)) as col:
+            stop, reload = asyncio.Event(), asyncio.Event()
+            task = asyncio.create_task(serve(first, stop, reload, rebuild))
+            await col.wait(lambda c: c.payloads(old) == ["online"], 10, "online")
+            reload.set()  # the same configuration
+            await wait_until(lambda: built and built[0].publisher.connected, 10, "the reloaded service connected")
+            await col.wait(lambda c: len(c.payloads(old)) >= 2, 10, "the reloaded service's online")
+            same = col.payloads(old)
+            reload.set()  # base_topic moved
+            await wait_until(lambda: len(built) == 2 and built[1].publisher.connected, 10, "the moved service connected")
+            await col.wait(lambda c: c.payloads(new) == ["online"] and len(c.payloads(old)) > len(same), 10, "moved")
+            moved = col.payloads(old)
+            stop.set()
+            await asyncio.wait_for(task, 15)
+            await col.wait(lambda c: c.payloads(new)[-1:] == ["offline"], 10, "offline at the stop")
+            return same, moved, col.payloads(new)
+
+    same, moved, last = run_async(main(), 60)
+    assert same == ["online", "online"], same  # no offline between: the entities stayed available
+    assert moved == ["online", "online", "offline"], moved  # the old topic told it is left
+    assert last == ["online", "offline"], last
