@@ -364,7 +364,24 @@ def test_a_recording_too_short_to_estimate_is_a_data_error(tmp_path, capsys):
     short = tmp_path / "short.csv"
     short.write_text("time_s,current_a,voltage_v\n" + "".join(f"{k},-1,3.7\n" for k in range(5)))
     assert main(["fit", str(short), "--ocv", PAN_OCV, "--capacity-ah", "2.9"]) == 3  # the file, not the options
-    assert "short.csv: only 5 samples after resampling" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "short.csv: only 5 samples after resampling" in err and "time_s in seconds" not in err, err
+
+
+def test_a_time_column_in_hours_is_named_not_called_a_short_file(tmp_path, capsys):
+    """A 3 h drive whose time_s is in hours averaged its 10,984 rows into 4 samples, refused as 'only 4 samples
+    after resampling; too short', which sent its user looking for a short file."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("panasonic-18650pf", "cycle_1"))
+    hours = save_recording(CellRecording(rec.time_s / 3600.0, rec.current_a, rec.voltage_v, rec.temperature_c, "h"),
+                           tmp_path / "hours.csv")
+    for command in ("fit", "diagnose"):
+        assert main([command, str(hours), "--ocv", PAN_OCV, "--capacity-ah", "2.9"]) == 3
+        err = capsys.readouterr().err
+        assert f"hours.csv: only {int(rec.duration_s // 3600) + 1} samples after resampling" in err, err
+        assert (f"its {len(rec):,} rows span only {rec.duration_s / 3600:.4g} s of time_s" in err
+                and "is time_s in seconds, not hours or minutes?" in err), err
 
 
 @pytest.mark.parametrize("argv, option", [

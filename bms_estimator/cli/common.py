@@ -206,14 +206,31 @@ def load(path: Path, args: argparse.Namespace, *, identifies: bool = True) -> Ce
     (:func:`~bms_estimator.data.check_charge_span`) and, for a command that ``identifies`` the model from
     the file, one with a current that moves (:func:`check_excitation`)."""
     rec = load_recording(path, resample_s=args.resample_s)
-    if len(rec) < 10:
-        raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
+    if len(rec) < MIN_SAMPLES:
+        raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything"
+                        f"{_time_unit_hint(path, len(rec), args.resample_s)}")
     capacity_ah = getattr(args, "capacity_ah", None)
     if capacity_ah:
         check_charge_span(rec, capacity_ah, "--capacity-ah")
         if identifies:
             check_excitation(rec, capacity_ah, args.command)
     return rec
+
+
+#: a recording resampled to fewer samples than this is too short for any command
+MIN_SAMPLES = 10
+
+
+def _time_unit_hint(path: Path, samples: int, resample_s: float) -> str:
+    """``': its N rows span only S s of time_s ...'`` when the file holds many more rows than the samples they
+    averaged into: a time column in hours (a 3 h drive's 10,984 rows read as 3.05 s, 4 samples) or minutes,
+    which the message 'only 4 samples ... too short' sent looking for a short file."""
+    native = load_recording(path, resample_s=None)
+    if len(native) < MIN_SAMPLES * max(samples, 1):
+        return ""
+    return (f": its {len(native):,} rows span only {native.duration_s:.4g} s of time_s (a median step of "
+            f"{native.dt_s:.3g} s, averaged to --resample-s {resample_s:g}): is time_s in seconds, not hours or "
+            "minutes? convert it to seconds")
 
 
 def check_excitation(rec: CellRecording, capacity_ah: float, command: str) -> None:
