@@ -394,6 +394,28 @@ def warn_if_capacity_at_search_end(capacity_ah: float, searched_ah, source: str,
                   "along that end's SOC path", UserWarning, stacklevel=2)
 
 
+def warn_if_nothing_identified(identified: dict[str, np.ndarray], rec: CellRecording) -> set[str]:
+    """Warn, once, naming the methods whose online identification identified no sample of ``rec``
+    (``identified``: each method's per-sample flags); returns those methods.
+
+    The identifier's block-LS start needs ``init_samples`` samples (``IdentifierConfig``), and one that
+    comes out non-physical grows up to ``init_max_samples``: a file that never gives an admissible start
+    keeps the identifier's prior throughout. The Panasonic cycle_1 drive logged every 10 s (1099 samples)
+    did: ``fit`` printed the prior (R0 20.7 mOhm, tau1 15 s, tau2 200 s) as 'final values: the counted SOC,
+    -0.00..1.00, has no identified sample in 20-90 %', ``compare`` three identical rows for LIF-IV, LIF and
+    ARX, without a word.
+    """
+    none = [m for m, flags in identified.items() if not np.any(flags)]
+    if none:
+        names = " and ".join([", ".join(none[:-1]), none[-1]] if len(none) > 1 else none)
+        warnings.warn(f"{rec.source}: {names} identified no sample of its {len(rec)} ({len(rec) * rec.dt_s / 3600:.2g} "
+                      f"h at {rec.dt_s:g} s): no admissible model came out of the identifier's start (at least "
+                      f"{_ID.init_samples} samples), so the parameters and figures are its prior, not the file's; a "
+                      "log coarser than 1 s, or a short one, gives it too few samples to start from",
+                      UserWarning, stacklevel=2)
+    return set(none)
+
+
 def write_json(data: dict, path: Path | None) -> None:
     """``data`` as indented JSON to ``path``, or to standard output for ``None`` or ``-``; the path's folder
     must exist (the commands check their outputs first: :mod:`.outputs`)."""
