@@ -39,3 +39,35 @@ def test_diagnose_refuses_an_empty_list_of_causes(capsys):
                "--capacity-ah", "3.0", "--causes", ""])
     assert rc == 2
     assert "--causes '' names no cause; choose from hysteresis" in capsys.readouterr().err
+
+
+def test_a_logging_gap_the_loader_filled_is_simulated_through_not_scored(tmp_path, capsys):
+    """The Panasonic -10 degC US06 file logs every 60 s for its first two hours: 68 % of its 1 s samples are the
+    loader's (voltage a straight line, current held), and diagnose fitted and scored them as measured, its
+    white-noise level 0.00 mV. Here the cycle_1 sample thinned to one row a minute for its first two hours."""
+    import numpy as np
+
+    from bms_estimator.data import CellRecording, load_recording, save_recording
+    from bms_estimator.diagnose import DiagnoseConfig, Series
+    from bms_estimator.diagnose.decide import window_mask
+    from bms_estimator.cli.common import load_ocv
+
+    rec = load_recording(drive_cycle("panasonic-18650pf", "cycle_1"))
+    keep = (rec.time_s >= 7200) | (rec.time_s % 60 == 0)
+    thin = save_recording(CellRecording(rec.time_s[keep], rec.current_a[keep], rec.voltage_v[keep],
+                                        rec.temperature_c[keep], "thinned"), tmp_path / "thinned.csv")
+    gappy = load_recording(thin)
+    assert gappy.filled.mean() > 0.6  # the loader's samples are the majority (the noise level's median saw them)
+    s = Series.from_recording(gappy, load_ocv(ocv_table("panasonic-18650pf"), gappy), 2.9)
+    m = window_mask(s, DiagnoseConfig())
+    assert not m[gappy.filled].any() and m[~gappy.filled].all()
+    out = tmp_path / "d.json"
+    cell = ["--ocv", str(ocv_table("panasonic-18650pf")), "--capacity-ah", "2.9", "--soc-min", "0.1", "--no-lif",
+            "--no-pairs", "--causes", "capacity_error"]
+    assert main(["diagnose", str(thin), *cell, "--json", str(out)]) == 0
+    noise_thinned = json.loads(out.read_text())["noise_mv"]
+    assert main(["diagnose", str(drive_cycle("panasonic-18650pf", "cycle_1")), *cell, "--json", str(out)]) == 0
+    noise_full = json.loads(out.read_text())["noise_mv"]
+    capsys.readouterr()
+    assert 0.5 * noise_full < noise_thinned < 2.0 * noise_full, (noise_thinned, noise_full)
+    assert np.isfinite(noise_thinned)
