@@ -443,13 +443,17 @@ class CurrentOffset(Feature):
         return {"offset_a": 0.0}
 
 
+#: the search range of the capacity_error extension's true / stated capacity
+CAPACITY_RATIO_BOUNDS = (0.5, 2.0)
+
+
 class CapacityError(Feature):
     name = "capacity_error"
     extra = 1
     description = "true capacity differs from the stated one"
 
     def nonlinear(self, s, cfg):
-        return (Nl("capacity_ratio", 0.5, 2.0, grid=(0.75, 0.85, 0.93, 1.0, 1.07, 1.18, 1.35)),)
+        return (Nl("capacity_ratio", *CAPACITY_RATIO_BOUNDS, grid=(0.75, 0.85, 0.93, 1.0, 1.07, 1.18, 1.35)),)
 
     def neutral_theta(self):
         return {"capacity_ratio": 1.0}

@@ -71,3 +71,30 @@ def test_a_logging_gap_the_loader_filled_is_simulated_through_not_scored(tmp_pat
     capsys.readouterr()
     assert 0.5 * noise_full < noise_thinned < 2.0 * noise_full, (noise_thinned, noise_full)
     assert np.isfinite(noise_thinned)
+
+
+def test_a_fit_that_holds_a_negative_resistance_is_said_not_physical(tmp_path, capsys):
+    """The named extension's fit is a least-squares one: a resistance may come out below zero (R2 at the full-SOC
+    knot of the Panasonic cycle_2 drive; R2 -0.15 Ohm on an HPPC file whose count misses its discharge steps), and
+    the report listed it as the cell's parameter without a word. The cycle_1 drive's fit is all positive."""
+    from bms_estimator.diagnose.decide import non_physical
+
+    assert non_physical({"r0_ohm": 0.03, "r2_ohm@4": -0.0177, "k_nl_ohm": -0.01, "c0_v": -0.02}) == [
+        "r2_ohm@4 -17.7 mOhm (a resistance below zero)"]
+    assert non_physical({"capacity_ratio": 0.5, "r0_charge_ohm": -0.001})[1].startswith("capacity_ratio 0.5 (an end")
+    assert non_physical({"capacity_ratio": 0.9, "r0_ohm@0": 0.05}) == []
+    cell = ["--ocv", str(ocv_table("panasonic-18650pf")), "--capacity-ah", "2.9", "--soc-min", "0.1", "--no-lif",
+            "--no-pairs", "--causes", "soc_dependence"]
+    found = {}
+    for cycle in ("cycle_1", "cycle_2"):
+        out, rep = tmp_path / f"{cycle}.json", tmp_path / cycle
+        assert main(["diagnose", str(drive_cycle("panasonic-18650pf", cycle)), *cell, "--json", str(out),
+                     "--report", str(rep)]) == 0
+        d = json.loads(out.read_text())
+        params = next(c["params"] for c in d["candidates"] if c["cause"] == "soc_dependence")
+        negative = sorted(k for k, v in params.items() if k.startswith("r") and not isinstance(v, list) and v < 0)
+        assert [p.split(" ")[0] for p in d["non_physical"]] == negative, (d["non_physical"], params)
+        err, text = capsys.readouterr().err, (rep / "report.md").read_text()
+        assert ("**Not physical:**" in text) == bool(negative) == ("a resistance below zero" in err), err
+        found[cycle] = negative
+    assert found["cycle_1"] == [] and found["cycle_2"] != []
