@@ -225,7 +225,9 @@ def _time_unit_hint(path: Path, samples: int, resample_s: float) -> str:
     """``': its N rows span only S s of time_s ...'`` when the file holds many more rows than the samples they
     averaged into: a time column in hours (a 3 h drive's 10,984 rows read as 3.05 s, 4 samples) or minutes,
     which the message 'only 4 samples ... too short' sent looking for a short file."""
-    native = load_recording(path, resample_s=None)
+    with warnings.catch_warnings():  # (the first read said its warnings)
+        warnings.simplefilter("ignore")
+        native = load_recording(path, resample_s=None)
     if len(native) < MIN_SAMPLES * max(samples, 1):
         return ""
     return (f": its {len(native):,} rows span only {native.duration_s:.4g} s of time_s (a median step of "
