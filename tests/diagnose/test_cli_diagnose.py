@@ -98,3 +98,23 @@ def test_a_fit_that_holds_a_negative_resistance_is_said_not_physical(tmp_path, c
         assert ("**Not physical:**" in text) == bool(negative) == ("a resistance below zero" in err), err
         found[cycle] = negative
     assert found["cycle_1"] == [] and found["cycle_2"] != []
+
+
+def test_a_warm_start_that_identified_nothing_is_said(tmp_path, capsys):
+    """On the Panasonic cycle_1 drive logged every 10 s the online run identifies no sample: the diagnosis left its
+    LIF line out of the report (JSON 'lif': {}) without a word. At 1 s, or with --no-lif, nothing is said."""
+    from bms_estimator.data import CellRecording, load_recording, save_recording
+
+    rec = load_recording(drive_cycle("panasonic-18650pf", "cycle_1"))
+    every10 = save_recording(CellRecording(rec.time_s[::10], rec.current_a[::10], rec.voltage_v[::10],
+                                           rec.temperature_c[::10], "10 s"), tmp_path / "every10.csv")
+    cell = ["--ocv", str(ocv_table("panasonic-18650pf")), "--capacity-ah", "2.9", "--soc-min", "0.1", "--no-pairs",
+            "--causes", "capacity_error"]
+    out = tmp_path / "d.json"
+    for data, extra, said in ((every10, [], True), (every10, ["--no-lif"], False),
+                              (drive_cycle("panasonic-18650pf", "cycle_1"), [], False)):
+        assert main(["diagnose", str(data), *cell, *extra, "--json", str(out)]) == 0
+        err = capsys.readouterr().err
+        assert ("the online lif run that warm-starts the baseline identified fewer than 10 of its 1099 samples"
+                in err) == said, err
+        assert bool(json.loads(out.read_text())["lif"]) == (said is False and not extra)
