@@ -577,6 +577,7 @@ def load_recording(path: str | os.PathLike, *, resample_s: float | None = 1.0) -
     temperature_c = data[:, 3] if data.shape[1] > 3 else None
 
     native_dt = float(np.median(np.diff(time_s)))
+    _warn_if_time_is_not_in_seconds(path, native_dt)
     grid_s = None  # the step of the grid the file is put on (None: read as logged)
     if resample_s is not None:
         steps = np.diff(time_s)
@@ -656,6 +657,31 @@ def _fill_missing_temperature(path: Path, text: str, header_line: int, data: np.
     warnings.warn(f"{path}: {n} of {len(data)} temperature_c values are empty or nan (the first on line {lineno}): "
                   "read between the logged ones", UserWarning, stacklevel=3)
     return data
+
+
+#: logging periods a logger uses, s: a median step at one of these is read as seconds
+LOGGING_STEPS_S = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 15.0, 20.0, 30.0,
+                   60.0, 120.0, 300.0, 600.0)
+
+
+def _round_step(step_s: float) -> float | None:
+    """The logging period within 1 % of ``step_s`` (None: none is)."""
+    return next((r for r in LOGGING_STEPS_S if abs(step_s - r) <= 0.01 * r), None)
+
+
+def _warn_if_time_is_not_in_seconds(path: Path, native_dt: float) -> None:
+    """Warn when the median time step is no logging period in seconds but one in minutes or hours: a 1 s drive
+    whose time_s is in minutes steps by 0.01667, read as a 60 Hz log of a 3 min drive; every command ran on it
+    (diagnose 'none', fit a 517 mV simulation RMSE) without naming the time axis."""
+    if not native_dt > 0 or _round_step(native_dt) is not None:
+        return
+    found = [(unit, per, step) for unit, per in (("minutes", 60.0), ("hours", 3600.0))
+             if (step := _round_step(native_dt * per)) is not None]  # 0.01667: 1 s / 60 or 60 s / 3600
+    if found:
+        steps = " or ".join(f"{step:g} s / {per:g}" for _, per, step in found)
+        units = " or ".join(unit for unit, _, _ in found)
+        warnings.warn(f"{path}: time_s steps by {native_dt:.4g} (its median), {steps}: is time_s in {units}? it is "
+                      "read in seconds; convert it", UserWarning, stacklevel=3)
 
 
 def _check_resampled_size(path: Path, text: str, header_line: int, time_s: np.ndarray, resample_s: float) -> None:

@@ -364,7 +364,24 @@ def test_a_recording_too_short_to_estimate_is_a_data_error(tmp_path, capsys):
     short = tmp_path / "short.csv"
     short.write_text("time_s,current_a,voltage_v\n" + "".join(f"{k},-1,3.7\n" for k in range(5)))
     assert main(["fit", str(short), "--ocv", PAN_OCV, "--capacity-ah", "2.9"]) == 3  # the file, not the options
-    assert "short.csv: only 5 samples after resampling" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "short.csv: only 5 samples after resampling" in err and "time_s in seconds" not in err, err
+
+
+def test_a_time_column_in_hours_is_named_not_called_a_short_file(tmp_path, capsys):
+    """A 3 h drive whose time_s is in hours averaged its 10,984 rows into 4 samples, refused as 'only 4 samples
+    after resampling; too short', which sent its user looking for a short file."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("panasonic-18650pf", "cycle_1"))
+    hours = save_recording(CellRecording(rec.time_s / 3600.0, rec.current_a, rec.voltage_v, rec.temperature_c, "h"),
+                           tmp_path / "hours.csv")
+    for command in ("fit", "diagnose"):
+        assert main([command, str(hours), "--ocv", PAN_OCV, "--capacity-ah", "2.9"]) == 3
+        err = capsys.readouterr().err
+        assert f"hours.csv: only {int(rec.duration_s // 3600) + 1} samples after resampling" in err, err
+        assert (f"its {len(rec):,} rows span only {rec.duration_s / 3600:.4g} s of time_s" in err
+                and "is time_s in seconds, not hours or minutes?" in err), err
 
 
 @pytest.mark.parametrize("argv, option", [
@@ -767,3 +784,31 @@ def test_python_dash_m_runs_the_command_line():
     bad = subprocess.run([sys.executable, "-m", "bms_estimator", "no-such-command"], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and "bms-estimator: error:" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_a_file_the_identifier_never_starts_on_says_its_figures_are_the_prior(tmp_path, capsys):
+    """The Panasonic cycle_1 drive logged every 10 s: no identified sample, and fit printed the identifier's prior as
+    'final values: the counted SOC, -0.00..1.00, has no identified sample in 20-90 %', compare three identical
+    rows (LIF-IV, LIF and ARX), without a word; the same drive's first 20 min at 1 s identify (no warning)."""
+    from bms_estimator.data import load_recording
+
+    rec = load_recording(drive_cycle("panasonic-18650pf", "cycle_1"))
+    every10 = save_recording(CellRecording(rec.time_s[::10], rec.current_a[::10], rec.voltage_v[::10],
+                                           rec.temperature_c[::10], "10 s"), tmp_path / "every10.csv")
+    out_json = tmp_path / "fit.json"
+    assert main(["fit", str(every10), "--ocv", PAN_OCV, "--capacity-ah", "2.9", "--json", str(out_json)]) == 0
+    out, err = capsys.readouterr()
+    assert "(nothing identified: the identifier's prior)" in out and "has no identified sample" not in out, out
+    assert "every10.csv: lif-iv identified no sample of its 1099 (3.1 h at 10 s)" in err, err
+    assert main(["compare", "--train", str(every10), "--validate", str(every10), "--ocv", PAN_OCV, "--capacity-ah",
+                 "2.9", "--method", "lif", "--method", "arx", "--json", str(out_json)]) == 0
+    err = capsys.readouterr().err
+    assert "every10.csv: lif and arx identified no sample of its 1099" in err, err
+    assert [m["identified"] for m in json.loads(out_json.read_text())["train"].values()] == [False, False]
+    k = rec.time_s < 1200
+    first = save_recording(CellRecording(rec.time_s[k], rec.current_a[k], rec.voltage_v[k], rec.temperature_c[k],
+                                         "20 min"), tmp_path / "first20.csv")
+    assert main(["compare", "--train", str(first), "--validate", str(first), "--ocv", PAN_OCV, "--capacity-ah",
+                 "2.9", "--method", "lif", "--json", str(out_json)]) == 0
+    assert "identified no sample" not in capsys.readouterr().err
+    assert json.loads(out_json.read_text())["train"]["lif"]["identified"] is True

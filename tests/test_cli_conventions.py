@@ -225,3 +225,19 @@ def test_a_command_imports_only_what_it_needs():
         assert not set(loaded) & set(absent), (args, loaded)
     listing = _cli("--help")
     assert listing.returncode == 0 and all(c in listing.stdout for c in ("soc", "batch", "sop-backtest", "run"))
+
+
+def test_a_reader_that_closes_standard_output_ends_the_command_quietly():
+    """'diagnose ... --json - | head -1' printed 'error: BrokenPipeError: [Errno 32] Broken pipe', exit 1, once its
+    reader had what it wanted; a closed pipe is no error of the command's: no message, exit 141 (128 + SIGPIPE)."""
+    from bms_estimator.samples import drive_cycle, ocv_table
+
+    proc = subprocess.Popen([sys.executable, "-m", "bms_estimator.cli", "diagnose",
+                             str(drive_cycle("panasonic-18650pf", "cycle_1")), "--ocv", str(ocv_table("panasonic-18650pf")),
+                             "--capacity-ah", "2.9", "--no-lif", "--no-pairs", "--causes", "capacity_error",
+                             "--json", "-"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            cwd=REPO)
+    proc.stdout.close()  # the reader is gone before the command writes
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=300) == 141, err
+    assert err == "", err

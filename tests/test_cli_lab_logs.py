@@ -146,8 +146,9 @@ def test_ocv_of_a_test_timed_in_hours_is_refused_and_a_table_from_ma_is_named(tm
     hours = save_recording(CellRecording(c20.time_s / 3600.0, c20.current_a, c20.voltage_v, c20.temperature_c, "h"),
                            tmp_path / "c20_h.csv")
     assert main(["ocv", str(hours), "-o", str(tmp_path / "h.csv")]) == 3
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "c20_h.csv: its discharge branch lasts 0.00504 h" in err
+    warning, err = capsys.readouterr().err.strip().split("\n")  # the loader's warning, then the refusal
+    assert "c20_h.csv: time_s steps by 0.01667 (its median), 1 s / 60 or 60 s / 3600: is time_s in minutes or hours?" in warning, warning
+    assert "c20_h.csv: its discharge branch lasts 0.00504 h" in err
     assert err.endswith("is time_s in seconds?")
     ma = save_recording(CellRecording(c20.time_s, c20.current_a * 1000, c20.voltage_v, c20.temperature_c, "m"),
                         tmp_path / "c20_ma.csv")

@@ -174,3 +174,35 @@ def test_the_check_passes_what_the_commands_may_write(tmp_path):
         check_outputs([("DATA", tmp_path / "d.png")], [figure_output("--plot", tmp_path / "d")])
     with pytest.raises(UsageError, match="--plots .* is the input DATA"):
         check_outputs([("DATA", tmp_path / "new" / "a.png")], [folder_output("--plots", tmp_path / "new", "a.png")])
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc, a directory no one can write in")
+def test_an_output_where_nothing_can_be_written_is_refused_before_the_run(files, capsys):
+    """fit --json /proc/x.json, diagnose --report /proc/r, ocv -o /proc/o.csv ran the whole command and then failed
+    with exit 3, "/proc/x.json: No such file or directory" (no option named, the result lost)."""
+    data, table = files
+    cell = ["--ocv", str(table), "--capacity-ah", "3"]
+    for argv, option, path in (
+            (["fit", str(data), *cell, "--json", "/proc/x.json"], "--json", "/proc/x.json"),
+            (["fit", str(data), *cell, "--plot", "/proc/x.png"], "--plot", "/proc/x.png"),
+            (["ocv", str(data), "-o", "/proc/o.csv"], "-o/--output", "/proc/o.csv"),
+            (["soc", str(data), *cell, "--trace", "/proc/t.csv"], "--trace", "/proc/t.csv"),
+            (["compare", "--train", str(data), "--validate", str(data), *cell, "--plots", "/proc/p"], "--plots",
+             "/proc/p"),
+            (["diagnose", str(data), *cell, "--report", "/proc/r"], "--report", "/proc/r")):
+        err = _refused(argv, capsys)
+        assert f"error: {option} {path}: cannot write in the directory /proc" in err, err
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root writes in a read-only directory")
+def test_an_output_in_a_read_only_directory_is_refused_before_the_run(files, capsys):
+    data, table = files
+    locked = data.parent / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    try:
+        err = _refused(["diagnose", str(data), "--ocv", str(table), "--capacity-ah", "3", "--json",
+                        str(locked / "x.json")], capsys)
+    finally:
+        locked.chmod(0o755)
+    assert f"error: --json {locked / 'x.json'}: cannot write in the directory {locked}" in err, err

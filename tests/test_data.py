@@ -582,3 +582,24 @@ def test_a_row_of_units_under_the_header_is_named(tmp_path: Path) -> None:
         load_recording(path)
     commented = _write(tmp_path / "commented.csv", "time_s,current_a,voltage_v\n# s,A,V\n0,-1,4.1\n1,-1,4.0\n")
     assert len(load_recording(commented, resample_s=None)) == 2
+
+
+def test_a_time_column_in_minutes_or_hours_is_warned_about_and_a_logging_period_is_not(tmp_path):
+    """A 1 s drive with time_s in minutes steps by 0.01667: read as a 60 Hz log of a 3 min drive, every command ran
+    on it (diagnose 'none', fit a 517 mV simulation RMSE) without naming the time axis."""
+    from bms_estimator.samples import drive_cycle
+
+    rec = load_recording(drive_cycle("panasonic-18650pf", "cycle_1"))
+    for unit, per, step in (("minutes", 60.0, "1 s / 60 or 60 s / 3600"), ("hours", 3600.0, "1 s / 3600"),
+                            ("minutes", 60.0 / 10.0, "10 s / 60 or 600 s / 3600")):
+        said = "minutes or hours" if " or " in step else unit  # (1/60: a 1 s log in minutes or a 60 s one in hours)
+        path = save_recording(CellRecording(rec.time_s / per, rec.current_a, rec.voltage_v, rec.temperature_c, unit),
+                              tmp_path / f"{unit}.csv")
+        with pytest.warns(UserWarning, match=rf"{unit}.csv: time_s steps by .*, {step}: is time_s in {said}\?"):
+            load_recording(path, resample_s=None)
+    for per in (1.0, 10.0, 0.1, 1 / 60.0):  # 1 s, 0.1 s, 10 s and 60 s logs, read as seconds
+        path = save_recording(CellRecording(rec.time_s / per, rec.current_a, rec.voltage_v, rec.temperature_c, "s"),
+                              tmp_path / "seconds.csv")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            load_recording(path, resample_s=None)

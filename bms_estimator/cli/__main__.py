@@ -74,6 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     except BmsEstimatorError as exc:
         print(f"{where}: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except BrokenPipeError as exc:
+        if _stdout_is_closed():
+            return _quiet_stdout()
+        print(f"{where}: error: {one_line_error(exc)}", file=sys.stderr)  # (a socket's: the broker, a CAN gateway)
+        return EXIT_RUNTIME
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, EOFError) as exc:
         # an input file that cannot be read: "PATH: reason", not Python's "[Errno 2] ... 'PATH'"
         text = f"{exc.filename}: {exc.strerror}" if getattr(exc, "filename", None) and exc.strerror else exc
@@ -95,6 +100,35 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+
+#: the exit status of a command whose reader closed its standard output (128 + SIGPIPE, as a shell reports it)
+EXIT_STDOUT_CLOSED = 141
+
+
+def _stdout_is_closed() -> bool:
+    """Whether standard output's reader went away: its pipe reports an error to ``poll``."""
+    import select
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLERR)
+        return any(event & select.POLLERR for _, event in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # (no poll on this platform, or a stdout without a descriptor)
+        return False
+
+
+def _quiet_stdout() -> int:
+    """The reader of standard output went away (``--json - | head``): nothing more to say, and no error. It printed
+    'error: BrokenPipeError: [Errno 32] Broken pipe', exit 1, and Python's 'Exception ignored ... BrokenPipeError'
+    at exit; standard output now goes to ``/dev/null`` so that the interpreter's final flush does not fail again."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # (a stdout without a file descriptor: nothing to flush)
+        pass
+    return EXIT_STDOUT_CLOSED
 
 
 if __name__ == "__main__":

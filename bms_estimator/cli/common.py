@@ -206,14 +206,33 @@ def load(path: Path, args: argparse.Namespace, *, identifies: bool = True) -> Ce
     (:func:`~bms_estimator.data.check_charge_span`) and, for a command that ``identifies`` the model from
     the file, one with a current that moves (:func:`check_excitation`)."""
     rec = load_recording(path, resample_s=args.resample_s)
-    if len(rec) < 10:
-        raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything")
+    if len(rec) < MIN_SAMPLES:
+        raise DataError(f"{path}: only {len(rec)} samples after resampling; too short to estimate anything"
+                        f"{_time_unit_hint(path, len(rec), args.resample_s)}")
     capacity_ah = getattr(args, "capacity_ah", None)
     if capacity_ah:
         check_charge_span(rec, capacity_ah, "--capacity-ah")
         if identifies:
             check_excitation(rec, capacity_ah, args.command)
     return rec
+
+
+#: a recording resampled to fewer samples than this is too short for any command
+MIN_SAMPLES = 10
+
+
+def _time_unit_hint(path: Path, samples: int, resample_s: float) -> str:
+    """``': its N rows span only S s of time_s ...'`` when the file holds many more rows than the samples they
+    averaged into: a time column in hours (a 3 h drive's 10,984 rows read as 3.05 s, 4 samples) or minutes,
+    which the message 'only 4 samples ... too short' sent looking for a short file."""
+    with warnings.catch_warnings():  # (the first read said its warnings)
+        warnings.simplefilter("ignore")
+        native = load_recording(path, resample_s=None)
+    if len(native) < MIN_SAMPLES * max(samples, 1):
+        return ""
+    return (f": its {len(native):,} rows span only {native.duration_s:.4g} s of time_s (a median step of "
+            f"{native.dt_s:.3g} s, averaged to --resample-s {resample_s:g}): is time_s in seconds, not hours or "
+            "minutes? convert it to seconds")
 
 
 def check_excitation(rec: CellRecording, capacity_ah: float, command: str) -> None:
@@ -375,6 +394,28 @@ def warn_if_capacity_at_search_end(capacity_ah: float, searched_ah, source: str,
                   f"({lo / stated_ah:.2g}..{hi / stated_ah:.2g} x --capacity-ah {stated_ah:g}): the file does not "
                   "identify it (too short, or a model that does not fit it), and its parameters and figures are "
                   "along that end's SOC path", UserWarning, stacklevel=2)
+
+
+def warn_if_nothing_identified(identified: dict[str, np.ndarray], rec: CellRecording) -> set[str]:
+    """Warn, once, naming the methods whose online identification identified no sample of ``rec``
+    (``identified``: each method's per-sample flags); returns those methods.
+
+    The identifier's block-LS start needs ``init_samples`` samples (``IdentifierConfig``), and one that
+    comes out non-physical grows up to ``init_max_samples``: a file that never gives an admissible start
+    keeps the identifier's prior throughout. The Panasonic cycle_1 drive logged every 10 s (1099 samples)
+    did: ``fit`` printed the prior (R0 20.7 mOhm, tau1 15 s, tau2 200 s) as 'final values: the counted SOC,
+    -0.00..1.00, has no identified sample in 20-90 %', ``compare`` three identical rows for LIF-IV, LIF and
+    ARX, without a word.
+    """
+    none = [m for m, flags in identified.items() if not np.any(flags)]
+    if none:
+        names = " and ".join([", ".join(none[:-1]), none[-1]] if len(none) > 1 else none)
+        warnings.warn(f"{rec.source}: {names} identified no sample of its {len(rec)} ({len(rec) * rec.dt_s / 3600:.2g} "
+                      f"h at {rec.dt_s:g} s): no admissible model came out of the identifier's start (at least "
+                      f"{_ID.init_samples} samples), so the parameters and figures are its prior, not the file's; a "
+                      "log coarser than 1 s, or a short one, gives it too few samples to start from",
+                      UserWarning, stacklevel=2)
+    return set(none)
 
 
 def write_json(data: dict, path: Path | None) -> None:

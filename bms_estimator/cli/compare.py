@@ -10,7 +10,8 @@ from ..core.arrhenius import RESISTANCE_ACTIVATION_K
 from ..core.identifier import METHODS
 from ..errors import UsageError
 from .common import (RECORDING_HELP, METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
-                     non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc,
+                     non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_nothing_identified,
+                     warn_if_start_is_not_initial_soc,
                      write_json)
 from .outputs import check_outputs, file_output, folder_output
 
@@ -67,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
         temperatures_c=(tr.temperature_c, va.temperature_c), activation_k=args.activation_k,
     )
     m = res.metrics
+    prior_only = warn_if_nothing_identified({method: run_.identified for method, run_ in res.runs.items()}, tr)
+    for method in res.runs:
+        m["train"][method]["identified"] = method not in prior_only
     warn_if_capacity_at_search_end(res.capacity_ah, m["capacity_profile"]["capacity_ah"], tr.source, args.capacity_ah)
     m["files"] = {"train": str(args.train), "validate": str(args.validate)}
     if args.plots:

@@ -10,6 +10,7 @@ offset, capacity error), scores each out of sample and names the cause
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
 from ..errors import DataError, UsageError
@@ -88,6 +89,15 @@ def run(args: argparse.Namespace) -> int:
         warn_if_start_is_not_initial_soc(rv, ocv, args)
         val = _series(Series, rv, ocv, args, cfg, cross_validated=False)
     d = diagnose(data, validate=val, config=cfg)
+    if cfg.lif and not d.lif:  # (it left the report's LIF line out without a word)
+        warnings.warn(f"{rec.source}: the online {args.method} run that warm-starts the baseline identified fewer than "
+                      f"10 of its {len(rec)} samples (at {rec.dt_s:g} s): the baseline started from the grid alone, "
+                      "and the report has no online identification to show", UserWarning, stacklevel=2)
+    if d.non_physical:
+        fit = f"the {d.cause} extension" if d.cause != "none" else "the baseline"
+        warnings.warn(f"{rec.source}: {fit} fitted {'; '.join(d.non_physical)}: no cell has it, the fit absorbs "
+                      "what it does not model there (an SOC knot with few samples, an SOC path that misses charge, "
+                      "another cell's OCV table)", UserWarning, stacklevel=2)
     out = d.to_json()
     out["data"] = str(args.data)
     if args.validate is not None:

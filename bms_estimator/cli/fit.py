@@ -12,7 +12,8 @@ from ..analysis import (
     simulate_with_params, soc_lookup_table,
 )
 from .common import (RECORDING_HELP, add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv,
-                     soc_config, warn_if_capacity_at_search_end, warn_if_start_is_not_initial_soc, write_json)
+                     soc_config, warn_if_capacity_at_search_end, warn_if_nothing_identified, warn_if_start_is_not_initial_soc,
+                     write_json)
 from .outputs import check_outputs, figure_output, file_output
 
 #: the second figure --plot writes, beside the first
@@ -59,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     warn_if_capacity_at_search_end(q_eff, profile["capacity_ah"], rec.source, args.capacity_ah)
     soc = reference_soc(rec.current_a, dt, q_eff, args.initial_soc)
     run_ = run_identification(rec.current_a, rec.voltage_v, soc, ocv, args.capacity_ah, dt, ident)
+    prior_only = bool(warn_if_nothing_identified({args.method: run_.identified}, rec))
     sim = simulate_with_params(rec.current_a, soc, ocv, run_.params, dt)
     osa = one_step_ahead(rec.current_a, rec.voltage_v, soc, ocv, run_.params, dt)
     inside = (soc >= 0.2) & (soc <= 0.9)
@@ -86,7 +88,9 @@ def run(args: argparse.Namespace) -> int:
         write_json(out, args.json)
     if args.json is None or str(args.json) != "-":
         f, where = out["median_soc_20_90"], "median over 20-90 % SOC"
-        if f["r0_ohm"] is None:  # (it printed no parameters and 'simulation RMSE nan mV')
+        if prior_only:  # (it said the prior's were final values, for want of an identified sample in 20-90 %)
+            f, where = out["final"], "nothing identified: the identifier's prior"
+        elif f["r0_ohm"] is None:  # (it printed no parameters and 'simulation RMSE nan mV')
             f, where = out["final"], (f"final values: the counted SOC, {soc.min():.2f}..{soc.max():.2f}, has no "
                                       "identified sample in 20-90 %")
         print(f"{args.method.upper()}: R0 {mohm(f['r0_ohm'])} mOhm, R1 {mohm(f['r1_ohm'])} mOhm tau1 "

@@ -9,7 +9,10 @@ Each is refused as a usage error (exit 2) naming the option and the path:
   made directories anywhere, ``/nonexistdir`` at the filesystem root), or one that is a directory;
 * a folder output (``compare --plots DIR``) that exists and is not a directory, or whose parent does
   not exist: the command makes the folder itself, not the path to it;
-* a figure whose suffix matplotlib cannot write (:func:`figure_output`), said after the whole fit.
+* a figure whose suffix matplotlib cannot write (:func:`figure_output`), said after the whole fit;
+* an output the command could not write where it is given (a read-only file or directory, one without write
+  permission, a directory of ``/proc``): ``fit --json /proc/x.json`` failed only after the whole run, exit 3
+  ("No such file or directory", no option named), and the result was lost.
 
 ``-`` (standard output, where an option takes it) and an option not given (``None``) are not checked.
 """
@@ -17,6 +20,7 @@ Each is refused as a usage error (exit 2) naming the option and the path:
 from __future__ import annotations
 
 import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -115,6 +119,23 @@ def _check_place(o: Output) -> None:
         what = "is a file, not a directory" if missing.exists() else "does not exist"
         raise UsageError(f"{o.option} {path}: the directory {missing} {what}; give a path in an existing "
                          "directory, or create it first")
+    _check_writable(o)
+
+
+def _check_writable(o: Output) -> None:
+    """The output can be written: an existing file is writable, and the directory it is made in (a file's, a
+    missing folder's parent, an existing folder itself) takes a new file, tried with a temporary file that is
+    removed at once (``os.access`` says yes to root on a read-only mount or in ``/proc``)."""
+    path = o.path
+    if not o.folder and path.exists() and not os.access(path, os.W_OK):
+        raise UsageError(f"{o.option} {path}: the file is not writable; give a path you can write to")
+    where = path if o.folder and path.is_dir() else path.parent
+    try:
+        with tempfile.TemporaryFile(dir=where):
+            pass
+    except OSError as exc:
+        raise UsageError(f"{o.option} {path}: cannot write in the directory {where} ({exc.strerror or exc}); "
+                         "give a path in a directory you can write to") from None
 
 
 def _missing_dir(where: Path) -> Path | None:

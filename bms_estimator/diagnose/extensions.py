@@ -124,6 +124,9 @@ class Series:
     soc0: float = 1.0
     dt_s: float = 1.0
     temperature_c: np.ndarray | None = None
+    #: True where the file logged the sample, False in a logging gap the loader filled (current held, voltage
+    #: interpolated: :attr:`CellRecording.filled <bms_estimator.data.CellRecording.filled>`); None: all logged
+    logged: np.ndarray | None = None
     charge_ah: np.ndarray = field(init=False)
     soc: np.ndarray = field(init=False)
     t_mid_s: np.ndarray = field(init=False)
@@ -139,6 +142,10 @@ class Series:
         if self.temperature_c is not None:
             t = np.asarray(self.temperature_c, dtype=float)
             self.temperature_c = t if t.shape == self.current_a.shape and np.all(np.isfinite(t)) else None
+        if self.logged is not None:
+            self.logged = np.asarray(self.logged, dtype=bool)
+            if self.logged.shape != self.current_a.shape:
+                raise ValueError("logged must have one flag per sample")
         q = np.cumsum(self.current_a) * (self.dt_s / 3600.0)
         self.charge_ah = q - self.current_a * (0.5 * self.dt_s / 3600.0)
         self.soc = self.soc0 + self.charge_ah / self.capacity_ah
@@ -164,8 +171,9 @@ class Series:
     @classmethod
     def from_recording(cls, rec, ocv: OcvCurve, capacity_ah: float, initial_soc: float = 1.0) -> "Series":
         """From a :class:`~bms_estimator.data.CellRecording` (or anything with the same arrays)."""
+        filled = getattr(rec, "filled", None)
         return cls(rec.current_a, rec.voltage_v, ocv, float(capacity_ah), float(initial_soc), float(rec.dt_s),
-                   getattr(rec, "temperature_c", None))
+                   getattr(rec, "temperature_c", None), None if filled is None else ~np.asarray(filled, dtype=bool))
 
 
 def rc_mean(u: np.ndarray, tau: float, dt_s: float = 1.0) -> np.ndarray:
@@ -435,13 +443,17 @@ class CurrentOffset(Feature):
         return {"offset_a": 0.0}
 
 
+#: the search range of the capacity_error extension's true / stated capacity
+CAPACITY_RATIO_BOUNDS = (0.5, 2.0)
+
+
 class CapacityError(Feature):
     name = "capacity_error"
     extra = 1
     description = "true capacity differs from the stated one"
 
     def nonlinear(self, s, cfg):
-        return (Nl("capacity_ratio", 0.5, 2.0, grid=(0.75, 0.85, 0.93, 1.0, 1.07, 1.18, 1.35)),)
+        return (Nl("capacity_ratio", *CAPACITY_RATIO_BOUNDS, grid=(0.75, 0.85, 0.93, 1.0, 1.07, 1.18, 1.35)),)
 
     def neutral_theta(self):
         return {"capacity_ratio": 1.0}

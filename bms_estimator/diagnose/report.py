@@ -123,6 +123,16 @@ def _plots(d: Diagnosis, folder: Path) -> list[str]:
     return out
 
 
+#: what a fit that holds a value no cell has means (:attr:`Diagnosis.non_physical`)
+NON_PHYSICAL = ("**Not physical:** the {fit} fit holds {values}: no cell has it. The fit uses it to absorb what it "
+                "does not model (an SOC knot with few samples, an SOC path that misses charge, another cell's OCV "
+                "table): read the gain as the size of what the 2-RC model misses, not these parameters as the cell's.")
+
+
+def _fit_name(d: Diagnosis) -> str:
+    return f"`{d.cause}` extension's" if d.cause != "none" else "baseline's"
+
+
 #: every file :func:`write_report` may write in its folder
 REPORT_FILES = ("report.md", "residual.png", "voltage.png", "candidates.png")
 
@@ -142,6 +152,8 @@ def write_report(d: Diagnosis, folder: str | Path, title: str = "diagnosis") -> 
         PHYSICS.get(d.cause, ""),
         "",
     ]
+    if d.non_physical:
+        lines += [NON_PHYSICAL.format(fit=_fit_name(d), values="; ".join(d.non_physical)), ""]
     if d.secondary:
         lines += [f"Second effect (fitted jointly, smaller): `{d.secondary}` - {PHYSICS.get(d.secondary, '')}", ""]
     if d.ties:
