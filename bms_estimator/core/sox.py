@@ -6,8 +6,9 @@ Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``s
 
     RC voltages   x_j[k+1] = p_j x_j[k] + R_j (1 - p_j) i[k],  p_j = exp(-Ts/tau_j)   (identified R_j, tau_j)
     SOP           core.sop.sop_limits at the start of the next period (x_j[k+1], v[k] moved by it)
-    SOE           core.soe.energy_left_wh at SoeConfig.rate_c; time to empty/full at the mean
-                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m); these and the capacity SOH are
+    SOE           core.soe.energy_left_wh at SoeConfig.rate_c; time to empty at the mean
+                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m), time to full of a CC-CV charge to
+                  v_max from the voltage and current now (core.soe); these and the capacity SOH are
                   recomputed every SoxConfig.slow_period_s (10 s) and held in between
     energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing), E_chg += v i Ts / 3600 for
                   i > 0 (Wh in, never decreasing; kept in the state, not an output); E_net (Wh out since
@@ -100,6 +101,7 @@ class SoxEstimator:
         self.resistance = ResistanceSoh(self.n_cells, self.dt_s * self._slow_every, config.soh)
         self._ok = np.zeros(self.n_cells, dtype=bool)
         self.v_anchor = np.full(self.n_cells, np.nan)  # the voltage at the next period's start, at i_anchor
+        self.v_now = np.full(self.n_cells, np.nan)  # the last valid voltage (the time to full's anchor)
         self.i_anchor = np.zeros(self.n_cells)
         self.soc_anchor = np.full(self.n_cells, np.nan)
         self._x_prev = np.zeros((self.n_cells, 2))
@@ -242,6 +244,7 @@ class SoxEstimator:
         dx = self.x_v - x_prev
         v_next = v + dx[:, 0] + dx[:, 1]
         self.v_anchor = v_next if ok_all else np.where(ok, v_next, self.v_anchor)
+        self.v_now = v if ok_all else np.where(ok, v, self.v_now)
         self.i_anchor = i_use if ok_all else np.where(ok, i_use, self.i_anchor)
         # the SOC at the next period's start
         self.soc_anchor = soc + i_use * self.dt_s / (3600.0 * q)
@@ -500,7 +503,10 @@ class SoxEstimator:
         e_left, z_cut = energy_left_wh(soc, q, r_ss, ocv, v_min=cfg.sop.v_min, soc_min=cfg.sop.soc_min, config=cfg.soe,
                                        one_cell_sums=self._one_cell_groups)
         tte = time_to_empty_s(soc, z_cut, q, self.mean_current_a, idle_current_c=cfg.soe.idle_current_c)
-        ttf = time_to_full_s(soc, q, self.mean_current_a, soc_max=cfg.sop.soc_max, idle_current_c=cfg.soe.idle_current_c)
+        # a CC-CV charge to v_max from the cell's voltage and current now (core.soe)
+        ttf = time_to_full_s(soc, q, self.mean_current_a, soc_max=cfg.sop.soc_max, idle_current_c=cfg.soe.idle_current_c,
+                             ocv=ocv, voltage_v=self.v_now, current_now_a=kw["current_now_a"], r_ss_ohm=r_ss,
+                             v_max=cfg.sop.v_max, end_current_c=cfg.soe.end_current_c, n_points=cfg.soe.n_points)
         ekf = getattr(est, "ekf", None)
         pq = getattr(ekf, "p", None)
         rel_sigma = np.sqrt(np.maximum(pq[:, 3, 3], 0.0)) if pq is not None and np.ndim(pq) == 3 and pq.shape[1] > 3 \
