@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from bms_estimator.core.soc import SocEstimator
+from bms_estimator.core.sox import SoxConfig
 from bms_estimator.ocv_table import read_ocv_table
 from bms_estimator.samples import sample_path
 
@@ -145,3 +146,15 @@ def test_time_to_full_follows_the_cv_taper_reaches_zero_and_stops_with_the_charg
     cv = slice(cc_end, stop)
     assert np.median(np.abs(ttf[cv] - left[cv])) < 0.15 * (stop - cc_end)
 
+
+def test_the_net_energy_delivered_restarts_at_the_end_of_a_cc_cv_charge():
+    """A CC-CV charge to C/20 ends at 98-99 % of the tables' scale; the net energy delivered restarted only at
+    ``full_soc`` (0.99), so a full charge whose SOC ended under it (here from 30 %, told 10 % low)
+    left the count at the charge's energy, negative, for good (SOC 0.977 at the stop, true 0.988: -8.2 Wh).
+    Now the end of the CV phase is full."""
+    out = {}
+    _, _, _, stop = _cccv_charge(0.3, told=0.2, out=out)
+    assert out["true_soc"] > 0.98
+    assert out["soc"][stop - 1] < SoxConfig().full_soc  # the case: the SOC alone does not say full
+    assert out["energy_delivered_wh"][stop - 1] == 0.0
+    assert out["energy_delivered_wh"][-1] == 0.0  # (at rest after it: nothing delivered since)
