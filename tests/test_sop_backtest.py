@@ -173,7 +173,7 @@ def _run(rec, ocv_curve, **kw):
 def test_a_logging_gap_is_rested_over_and_no_window_spans_it(tmp_path, nmc_like_ocv):
     """The estimator rests over the hour without samples, as the service does at a time jump, and reads the
     SOC from the OCV at the first sample after it: the hidden 10 % discharge is caught.  Fed the gap as
-    load_recording fills it (current held at zero, voltage interpolated), the SOC misses it."""
+    load_recording fills it (current held at zero, voltage interpolated), the SOC misses part of it."""
     rec, soc_at = _gap_recording(tmp_path, nmc_like_ocv)
     assert rec.dt_s == 1.0 and np.count_nonzero(rec.filled) == GAP_S  # the hole's bins, marked
     assert np.all(rec.filled[int(GAP_AT_S):int(GAP_AT_S + GAP_S)])
@@ -192,7 +192,11 @@ def test_a_logging_gap_is_rested_over_and_no_window_spans_it(tmp_path, nmc_like_
     truth = soc_at(rested.start_s[k_r])  # (the grid's time: the file starts at 0)
     assert truth == pytest.approx(1.0 - 0.1 - (0.5 + 1.0 + 2.0 + 1.0) * 10 / 3600, abs=1e-9)
     assert abs(rested.soc[k_r] - truth) < 0.01
-    assert fed.soc[k_f] - soc_at(fed.start_s[k_f]) > 0.03  # the hidden discharge missed
+    # fed the filled hole (zero current, the voltage interpolated across it), its hour of rest-level samples
+    # is read as a park with the gateway awake (core.soc, update) on a voltage nobody measured: 0.5 % off
+    # (6.1 % before that reading, the hidden discharge missed), resting over it 0.003 %
+    fed_err = fed.soc[k_f] - soc_at(fed.start_s[k_f])
+    assert abs(rested.soc[k_r] - truth) < abs(fed_err) < 0.03
     # before the gap the two runs are the same run
     pre = s < GAP_AT_S - 10.0
     np.testing.assert_array_equal(rested.v_pred[pre], fed.v_pred[: np.count_nonzero(pre)])

@@ -6,12 +6,18 @@ Per sample, after ``SocEstimator.update`` (reads only its public attributes: ``s
 
     RC voltages   x_j[k+1] = p_j x_j[k] + R_j (1 - p_j) i[k],  p_j = exp(-Ts/tau_j)   (identified R_j, tau_j)
     SOP           core.sop.sop_limits at the start of the next period (x_j[k+1], v[k] moved by it)
-    SOE           core.soe.energy_left_wh at SoeConfig.rate_c; time to empty/full at the mean
-                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m); these and the capacity SOH are
+    SOE           core.soe.energy_left_wh at SoeConfig.rate_c; time to empty at the mean
+                  current  i_m += (1 - exp(-Ts/tau_m)) (i - i_m), time to full of a CC-CV charge to
+                  v_max from the voltage and current now (core.soe); these and the capacity SOH are
                   recomputed every SoxConfig.slow_period_s (10 s) and held in between
     energy        E_dis += v i Ts / 3600 for i < 0 (Wh out, never decreasing), E_chg += v i Ts / 3600 for
                   i > 0 (Wh in, never decreasing; kept in the state, not an output); E_net (Wh out since
-                  the last full cell, soc >= full_soc) goes down again with charge
+                  the last full cell) goes down again with charge.  Full: soc >= full_soc, or the end of a
+                  CC-CV charge, 0 < i <= full_current_c Q_stated at v >= v_max - full_voltage_tol_v with the
+                  mean current i_m > 0 (such a
+                  charge ends at 98-99 % of the tables' scale, which the SOC alone, at 0.99, missed: on a
+                  synthetic Panasonic 18650PF charge from empty, told 10 % off at its start, the SOC ended at
+                  0.987-0.988 and E_net at -11.5 Wh, a net energy *received* since a full cell never seen)
     SOH           core.soh: capacity SOH (once justified) and resistance SOH at the reference point
                   (both on the slow cadence, the R0 reading counting for slow_period_s of samples)
     margin        b = v - OCV(s) - R0 i - sum_j x_j; rms_D^2 += a (b_k - b_{k-D/Ts})^2 - ...: the model's
@@ -75,6 +81,10 @@ class SoxConfig:
     soh: SohConfig = field(default_factory=SohConfig)
     residual: ResidualConfig = field(default_factory=ResidualConfig)  # the learnt R_D correction (core.sop_residual)
     full_soc: float = 0.99  # the net energy delivered restarts at this SOC
+    # ... and where a charge's CV phase ends: charging at v_max (within full_voltage_tol_v) at a current at or
+    # under full_current_c of the stated capacity (a CC-CV charger stops at C/20-C/10; module docstring, energy)
+    full_current_c: Annotated[float, Ge(0)] = 0.1
+    full_voltage_tol_v: Annotated[float, Ge(0)] = 0.01
     # energy left, time to empty/full and capacity SOH are recomputed every slow_period_s and held
     # in between (they move by well under 1 % in 10 s; the SOP and the energy counters run every sample)
     slow_period_s: Annotated[float, Ge(0)] = 10.0
@@ -100,6 +110,7 @@ class SoxEstimator:
         self.resistance = ResistanceSoh(self.n_cells, self.dt_s * self._slow_every, config.soh)
         self._ok = np.zeros(self.n_cells, dtype=bool)
         self.v_anchor = np.full(self.n_cells, np.nan)  # the voltage at the next period's start, at i_anchor
+        self.v_now = np.full(self.n_cells, np.nan)  # the last valid voltage (the time to full's anchor)
         self.i_anchor = np.zeros(self.n_cells)
         self.soc_anchor = np.full(self.n_cells, np.nan)
         self._x_prev = np.zeros((self.n_cells, 2))
@@ -242,6 +253,7 @@ class SoxEstimator:
         dx = self.x_v - x_prev
         v_next = v + dx[:, 0] + dx[:, 1]
         self.v_anchor = v_next if ok_all else np.where(ok, v_next, self.v_anchor)
+        self.v_now = v if ok_all else np.where(ok, v, self.v_now)
         self.i_anchor = i_use if ok_all else np.where(ok, i_use, self.i_anchor)
         # the SOC at the next period's start
         self.soc_anchor = soc + i_use * self.dt_s / (3600.0 * q)
@@ -251,7 +263,7 @@ class SoxEstimator:
             e = np.where(ok, e, 0.0)
         self.energy_discharged_wh += np.maximum(-e, 0.0)
         self.energy_charged_wh += np.maximum(e, 0.0)
-        self.energy_delivered_wh = np.where(soc >= self.config.full_soc, 0.0, self.energy_delivered_wh - e)
+        self.energy_delivered_wh = np.where(self._full(est, soc, i_use, v), 0.0, self.energy_delivered_wh - e)
         # OCV at the SOC now (the model error) and OCV and slope at the next period's start (the
         # SOP's, see _compute) in one table lookup
         z = np.empty((2, n))
@@ -262,6 +274,15 @@ class SoxEstimator:
         self._track_error(p, i_use, v, ok, ok_all, o[0])
         self.residual.sample(i_use if ok_all else np.where(ok, i_use, np.nan), v, o[0], soc, q, self._basis)
         self._ok = ok
+
+    def _full(self, est, soc, i_use, v) -> np.ndarray:
+        """The cells full now (the net energy delivered restarts): at or above ``full_soc``, or at the end of a
+        CC-CV charge (module docstring, energy).  (Inside :meth:`track`'s errstate: a NaN voltage is not full.)"""
+        cfg = self.config
+        q = np.asarray(getattr(est, "capacity_stated_ah", est.counting_capacity_ah), dtype=float)
+        at_cv_end = ((i_use > 0.0) & (i_use <= cfg.full_current_c * q) & (v >= cfg.sop.v_max - cfg.full_voltage_tol_v)
+                     & (self.mean_current_a > 0.0))  # (a charge: not a regen blip at the top of a drive)
+        return (soc >= cfg.full_soc) | at_cv_end
 
     def _track_error(self, p, i_use, v, ok, ok_all, ocv_soc) -> None:
         """b_k = v - OCV(s) - R0 i - sum x (x before this period's step); e = b_k - b_{k-n} per horizon.
@@ -500,7 +521,10 @@ class SoxEstimator:
         e_left, z_cut = energy_left_wh(soc, q, r_ss, ocv, v_min=cfg.sop.v_min, soc_min=cfg.sop.soc_min, config=cfg.soe,
                                        one_cell_sums=self._one_cell_groups)
         tte = time_to_empty_s(soc, z_cut, q, self.mean_current_a, idle_current_c=cfg.soe.idle_current_c)
-        ttf = time_to_full_s(soc, q, self.mean_current_a, soc_max=cfg.sop.soc_max, idle_current_c=cfg.soe.idle_current_c)
+        # a CC-CV charge to v_max from the cell's voltage and current now (core.soe)
+        ttf = time_to_full_s(soc, q, self.mean_current_a, soc_max=cfg.sop.soc_max, idle_current_c=cfg.soe.idle_current_c,
+                             ocv=ocv, voltage_v=self.v_now, current_now_a=kw["current_now_a"], r_ss_ohm=r_ss,
+                             v_max=cfg.sop.v_max, end_current_c=cfg.soe.end_current_c, n_points=cfg.soe.n_points)
         ekf = getattr(est, "ekf", None)
         pq = getattr(ekf, "p", None)
         rel_sigma = np.sqrt(np.maximum(pq[:, 3, 3], 0.0)) if pq is not None and np.ndim(pq) == 3 and pq.shape[1] > 3 \
