@@ -11,7 +11,7 @@ from ..core.identifier import METHODS
 from ..errors import UsageError
 from .common import (RECORDING_HELP, METHOD_HELP, add_c0_prior_option, add_cell_options, add_tuning_options, load, load_ocv,
                      non_negative_float, soc_config, warn_if_capacity_at_search_end, warn_if_nothing_identified,
-                     warn_if_start_is_not_initial_soc,
+                     warn_if_count_does_not_close, warn_if_start_is_not_initial_soc,
                      write_json)
 from .outputs import check_outputs, file_output, folder_output
 
@@ -57,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     ocv = load_ocv(args.ocv, tr, capacity_ah=args.capacity_ah)
     for rec in (tr, va):
         warn_if_start_is_not_initial_soc(rec, ocv, args)
+        warn_if_count_does_not_close(rec, ocv, args)
     window = (0.0, 1.0) if args.full_range else (args.soc_min, args.soc_max)
     if not 0.0 <= window[0] < window[1] <= 1.0:
         raise ValueError(f"SOC window {window} must satisfy 0 <= min < max <= 1")

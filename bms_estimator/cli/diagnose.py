@@ -16,7 +16,7 @@ from pathlib import Path
 from ..errors import DataError, UsageError
 from .outputs import check_outputs, file_output, folder_output
 from .common import (RECORDING_HELP, add_cell_options, add_method_option, load, load_ocv, positive_float,
-                     warn_if_start_is_not_initial_soc, write_json)
+                     warn_if_count_does_not_close, warn_if_start_is_not_initial_soc, write_json)
 
 
 def add_parser(sub) -> None:
@@ -82,11 +82,13 @@ def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     warn_if_start_is_not_initial_soc(rec, ocv, args)
+    warn_if_count_does_not_close(rec, ocv, args)
     data = _series(Series, rec, ocv, args, cfg, cross_validated=args.validate is None)
     val = None
     if args.validate is not None:
         rv = load(args.validate, args)
         warn_if_start_is_not_initial_soc(rv, ocv, args)
+        warn_if_count_does_not_close(rv, ocv, args)
         val = _series(Series, rv, ocv, args, cfg, cross_validated=False)
     d = diagnose(data, validate=val, config=cfg)
     if cfg.lif and not d.lif:  # (it left the report's LIF line out without a word)

@@ -12,7 +12,7 @@ from ..analysis import (
     simulate_with_params, soc_lookup_table,
 )
 from .common import (RECORDING_HELP, add_c0_prior_option, add_cell_options, add_method_option, add_tuning_options, load, load_ocv,
-                     soc_config, warn_if_capacity_at_search_end, warn_if_nothing_identified, warn_if_start_is_not_initial_soc,
+                     soc_config, warn_if_capacity_at_search_end, warn_if_nothing_identified, warn_if_count_does_not_close, warn_if_start_is_not_initial_soc,
                      write_json)
 from .outputs import check_outputs, figure_output, file_output
 
@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
     rec = load(args.data, args)
     ocv = load_ocv(args.ocv, rec, capacity_ah=args.capacity_ah)
     warn_if_start_is_not_initial_soc(rec, ocv, args)
+    warn_if_count_does_not_close(rec, ocv, args)
     ident = soc_config(args).identifier.with_(c0_prior_weight=args.c0_prior)
     dt = rec.dt_s
     q_eff, profile = output_error_capacity(rec.current_a, rec.voltage_v, ocv, args.capacity_ah, args.initial_soc, dt,
