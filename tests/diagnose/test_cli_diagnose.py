@@ -19,6 +19,8 @@ def test_diagnose_command_writes_json_and_report(tmp_path, capsys):
     assert {c["cause"] for c in d["candidates"]} == set(CAUSES)
     assert d["extended_rmse_mv"] <= d["baseline_rmse_mv"]
     assert d["lif"]["sim_rmse_mv"] > 0  # the LIF identification ran (warm start)
+    socd = next(c for c in d["candidates"] if c["cause"] == "soc_dependence")
+    assert socd["rmse_mv"] > 0 and not socd.get("note")  # a whole drive spans the SOC: fitted
     for f in ("report.md", "residual.png", "voltage.png", "candidates.png"):
         assert (rep / f).stat().st_size > 1000
     text = (rep / "report.md").read_text()
@@ -118,3 +120,23 @@ def test_a_warm_start_that_identified_nothing_is_said(tmp_path, capsys):
         assert ("the online lif run that warm-starts the baseline identified fewer than 10 of its 1099 samples"
                 in err) == said, err
         assert bool(json.loads(out.read_text())["lif"]) == (said is False and not extra)
+
+
+def test_soc_dependence_is_not_fitted_on_a_file_that_spans_too_little_soc(tmp_path, capsys):
+    """10 min of a drive (counted SOC 0.94..1.00): a resistance piecewise linear in SOC over 6 % of it is a drift
+    in time by another name, and was named the cause with a 76 % gain (temperature close behind). It is now said
+    not to apply, as temperature is on a file whose temperature does not move."""
+    from bms_estimator.data import CellRecording, load_recording, save_recording
+
+    r = load_recording(drive_cycle("lg-hg2", "la92"))
+    head = save_recording(CellRecording(r.time_s[:600], r.current_a[:600], r.voltage_v[:600], r.temperature_c[:600],
+                                        "head"), tmp_path / "head.csv")
+    out = tmp_path / "d.json"
+    assert main(["diagnose", str(head), "--ocv", str(ocv_table("lg-hg2")), "--capacity-ah", "3.0",
+                 "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    socd = next(c for c in d["candidates"] if c["cause"] == "soc_dependence")
+    assert socd["rmse_mv"] is None and not socd["significant"]
+    assert "counted SOC spans only 0.94..1.00" in socd["note"], socd
+    assert d["cause"] != "soc_dependence"
+    assert "soc_dependence" in capsys.readouterr().out  # listed, with why it was not fitted
