@@ -99,6 +99,7 @@ def one(job, capacity_mode: str = "nominal", soc_min: float = 0.1) -> dict:
         "t_mean_c": float(t.mean()) if t is not None else None,
         "candidates": {"capacity_error": (d.candidate("capacity_error").params or {}).get("capacity_ratio")},
         "r_low_over_mid": _r_low_over_mid(d.candidate("soc_dependence").params),
+        "non_physical": d.non_physical,
     }
 
 
@@ -149,10 +150,26 @@ def table(rows: list[dict]) -> str:
             cause += " ~ " + ", ".join(r["ties"])
         lines.append(
             f"| {r['cell']} | {r['ambient'].replace('n10', '-10')} | {r['test']} | {r['hours']:.1f} | {tr} | {cause} | "
-            f"{key_params(r['cause'], r['params'], r['capacity_ah'])} | "
+            f"{key_params(r['cause'], r['params'], r['capacity_ah'])}{_not_physical(r)} | "
             f"{r['baseline_rmse_mv']:.1f} | {r['extended_rmse_mv']:.1f} | {r['gain_pct']:.0f} | {also} |"
         )
     return "\n".join(lines)
+
+
+def _not_physical(r: dict) -> str:
+    """The named fit's values no cell has (diagnose's ``non_physical``), said beside its parameters."""
+    bad = r.get("non_physical") or []
+    return f"; **not physical**: {', '.join(b.split(' (')[0] for b in bad)}" if bad else ""
+
+
+def _not_physical_count(rows: list[dict]) -> str:
+    bad = [r for r in rows if r.get("non_physical")]
+    if not bad:
+        return ""
+    return (f" {len(bad)} of the {len(rows)} named fits hold a value no cell has (**not physical**: a resistance "
+            "below zero, a capacity at an end of its search): the unconstrained least squares lets a resistance go "
+            "negative to absorb what the model does not hold, so read those rows' parameters as that, not as the "
+            "cell's; their cause and gains stand as measured.")
 
 
 def counts(rows: list[dict]) -> str:
@@ -291,7 +308,7 @@ time blocks). Made by one command: `python scripts/findings_table.py` (about a m
 
 {tab}
 
-Summary: {counts(rows)}.
+Summary: {counts(rows)}.{_not_physical_count(rows)}
 
 "cause (then)": the named cause and, when two effects were fitted jointly and both
 earned their parameters, the smaller one; "~ X": candidates the named one does not
