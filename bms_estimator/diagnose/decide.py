@@ -75,7 +75,6 @@ Procedure (:func:`diagnose`):
 
 from __future__ import annotations
 
-import re
 import time
 from dataclasses import asdict, dataclass, field, replace
 from typing import Annotated
@@ -87,7 +86,7 @@ from ..analysis import run_identification, simulate_with_params
 from ..core.bounds import check_bounds
 from ..core.identifier import IdentifierConfig
 from ._blas import single_blas_thread
-from .extensions import BASELINE, CAPACITY_RATIO_BOUNDS, CAUSES, FEATURES, Fit, Model, Series, fit_model
+from .extensions import BASELINE, CAPACITY_RATIO_BOUNDS, CAUSES, FEATURES, RESISTANCE, Fit, Model, Series, fit_model
 
 __all__ = ["DiagnoseConfig", "Candidate", "Diagnosis", "diagnose", "fold_blocks", "scored_folds", "tau_int",
            "noise_level"]
@@ -199,8 +198,6 @@ class Diagnosis:
         }
 
 
-#: a resistance of the models (R0, R1, R2, R3, per SOC knot ``@k``, per direction), which no cell has below zero
-_RESISTANCE = re.compile(r"^r\d(_charge|_discharge)?_ohm(@\d+)?$")
 
 
 def non_physical(params: dict) -> list[str]:
@@ -209,7 +206,7 @@ def non_physical(params: dict) -> list[str]:
     file, whose count misses its discharge steps, R2 -18 mOhm at the full-SOC knot of the cycle_2 drive), a
     capacity ratio at an end of its search (the capacity is not what closes the count there)."""
     out = [f"{k} {v * 1e3:.1f} mOhm (a resistance below zero)" for k, v in params.items()
-           if _RESISTANCE.match(k) and isinstance(v, (int, float)) and v < 0]
+           if RESISTANCE.match(k) and isinstance(v, (int, float)) and v < 0]
     ratio = params.get("capacity_ratio")
     if isinstance(ratio, (int, float)) and not CAPACITY_RATIO_BOUNDS[0] * 1.001 < ratio < CAPACITY_RATIO_BOUNDS[1] * 0.999:
         out.append(f"capacity_ratio {ratio:.3g} (an end of its {CAPACITY_RATIO_BOUNDS[0]:g}..{CAPACITY_RATIO_BOUNDS[1]:g} "

@@ -80,9 +80,12 @@ constants) - the same definition the generator sizes its hidden effects with.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import solve_triangular
+from scipy.optimize import lsq_linear
 from scipy.signal import lfilter
 
 from ..core.arrhenius import KELVIN, R_GAS
@@ -669,21 +672,40 @@ class Fit:
 # --------------------------------------------------------------------------- fitting
 
 
-def _solve(xt: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Linear least squares ``y ~ xt.T @ beta``: equilibrated normal equations plus one refinement step.
+#: a resistance of the models (R0, R1, R2, R3, per SOC knot ``@k``, per direction), which no cell has below zero
+RESISTANCE = re.compile(r"^r\d(_charge|_discharge)?_ohm(@\d+)?$")
+
+
+def _solve(xt: np.ndarray, y: np.ndarray, nonneg: np.ndarray | None = None) -> np.ndarray:
+    """Linear least squares ``y ~ xt.T @ beta``: equilibrated normal equations plus one refinement step,
+    with ``beta[nonneg] >= 0`` (the resistances) where the free solution breaks it.
 
     ~100x faster than an SVD of the tall matrix for a dozen columns; the columns
     are scaled to unit norm, a pseudo-inverse of the small Gram matrix handles
     (near-)collinear columns, and one step of iterative refinement recovers the
-    accuracy the squared condition number costs.
+    accuracy the squared condition number costs.  Bounded: with ``G = L L^T`` (the
+    scaled Gram matrix, a ridge of 1e-12 of its trace) and ``h = xs y``,
+    ``|xs^T b - y|^2 = |L^T b - L^-1 h|^2 + const``, so the bounded problem is a
+    small one (columns x columns), solved by bounded-variable least squares.  Free,
+    a resistance went negative to absorb what the model does not hold (R2 -267 mOhm
+    at a SOC knot of the Panasonic 0 degC cycle_1 drive) and was reported as the cell's.
     """
     scale = np.sqrt(np.einsum("ij,ij->i", xt, xt))
     scale[scale == 0] = 1.0
     xs = xt / scale[:, None]
-    pinv = np.linalg.pinv(xs @ xs.T, rcond=1e-12, hermitian=True)
-    beta = pinv @ (xs @ y)
+    gram = xs @ xs.T
+    pinv = np.linalg.pinv(gram, rcond=1e-12, hermitian=True)
+    h = xs @ y
+    beta = pinv @ h
     beta += pinv @ (xs @ (y - beta @ xs))
-    return beta / scale
+    if nonneg is None or not np.any(beta[nonneg] < 0.0):
+        return beta / scale
+    n = gram.shape[0]
+    chol = np.linalg.cholesky(gram + 1e-12 * np.trace(gram) * np.eye(n))
+    z = solve_triangular(chol, h, lower=True)
+    lo = np.where(nonneg, 0.0, -np.inf)
+    bounded = lsq_linear(chol.T, z, bounds=(lo, np.full(n, np.inf)), method="bvls")
+    return bounded.x / scale
 
 
 def _levenberg_marquardt(fun, x0, lo, hi, max_iter: int, ftol: float = 1e-6, xtol: float = 1e-5,
@@ -766,11 +788,11 @@ def fit_model(
         return {sp.name: sp.from_x(float(v)) for sp, v in zip(specs, x)}
 
     def resid(x: np.ndarray) -> np.ndarray:
-        y, xt, _ = model.design(s, unpack(x), cfg)
+        y, xt, names = model.design(s, unpack(x), cfg)
         if rows is not None:
             y, xt = y[rows], xt[:, rows]
         nfev[0] += 1
-        return 1e3 * (y - _solve(xt, y) @ xt)  # mV: a well-scaled cost
+        return 1e3 * (y - _solve(xt, y, _resistances(names)) @ xt)  # mV: a well-scaled cost
 
     own = [sp for sp in specs if sp.name not in start]
     for sp in own:
@@ -794,14 +816,19 @@ def fit_model(
     th = unpack(x_best)
     y, xt, names = model.design(s, th, cfg)
     if rows is not None:
-        beta = _solve(xt[:, rows], y[rows])
+        beta = _solve(xt[:, rows], y[rows], _resistances(names))
         r = y[rows] - beta @ xt[:, rows]
     else:
-        beta = _solve(xt, y)
+        beta = _solve(xt, y, _resistances(names))
         r = y - beta @ xt
     extra = int(xt.shape[0] + len(specs) - 6)
     return Fit(model.name, th, dict(zip(names, (float(b) for b in beta))), cfg,
                float(1e3 * np.sqrt(np.mean(r * r))), extra, nfev[0])
+
+
+def _resistances(names: list[str]) -> np.ndarray:
+    """Which of the linear columns are resistances (held at or above zero by :func:`_solve`)."""
+    return np.array([RESISTANCE.match(n) is not None for n in names], dtype=bool)
 
 
 def predict(model: Model, s: Series, fit: Fit) -> np.ndarray:

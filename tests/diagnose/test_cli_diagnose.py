@@ -76,9 +76,11 @@ def test_a_logging_gap_the_loader_filled_is_simulated_through_not_scored(tmp_pat
 
 
 def test_a_fit_that_holds_a_negative_resistance_is_said_not_physical(tmp_path, capsys):
-    """The named extension's fit is a least-squares one: a resistance may come out below zero (R2 at the full-SOC
-    knot of the Panasonic cycle_2 drive; R2 -0.15 Ohm on an HPPC file whose count misses its discharge steps), and
-    the report listed it as the cell's parameter without a word. The cycle_1 drive's fit is all positive."""
+    """The named extension's fit was an unconstrained least-squares one: a resistance came out below zero (R2
+    -17.7 mOhm at the full-SOC knot of the Panasonic cycle_2 drive; R2 -0.15 Ohm on an HPPC file whose count misses
+    its discharge steps), and the report listed it as the cell's parameter without a word. The resistances are now
+    held at or above zero in the fit (cycle_2's R2 at that knot sits at 0), and what is still not physical (a
+    capacity ratio at an end of its search, a value of a saved fit) is said. The cycle_1 drive's fit is as before."""
     from bms_estimator.diagnose.decide import non_physical
 
     assert non_physical({"r0_ohm": 0.03, "r2_ohm@4": -0.0177, "k_nl_ohm": -0.01, "c0_v": -0.02}) == [
@@ -98,8 +100,9 @@ def test_a_fit_that_holds_a_negative_resistance_is_said_not_physical(tmp_path, c
         assert [p.split(" ")[0] for p in d["non_physical"]] == negative, (d["non_physical"], params)
         err, text = capsys.readouterr().err, (rep / "report.md").read_text()
         assert ("**Not physical:**" in text) == bool(negative) == ("a resistance below zero" in err), err
-        found[cycle] = negative
-    assert found["cycle_1"] == [] and found["cycle_2"] != []
+        found[cycle] = (negative, params)
+    assert found["cycle_1"][0] == [] and found["cycle_2"][0] == []
+    assert abs(found["cycle_2"][1]["r2_ohm@4"]) < 1e-9  # at the bound where the free fit had -17.7 mOhm
 
 
 def test_a_warm_start_that_identified_nothing_is_said(tmp_path, capsys):
