@@ -701,7 +701,14 @@ def _solve(xt: np.ndarray, y: np.ndarray, nonneg: np.ndarray | None = None) -> n
     if nonneg is None or not np.any(beta[nonneg] < 0.0):
         return beta / scale
     n = gram.shape[0]
-    chol = np.linalg.cholesky(gram + 1e-12 * np.trace(gram) * np.eye(n))
+    for ridge in (1e-12, 1e-9, 1e-6):  # (collinear columns: the smallest ridge that factors)
+        try:
+            chol = np.linalg.cholesky(gram + ridge * np.trace(gram) * np.eye(n))
+            break
+        except np.linalg.LinAlgError:
+            continue
+    else:
+        return beta / scale
     z = solve_triangular(chol, h, lower=True)
     lo = np.where(nonneg, 0.0, -np.inf)
     bounded = lsq_linear(chol.T, z, bounds=(lo, np.full(n, np.inf)), method="bvls")
