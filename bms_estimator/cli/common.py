@@ -344,6 +344,14 @@ def _soc_read(ocv: OcvSurface, v: float, temperature_c: float | None) -> float:
     return float(ocv.soc_from_ocv(v, temperature_c) if ok else ocv.soc_from_ocv(v))
 
 
+def _read_and_counted(rec: CellRecording, ocv: OcvSurface, args: argparse.Namespace, k: int) -> tuple[float, float]:
+    """At sample ``k`` (at rest): the SOC its voltage reads on the OCV table, and the SOC counted there from
+    ``--initial-soc`` with ``--capacity-ah``."""
+    counted = args.initial_soc + float(np.sum(rec.current_a[:k])) * rec.dt_s / 3600.0 / args.capacity_ah
+    t = None if rec.temperature_c is None else float(rec.temperature_c[k])
+    return _soc_read(ocv, float(rec.voltage_v[k]), t), counted
+
+
 #: A file that starts under load is checked at its first rest of at least this long ...
 FIRST_REST_S = 30.0
 #: ... ending within this of its start ...
@@ -368,8 +376,7 @@ def _warn_if_first_rest_is_not_counted_soc(rec: CellRecording, ocv: OcvSurface, 
     k = int(ends[np.argmax(long_enough)]) - 1  # the first long rest's last sample
     if (k + 1) * dt > FIRST_REST_WITHIN_S:
         return
-    counted = args.initial_soc + float(np.sum(rec.current_a[:k])) * dt / 3600.0 / cap
-    read = _soc_read(ocv, float(rec.voltage_v[k]), None if rec.temperature_c is None else float(rec.temperature_c[k]))
+    read, counted = _read_and_counted(rec, ocv, args, k)
     if abs(read - counted) > FIRST_REST_SOC_TOLERANCE:
         warnings.warn(f"{rec.source}: it starts under load, and at its first rest ({rec.time_s[k] - rec.time_s[0]:.0f} "
                       f"s in) its voltage {rec.voltage_v[k]:.3f} V reads SOC {read:.2f} on the --ocv table, where "
@@ -400,8 +407,7 @@ def warn_if_count_does_not_close(rec: CellRecording, ocv: OcvSurface, args: argp
     if n * rec.dt_s < END_REST_S or n == len(rest):
         return
     k = len(rest) - 1
-    counted = args.initial_soc + float(np.sum(rec.current_a[:k])) * rec.dt_s / 3600.0 / cap
-    read = _soc_read(ocv, float(rec.voltage_v[k]), None if rec.temperature_c is None else float(rec.temperature_c[k]))
+    read, counted = _read_and_counted(rec, ocv, args, k)
     if abs(read - counted) <= END_SOC_TOLERANCE:
         return
     gaps = int(np.count_nonzero(rec.filled)) if rec.filled is not None else 0
